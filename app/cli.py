@@ -1,0 +1,77 @@
+"""The ``realgap`` command line.
+
+Each module in :mod:`app.commands` is a command group: it defines ``NAME`` (the subcommand),
+``HELP`` (one line) and ``register(parser)`` which adds its own sub-subcommands and sets
+``func`` on them. Groups are discovered by name, so adding a group is one new file.
+
+Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1;
+Ctrl-C exits with 130 and leaves finished outputs in place.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from data_tools.errors import RealgapError
+
+
+def _command_modules():
+    import app.commands as pkg
+    mods = []
+    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"app.commands.{info.name}")
+        if hasattr(mod, "register") and hasattr(mod, "NAME"):
+            mods.append(mod)
+    return mods
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="realgap",
+        description="Bridge the realism gap between synthetic and real RGB-D data: simulate depth "
+                    "sensors, compare them with measurements, register and evaluate RGB-D sequences.")
+    parser.add_argument("--version", action="version", version=f"realgap {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for mod in _command_modules():
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=getattr(mod, "DESCRIPTION", mod.HELP))
+        mod.register(p)
+    return parser
+
+
+def _version() -> str:
+    try:
+        from importlib.metadata import version
+        return version("realgap")
+    except Exception:
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func = getattr(args, "func", None)
+    if func is None:
+        # a group without its subcommand: print that group's help
+        (getattr(args, "_group_parser", None) or parser).print_help()
+        return 1 if args.command else 0
+    try:
+        rc = func(args)
+    except RealgapError as e:
+        print(f"realgap: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("realgap: interrupted (finished outputs are kept; re-run to continue)", file=sys.stderr)
+        return 130
+    return int(rc or 0)
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

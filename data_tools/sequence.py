@@ -1,0 +1,325 @@
+"""Streaming reader and writer for RGB-D sequences in the TUM layout (+ camera.json, scene.json).
+
+Layout (../shared/FORMATS.md)::
+
+    SEQ/rgb.txt, depth.txt       "timestamp path" per line, '#' comments
+    SEQ/groundtruth.txt          optional, "timestamp tx ty tz qx qy qz qw" (camera-to-world)
+    SEQ/rgb/*.png|jpg            8-bit colour
+    SEQ/depth/*.png              16-bit, metres = value / depth_scale, 0 = no measurement
+    SEQ/camera.json, scene.json  optional extensions
+
+Frames are the depth images; each gets the nearest colour image and ground-truth pose within
+``max_dt`` (0.02 s, TUM's rule). Opening a sequence reads only the index files and checks that
+every listed file exists; images are decoded one frame at a time, so a 1000-frame sequence
+never sits in memory.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from data_tools.camera import Camera, read_camera_json, write_camera_json
+from data_tools.errors import FormatError, RealgapError
+from data_tools.scene_spec import SceneSpec, read_scene_json, write_scene_json
+from data_tools.trajectory import (DEFAULT_MAX_DT, Trajectory, associate, check_timestamps,
+                                   read_tum)
+
+MAX_DEPTH_M_WARN = 65535
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame."""
+
+    timestamp: float
+    """Seconds."""
+    depth: np.ndarray
+    """(H, W) float32 z-depth in metres, 0 = no measurement."""
+    rgb: np.ndarray | None = None
+    """(H, W, 3) uint8 RGB, or None."""
+    pose: np.ndarray | None = None
+    """(4, 4) float64 camera-to-world, or None when no ground truth is associated."""
+    index: int = 0
+    """Position of the frame in its sequence."""
+    extra: dict = field(default_factory=dict)
+    """Optional per-frame arrays (ideal depth, normals, instance ids, IR image...)."""
+
+
+def read_index(path: Path) -> tuple[np.ndarray, list[str]]:
+    """Parse rgb.txt/depth.txt: (timestamps (N,), relative paths); validates order."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except UnicodeDecodeError:
+        raise FormatError(path, "not a text file") from None
+    ts, files = [], []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.split("#", 1)[0].split()
+        if not s:
+            continue
+        if len(s) < 2:
+            raise FormatError(path, f"line {lineno}: expected 'timestamp path', got {line.strip()!r}")
+        try:
+            ts.append(float(s[0]))
+        except ValueError:
+            raise FormatError(path, f"line {lineno}: timestamp {s[0]!r} is not a number") from None
+        files.append(s[1])
+    ts = np.array(ts, dtype=np.float64)
+    check_timestamps(ts, path)
+    return ts, files
+
+
+def read_depth_png(path: str | os.PathLike, depth_scale: float,
+                   expected_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode a 16-bit depth PNG to float32 metres (0 = invalid); clear errors for bad files."""
+    import cv2
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(path, "depth image not found")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FormatError(path, "cannot decode image (corrupt or not an image)")
+    if img.ndim != 2:
+        raise FormatError(path, f"depth image must be single-channel, got {img.shape[2]} channels")
+    if img.dtype != np.uint16:
+        raise FormatError(path, f"depth image must be 16-bit, got {img.dtype} "
+                                f"(an 8-bit PNG cannot hold depth; check the depth scale/export)")
+    if expected_shape is not None and img.shape != tuple(expected_shape):
+        raise FormatError(path, f"depth image is {img.shape[1]}x{img.shape[0]}, camera says "
+                                f"{expected_shape[1]}x{expected_shape[0]}")
+    return (img.astype(np.float32) / np.float32(depth_scale))
+
+
+def read_rgb_image(path: str | os.PathLike, expected_shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode an 8-bit colour image to (H, W, 3) uint8 RGB."""
+    import cv2
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(path, "colour image not found")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FormatError(path, "cannot decode image (corrupt or not an image)")
+    if expected_shape is not None and img.shape[:2] != tuple(expected_shape):
+        raise FormatError(path, f"colour image is {img.shape[1]}x{img.shape[0]}, camera says "
+                                f"{expected_shape[1]}x{expected_shape[0]}")
+    return img[:, :, ::-1].copy()
+
+
+class SequenceReader:
+    """Lazy, indexable view of a TUM-layout sequence.
+
+    ``reader[i]`` decodes frame i; iterating streams frames. ``reader.trajectory`` holds the
+    ground-truth poses associated to the frames (entries without a pose are NaN in
+    ``reader.poses``).
+    """
+
+    def __init__(self, path: str | os.PathLike, max_dt: float = DEFAULT_MAX_DT,
+                 camera: Camera | None = None, check_files: bool = True):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise FormatError(self.path, "sequence folder not found")
+        self.max_dt = max_dt
+        cam_file = self.path / "camera.json"
+        if camera is not None:
+            self.camera = camera
+        elif cam_file.exists():
+            self.camera = read_camera_json(cam_file)
+        else:
+            self.camera = Camera.tum_default()
+        self.has_camera_json = cam_file.exists()
+        d_ts, d_files = read_index(self.path / "depth.txt")
+        if len(d_ts) == 0:
+            raise FormatError(self.path / "depth.txt", "no depth frames listed")
+        rgb_txt = self.path / "rgb.txt"
+        self.rgb_files: list[str | None]
+        if rgb_txt.exists():
+            r_ts, r_files = read_index(rgb_txt)
+            id_, ir = associate(d_ts, r_ts, max_dt)
+            if len(id_) == 0:
+                raise FormatError(rgb_txt, f"no colour timestamp lies within {max_dt} s of a depth timestamp")
+            d_ts = d_ts[id_]
+            d_files = [d_files[i] for i in id_]
+            self.rgb_files = [r_files[j] for j in ir]
+            self.rgb_timestamps = r_ts[ir]
+        else:
+            self.rgb_files = [None] * len(d_ts)
+            self.rgb_timestamps = np.full(len(d_ts), np.nan)
+        self.timestamps = d_ts
+        self.depth_files = d_files
+        self.poses = np.full((len(d_ts), 4, 4), np.nan)
+        gt = self.path / "groundtruth.txt"
+        self.has_groundtruth = gt.exists()
+        if self.has_groundtruth:
+            self.groundtruth = read_tum(gt)
+            ia, ib = associate(d_ts, self.groundtruth.timestamps, max_dt)
+            self.poses[ia] = self.groundtruth.poses[ib]
+        if check_files:
+            for rel in self.depth_files:
+                if not (self.path / rel).is_file():
+                    raise FormatError(self.path / "depth.txt", f"lists {rel!r}, which does not exist")
+            for rel in self.rgb_files:
+                if rel is not None and not (self.path / rel).is_file():
+                    raise FormatError(self.path / "rgb.txt", f"lists {rel!r}, which does not exist")
+        self._scene: SceneSpec | None = None
+
+    # ------------------------------------------------------------------ access
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def intrinsics(self):
+        return self.camera.intrinsics
+
+    @property
+    def has_scene(self) -> bool:
+        return (self.path / "scene.json").exists()
+
+    @property
+    def scene(self) -> SceneSpec:
+        """The reference geometry (scene.json), loaded and validated on first use."""
+        if self._scene is None:
+            if not self.has_scene:
+                raise FormatError(self.path, "sequence has no scene.json (reference geometry)")
+            self._scene = read_scene_json(self.path / "scene.json")
+        return self._scene
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """Ground-truth poses of the frames that have one."""
+        ok = np.all(np.isfinite(self.poses.reshape(len(self), -1)), axis=1)
+        if not ok.any():
+            raise FormatError(self.path, "sequence has no ground-truth poses associated to its frames")
+        return Trajectory(self.timestamps[ok], self.poses[ok])
+
+    def read_depth(self, i: int) -> np.ndarray:
+        return read_depth_png(self.path / self.depth_files[i], self.camera.depth_scale,
+                              self.intrinsics.shape)
+
+    def read_rgb(self, i: int) -> np.ndarray | None:
+        rel = self.rgb_files[i]
+        return None if rel is None else read_rgb_image(self.path / rel)
+
+    def __getitem__(self, i: int) -> Frame:
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        pose = self.poses[i]
+        return Frame(float(self.timestamps[i]), self.read_depth(i), self.read_rgb(i),
+                     pose.copy() if np.all(np.isfinite(pose)) else None, i)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+
+def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Metres -> uint16 PNG values; NaN, <= 0 and values beyond the uint16 range become 0."""
+    d = np.asarray(depth_m, dtype=np.float64) * depth_scale
+    d = np.where(np.isfinite(d), np.rint(d), 0.0)
+    d[(d <= 0) | (d > 65535)] = 0
+    return d.astype(np.uint16)
+
+
+class SequenceWriter:
+    """Write a TUM-layout sequence frame by frame.
+
+    Index files are appended and flushed after every frame, so an interrupted job keeps every
+    frame it finished; ``resume=True`` reopens such a sequence and reports how many frames
+    are already there (``len(writer)``) so the caller can skip them.
+    """
+
+    def __init__(self, path: str | os.PathLike, camera: Camera, scene: SceneSpec | None = None,
+                 rgb_ext: str = "png", resume: bool = False, overwrite: bool = False):
+        self.path = Path(path)
+        self.camera = camera
+        self.rgb_ext = rgb_ext
+        exists = (self.path / "depth.txt").exists()
+        if exists and not (resume or overwrite):
+            raise RealgapError(f"{self.path}: already holds a sequence (use --overwrite or --resume)")
+        if exists and overwrite:
+            for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+                (self.path / name).unlink(missing_ok=True)
+            exists = False
+        (self.path / "rgb").mkdir(parents=True, exist_ok=True)
+        (self.path / "depth").mkdir(parents=True, exist_ok=True)
+        self._timestamps: list[float] = []
+        if exists and resume:
+            d_ts, _ = read_index(self.path / "depth.txt")
+            self._timestamps = list(d_ts)
+            self._truncate_to_complete()
+        else:
+            for name, head in (("rgb.txt", "rgb"), ("depth.txt", "depth")):
+                (self.path / name).write_text(f"# {head} images\n# timestamp filename\n")
+        write_camera_json(self.path / "camera.json", camera)
+        if scene is not None:
+            write_scene_json(self.path, scene)
+        self._gt_path = self.path / "groundtruth.txt"
+
+    def _truncate_to_complete(self) -> None:
+        """After an interruption rgb.txt/groundtruth.txt may hold one entry more than depth.txt
+        (they are written first): drop entries after the last complete frame."""
+        last = self._timestamps[-1] if self._timestamps else -np.inf
+        for name in ("rgb.txt", "groundtruth.txt"):
+            p = self.path / name
+            if not p.exists():
+                continue
+            keep = []
+            for line in p.read_text().splitlines():
+                s = line.split("#", 1)[0].split()
+                if not s or float(s[0]) <= last + 1e-9:
+                    keep.append(line)
+            p.write_text("\n".join(keep) + "\n")
+
+    def __len__(self) -> int:
+        return len(self._timestamps)
+
+    def __enter__(self) -> "SequenceWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def write(self, frame: Frame) -> None:
+        """Append one frame (images first, then index lines, so the index never lists a missing file)."""
+        import cv2
+        t = float(frame.timestamp)
+        if self._timestamps and t <= self._timestamps[-1]:
+            raise RealgapError(f"{self.path}: frame timestamp {t:.6f} is not after the previous one "
+                               f"({self._timestamps[-1]:.6f})")
+        h, w = self.camera.intrinsics.shape
+        if frame.depth.shape != (h, w):
+            raise RealgapError(f"{self.path}: frame depth is {frame.depth.shape}, camera is {(h, w)}")
+        name = f"{t:.6f}"
+        depth_rel = f"depth/{name}.png"
+        if not cv2.imwrite(str(self.path / depth_rel), encode_depth(frame.depth, self.camera.depth_scale)):
+            raise RealgapError(f"{self.path / depth_rel}: cannot write image")
+        rgb_rel = None
+        if frame.rgb is not None:
+            rgb_rel = f"rgb/{name}.{self.rgb_ext}"
+            if not cv2.imwrite(str(self.path / rgb_rel), np.ascontiguousarray(frame.rgb[:, :, ::-1])):
+                raise RealgapError(f"{self.path / rgb_rel}: cannot write image")
+        if frame.pose is not None:
+            from data_tools.geometry import pose_to_tum
+            if not np.all(np.isfinite(frame.pose)):
+                raise RealgapError(f"{self.path}: frame {t:.6f} has a NaN pose")
+            row = pose_to_tum(frame.pose)
+            if not self._gt_path.exists():
+                self._gt_path.write_text("# ground truth trajectory (camera-to-world)\n# timestamp tx ty tz qx qy qz qw\n")
+            with open(self._gt_path, "a") as f:
+                f.write(f"{name} " + " ".join(f"{x:.9g}" for x in row) + "\n")
+        if rgb_rel is not None:
+            with open(self.path / "rgb.txt", "a") as f:
+                f.write(f"{name} {rgb_rel}\n")
+        with open(self.path / "depth.txt", "a") as f:
+            f.write(f"{name} {depth_rel}\n")
+        self._timestamps.append(t)
+
+    def close(self) -> None:
+        pass
+

@@ -1,0 +1,1 @@
+"""realgap slam package."""
