@@ -135,10 +135,14 @@ class SequenceReader:
         d_ts, d_files = read_index(self.path / "depth.txt")
         if len(d_ts) == 0:
             raise FormatError(self.path / "depth.txt", "no depth frames listed")
+        if check_files:
+            self._check_listed(self.path / "depth.txt", d_files)
         rgb_txt = self.path / "rgb.txt"
         self.rgb_files: list[str | None]
         if rgb_txt.exists():
             r_ts, r_files = read_index(rgb_txt)
+            if check_files:
+                self._check_listed(rgb_txt, r_files)
             id_, ir = associate(d_ts, r_ts, max_dt)
             if len(id_) == 0:
                 raise FormatError(rgb_txt, f"no colour timestamp lies within {max_dt} s of a depth timestamp")
@@ -158,14 +162,12 @@ class SequenceReader:
             self.groundtruth = read_tum(gt)
             ia, ib = associate(d_ts, self.groundtruth.timestamps, max_dt)
             self.poses[ia] = self.groundtruth.poses[ib]
-        if check_files:
-            for rel in self.depth_files:
-                if not (self.path / rel).is_file():
-                    raise FormatError(self.path / "depth.txt", f"lists {rel!r}, which does not exist")
-            for rel in self.rgb_files:
-                if rel is not None and not (self.path / rel).is_file():
-                    raise FormatError(self.path / "rgb.txt", f"lists {rel!r}, which does not exist")
         self._scene: SceneSpec | None = None
+
+    def _check_listed(self, index_file: Path, files: list[str]) -> None:
+        for rel in files:
+            if not (self.path / rel).is_file():
+                raise FormatError(index_file, f"lists {rel!r}, which does not exist")
 
     # ------------------------------------------------------------------ access
     def __len__(self) -> int:

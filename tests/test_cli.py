@@ -1,0 +1,46 @@
+"""The CLI: help for every group, one-line errors with exit code 1 through the real entry point."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from app.cli import build_parser, main
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "app", *args], capture_output=True, text=True,
+                          cwd=cwd or REPO, timeout=120)
+
+
+def test_help_lists_subcommands_and_each_has_help(capsys):
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert {"data"} <= set(sub.choices)
+    for name, p in sub.choices.items():
+        with pytest.raises(SystemExit) as e:
+            main([name, "--help"])
+        assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert "convert-7scenes" in out
+
+
+def test_bad_input_is_one_line_exit_1(tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    r = _run("data", "convert-7scenes", str(src), str(tmp_path / "dst"))
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(src) in lines[0] and "Traceback" not in r.stderr
+
+
+def test_corrupt_sequence_is_one_line(tmp_path):
+    seq = tmp_path / "seq"
+    (seq / "depth").mkdir(parents=True)
+    (seq / "depth.txt").write_text("1.0 depth/a.png\n0.5 depth/b.png\n")
+    r = _run("data", "info", str(seq))
+    assert r.returncode == 1 and "not sorted" in r.stderr and len(r.stderr.strip().splitlines()) == 1
