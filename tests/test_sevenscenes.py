@@ -94,3 +94,22 @@ def test_convert_real_chess(tmp_path):
     assert np.abs(f.pose[:3, :3] - raw_T[:3, :3]).max() < 5e-4
     # streaming: the reader holds paths, not images
     assert not hasattr(seq, "_cache")
+
+
+@pytest.mark.shared_data
+def test_reading_1000_frames_streams(tmp_path):
+    """Iterating the 1000 converted chess frames keeps at most a few frames alive
+    (holding them all would need ~2 GB: 1000 x (1.2 MB depth + 0.9 MB colour))."""
+    import tracemalloc
+    src = shared_path("sevenscenes_chess_1000")
+    convert_7scenes(src, tmp_path / "chess", progress=False)
+    seq = SequenceReader(tmp_path / "chess")
+    tracemalloc.start()
+    n, total = 0, 0.0
+    for f in seq:
+        n += 1
+        total += float(f.depth[240, 320])
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert n == 1000 and total > 0
+    assert peak < 30e6, f"peak traced memory {peak / 1e6:.1f} MB while streaming"
