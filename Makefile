@@ -16,6 +16,7 @@ setup: sysdeps $(STAMP)
 # System libraries Open3D needs (USB for sensors, GL/EGL for rendering, OpenMP).
 sysdeps:
 	@missing=""; for p in $(APT_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	$(PY) -c "import ensurepip, venv" >/dev/null 2>&1 || missing="$$missing python3-venv"; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" != 0 ] && SUDO=sudo; \
@@ -24,9 +25,11 @@ sysdeps:
 
 $(STAMP): pyproject.toml
 	@test -x $(VPY) || $(PY) -m venv $(VENV)
-	$(VPY) -m pip install -q --upgrade pip
-	$(VPY) -m pip install -q "torch==2.13.0"
-	$(VPY) -m pip install -q -e ".[dev]"
+	@echo "installing Python dependencies into $(VENV) (first run only)"
+	@set -o pipefail; { $(VPY) -m pip install -q --upgrade pip && \
+	  $(VPY) -m pip install -q "torch==2.13.0" && \
+	  $(VPY) -m pip install -q -e ".[dev]"; } 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
+	@$(VPY) -c "import open3d, torch, cv2, trimesh, app.cli" || { echo "Python dependencies failed to install"; exit 1; }
 	@touch $(STAMP)
 
 demo: setup
