@@ -1,0 +1,53 @@
+"""``realgap batch``: run several backends on several sequences and write a comparison report."""
+from __future__ import annotations
+
+import argparse
+
+from data_tools.errors import ConfigError
+
+NAME = "batch"
+HELP = "run SLAM backends on several sequences; REPORT/index.html + results.json"
+DESCRIPTION = ("Run every --backends entry on every sequence (jobs in a local process pool or on a "
+               "Ray cluster), score each run against the sequence's ground truth (ATE rmse, APE "
+               "median, RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
+               "backend table, one page per sequence) and REPORT/results.json. Runs go to "
+               "REPORT/runs/<sequence>/<backend>; re-running resumes unfinished runs.")
+
+
+def _run(args) -> int:
+    from app.commands.slam import _camera, config_from_args
+    from slam.batch import run_batch
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if not backends:
+        raise ConfigError("--backends: give at least one backend, e.g. icp,rgbd_odometry")
+    configs = {b: config_from_args(args, b) for b in backends}
+    rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
+                    executor=args.executor, workers=args.workers, progress=not args.no_progress)
+    width = max(len(r["name"]) for r in rep.results)
+    print(f"{'sequence':<{width}}  {'backend':<14} {'ATE cm':>7} {'APE med cm':>10} {'fps':>6}  failed")
+    for r in rep.results:
+        if r["ok"]:
+            ate = f"{r['ate_rmse_m'] * 100:7.2f}" if r["ate_rmse_m"] is not None else f"{'-':>7}"
+            ape = f"{r['ape_median_m'] * 100:10.2f}" if r["ape_median_m"] is not None else f"{'-':>10}"
+            fps = f"{r['frames_per_second']:6.1f}" if r["frames_per_second"] else f"{'-':>6}"
+            print(f"{r['name']:<{width}}  {r['backend']:<14} {ate} {ape} {fps}  {r['frames_failed']}/{r['frames']}")
+        else:
+            print(f"{r['name']:<{width}}  {r['backend']:<14} error: {(r['error'] or '').splitlines()[0]}")
+    print(f"report: {rep.out / 'index.html'}")
+    return 0 if all(r["ok"] for r in rep.results) else 1
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    from app.commands.slam import add_config_arguments
+    from slam.batch import EXECUTORS
+    parser.add_argument("sequences", nargs="+", metavar="SEQ", help="TUM-layout sequence folders")
+    parser.add_argument("--backends", default="icp,rgbd_odometry",
+                        help="comma-separated backends (default: icp,rgbd_odometry)")
+    parser.add_argument("--out", required=True, metavar="REPORT", help="report folder")
+    parser.add_argument("--executor", default="local", choices=sorted(EXECUTORS),
+                        help="local: process pool on this machine; ray: Ray tasks (ray.init(), "
+                             "RAY_ADDRESS for a cluster; needs the optional package ray)")
+    parser.add_argument("--workers", type=int, default=0, help="parallel jobs (default: CPU count)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_arguments(parser)
+    parser.set_defaults(func=_run)

@@ -1,0 +1,191 @@
+"""``realgap slam``: register an RGB-D sequence (run) and render novel views of the result (render)."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import typing
+from pathlib import Path
+
+from data_tools.camera import read_camera_json
+from data_tools.errors import ConfigError, RealgapError
+
+NAME = "slam"
+HELP = "RGB-D registration + TSDF fusion (run) and novel-view rendering (render)"
+DESCRIPTION = ("Register every frame of an RGB-D sequence with a backend (icp: frame-to-model ICP "
+               "against the TSDF, rgbd_odometry: frame-to-frame hybrid RGB-D odometry, colmap: "
+               "offline RGB structure-from-motion), fuse the frames into a TSDF and write a RUN "
+               "folder (trajectory.txt, stats.json, config.json, mesh.ply). Re-running a "
+               "command continues an interrupted run.")
+
+
+# --------------------------------------------------------------------------------------------
+# configuration flags generated from the config dataclasses
+
+
+def _type_name(tp) -> str:
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        return "LIST"
+    return {int: "INT", float: "FLOAT", bool: "BOOL", str: "STR"}.get(tp, "VALUE")
+
+
+def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) -> None:
+    import dataclasses
+    from slam.registration import field_docs
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+    inst = cls()
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp) or tp is typing.Any or f.name in exclude:
+            continue
+        default = getattr(inst, f.name)
+        if isinstance(default, tuple):
+            default = ",".join(str(x) for x in default)
+        help_text = docs.get(f.name, "").replace("%", "%%") + f" (default: {default})"
+        names = [f"--{prefix}{f.name}"]
+        if "_" in f.name:
+            names.append(f"--{prefix}{f.name.replace('_', '-')}")
+        group.add_argument(*names, dest=f"cfg:{dest_prefix}{f.name}", metavar=_type_name(tp),
+                           default=argparse.SUPPRESS, help=help_text)
+
+
+def add_config_arguments(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``slam run`` and ``batch``: preset, config file, and one flag per
+    configuration field (``--tsdf.voxel_size_m``, ``--icp.min_fitness``, ...)."""
+    from slam.pipeline import PRESETS, SlamConfig
+    from slam.registration import backend_names, get_backend
+    from slam.tsdf import TSDFConfig
+    p.add_argument("--preset", default="default", choices=sorted(PRESETS),
+                   help="named configuration preset (default: default)")
+    p.add_argument("--config", metavar="JSON", help="full configuration (a RUN/config.json, or its "
+                   "'config' object); flags below override it")
+    p.add_argument("--camera", metavar="JSON", help="camera.json to use instead of the sequence's "
+                   "own (e.g. TUM fr1 intrinsics)")
+    g = p.add_argument_group("run options")
+    _add_fields(g, SlamConfig, "", "", exclude=("backend",))
+    g = p.add_argument_group("TSDF options (--tsdf.NAME VALUE)")
+    _add_fields(g, TSDFConfig, "tsdf.", "tsdf.")
+    for name in backend_names():
+        try:
+            cls = get_backend(name).Config
+        except Exception:  # a backend whose module cannot load does not break the CLI
+            continue
+        g = p.add_argument_group(f"{name} backend options (--{name}.NAME VALUE)")
+        _add_fields(g, cls, f"{name}.", f"{name}.")
+
+
+def config_from_args(args, backend: str):
+    """SlamConfig from --config/--preset and the generated flags (values checked and typed)."""
+    import dataclasses
+    from slam.pipeline import SlamConfig, make_config
+    from slam.registration import backend_names, get_backend, parse_value
+    from slam.tsdf import TSDFConfig
+    base = None
+    if getattr(args, "config", None):
+        path = Path(args.config)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise RealgapError(f"{path}: file not found") from None
+        except json.JSONDecodeError as e:
+            raise RealgapError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        base = data.get("config", data) if isinstance(data, dict) else data
+    overrides = {}
+    backends = set(backend_names())
+    for key, raw in vars(args).items():
+        if not key.startswith("cfg:"):
+            continue
+        dotted = key[4:]
+        section, _, name = dotted.rpartition(".")
+        if section in backends:
+            if section != backend:
+                raise ConfigError(f"--{dotted} is an option of backend {section}, not of {backend}")
+            cls = get_backend(section).Config
+            target = f"backend_config.{name}"
+        elif section == "tsdf":
+            cls, target = TSDFConfig, dotted
+        else:
+            cls, target = SlamConfig, dotted
+        hints = typing.get_type_hints(cls)
+        if name not in {f.name for f in dataclasses.fields(cls)}:
+            raise ConfigError(f"unknown option --{dotted}")
+        overrides[target] = parse_value(raw, hints[name])
+    return make_config(backend, args.preset, overrides, base)
+
+
+def _camera(args):
+    return read_camera_json(args.camera) if getattr(args, "camera", None) else None
+
+
+# --------------------------------------------------------------------------------------------
+# commands
+
+
+def _run(args) -> int:
+    from slam.pipeline import run_slam
+    cfg = config_from_args(args, args.backend)
+    res = run_slam(args.sequence, args.out, cfg, camera=_camera(args), overwrite=args.overwrite,
+                   progress=not args.no_progress)
+    s = res.stats
+    fps = s.get("frames_per_second")
+    print(f"{res.run_dir}: {s.get('frames_tracked', 0)}/{s.get('frames', 0)} frames registered with "
+          f"{s.get('backend')}, {s.get('frames_failed', 0)} failed"
+          + (f", {fps:.1f} frames/s" if fps else ""))
+    if s.get("frames_failed"):
+        bad = [r for r in s.get("per_frame", []) if r.get("failed")][:5]
+        for r in bad:
+            print(f"  failed t={r['timestamp']:.6f}: {r.get('reason', '')}", file=sys.stderr)
+    return 0
+
+
+def _render(args) -> int:
+    from data_tools.trajectory import read_tum
+    from slam.render import parse_pose, render_run, save_view
+    run = Path(args.run)
+    if args.pose is not None:
+        pose = parse_pose(args.pose)
+    else:
+        traj = read_tum(run / "trajectory.txt")
+        if not -len(traj) <= args.frame < len(traj):
+            raise RealgapError(f"--frame {args.frame}: the trajectory has {len(traj)} poses")
+        pose = traj.poses[args.frame]
+    view = render_run(run, pose, scale=args.scale, source=args.source)
+    depth_scale = read_camera_json(run / "camera.json").depth_scale
+    paths = save_view(view, args.out, depth_scale)
+    print(f"{paths['colour']}: colour; {paths['depth']}: depth (x{depth_scale:g} per metre); "
+          f"{view.coverage:.1%} of the pixels see the model (unobserved = magenta)")
+    return 0
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    from app.commands import add_group
+    from slam.registration import backend_names
+    sub = add_group(parser)
+    p = sub.add_parser("run", help="register a sequence, fuse it, write RUN/",
+                       description="Register every frame of SEQ, fuse them into a TSDF and write RUN/"
+                                   "{trajectory.txt,stats.json,config.json,camera.json,mesh.ply}. "
+                                   "Re-running the same command resumes an interrupted run.")
+    p.add_argument("sequence", metavar="SEQ", help="TUM-layout sequence folder")
+    p.add_argument("--backend", default="icp", choices=backend_names(), help="registration backend (default: icp)")
+    p.add_argument("--out", required=True, metavar="RUN", help="output run folder")
+    p.add_argument("--overwrite", action="store_true", help="discard an existing run in RUN")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_config_arguments(p)
+    p.set_defaults(func=_run)
+
+    p = sub.add_parser("render", help="render colour + depth of the fused model from a pose",
+                       description="Render the reconstruction in RUN from any camera pose (novel view) "
+                                   "with the run's camera. Writes PNG (colour, unobserved pixels "
+                                   "magenta), PNG stem + _depth.png (16-bit, camera depth scale) and "
+                                   "stem + .json.")
+    p.add_argument("run", metavar="RUN", help="run folder written by 'realgap slam run'")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--pose", metavar='"tx ty tz qx qy qz qw"', help="camera-to-world pose (TUM order)")
+    g.add_argument("--frame", type=int, metavar="K", help="use the K-th pose of RUN/trajectory.txt")
+    p.add_argument("--out", required=True, metavar="PNG", help="output colour image (.png)")
+    p.add_argument("--scale", type=float, default=1.0, help="image size relative to the run's camera (default 1)")
+    p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume"),
+                   help="render the mesh or the saved TSDF volume (auto: volume when saved)")
+    p.set_defaults(func=_render)

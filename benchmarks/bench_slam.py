@@ -1,0 +1,241 @@
+"""Benchmark: accuracy (ATE) and speed (frames/s) of the SLAM backends on real data, next to
+Open3D's own pipelines measured in the same run.
+
+    .venv/bin/python benchmarks/bench_slam.py [--frames 1000] [--datasets chess,tum] [--work DIR]
+
+Datasets (from ../shared/data; skipped when absent):
+  chess : 7-Scenes chess, 1000 frames 640x480 (converted once to TUM layout in --work with
+          data_tools.sevenscenes), reference = KinectFusion poses.      Target: icp ATE <= 3 cm
+  tum   : TUM fr1/xyz, 10 frames, fr1 intrinsics (517.3, 516.5, 318.6, 255.3), mocap reference.
+                                                                        Target: icp ATE <= 1.5 cm
+Methods:
+  icp            ours, frame-to-model ICP + TSDF (realgap slam run --backend icp)
+  icp_refine     the same with --icp.refine_model true (sub-voxel model refinement)
+  rgbd_odometry  ours, frame-to-frame hybrid RGB-D odometry + TSDF fusion
+  o3d_odometry   Open3D's plain frame-to-frame odometry: rgbd_odometry_multi_scale with its
+                 defaults (hybrid, iterations 10/5/3), no fusion (speed baseline)
+  o3d_odometry_tsdf  the same plus fusion into our TSDF (like-for-like with rgbd_odometry)
+  o3d_dense_slam Open3D's dense SLAM (t.pipelines.slam.Model: track_frame_to_model +
+                 integrate + synthesize_model_frame), same voxel size and depth range as ours
+Speed targets on this 2-core CPU: rgbd_odometry + TSDF >= 10 frames/s, icp >= 5 frames/s.
+frames/s counts reading the images, registering and fusing (what ``slam run`` reports). The
+machine may be shared: the load average is printed before and after.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+SHARED = Path(os.environ.get("REALGAP_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+def _datasets(work: Path, names: list[str]):
+    from data_tools.camera import Camera, Intrinsics
+    out = []
+    if "chess" in names:
+        src = SHARED / "sevenscenes_chess_1000"
+        if src.is_dir():
+            from data_tools.sevenscenes import convert_7scenes
+            dst = work / "chess"
+            if not (dst / "depth.txt").is_file() or len((dst / "depth.txt").read_text().splitlines()) < 1000:
+                convert_7scenes(src, dst, progress=False)
+            out.append(("chess", dst, None, 0.03))
+        else:
+            print(f"skip chess: {src} not found")
+    if "tum" in names:
+        src = SHARED / "tum_fr1_xyz_10"
+        if src.is_dir():
+            cam = Camera(Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3), 5000.0)
+            out.append(("tum", src, cam, 0.015))
+        else:
+            print(f"skip tum: {src} not found")
+    return out
+
+
+def _ate(reader, traj):
+    from slam.metrics import ate
+    return ate(reader.trajectory, traj).stats["rmse"]
+
+
+def run_ours(backend, seq, cam, work, frames, cfg_over):
+    from data_tools.sequence import SequenceReader
+    from slam.pipeline import make_config, run_slam
+    cfg = make_config(backend, "default", dict(cfg_over, max_frames=frames))
+    tag = "_refine" if cfg_over else ""
+    res = run_slam(seq, work / "runs" / f"{Path(seq).name}_{backend}{tag}", cfg, camera=cam,
+                   overwrite=True, progress=False)
+    reader = SequenceReader(seq, camera=cam)
+    return {"ate": _ate(reader, res.trajectory), "fps": res.frames_per_second,
+            "failed": res.stats["frames_failed"], "frames": res.stats["frames"],
+            "ms": res.stats["timing_ms_per_frame"]}
+
+
+def _o3d_images(frame):
+    import open3d as o3d
+    depth = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.depth, np.float32)))
+    color = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(frame.rgb)))
+    return depth, color
+
+
+def run_o3d_odometry(seq, cam, frames):
+    """Open3D's frame-to-frame RGB-D odometry with its defaults (timing includes image reading)."""
+    import open3d as o3d
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import Trajectory
+    od = o3d.t.pipelines.odometry
+    reader = SequenceReader(seq, camera=cam)
+    n = min(frames, len(reader)) if frames else len(reader)
+    K = o3d.core.Tensor(reader.intrinsics.K)
+    poses, ts = [np.eye(4)], [reader.timestamps[0]]
+    t0 = time.perf_counter()
+    d, c = _o3d_images(reader[0])
+    prev = o3d.t.geometry.RGBDImage(c, d)
+    for i in range(1, n):
+        d, c = _o3d_images(reader[i])
+        cur = o3d.t.geometry.RGBDImage(c, d)
+        r = od.rgbd_odometry_multi_scale(cur, prev, K, o3d.core.Tensor(np.eye(4)), 1.0, 4.0)
+        poses.append(poses[-1] @ r.transformation.numpy())
+        ts.append(reader.timestamps[i])
+        prev = cur
+    dt = time.perf_counter() - t0
+    return {"ate": _ate(reader, Trajectory(ts, poses)), "fps": n / dt, "failed": 0, "frames": n}
+
+
+def run_o3d_odometry_tsdf(seq, cam, frames):
+    """Open3D's default odometry chained as above, plus fusion into our TSDF volume (the same
+    fusion as ours): the like-for-like speed baseline of ``rgbd_odometry``."""
+    import open3d as o3d
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import Trajectory
+    from slam.tsdf import TSDFConfig, TSDFVolume
+    od = o3d.t.pipelines.odometry
+    reader = SequenceReader(seq, camera=cam)
+    n = min(frames, len(reader)) if frames else len(reader)
+    K = o3d.core.Tensor(reader.intrinsics.K)
+    vol = TSDFVolume(TSDFConfig())
+    poses, ts = [np.eye(4)], [reader.timestamps[0]]
+    t0 = time.perf_counter()
+    f = reader[0]
+    vol.integrate(f.depth, f.rgb, reader.intrinsics, poses[0])
+    d, c = _o3d_images(f)
+    prev = o3d.t.geometry.RGBDImage(c, d)
+    for i in range(1, n):
+        f = reader[i]
+        d, c = _o3d_images(f)
+        cur = o3d.t.geometry.RGBDImage(c, d)
+        r = od.rgbd_odometry_multi_scale(cur, prev, K, o3d.core.Tensor(np.eye(4)), 1.0, 4.0)
+        poses.append(poses[-1] @ r.transformation.numpy())
+        ts.append(reader.timestamps[i])
+        vol.integrate(f.depth, f.rgb, reader.intrinsics, poses[-1])
+        prev = cur
+    dt = time.perf_counter() - t0
+    return {"ate": _ate(reader, Trajectory(ts, poses)), "fps": n / dt, "failed": 0, "frames": n}
+
+
+def run_o3d_dense_slam(seq, cam, frames, voxel=0.01, depth_max=4.0):
+    """Open3D's dense SLAM loop (examples/t_reconstruction_system/dense_slam.py), CPU."""
+    import open3d as o3d
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import Trajectory
+    reader = SequenceReader(seq, camera=cam)
+    n = min(frames, len(reader)) if frames else len(reader)
+    dev = o3d.core.Device("CPU:0")
+    K = o3d.core.Tensor(reader.intrinsics.K)
+    T = o3d.core.Tensor(np.eye(4))
+    model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, T, dev)
+    h, w = reader.intrinsics.shape
+    inp = o3d.t.pipelines.slam.Frame(h, w, K, dev)
+    ray = o3d.t.pipelines.slam.Frame(h, w, K, dev)
+    poses, ts = [], []
+    t0 = time.perf_counter()
+    for i in range(n):
+        f = reader[i]
+        depth = o3d.t.geometry.Image(o3d.core.Tensor((f.depth * 1000).astype(np.uint16)))
+        color = o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(f.rgb)))
+        inp.set_data_from_image("depth", depth)
+        inp.set_data_from_image("color", color)
+        if i > 0:
+            r = model.track_frame_to_model(inp, ray, 1000.0, depth_max, 0.07)
+            T = T @ r.transformation
+        poses.append(T.cpu().numpy())
+        ts.append(reader.timestamps[i])
+        model.update_frame_pose(i, T)
+        model.integrate(inp, 1000.0, depth_max, 8.0)
+        model.synthesize_model_frame(ray, 1000.0, 0.1, depth_max, 8.0, False)
+    dt = time.perf_counter() - t0
+    return {"ate": _ate(reader, Trajectory(ts, poses)), "fps": n / dt, "failed": 0, "frames": n}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=0, help="frames per dataset (0 = all)")
+    ap.add_argument("--datasets", default="chess,tum")
+    ap.add_argument("--methods", default="icp,icp_refine,rgbd_odometry,o3d_odometry,o3d_odometry_tsdf,o3d_dense_slam")
+    ap.add_argument("--work", default="/tmp/realgap_bench", help="scratch folder (converted data, runs)")
+    args = ap.parse_args(argv)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    import open3d as o3d
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    print(f"load average before: {os.getloadavg()}, cpus: {os.cpu_count()}, open3d {o3d.__version__}")
+    rows = []
+    for name, seq, cam, target in _datasets(work, [d.strip() for d in args.datasets.split(",")]):
+        for m in methods:
+            t = time.perf_counter()
+            if m in ("icp", "rgbd_odometry"):
+                r = run_ours(m, seq, cam, work, args.frames, {})
+            elif m == "icp_refine":
+                r = run_ours("icp", seq, cam, work, args.frames, {"backend_config.refine_model": True})
+            elif m == "o3d_odometry":
+                r = run_o3d_odometry(seq, cam, args.frames)
+            elif m == "o3d_odometry_tsdf":
+                r = run_o3d_odometry_tsdf(seq, cam, args.frames)
+            elif m == "o3d_dense_slam":
+                r = run_o3d_dense_slam(seq, cam, args.frames)
+            else:
+                raise SystemExit(f"unknown method {m}")
+            r.update(dataset=name, method=m, wall=time.perf_counter() - t, target=target)
+            rows.append(r)
+            extra = f"  (ms/frame: {', '.join(f'{k} {v:.0f}' for k, v in r['ms'].items())})" if "ms" in r else ""
+            print(f"{name:6s} {m:15s} frames {r['frames']:5d}  ATE {r['ate'] * 100:6.2f} cm  "
+                  f"{r['fps']:6.2f} frames/s  failed {r['failed']}{extra}", flush=True)
+    print(f"load average after: {os.getloadavg()}")
+    print("\nsummary (ratios against Open3D measured in this run):")
+    for name in dict.fromkeys(r["dataset"] for r in rows):
+        by = {r["method"]: r for r in rows if r["dataset"] == name}
+        base = by.get("o3d_odometry")
+        base_tsdf = by.get("o3d_odometry_tsdf")
+        dense = by.get("o3d_dense_slam")
+        for m in ("icp", "icp_refine", "rgbd_odometry"):
+            if m not in by:
+                continue
+            r = by[m]
+            s = f"{name:6s} {m:15s} ATE {r['ate'] * 100:.2f} cm"
+            if m.startswith("icp"):
+                s += f" (target <= {r['target'] * 100:.1f} cm: {'ok' if r['ate'] <= r['target'] else 'MISSED'})"
+            s += f", {r['fps']:.2f} frames/s"
+            tgt = 5.0 if m.startswith("icp") else 10.0
+            s += f" (target >= {tgt:g}: {'ok' if r['fps'] >= tgt else 'MISSED'})"
+            if "ms" in r:
+                reg = r["ms"]["read"] + r["ms"]["track"]
+                s += f" [registration alone {1000 / reg:.1f} f/s]"
+            if base:
+                s += f"; x{r['fps'] / base['fps']:.2f} the speed of o3d_odometry ({base['fps']:.2f} f/s, no fusion, ATE {base['ate'] * 100:.2f} cm)"
+            if base_tsdf and m == "rgbd_odometry":
+                s += f"; x{r['fps'] / base_tsdf['fps']:.2f} the speed of o3d_odometry_tsdf ({base_tsdf['fps']:.2f} f/s)"
+            if dense:
+                s += f"; o3d_dense_slam {dense['fps']:.2f} f/s, ATE {dense['ate'] * 100:.2f} cm"
+            print(s)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

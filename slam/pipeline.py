@@ -1,0 +1,447 @@
+"""The SLAM run loop: register every frame with a backend, fuse it into a TSDF, save a RUN folder.
+
+RUN folder (the contract read by ``realgap eval run`` and ``realgap slam render``)::
+
+    RUN/config.json      effective configuration (SlamConfig as JSON) + the sequence path
+    RUN/camera.json      the camera used (intrinsics, depth scale)
+    RUN/trajectory.txt   TUM, camera-to-world, one line per *registered* frame
+    RUN/stats.json       backend, frames_per_second, per_frame [{timestamp, fitness,
+                         inlier_rmse, failed, ...}], failed_timestamps, timings
+    RUN/mesh.ply         mesh of the fused TSDF (vertex colours when colour is fused)
+    RUN/volume.npz       the TSDF itself (only with ``save_volume``)
+    RUN/checkpoint.json  while a run is unfinished: poses and backend state so far
+
+Failed frames are listed in ``stats.json`` (``failed_timestamps``, ``per_frame``) and are not
+in ``trajectory.txt``: evaluation sees only poses the backend vouches for, and the failures
+are reported next to the accuracy.
+
+Resuming: every ``checkpoint_every`` frames (and on Ctrl-C) the poses, per-frame statistics
+and the backend state are written to ``checkpoint.json`` (atomically). Running the same
+command again re-integrates the checkpointed frames into a fresh TSDF with their saved poses
+(the fusion is deterministic, so the volume is the same as before the interruption) and
+continues with the next frame. A finished run is not recomputed.
+
+Offline backends (``colmap``) compute every pose in one go; an interruption during that step
+starts it again, an interruption while fusing their poses resumes like an online run.
+
+``frames_per_second`` counts the frames processed divided by the time spent reading,
+registering and fusing them (not the re-integration after a resume, nor the final mesh
+extraction).
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from data_tools.camera import Camera, read_camera_json, write_camera_json
+from data_tools.errors import ConfigError, FormatError, RealgapError
+from data_tools.mesh import save_mesh
+from data_tools.sequence import SequenceReader
+from data_tools.trajectory import Trajectory, read_tum, write_tum
+from slam.registration import (TrackResult, check_positive, config_from_dict, config_to_dict,
+                               get_backend)
+from slam.tsdf import TSDFConfig, TSDFVolume
+
+RUN_FILES = ("config.json", "camera.json", "checkpoint.json", "trajectory.txt", "stats.json",
+             "mesh.ply", "volume.npz", "volume.npz.json")
+"""Files a run writes (and ``overwrite`` removes)."""
+
+
+# --------------------------------------------------------------------------------------------
+# configuration
+
+
+@dataclass
+class SlamConfig:
+    """Everything that determines a SLAM run (saved as RUN/config.json)."""
+
+    backend: str = "icp"
+    """Registration backend: a module name of ``slam.backends`` (icp, rgbd_odometry, colmap)."""
+    tsdf: TSDFConfig = field(default_factory=TSDFConfig)
+    """TSDF fusion options (also the model that ``icp`` tracks against)."""
+    backend_config: Any = None
+    """Options of the chosen backend (its ``Config`` dataclass; None = its defaults)."""
+    frame_step: int = 1
+    """Use every n-th frame of the sequence."""
+    max_frames: int = 0
+    """Process at most this many frames (after ``frame_step``); 0 = all."""
+    checkpoint_every: int = 100
+    """Write a resumable checkpoint every this many frames."""
+    save_volume: bool = False
+    """Also save the TSDF volume (RUN/volume.npz; large) for rendering from the volume."""
+
+    def __post_init__(self) -> None:
+        if self.backend_config is None or isinstance(self.backend_config, dict):
+            cls = get_backend(self.backend).Config
+            self.backend_config = config_from_dict(cls, self.backend_config or {}, "backend_config")
+
+    def validate(self) -> "SlamConfig":
+        check_positive(self, "frame_step", "checkpoint_every")
+        check_positive(self, "max_frames", allow_zero=True)
+        self.tsdf.validate()
+        cls = get_backend(self.backend).Config
+        if not isinstance(self.backend_config, cls):
+            raise ConfigError(f"backend_config is a {type(self.backend_config).__name__}, backend "
+                              f"{self.backend!r} needs {cls.__name__}")
+        v = getattr(self.backend_config, "validate", None)
+        if callable(v):
+            v()
+        return self
+
+    def to_dict(self) -> dict:
+        return config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "config") -> "SlamConfig":
+        """Build from JSON data (missing keys keep defaults; unknown keys are errors)."""
+        if not isinstance(d, dict):
+            raise ConfigError(f"{where}: expected a JSON object")
+        return config_from_dict(cls, d, where)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "fast": {"tsdf.voxel_size_m": 0.02, "tsdf.trunc_voxel_multiplier": 3.0},
+    "fine": {"tsdf.voxel_size_m": 0.006, "tsdf.trunc_voxel_multiplier": 6.0},
+}
+"""Named presets as dotted overrides of the defaults: ``default`` (1 cm voxels), ``fast``
+(2 cm voxels: about 3x faster fusion and ray casting, coarser mesh and tracking model) and
+``fine`` (6 mm voxels, for small objects / short range)."""
+
+
+def make_config(backend: str = "icp", preset: str = "default", overrides: dict[str, Any] | None = None,
+                base: dict | None = None) -> SlamConfig:
+    """SlamConfig for ``backend`` from a preset (or a full JSON ``base``) plus dotted overrides
+    such as ``{"tsdf.voxel_size_m": 0.02, "backend_config.min_fitness": 0.3}``."""
+    if base is not None:
+        cfg = SlamConfig.from_dict(base)
+        if backend and backend != cfg.backend:
+            d = cfg.to_dict()
+            d["backend"], d["backend_config"] = backend, {}
+            cfg = SlamConfig.from_dict(d)
+    else:
+        if preset not in PRESETS:
+            raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+        cfg = SlamConfig(backend=backend)
+        if PRESETS[preset]:
+            cfg = _apply(cfg, PRESETS[preset])
+    if overrides:
+        cfg = _apply(cfg, overrides)
+    return cfg.validate()
+
+
+def _apply(cfg: SlamConfig, dotted: dict[str, Any]) -> SlamConfig:
+    d = cfg.to_dict()
+    for key, value in dotted.items():
+        parts = key.split(".")
+        node = d
+        for p in parts[:-1]:
+            if not isinstance(node, dict) or not isinstance(node.get(p), dict):
+                raise ConfigError(f"unknown option {key!r}")
+            node = node[p]
+        if not isinstance(node, dict) or parts[-1] not in node:
+            raise ConfigError(f"unknown option {key!r}")
+        node[parts[-1]] = value
+    return SlamConfig.from_dict(d)
+
+
+# --------------------------------------------------------------------------------------------
+# results
+
+
+@dataclass
+class SlamResult:
+    """What a run produced (also readable back from a RUN folder with :func:`load_run`)."""
+
+    run_dir: Path
+    trajectory: Trajectory | None
+    """Registered frames (camera-to-world); None while the run is incomplete."""
+    stats: dict
+    """Content of stats.json (or of the checkpoint while incomplete)."""
+    config: SlamConfig
+    camera: Camera
+    complete: bool = True
+
+    @property
+    def failed_timestamps(self) -> list[float]:
+        return list(self.stats.get("failed_timestamps", []))
+
+    @property
+    def frames_per_second(self) -> float:
+        return float(self.stats.get("frames_per_second", float("nan")))
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except json.JSONDecodeError as e:
+        raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+
+
+def load_run(run_dir: str | os.PathLike) -> SlamResult:
+    """Read a RUN folder written by :func:`run_slam` (finished or not)."""
+    run = Path(run_dir)
+    if not (run / "config.json").is_file():
+        raise FormatError(run, "not a SLAM run folder (config.json missing)")
+    meta = _read_json(run / "config.json")
+    cfg = SlamConfig.from_dict(meta.get("config", {}), str(run / "config.json"))
+    camera = read_camera_json(run / "camera.json")
+    if (run / "stats.json").is_file():
+        stats = _read_json(run / "stats.json")
+        traj = read_tum(run / "trajectory.txt") if stats.get("frames_tracked", 0) > 0 else None
+        return SlamResult(run, traj, stats, cfg, camera, bool(stats.get("complete", True)))
+    stats = _read_json(run / "checkpoint.json") if (run / "checkpoint.json").is_file() else {}
+    return SlamResult(run, None, stats, cfg, camera, False)
+
+
+# --------------------------------------------------------------------------------------------
+# the run loop
+
+
+class _Progress:
+    """tqdm on stderr (or nothing)."""
+
+    def __init__(self, enabled: bool, total: int, initial: int, desc: str):
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+            self.bar = tqdm(total=total, initial=initial, desc=desc, unit="frame", file=sys.stderr,
+                            dynamic_ncols=True, leave=True)
+
+    def update(self, n=1, **post):
+        if self.bar is not None:
+            if post:
+                self.bar.set_postfix(post, refresh=False)
+            self.bar.update(n)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _prepare_run_dir(out: Path, meta: dict, resume: bool, overwrite: bool) -> str:
+    """'new', 'resume' or 'done'; raises when ``out`` holds something else."""
+    if overwrite and out.exists():
+        for name in RUN_FILES:
+            (out / name).unlink(missing_ok=True)
+    if (out / "config.json").is_file():
+        old = _read_json(out / "config.json")
+        if old.get("config") != meta["config"] or old.get("sequence") != meta["sequence"] \
+                or old.get("camera") != meta["camera"]:
+            diff = [k for k in ("sequence", "camera") if old.get(k) != meta[k]]
+            if old.get("config") != meta["config"]:
+                a, b = _flatten(old.get("config", {})), _flatten(meta["config"])
+                diff += sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+            raise RealgapError(f"{out}: holds a run with a different configuration ({', '.join(diff[:6])}); "
+                               f"use --overwrite to replace it or choose another --out")
+        if not resume:
+            raise RealgapError(f"{out}: already holds a run (use --overwrite, or resume it)")
+        stats_path = out / "stats.json"
+        if stats_path.is_file() and _read_json(stats_path).get("complete"):
+            return "done"
+        return "resume" if (out / "checkpoint.json").is_file() else "new"
+    if out.exists() and any(out.iterdir()):
+        leftovers = [p.name for p in out.iterdir() if p.name in RUN_FILES]
+        if leftovers:
+            raise RealgapError(f"{out}: holds run files but no config.json ({', '.join(leftovers)}); use --overwrite")
+    return "new"
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLike,
+             config: SlamConfig | None = None, camera: Camera | None = None, resume: bool = True,
+             overwrite: bool = False, progress: bool = True, stop_after: int | None = None,
+             on_frame: Callable[[int, TrackResult], None] | None = None) -> SlamResult:
+    """Run registration + TSDF fusion over ``sequence`` and write the RUN folder ``out``.
+
+    ``camera`` overrides the sequence's camera.json. With ``resume`` (default) an unfinished
+    run in ``out`` with the same configuration is continued, a finished one is returned as is;
+    ``overwrite`` starts afresh. ``stop_after`` processes at most that many new frames, then
+    checkpoints and returns an incomplete result (used to test resuming). ``on_frame(index,
+    result)`` is called after every frame.
+    """
+    cfg = (config or SlamConfig()).validate()
+    reader = sequence if isinstance(sequence, SequenceReader) else SequenceReader(sequence, camera=camera)
+    cam = reader.camera
+    intr = cam.intrinsics
+    out = Path(out)
+    meta = {"sequence": str(Path(reader.path).resolve()), "camera": cam.to_json(), "config": cfg.to_dict()}
+    state = _prepare_run_dir(out, meta, resume, overwrite)
+    if state == "done":
+        return load_run(out)
+    out.mkdir(parents=True, exist_ok=True)
+    _atomic_write(out / "config.json", json.dumps(meta, indent=2) + "\n")
+    write_camera_json(out / "camera.json", cam)
+
+    indices = list(range(0, len(reader), cfg.frame_step))
+    if cfg.max_frames:
+        indices = indices[: cfg.max_frames]
+    backend_cls = get_backend(cfg.backend)
+    backend = backend_cls(cfg.backend_config, intr, cfg.tsdf)
+    volume = TSDFVolume(cfg.tsdf)
+
+    records: list[dict] = []
+    poses: list[list[float] | None] = []
+    timing = {"read_s": 0.0, "track_s": 0.0, "integrate_s": 0.0}
+    pos = 0
+    if state == "resume":
+        ck = _read_json(out / "checkpoint.json")
+        records, poses = ck["records"], ck["poses"]
+        timing.update(ck.get("timing", {}))
+        pos = int(ck["next"])
+        if pos > len(indices) or len(records) != pos or len(poses) != pos:
+            raise FormatError(out / "checkpoint.json", "inconsistent checkpoint (frame counts differ)")
+        _reintegrate(reader, volume, records, poses, cfg, intr, progress)
+        if backend_cls.online:
+            backend.load_state(ck.get("backend_state", {}), reader, volume)
+
+    def checkpoint(next_pos: int) -> None:
+        _atomic_write(out / "checkpoint.json", json.dumps(
+            {"next": next_pos, "records": records, "poses": poses, "timing": timing,
+             "backend_state": backend.state_dict() if backend_cls.online else {}}) + "\n")
+
+    if not backend_cls.online:
+        if pos < len(indices):
+            _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, intr, progress)
+            pos = len(indices)
+            checkpoint(pos)
+    else:
+        bar = _Progress(progress, len(indices), pos, f"slam {cfg.backend}")
+        n_new = 0
+        try:
+            while pos < len(indices):
+                if stop_after is not None and n_new >= stop_after:
+                    checkpoint(pos)
+                    bar.close()
+                    return load_run(out)
+                i = indices[pos]
+                res = _process(reader, i, backend, volume, cfg, intr, timing)
+                records.append(res.record(reader.timestamps[i], i))
+                poses.append(None if res.failed else res.pose.reshape(-1).tolist())
+                pos += 1
+                n_new += 1
+                if on_frame is not None:
+                    on_frame(i, res)
+                spent = sum(timing.values())
+                bar.update(1, fps=f"{pos / spent:.1f}" if spent > 0 else "-",
+                           failed=sum(r["failed"] for r in records))
+                if pos % cfg.checkpoint_every == 0 and pos < len(indices):
+                    checkpoint(pos)
+        except KeyboardInterrupt:
+            checkpoint(pos)
+            bar.close()
+            raise
+        bar.close()
+    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta)
+
+
+def _process(reader, i, backend, volume, cfg, intr, timing) -> TrackResult:
+    t0 = time.perf_counter()
+    try:
+        frame = reader[i]
+    except FormatError as e:  # corrupt/unreadable image: a failed frame, not a crash
+        timing["read_s"] += time.perf_counter() - t0
+        return TrackResult(None, None, None, True, f"unreadable frame: {e}")
+    t1 = time.perf_counter()
+    timing["read_s"] += t1 - t0
+    res = backend.track(frame, volume)
+    t2 = time.perf_counter()
+    timing["track_s"] += t2 - t1
+    if not res.failed:
+        volume.integrate(frame.depth, frame.rgb, intr, res.pose)
+        timing["integrate_s"] += time.perf_counter() - t2
+    return res
+
+
+def _reintegrate(reader, volume, records, poses, cfg, intr, progress) -> None:
+    todo = [(r["index"], p) for r, p in zip(records, poses) if p is not None]
+    bar = _Progress(progress and len(todo) > 0, len(todo), 0, "resume: re-integrating")
+    for i, p in todo:
+        f = reader[i]
+        volume.integrate(f.depth, f.rgb, intr, np.asarray(p, dtype=np.float64).reshape(4, 4))
+        bar.update(1)
+    bar.close()
+
+
+def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, intr, progress) -> None:
+    t0 = time.perf_counter()
+    results = backend.run_offline(reader, indices, progress=progress)
+    timing["track_s"] += time.perf_counter() - t0
+    if len(results) != len(indices):
+        raise RealgapError(f"backend {backend.name} returned {len(results)} results for {len(indices)} frames")
+    bar = _Progress(progress, len(indices), 0, f"fusing ({backend.name} poses)")
+    for i, res in zip(indices, results):
+        records.append(res.record(reader.timestamps[i], i))
+        poses.append(None if res.failed else res.pose.reshape(-1).tolist())
+        if not res.failed:
+            t1 = time.perf_counter()
+            f = reader[i]
+            t2 = time.perf_counter()
+            volume.integrate(f.depth, f.rgb, intr, res.pose)
+            timing["read_s"] += t2 - t1
+            timing["integrate_s"] += time.perf_counter() - t2
+        bar.update(1)
+    bar.close()
+
+
+def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> SlamResult:
+    ok = [(r["timestamp"], np.asarray(p).reshape(4, 4)) for r, p in zip(records, poses) if p is not None]
+    failed = [r["timestamp"] for r in records if r["failed"]]
+    spent = sum(timing.values())
+    n = len(records)
+    traj = Trajectory([t for t, _ in ok], [p for _, p in ok]) if ok else None
+    mesh_info = None
+    if traj is not None:
+        write_tum(out / "trajectory.txt", traj,
+                  header=f"realgap slam {cfg.backend}: camera-to-world poses of the registered frames")
+        mesh = volume.extract_mesh()
+        if len(mesh.triangles):
+            save_mesh(out / "mesh.ply", mesh)
+        mesh_info = {"vertices": int(len(mesh.vertices)), "triangles": int(len(mesh.triangles))}
+        if cfg.save_volume:
+            volume.save(out / "volume.npz")
+    stats = {
+        "backend": cfg.backend,
+        "sequence": meta["sequence"],
+        "frames": n,
+        "frames_tracked": len(ok),
+        "frames_failed": len(failed),
+        "frames_relocalised": int(sum(r.get("relocalised", False) for r in records)),
+        "frames_per_second": (n / spent) if spent > 0 else None,
+        "seconds": spent,
+        "timing_ms_per_frame": {k.removesuffix("_s"): (1000 * v / n if n else None) for k, v in timing.items()},
+        "failed_timestamps": failed,
+        "mesh": mesh_info,
+        "complete": True,
+        "per_frame": records,
+    }
+    _atomic_write(out / "stats.json", json.dumps(stats, indent=1) + "\n")
+    (out / "checkpoint.json").unlink(missing_ok=True)
+    if traj is None:
+        raise RealgapError(f"{reader.path}: no frame could be registered ({len(failed)} failed; "
+                           f"see {out / 'stats.json'})")
+    return SlamResult(out, traj, stats, cfg, cam, True)

@@ -1,0 +1,344 @@
+"""Registration backends: the registry, the per-frame result and typed-config helpers.
+
+A backend estimates the camera-to-world pose of every frame of an RGB-D sequence. It is a
+small class registered by name (``@register_backend``) in a module of :mod:`slam.backends`
+named like the backend (``slam/backends/icp.py`` registers ``icp``); :func:`get_backend`
+imports that module on first use, so adding a backend is one new file and nothing is
+discovered at import time.
+
+Two kinds exist:
+
+* online backends (``icp``, ``rgbd_odometry``) see one frame at a time through
+  :meth:`RegistrationBackend.track`; the pipeline fuses every tracked frame into the shared
+  TSDF volume, which frame-to-model backends read back by ray casting;
+* offline backends (``colmap``) set ``online = False`` and compute every pose at once in
+  :meth:`RegistrationBackend.run_offline`.
+
+Configuration objects are dataclasses with a docstring under every field; the helpers here
+turn them into JSON and back (unknown keys and wrong types are :class:`ConfigError`) and read
+the field docstrings for ``--help`` texts.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import importlib
+import inspect
+import pkgutil
+import textwrap
+import types
+import typing
+from abc import ABC
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, ClassVar
+
+import numpy as np
+
+from data_tools.camera import Intrinsics
+from data_tools.errors import ConfigError
+
+# --------------------------------------------------------------------------------------------
+# per-frame result
+
+
+@dataclass
+class TrackResult:
+    """Outcome of registering one frame."""
+
+    pose: np.ndarray | None
+    """(4, 4) float64 camera-to-world estimate, metres; None when the frame failed."""
+    fitness: float | None = None
+    """Fraction of the frame's valid depth pixels with an inlier correspondence, in [0, 1];
+    None for the first frame (nothing to register against) or when nothing was computed."""
+    inlier_rmse: float | None = None
+    """Root mean square geometric residual of the inlier correspondences, metres (point-to-plane
+    for ``icp``, depth/point-to-plane for ``rgbd_odometry``, reprojection-free 3-D residual for
+    ``colmap``); None when not computed."""
+    failed: bool = False
+    """True when the frame could not be registered reliably; it is then left out of the
+    trajectory and not fused."""
+    reason: str = ""
+    """Why the frame failed (or how it was recovered), one short line."""
+    relocalised: bool = False
+    """True when the pose came from re-localisation after a tracking failure."""
+
+    def record(self, timestamp: float, index: int) -> dict:
+        """The JSON row of ``stats.json['per_frame']``."""
+        return {"timestamp": float(timestamp), "index": int(index),
+                "fitness": None if self.fitness is None else float(self.fitness),
+                "inlier_rmse": None if self.inlier_rmse is None else float(self.inlier_rmse),
+                "failed": bool(self.failed), "reason": self.reason,
+                "relocalised": bool(self.relocalised)}
+
+
+# --------------------------------------------------------------------------------------------
+# backend base class and registry
+
+
+class RegistrationBackend(ABC):
+    """Base class of registration backends.
+
+    Subclasses set ``name`` and ``Config`` (a dataclass) and implement :meth:`track` (online)
+    or :meth:`run_offline` (``online = False``). Backends keep only what they need between
+    frames; :meth:`state_dict` / :meth:`load_state` let the pipeline checkpoint and resume.
+    """
+
+    name: ClassVar[str] = ""
+    Config: ClassVar[type] = object
+    online: ClassVar[bool] = True
+    uses_color: ClassVar[bool] = False
+    """True when the backend needs the colour images to register (not only to colour the mesh)."""
+
+    def __init__(self, config: Any, intrinsics: Intrinsics, tsdf_config: Any):
+        self.config = config
+        self.intrinsics = intrinsics
+        self.tsdf_config = tsdf_config
+
+    def track(self, frame, volume) -> TrackResult:  # pragma: no cover - offline backends
+        """Register ``frame`` (a :class:`data_tools.sequence.Frame`) and return its result.
+
+        ``volume`` is the :class:`slam.tsdf.TSDFVolume` holding every frame fused so far (the
+        pipeline fuses the frame after this call when it did not fail).
+        """
+        raise NotImplementedError(f"backend {self.name!r} is offline: use run_offline")
+
+    def run_offline(self, reader, indices: list[int], progress: bool = True) -> list[TrackResult]:  # pragma: no cover
+        """Offline backends: register the frames ``indices`` of ``reader`` at once (one result each)."""
+        raise NotImplementedError(f"backend {self.name!r} is online: use track")
+
+    def state_dict(self) -> dict:
+        """JSON-serialisable state needed to continue after frame ``k`` (see :meth:`load_state`)."""
+        return {}
+
+    def load_state(self, state: dict, reader, volume) -> None:
+        """Restore :meth:`state_dict` output; ``reader`` gives access to earlier frames and
+        ``volume`` already holds every fused frame up to the checkpoint."""
+
+
+_REGISTRY: dict[str, type[RegistrationBackend]] = {}
+
+
+def register_backend(cls: type[RegistrationBackend]) -> type[RegistrationBackend]:
+    """Class decorator: make ``cls`` available under ``cls.name``."""
+    if not cls.name:
+        raise TypeError(f"{cls.__name__} has no backend name")
+    if not dataclasses.is_dataclass(cls.Config):
+        raise TypeError(f"{cls.__name__}.Config must be a dataclass")
+    if inspect.isabstract(cls):
+        raise TypeError(f"{cls.__name__} does not implement every abstract method")
+    if cls.online and cls.track is RegistrationBackend.track:
+        raise TypeError(f"{cls.__name__} is an online backend but does not implement track()")
+    if not cls.online and cls.run_offline is RegistrationBackend.run_offline:
+        raise TypeError(f"{cls.__name__} is an offline backend but does not implement run_offline()")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def backend_names() -> list[str]:
+    """Names of all backends (modules of :mod:`slam.backends` not starting with '_')."""
+    import slam.backends as pkg
+    return sorted(m.name for m in pkgutil.iter_modules(pkg.__path__) if not m.name.startswith("_"))
+
+
+def get_backend(name: str) -> type[RegistrationBackend]:
+    """The backend class registered as ``name`` (imports ``slam.backends.<name>`` on first use)."""
+    if name not in _REGISTRY:
+        known = backend_names()
+        if name not in known:
+            raise ConfigError(f"unknown registration backend {name!r}; choose one of {', '.join(known)}")
+        importlib.import_module(f"slam.backends.{name}")
+        if name not in _REGISTRY:
+            raise ConfigError(f"module slam.backends.{name} registers no backend named {name!r}")
+    return _REGISTRY[name]
+
+
+# --------------------------------------------------------------------------------------------
+# motion plausibility (shared by the online backends' failure checks)
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a 3x3 rotation matrix, degrees."""
+    c = (np.trace(np.asarray(R)[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def implausible_motion(T_prev: np.ndarray, T_new: np.ndarray, dt_s: float, max_speed_m_s: float,
+                       max_angular_speed_deg_s: float, min_dt_s: float = 1.0 / 30.0) -> str:
+    """'' when moving from ``T_prev`` to ``T_new`` (camera-to-world) in ``dt_s`` seconds is
+    within the speed limits, else a short reason. ``dt_s`` is floored at ``min_dt_s`` so that
+    jittery or duplicated timestamps do not make every motion implausible."""
+    dt = max(float(dt_s), min_dt_s) if np.isfinite(dt_s) else min_dt_s
+    D = np.linalg.inv(T_prev) @ T_new
+    trans = float(np.linalg.norm(D[:3, 3]))
+    ang = rotation_angle_deg(D[:3, :3])
+    if trans > max_speed_m_s * dt:
+        return f"implausible motion: {trans:.3f} m in {dt:.3f} s (limit {max_speed_m_s:g} m/s)"
+    if ang > max_angular_speed_deg_s * dt:
+        return f"implausible motion: {ang:.1f} deg in {dt:.3f} s (limit {max_angular_speed_deg_s:g} deg/s)"
+    return ""
+
+
+# --------------------------------------------------------------------------------------------
+# typed configuration helpers
+
+
+@lru_cache(maxsize=None)
+def field_docs(cls: type) -> dict[str, str]:
+    """Docstrings written under the fields of dataclass ``cls`` (and its bases), by field name."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass is object or not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            src = textwrap.dedent(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = ast.parse(src).body[0].body
+        for a, b in zip(body, body[1:]):
+            if (isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name)
+                    and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
+                    and isinstance(b.value.value, str)):
+                docs[a.target.id] = " ".join(b.value.value.split())
+    return docs
+
+
+def config_to_dict(cfg: Any) -> Any:
+    """Dataclass (possibly nested) -> plain JSON data (tuples become lists)."""
+    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
+        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, (list, tuple)):
+        return [config_to_dict(v) for v in cfg]
+    if isinstance(cfg, dict):
+        return {k: config_to_dict(v) for k, v in cfg.items()}
+    if isinstance(cfg, np.generic):
+        return cfg.item()
+    return cfg
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check/convert a JSON value to the annotated type ``tp``."""
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if tp is Any:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        last = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except ConfigError as e:
+                last = e
+        raise last or ConfigError(f"{where}: invalid value {value!r}")
+    if dataclasses.is_dataclass(tp):
+        if isinstance(value, tp):
+            return value
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected an object, got {value!r}")
+        return config_from_dict(tp, value, where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(v, args[0], where) for v in value)
+        if len(args) != len(value):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, where) for v, a in zip(value, args))
+    if origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return [_coerce(v, args[0], where) for v in value] if args else list(value)
+    if origin is dict or tp is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected an object, got {value!r}")
+        return dict(value)
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
+            return value.lower() in ("true", "1", "yes")
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) or
+                                           (isinstance(value, float) and value.is_integer()) or
+                                           (isinstance(value, str) and value.strip().lstrip("-").isdigit())):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return int(value)
+    if tp is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if not np.isfinite(v):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+        return v
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def config_from_dict(cls: type, data: dict, where: str = "config") -> Any:
+    """Build dataclass ``cls`` from JSON data; missing keys keep their defaults, unknown keys
+    and values of the wrong type raise :class:`ConfigError` naming the key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected an object, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    obj = cls(**kwargs)
+    validate = getattr(obj, "validate", None)
+    if callable(validate):
+        validate()
+    return obj
+
+
+def config_replace(cfg: Any, dotted: dict[str, Any], where: str = "config") -> Any:
+    """A copy of dataclass ``cfg`` with ``{"a.b": value}`` overrides applied (values as JSON
+    data or strings, converted to the field types)."""
+    data = config_to_dict(cfg)
+    for key, value in dotted.items():
+        parts = key.split(".")
+        node = data
+        for p in parts[:-1]:
+            if not isinstance(node, dict) or p not in node or not isinstance(node[p], dict):
+                raise ConfigError(f"{where}: unknown option {key!r}")
+            node = node[p]
+        if parts[-1] not in node:
+            raise ConfigError(f"{where}: unknown option {key!r}")
+        node[parts[-1]] = value
+    return config_from_dict(type(cfg), data, where)
+
+
+def parse_value(text: str, tp: Any) -> Any:
+    """A command-line string converted to JSON data for field type ``tp`` (lists are
+    comma-separated)."""
+    origin = typing.get_origin(tp)
+    if origin in (tuple, list):
+        return [t for t in (s.strip() for s in text.split(",")) if t]
+    if text.lower() in ("none", "null"):
+        return None
+    return text
+
+
+def check_positive(obj: Any, *names: str, allow_zero: bool = False) -> None:
+    """ConfigError unless every named field of ``obj`` is a positive (or >= 0) number."""
+    for n in names:
+        v = getattr(obj, n)
+        if not (isinstance(v, (int, float)) and np.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+            raise ConfigError(f"{type(obj).__name__}.{n} must be {'>= 0' if allow_zero else '> 0'}, got {v!r}")
+
+
+__all__ = ["TrackResult", "RegistrationBackend", "register_backend", "get_backend", "backend_names",
+           "implausible_motion", "rotation_angle_deg", "field_docs", "config_to_dict",
+           "config_from_dict", "config_replace", "parse_value", "check_positive"]

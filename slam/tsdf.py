@@ -1,0 +1,446 @@
+"""Truncated signed distance (TSDF) fusion with Open3D's tensor ``VoxelBlockGrid``.
+
+The volume is a sparse hash of dense voxel blocks (``block_resolution``^3 voxels each) that
+stores, per voxel, the truncated signed distance (float32, in units of the truncation
+distance), its integration weight (float32, number of fused observations) and optionally the
+weighted mean colour (float32 RGB in [0, 1]). Blocks are allocated for the frustum of every
+fused depth image, and the hash map grows as needed (``initial_block_count`` only sizes the
+first allocation).
+
+Conventions: depth images are (H, W) float32 z-depth in metres with 0 = no measurement,
+colour images (H, W, 3) uint8 RGB, poses camera-to-world 4x4 (OpenCV optical axes), pixel
+centres at integer coordinates.
+
+Two corrections of Open3D's kernels (both measured on rendered scenes, tests in
+tests/test_slam_tsdf.py):
+
+* integration picks the pixel of a voxel by *truncating* its projected coordinates while ray
+  casting shoots rays through integer pixel coordinates; integrating with the principal point
+  moved by half a pixel turns the truncation into rounding, so model and images agree;
+* the ray marcher reads the voxel *below* each sample (no interpolation), so its surface is up
+  to a voxel off in a view-dependent direction; :meth:`TSDFVolume.raycast` can refine every
+  hit on the trilinear TSDF (``refine``).
+
+Open3D also sizes an internal ray-casting buffer only after a call that overflowed it (that
+call misses blocks); :meth:`TSDFVolume.raycast_tensors` grows it beforehand.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.camera import Intrinsics
+from data_tools.errors import ConfigError, FormatError, RealgapError
+from data_tools.mesh import TriMesh
+from slam.registration import check_positive, config_from_dict, config_to_dict
+
+
+def o3d_quiet():
+    """Import open3d with its console logging limited to errors (the VoxelBlockGrid ray caster
+    prints a warning whenever it re-sizes an internal buffer)."""
+    import open3d as o3d
+    if not getattr(o3d_quiet, "_done", False):
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+        o3d_quiet._done = True
+    return o3d
+
+
+@dataclass
+class TSDFConfig:
+    """TSDF volume options (saved in RUN/config.json)."""
+
+    voxel_size_m: float = 0.01
+    """Edge length of one voxel, metres (mesh resolution; memory and time grow as 1/size^2)."""
+    trunc_voxel_multiplier: float = 4.0
+    """Truncation distance of the signed distance, in voxels (4 x 0.01 m = 4 cm)."""
+    block_resolution: int = 16
+    """Voxels per block edge (blocks are allocated and hashed as a whole)."""
+    initial_block_count: int = 20000
+    """Blocks allocated up front; the hash map grows beyond this when needed."""
+    depth_min_m: float = 0.1
+    """Depth measurements closer than this are ignored, metres."""
+    depth_max_m: float = 4.0
+    """Depth measurements farther than this are ignored (depth truncation), metres."""
+    integrate_color: bool = True
+    """Fuse the colour images too (mesh vertex colours, rendered colour)."""
+    mesh_weight_threshold: float = 3.0
+    """Minimum integration weight (number of observations) of a voxel for the extracted mesh
+    and point cloud; lower it for very short sequences."""
+    raycast_weight_threshold: float = 1.0
+    """Minimum integration weight of the zero crossing found by the ray caster (tracking and
+    rendering)."""
+    device: str = "CPU:0"
+    """Open3D device of the volume (``CPU:0`` or ``CUDA:0``)."""
+
+    def validate(self) -> "TSDFConfig":
+        for n in ("voxel_size_m", "trunc_voxel_multiplier", "depth_min_m", "depth_max_m",
+                  "mesh_weight_threshold", "raycast_weight_threshold"):
+            v = getattr(self, n)
+            if isinstance(v, int) and not isinstance(v, bool):
+                setattr(self, n, float(v))
+        check_positive(self, "voxel_size_m", "trunc_voxel_multiplier", "depth_max_m",
+                       "initial_block_count", "block_resolution")
+        check_positive(self, "depth_min_m", "mesh_weight_threshold", "raycast_weight_threshold",
+                       allow_zero=True)
+        if self.depth_min_m >= self.depth_max_m:
+            raise ConfigError(f"TSDFConfig: depth_min_m ({self.depth_min_m}) must be below depth_max_m ({self.depth_max_m})")
+        if self.block_resolution not in (4, 8, 16, 32):
+            raise ConfigError(f"TSDFConfig.block_resolution must be 4, 8, 16 or 32, got {self.block_resolution}")
+        return self
+
+    @property
+    def sdf_trunc_m(self) -> float:
+        """Truncation distance, metres."""
+        return self.voxel_size_m * self.trunc_voxel_multiplier
+
+
+@dataclass
+class RaycastResult:
+    """What the ray caster sees from one pose (numpy arrays, (H, W) image grid)."""
+
+    depth: np.ndarray
+    """(H, W) float32 z-depth of the fused surface, metres; 0 where no surface was hit."""
+    color: np.ndarray | None
+    """(H, W, 3) float32 RGB in [0, 1] (zeros where nothing was hit), or None."""
+    normal: np.ndarray | None
+    """(H, W, 3) float32 unit surface normals in the camera frame (zeros where nothing was hit)."""
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool, True where the ray hit the fused surface."""
+        return self.depth > 0
+
+
+def range_map_factor(intr: Intrinsics) -> int:
+    """Down-sampling factor of Open3D's ray-casting range map: the largest of 8, 4, 2, 1 that
+    divides both image sides (other factors make Open3D's ray caster miss or hang)."""
+    for f in (8, 4, 2):
+        if intr.width % f == 0 and intr.height % f == 0:
+            return f
+    return 1
+
+
+def fragments_needed(block_coords: np.ndarray, intr: Intrinsics, T_w2c: np.ndarray, down: int,
+                     block_size_m: float, depth_min: float, depth_max: float, fragment: int = 16) -> int:
+    """Number of 16x16 range-map fragments Open3D's ray caster needs for these blocks (the
+    bounding rectangle of each block's projected corners on the down-sampled range map)."""
+    if len(block_coords) == 0:
+        return 0
+    corners = np.array([[(i & 1) > 0, (i & 2) > 0, (i & 4) > 0] for i in range(8)], np.float64)
+    P = (block_coords[:, None, :].astype(np.float64) + corners[None]) * block_size_m   # (M, 8, 3)
+    Pc = P @ T_w2c[:3, :3].T + T_w2c[:3, 3]
+    z = Pc[..., 2]
+    front = z > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (intr.fx * Pc[..., 0] / z + intr.cx) / down
+        v = (intr.fy * Pc[..., 1] / z + intr.cy) / down
+    h_down, w_down = intr.height // down, intr.width // down
+    big = 1 << 30
+    u_min = np.where(front, np.floor(np.nan_to_num(u, nan=big)), big).min(1)
+    u_max = np.where(front, np.ceil(np.nan_to_num(u, nan=-big)), -big).max(1)
+    v_min = np.where(front, np.floor(np.nan_to_num(v, nan=big)), big).min(1)
+    v_max = np.where(front, np.ceil(np.nan_to_num(v, nan=-big)), -big).max(1)
+    u_min = np.minimum(u_min, w_down - 1)
+    v_min = np.minimum(v_min, h_down - 1)
+    u_max = np.maximum(u_max, 0)
+    v_max = np.maximum(v_max, 0)
+    z_min = np.where(front, z, np.inf).min(1)
+    z_max = np.where(front, z, -np.inf).max(1)
+    z_min = np.minimum(z_min, depth_max)
+    z_max = np.maximum(z_max, depth_min)
+    v_min, v_max = np.maximum(0, v_min), np.minimum(h_down - 1, v_max)
+    u_min, u_max = np.maximum(0, u_min), np.minimum(w_down - 1, u_max)
+    ok = (v_min < v_max) & (u_min < u_max) & (z_min < z_max)
+    nv = np.ceil((v_max - v_min + 1) / fragment)
+    nu = np.ceil((u_max - u_min + 1) / fragment)
+    return int((nv * nu)[ok].sum())
+
+
+def intrinsic_tensor(intr: Intrinsics):
+    o3d = o3d_quiet()
+    return o3d.core.Tensor(intr.K, dtype=o3d.core.float64)
+
+
+class TSDFVolume:
+    """A growing TSDF volume: integrate RGB-D frames, ray cast, extract a mesh or points."""
+
+    def __init__(self, config: TSDFConfig | None = None):
+        self.config = (config or TSDFConfig()).validate()
+        o3d = o3d_quiet()
+        c = o3d.core
+        self.device = c.Device(self.config.device)
+        names = ("tsdf", "weight", "color") if self.config.integrate_color else ("tsdf", "weight")
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
+            names, (c.float32,) * len(names), ((1,), (1,), (3,))[:len(names)],
+            self.config.voxel_size_m, self.config.block_resolution,
+            self.config.initial_block_count, self.device)
+        self._fragment_capacity = 0
+        self.last_block_coords = None
+        """(M, 3) int32 tensor of the blocks touched by the latest integration (its frustum)."""
+        self.frames_integrated = 0
+
+    # ---------------------------------------------------------------- helpers
+    def _depth_image(self, depth_m: np.ndarray):
+        o3d = o3d_quiet()
+        d = np.ascontiguousarray(depth_m, dtype=np.float32)
+        if d.ndim != 2:
+            raise RealgapError(f"depth image must be (H, W), got shape {d.shape}")
+        d = np.where(np.isfinite(d), d, 0.0).astype(np.float32)
+        return o3d.t.geometry.Image(o3d.core.Tensor(d, device=self.device))
+
+    def _color_image(self, rgb: np.ndarray):
+        o3d = o3d_quiet()
+        c = np.ascontiguousarray(rgb)
+        if c.ndim != 3 or c.shape[2] != 3:
+            raise RealgapError(f"colour image must be (H, W, 3), got shape {c.shape}")
+        c = (c.astype(np.float32) / 255.0) if c.dtype == np.uint8 else c.astype(np.float32)
+        return o3d.t.geometry.Image(o3d.core.Tensor(np.ascontiguousarray(c), device=self.device))
+
+    @staticmethod
+    def _extrinsic(pose_c2w: np.ndarray):
+        o3d = o3d_quiet()
+        T = np.asarray(pose_c2w, dtype=np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise RealgapError("pose must be a finite 4x4 matrix")
+        return o3d.core.Tensor(np.linalg.inv(T), dtype=o3d.core.float64)
+
+    # ---------------------------------------------------------------- fusion
+    def integrate(self, depth_m: np.ndarray, rgb: np.ndarray | None, intr: Intrinsics,
+                  pose_c2w: np.ndarray) -> None:
+        """Fuse one frame: depth (H, W) metres (0 = none), rgb (H, W, 3) uint8 or None,
+        camera-to-world pose (4, 4)."""
+        cfg = self.config
+        depth = np.asarray(depth_m, dtype=np.float32)
+        if depth.shape != intr.shape:
+            raise RealgapError(f"depth shape {depth.shape} does not match intrinsics {intr.shape}")
+        depth = np.where(depth >= cfg.depth_min_m, depth, 0.0).astype(np.float32)
+        dimg = self._depth_image(depth)
+        K = intrinsic_tensor(intr)
+        # Open3D's integration kernel picks the pixel of a projected voxel by truncating its
+        # coordinates (pixel k covers [k, k+1)), while the ray caster (and every other part of
+        # realgap) puts pixel centres at integers. Shifting the principal point by half a pixel
+        # makes the truncation a rounding: without it the model sits half a pixel off the
+        # images and frame-to-model tracking drifts.
+        K_int = intrinsic_tensor(Intrinsics(intr.width, intr.height, intr.fx, intr.fy,
+                                            intr.cx + 0.5, intr.cy + 0.5))
+        ext = self._extrinsic(pose_c2w)
+        blocks = self.vbg.compute_unique_block_coordinates(
+            dimg, K, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+        if cfg.integrate_color:
+            if rgb is None:
+                rgb = np.full(depth.shape + (3,), 128, np.uint8)
+            if rgb.shape[:2] != depth.shape:
+                raise RealgapError(f"colour shape {rgb.shape[:2]} does not match depth {depth.shape}")
+            self.vbg.integrate(blocks, dimg, self._color_image(rgb), K_int, K_int, ext, 1.0,
+                               cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+        else:
+            self.vbg.integrate(blocks, dimg, K_int, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+        self.last_block_coords = blocks
+        self.frames_integrated += 1
+
+    @property
+    def num_blocks(self) -> int:
+        return int(self.vbg.hashmap().size())
+
+    def all_block_coords(self):
+        """(M, 3) int32 tensor of every allocated block."""
+        o3d = o3d_quiet()
+        hm = self.vbg.hashmap()
+        return hm.key_tensor()[hm.active_buf_indices().to(o3d.core.int64)]
+
+    # ---------------------------------------------------------------- ray casting
+    def raycast_tensors(self, intr: Intrinsics, pose_c2w: np.ndarray, attributes=("depth",),
+                        block_coords=None, depth_min_m: float | None = None,
+                        depth_max_m: float | None = None):
+        """Open3D ray cast; returns the raw TensorMap (depth (H, W, 1) metres with 0 = miss;
+        'vertex' and 'normal' (H, W, 3) in the camera frame; 'color' (H, W, 3) in [0, 1]).
+
+        ``block_coords`` limits the search to those blocks (e.g. :attr:`last_block_coords`,
+        the frustum of the last fused frame, as KinectFusion does); None = every block.
+        """
+        cfg = self.config
+        if self.num_blocks == 0:
+            raise RealgapError("the TSDF volume is empty: nothing to ray cast")
+        if block_coords is None:
+            block_coords = self.all_block_coords()
+        attrs = list(attributes)
+        if "color" in attrs and not cfg.integrate_color:
+            attrs.remove("color")
+        dmin = cfg.depth_min_m if depth_min_m is None else depth_min_m
+        dmax = cfg.depth_max_m if depth_max_m is None else depth_max_m
+        down = range_map_factor(intr)
+        ext = self._extrinsic(pose_c2w)
+
+        def cast():
+            return self.vbg.ray_cast(block_coords, intrinsic_tensor(intr), ext, intr.width, intr.height,
+                                     attrs, 1.0, dmin, dmax, cfg.raycast_weight_threshold,
+                                     cfg.trunc_voxel_multiplier, down)
+
+        # Open3D sizes its range-map fragment buffer only after a call that overflowed it (and
+        # that call, like every call that needs exactly the buffer size, misses blocks). When
+        # the need grows, a throw-away cast with every block listed twice grows the buffer to
+        # twice the need first.
+        need = fragments_needed(block_coords.cpu().numpy(), intr, np.linalg.inv(np.asarray(pose_c2w, np.float64)),
+                                down, self.config.voxel_size_m * self.config.block_resolution, dmin, dmax)
+        if need >= self._fragment_capacity:
+            o3d = o3d_quiet()
+            doubled = o3d.core.concatenate([block_coords, block_coords], 0)
+            self.vbg.ray_cast(doubled, intrinsic_tensor(intr), ext, intr.width, intr.height, ["depth"],
+                              1.0, dmin, dmax, cfg.raycast_weight_threshold, cfg.trunc_voxel_multiplier, down)
+            self._fragment_capacity = 2 * need
+        return cast()
+
+    def raycast(self, intr: Intrinsics, pose_c2w: np.ndarray, with_color: bool = True,
+                with_normal: bool = True, depth_max_m: float | None = None, block_coords=None,
+                refine: bool = True) -> RaycastResult:
+        """Render the fused surface from ``pose_c2w`` (camera-to-world) with ``intr``.
+
+        Open3D's ray marcher reads the TSDF of the voxel *below* each sample point (no
+        interpolation), which puts its zero crossings up to a voxel off the surface, in a
+        direction that depends on the view. With ``refine`` (default) every hit is moved to the
+        zero of the trilinearly interpolated TSDF along its ray by two Newton steps inside the
+        voxel cell Open3D reports (its 8 corner indices and interpolation weights), which makes
+        the depth accurate to a small fraction of a voxel.
+        """
+        attrs = ["depth"] + (["color"] if with_color and self.config.integrate_color else [])
+        need_neighbours = refine or with_normal
+        if need_neighbours:
+            attrs += ["normal", "index", "interp_ratio", "mask"]
+        r = self.raycast_tensors(intr, pose_c2w, attrs, block_coords, depth_max_m=depth_max_m)
+        depth = r["depth"].cpu().numpy()[..., 0].astype(np.float32)
+        depth[~np.isfinite(depth)] = 0.0
+        if refine:
+            depth = self._refine_depth(depth, r, intr, pose_c2w)
+        color = r["color"].cpu().numpy().astype(np.float32) if "color" in attrs else None
+        normal = r["normal"].cpu().numpy().astype(np.float32) if with_normal else None
+        miss = depth <= 0
+        if color is not None:
+            color[miss] = 0.0
+        if normal is not None:
+            normal[miss] = 0.0
+        return RaycastResult(depth, color, normal)
+
+    def _refine_depth(self, depth: np.ndarray, r, intr: Intrinsics, pose_c2w: np.ndarray) -> np.ndarray:
+        """Newton refinement of ray-cast depths on the trilinear TSDF (see :meth:`raycast`)."""
+        hit = depth > 0
+        mask = r["mask"].cpu().numpy()
+        ok = hit & mask.all(axis=-1)
+        if not ok.any():
+            return depth
+        idx = r["index"].cpu().numpy()[ok]                      # (N, 8) linear voxel indices
+        w = r["interp_ratio"].cpu().numpy()[ok].astype(np.float64)   # (N, 8) trilinear weights
+        tsdf = self.vbg.attribute("tsdf").cpu().numpy().reshape(-1)
+        c = tsdf[idx].astype(np.float64)                         # corner k: dx=k&1, dy=k&2, dz=k&4
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fx = w[:, 1] / (w[:, 0] + w[:, 1])
+            fy = w[:, 2] / (w[:, 0] + w[:, 2])
+            fz = w[:, 4] / (w[:, 0] + w[:, 4])
+        frac0 = np.stack([fx, fy, fz], -1)
+        good = np.isfinite(frac0).all(-1)
+        v, u = np.nonzero(ok)
+        R = np.asarray(pose_c2w, np.float64)[:3, :3]
+        d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(len(u))], -1)
+        d_vox = (d_cam @ R.T) / self.config.voxel_size_m        # voxel units per metre of depth
+        z0 = depth[ok].astype(np.float64)
+        z = z0.copy()
+        for _ in range(2):
+            q = frac0 + (z - z0)[:, None] * d_vox
+            x, y, zz = q[:, 0], q[:, 1], q[:, 2]
+            c00 = c[:, 0] * (1 - x) + c[:, 1] * x
+            c10 = c[:, 2] * (1 - x) + c[:, 3] * x
+            c01 = c[:, 4] * (1 - x) + c[:, 5] * x
+            c11 = c[:, 6] * (1 - x) + c[:, 7] * x
+            c0 = c00 * (1 - y) + c10 * y
+            c1 = c01 * (1 - y) + c11 * y
+            f = c0 * (1 - zz) + c1 * zz
+            gx = ((c[:, 1] - c[:, 0]) * (1 - y) + (c[:, 3] - c[:, 2]) * y) * (1 - zz) + \
+                 ((c[:, 5] - c[:, 4]) * (1 - y) + (c[:, 7] - c[:, 6]) * y) * zz
+            gy = (c10 - c00) * (1 - zz) + (c11 - c01) * zz
+            gz = c1 - c0
+            dfdz = gx * d_vox[:, 0] + gy * d_vox[:, 1] + gz * d_vox[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                step = np.where(dfdz < -1e-6, -f / dfdz, 0.0)
+            z = z + np.where(good, step, 0.0)
+        # accept only moves that stay near the original cell (a well-posed crossing)
+        z = np.where(good & np.isfinite(z) & (np.abs(z - z0) <= 2.0 * self.config.voxel_size_m), z, z0)
+        out = depth.copy()
+        out[ok] = z.astype(np.float32)
+        return out
+
+    # ---------------------------------------------------------------- extraction
+    def extract_mesh(self, weight_threshold: float | None = None) -> TriMesh:
+        """Marching-cubes mesh of the zero level set (world frame, metres), with vertex colours
+        when colour is fused. Voxels with fewer than ``weight_threshold`` observations (default
+        :attr:`TSDFConfig.mesh_weight_threshold`) are left out."""
+        w = self.config.mesh_weight_threshold if weight_threshold is None else weight_threshold
+        w = max(float(w) - 0.5, 0.0)  # Open3D keeps weights strictly above; weights count frames
+        if self.num_blocks == 0:
+            return TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), name="tsdf")
+        try:
+            m = self.vbg.extract_triangle_mesh(w)
+        except RuntimeError as e:  # Open3D fails on an empty surface instead of returning one
+            if "shape {0}" in str(e):
+                return TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), name="tsdf")
+            raise
+        v = m.vertex["positions"].cpu().numpy().astype(np.float64)
+        f = m.triangle["indices"].cpu().numpy().astype(np.int32) if "indices" in m.triangle \
+            else np.zeros((0, 3), np.int32)
+        colors = None
+        if self.config.integrate_color and "colors" in m.vertex:
+            colors = np.clip(m.vertex["colors"].cpu().numpy().astype(np.float64), 0.0, 1.0)
+        return TriMesh(v, f, name="tsdf", vertex_colors=colors)
+
+    def extract_point_cloud(self, weight_threshold: float | None = None
+                            ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Surface points (N, 3) metres, colours (N, 3) in [0, 1] or None, normals (N, 3)."""
+        w = self.config.mesh_weight_threshold if weight_threshold is None else weight_threshold
+        w = max(float(w) - 0.5, 0.0)  # Open3D keeps weights strictly above; weights count frames
+        if self.num_blocks == 0:
+            return np.zeros((0, 3)), None, np.zeros((0, 3))
+        try:
+            pc = self.vbg.extract_point_cloud(w)
+        except RuntimeError as e:
+            if "shape {0}" in str(e):
+                return np.zeros((0, 3)), None, np.zeros((0, 3))
+            raise
+        pts = pc.point["positions"].cpu().numpy().astype(np.float64)
+        nrm = pc.point["normals"].cpu().numpy().astype(np.float64) if "normals" in pc.point \
+            else np.zeros_like(pts)
+        col = None
+        if self.config.integrate_color and "colors" in pc.point:
+            col = np.clip(pc.point["colors"].cpu().numpy().astype(np.float64), 0.0, 1.0)
+        return pts, col, nrm
+
+    # ---------------------------------------------------------------- persistence
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the volume as ``path`` (Open3D npz) plus ``path``.json with its config."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.vbg.save(str(path))
+        Path(str(path) + ".json").write_text(json.dumps(
+            {"tsdf": config_to_dict(self.config), "frames_integrated": self.frames_integrated}, indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "TSDFVolume":
+        path = Path(path)
+        meta_path = Path(str(path) + ".json")
+        if not path.is_file():
+            raise FormatError(path, "TSDF volume file not found")
+        if not meta_path.is_file():
+            raise FormatError(meta_path, "TSDF volume description not found")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as e:
+            raise FormatError(meta_path, f"not valid JSON ({e.msg})") from None
+        vol = cls(config_from_dict(TSDFConfig, meta.get("tsdf", {}), str(meta_path)))
+        o3d = o3d_quiet()
+        try:
+            vol.vbg = o3d.t.geometry.VoxelBlockGrid.load(str(path)).to(vol.device)
+        except Exception as e:
+            raise FormatError(path, f"cannot read the voxel block grid ({e})") from None
+        vol.frames_integrated = int(meta.get("frames_integrated", 0))
+        return vol

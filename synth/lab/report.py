@@ -1,0 +1,307 @@
+"""The sensor-lab report: ``report.html`` with its PNGs next to it, plus ``metrics.json``.
+
+Layout of ``out_dir``::
+
+    report.html            self-contained page (relative links to figures/)
+    metrics.json           CompareResult.to_json()  (gap, breakdowns, per-frame gaps, config)
+    compare_config.json    effective CompareConfig
+    regions.json           the ranked worst regions (bins and image blocks)
+    history.json           gap history (written by append_history / run_lab)
+    figures/frame_XXX.png  measured, simulated, error map (mm) and validity disagreement
+    figures/breakdown_<feature>.png   binned bias / std / invalid fraction / gap term
+    figures/history.png    gap per step, effect names as tick labels
+
+matplotlib is imported inside the functions and drives an Agg canvas directly (no pyplot, no
+global backend state).
+"""
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import RealgapError
+from synth.lab.compare import (VALIDITY_LABELS, CompareConfig, CompareResult, Region, compare,
+                               error_map, validity_map, worst_bins, worst_blocks)
+from synth.lab.features import FrameObservation
+from synth.lab.history import append_history, load_history, step_labels
+
+REPORT_FILE = "report.html"
+VALIDITY_COLOURS = ("#d9d9d9", "#1f77b4", "#d62728", "#252525")
+"""Colours of the validity codes: both valid (light grey), measured only (blue), simulated only
+(red), both invalid (black)."""
+
+
+def _figure(width_in: float, height_in: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in, height_in), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path: str | os.PathLike) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+def plot_frame(path: str | os.PathLike, obs: FrameObservation, regions: Sequence[Region] = ()) -> Path:
+    """Measured and simulated depth (m), measured - simulated (mm, colour bar) and the
+    validity-disagreement map (legend) of one frame; ``regions`` (blocks of this frame) are
+    drawn as numbered rectangles on the two lower panels."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Rectangle
+
+    h, w = obs.shape
+    aspect = h / w
+    fig = _figure(11, 11 * aspect + 1.2)
+    axs = fig.subplots(2, 2)
+    valid = np.concatenate([obs.measured[obs.measured > 0], obs.simulated[obs.simulated > 0]])
+    vmin, vmax = (np.percentile(valid, [1, 99]) if valid.size else (0.0, 1.0))
+    for ax, img, name in ((axs[0, 0], obs.measured, "measured"), (axs[0, 1], obs.simulated, "simulated")):
+        im = ax.imshow(np.where(img > 0, img, np.nan), cmap="viridis", vmin=vmin, vmax=vmax,
+                       interpolation="nearest")
+        ax.set_title(f"{name} depth, frame {obs.index} (white: invalid)")
+        fig.colorbar(im, ax=ax, label="depth [m]", shrink=0.9)
+    err = error_map(obs) * 1000.0
+    fin = np.isfinite(err)
+    lim = float(np.percentile(np.abs(err[fin]), 98)) if fin.any() else 1.0
+    lim = max(lim, 1.0)
+    import matplotlib
+
+    cmap = matplotlib.colormaps["RdBu_r"].with_extremes(bad="#bbbbbb")
+    ax = axs[1, 0]
+    im = ax.imshow(np.ma.masked_invalid(err), cmap=cmap, vmin=-lim, vmax=lim, interpolation="nearest")
+    ax.set_title("measured − simulated (grey: invalid in either)")
+    fig.colorbar(im, ax=ax, label="measured − simulated [mm]", shrink=0.9)
+    ax = axs[1, 1]
+    im = ax.imshow(validity_map(obs), cmap=ListedColormap(VALIDITY_COLOURS), vmin=-0.5, vmax=3.5,
+                   interpolation="nearest")
+    ax.set_title("valid / invalid disagreement")
+    # categorical colour bar = the legend of the four codes
+    cb = fig.colorbar(im, ax=ax, ticks=[0, 1, 2, 3], shrink=0.9)
+    cb.ax.set_yticklabels([label.replace(" valid only", "\nvalid only") for label in VALIDITY_LABELS], fontsize=8)
+    cb.set_label("pixel validity (legend)")
+    for ax in axs.ravel():
+        ax.set_xlabel("u [px]")
+        ax.set_ylabel("v [px]")
+    for r in regions:
+        if r.bbox is None:
+            continue
+        x0, y0, x1, y1 = r.bbox
+        for ax in (axs[1, 0], axs[1, 1]):
+            ax.add_patch(Rectangle((x0 - 0.5, y0 - 0.5), x1 - x0, y1 - y0, fill=False, edgecolor="#ff7f0e",
+                                   linewidth=2))
+            ax.text(x0, y0 - 1, f"#{r.rank}", color="#d95f02", fontsize=9, fontweight="bold", va="bottom",
+                    bbox=dict(facecolor="white", alpha=0.7, pad=1, edgecolor="none"))
+    return _save(fig, path)
+
+
+def _x_positions(b: dict):
+    """x values and tick labels of a breakdown: bin centres for finite numeric bins, indices otherwise."""
+    edges = b.get("edges")
+    if b.get("categorical") or edges is None or any(not math.isfinite(e) for e in edges):
+        return np.arange(len(b["labels"]), dtype=float), list(b["labels"])
+    return np.asarray(b["centres"], dtype=float), None
+
+
+def plot_breakdown(path: str | os.PathLike, feature: str, b: dict) -> Path:
+    """Measured vs simulated bias, robust std (mm), invalid fraction and the gap term per bin."""
+    x, ticks = _x_positions(b)
+    bars = bool(b.get("categorical"))
+    unit = f" [{b['unit']}]" if b.get("unit") else ""
+    xlabel = f"{b.get('title', feature)}{unit}"
+    fig = _figure(11, 7.5)
+    axs = fig.subplots(2, 2)
+    series = (("bias", "median error vs ideal [mm]", 1000.0, "bias"),
+              ("std", "robust std (IQR/1.349) [mm]", 1000.0, "spread"),
+              ("invalid_fraction", "invalid fraction [–]", 1.0, "invalid pixels"))
+    width = 0.38 * (np.min(np.diff(x)) if len(x) > 1 else 1.0)
+    for ax, (key, ylabel, scale, what) in zip(axs.ravel()[:3], series):
+        for side, colour, off in (("measured", "#1f77b4", -1), ("simulated", "#d62728", 1)):
+            y = np.asarray(b[side][key], dtype=float) * scale
+            if bars:
+                ax.bar(x + off * width / 2, np.nan_to_num(y), width=width, color=colour, label=side)
+            else:
+                ax.plot(x, y, "o-", color=colour, label=side, markersize=4)
+        ax.set_title(f"{what} per bin: {feature}")
+        ax.set_ylabel(ylabel)
+        ax.set_xlabel(xlabel)
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    ax = axs[1, 1]
+    et = np.nan_to_num(np.asarray(b["error_term"], dtype=float))
+    it = np.nan_to_num(np.asarray(b["invalid_term"], dtype=float))
+    bw = 0.8 * (np.min(np.diff(x)) if len(x) > 1 else 1.0)
+    ax.bar(x, et, width=bw, color="#9467bd", label="error-distribution term (W1)")
+    ax.bar(x, it, width=bw, bottom=et, color="#8c564b", label="invalid-fraction term")
+    if "noise_floor" in b:
+        fl = np.asarray(b["noise_floor"], dtype=float)
+        ax.plot(x, 3 * fl, "k_", markersize=12, markeredgewidth=2, label="3x sampling-noise floor")
+    ax.set_title(f"gap term per bin: {feature} (feature term {b.get('feature_term', float('nan')):.3f})")
+    ax.set_ylabel("term [–]")
+    ax.set_xlabel(xlabel)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    if ticks is not None:
+        rot = 45 if len(ticks) > 6 else 0
+        for a in axs.ravel():
+            a.set_xticks(x)
+            a.set_xticklabels(ticks, rotation=rot, ha="right" if rot else "center", fontsize=8)
+    else:
+        used = np.flatnonzero(np.asarray(b["measured"]["count"]) > 0)
+        if used.size:
+            e = np.asarray(b["edges"], dtype=float)
+            for a in axs.ravel():
+                a.set_xlim(e[used[0]], e[used[-1] + 1])
+    return _save(fig, path)
+
+
+def plot_history(path: str | os.PathLike, entries: Sequence[dict]) -> Path:
+    """Gap per lab step, the effects added at each step as tick labels."""
+    if not entries:
+        raise RealgapError("plot_history: empty history")
+    gaps = [float(e["gap"]) for e in entries]
+    x = np.arange(len(gaps))
+    fig = _figure(max(6.0, 1.1 * len(gaps) + 3), 4.5)
+    ax = fig.subplots()
+    ax.plot(x, gaps, "o-", color="#2ca02c", label="gap")
+    for xi, g in zip(x, gaps):
+        ax.annotate(f"{g:.3f}", (xi, g), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+    ax.set_xticks(x)
+    ax.set_xticklabels(step_labels(entries), rotation=30, ha="right", fontsize=8)
+    ax.set_xlabel("lab step (effects added)")
+    ax.set_ylabel("gap [–]")
+    ax.set_title("gap history: add an effect, watch the error fall")
+    ax.set_ylim(bottom=0, top=max(gaps) * 1.15 + 1e-9)
+    ax.legend()
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def _table(rows: Sequence[Sequence], header: Sequence[str]) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _fmt(x) -> str:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    return "n/a" if not math.isfinite(x) else f"{x:.4f}"
+
+
+_CSS = """body{font-family:sans-serif;margin:2em;max-width:1200px}table{border-collapse:collapse;margin:1em 0}
+td,th{border:1px solid #ccc;padding:3px 8px;text-align:left}img{max-width:100%;border:1px solid #eee}
+h2{border-bottom:1px solid #ccc}.gap{font-size:1.6em}"""
+
+
+def write_report(result: CompareResult, observations_subset: Sequence[FrameObservation],
+                 out_dir: str | os.PathLike, history: Sequence[dict] | str | os.PathLike | None = None, *,
+                 regions: Sequence[Region] | None = None, top_bins: int = 5, top_blocks: int = 5,
+                 block_px: int = 32, title: str = "Sensor lab report") -> Path:
+    """Write ``out_dir/report.html`` (+ figures, metrics.json, regions.json); returns its path.
+
+    observations_subset: the frames to show (error maps, worst image blocks); usually a few.
+    history: entries, or a folder / history.json path to read them from; None = read
+    ``out_dir/history.json`` if present. regions: precomputed worst regions (default: the
+    ``top_bins`` worst bins of ``result`` and the ``top_blocks`` worst blocks of the subset).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = out / "figures"
+    obs = list(observations_subset)
+    if history is None or isinstance(history, (str, os.PathLike)):
+        entries = load_history(out if history is None else history)
+    else:
+        entries = list(history)
+    if regions is None:
+        cfg = CompareConfig.from_dict(result.config) if result.config else CompareConfig()
+        regions = worst_bins(result, top_bins) + (worst_blocks(obs, cfg, top_blocks, block_px) if obs else [])
+    regions = list(regions)
+    result.save(out)
+    (out / "regions.json").write_text(json.dumps([r.to_json() for r in regions], indent=1) + "\n")
+
+    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+             f"<style>{_CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
+    parts.append(f"<p class='gap'>gap = <b>{_fmt(result.gap)}</b></p>")
+    summary = [("effects", ", ".join(result.effects) or "(none given)"), ("label", result.label or ""),
+               ("frames", len(result.frame_gaps)), ("sampled geometry pixels", result.n_samples),
+               ("spatial term S (weighted in the gap)", _fmt(result.spatial_term))]
+    summary += [(f"feature term {f}" + ("" if f in result.gap_features else " (not in gap)"), _fmt(t))
+                for f, t in result.feature_terms.items()]
+    summary += [(f"skipped feature {f}", why) for f, why in result.skipped_features.items()]
+    uv = result.diagnostics.get("unmodelled_valid_fraction", {})
+    if uv:
+        summary.append(("valid where the model has no geometry (measured / simulated)",
+                        f"{_fmt(uv.get('measured'))} / {_fmt(uv.get('simulated'))}"))
+    parts.append("<h2>Summary</h2>" + _table(summary, ("quantity", "value")))
+    parts.append("<p>Definition: see <code>synth/lab/compare.py</code>; numbers in "
+                 "<a href='metrics.json'>metrics.json</a>, configuration in "
+                 "<a href='compare_config.json'>compare_config.json</a>.</p>")
+
+    parts.append("<h2>Where the model fails worst</h2>"
+                 "<p>Feature bins and image blocks whose disagreement exceeds 3x the level that "
+                 "sampling noise alone produces when the model is right; score = excess over "
+                 "that noise floor.</p><ol>")
+    for r in regions:
+        parts.append(f"<li>[{html.escape(r.kind)} #{r.rank}, score {_fmt(r.score)}] {html.escape(r.description)}</li>")
+    parts.append("</ol>")
+    for kind, what in (("bin", "feature bin"), ("block", "image block")):
+        if not any(r.kind == kind for r in regions):
+            parts.append(f"<p>No {what} differs from the measurement beyond sampling noise.</p>")
+
+    if entries:
+        plot_history(figs / "history.png", entries)
+        parts.append("<h2>Gap history</h2><img src='figures/history.png' alt='gap history'>")
+        parts.append(_table([(e["step"], e["timestamp"], ", ".join(e["effects"]), _fmt(e["gap"]), e.get("label") or "")
+                             for e in entries], ("step", "time (UTC)", "effects", "gap", "label")))
+
+    parts.append("<h2>Binned statistics: measured vs simulated</h2>")
+    for f, b in result.breakdowns.items():
+        name = f"breakdown_{f}.png"
+        plot_breakdown(figs / name, f, b)
+        parts.append(f"<h3>{html.escape(f)}</h3><img src='figures/{name}' alt='{html.escape(f)} breakdown'>")
+
+    if obs:
+        parts.append("<h2>Frames</h2><p>Orange rectangles: worst image blocks (numbered as in the list above).</p>")
+        for k, o in enumerate(obs):
+            name = f"frame_{k:03d}.png"
+            plot_frame(figs / name, o, [r for r in regions if r.kind == "block" and r.frame == k])
+            parts.append(f"<h3>frame {o.index}</h3><img src='figures/{name}' alt='frame {o.index}'>")
+
+    parts.append("<h2>Per-frame gaps</h2>" + _table(
+        [(i, _fmt(g)) for i, g in zip(result.frame_indices, result.frame_gaps)], ("frame", "gap")))
+    parts.append("</body></html>\n")
+    path = out / REPORT_FILE
+    path.write_text("\n".join(parts))
+    return path
+
+
+def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike, *,
+            effects: Sequence[str] = (), label: str | None = None, config: CompareConfig | None = None,
+            compare_against: str | os.PathLike | None = None, report_frames: int = 4) -> CompareResult:
+    """One lab step: compare, save metrics.json, append to the history, write the report.
+
+    report_frames: how many frames (evenly spread) get error-map figures.
+    """
+    obs = list(observations)
+    result = compare(obs, config, effects=effects, label=label)
+    entries = append_history(out_dir, list(effects), result.gap, label, compare_against=compare_against)
+    k = max(0, min(int(report_frames), len(obs)))
+    picks = sorted(set(np.linspace(0, len(obs) - 1, k).round().astype(int).tolist())) if k else []
+    write_report(result, [obs[i] for i in picks], out_dir, entries)
+    return result
+
+
+__all__ = ["write_report", "run_lab", "plot_frame", "plot_breakdown", "plot_history", "REPORT_FILE"]

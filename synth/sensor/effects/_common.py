@@ -1,0 +1,53 @@
+"""Helpers shared by several effects (not an effect module: the leading underscore keeps it
+out of discovery)."""
+from __future__ import annotations
+
+import numpy as np
+
+from data_tools.errors import RealgapError
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-np.clip(x, -30, 30)))).astype(np.float32)
+
+
+def uniform_draw(rng: np.random.Generator, shape) -> dict:
+    """One U(0, 1) float32 variate per pixel."""
+    return {"u": rng.random(shape, dtype=np.float32)}
+
+
+def normal_draw(rng: np.random.Generator, shape) -> dict:
+    """One N(0, 1) float32 variate per pixel."""
+    return {"n": rng.standard_normal(shape, dtype=np.float32)}
+
+
+def check_draw(draw, key: str, shape, effect: str) -> np.ndarray:
+    if draw is None or key not in draw:
+        raise RealgapError(f"sensor effect {effect!r}: replayed draw lacks {key!r}")
+    a = draw[key]
+    if a.shape != tuple(shape):
+        raise RealgapError(f"sensor effect {effect!r}: replayed draw {key!r} has shape {a.shape}, frame is {tuple(shape)}")
+    return a
+
+
+def cos_view(view, ray_dirs_cam: np.ndarray) -> np.ndarray:
+    """(H, W) cosine between the camera-facing normal and the reversed viewing ray (0 = no hit)."""
+    c = -np.einsum("hwk,hwk->hw", view.normals_cam, ray_dirs_cam)
+    c[~view.hit] = 0.0
+    return np.clip(c, 0.0, 1.0).astype(np.float32)
+
+
+def cos_incidence(view, source_cam) -> tuple[np.ndarray, np.ndarray]:
+    """(cos of incidence from a point light at ``source_cam`` (3,), distance to it) per pixel."""
+    L = view.points_cam - np.asarray(source_cam, np.float32)
+    r = np.sqrt(np.einsum("hwk,hwk->hw", L, L)).astype(np.float32)
+    r = np.maximum(r, 1e-6)
+    c = -np.einsum("hwk,hwk->hw", view.normals_cam, L) / r
+    c[~view.hit] = 0.0
+    return np.clip(c, 0.0, 1.0).astype(np.float32), r
+
+
+def drop_with_probability(state, p: np.ndarray, u: np.ndarray, name: str) -> None:
+    """Invalidate pixels whose uniform variate falls below their drop probability."""
+    state.invalidate(u < p, name)
+    state.log[name]["mean_drop_probability"] = float(p[state.ideal.hit].mean()) if state.ideal.hit.any() else 0.0

@@ -1,0 +1,115 @@
+"""Physical stage 2: the IR camera captures the projected pattern."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from synth.sensor.effects._common import check_draw
+from synth.sensor.registry import STAGE_CAPTURE, Effect, register_effect
+
+
+@dataclass
+class IRCaptureParams:
+    gain_e: float = 30000.0
+    """Photo-electrons per unit radiance during one exposure (exposure x aperture x QE)."""
+    full_well_e: float = 20000.0
+    """Full-well capacity, electrons: brighter pixels saturate."""
+    read_noise_e: float = 5.0
+    """Read noise, electrons RMS."""
+    speckle_contrast: float = 0.1
+    """Laser speckle: std of the multiplicative intensity noise of the pattern (0 = incoherent)."""
+    psf_sigma_px: float = 0.6
+    """Gaussian optical blur (lens PSF + defocus) of the IR camera, pixels."""
+    adc_bits: int = 10
+    """ADC resolution; the raw image ``state.ir`` is in counts 0 .. 2^bits - 1."""
+    companding: str = "sqrt"
+    """How counts become the 8-bit image the matcher sees: ``sqrt`` (square-root LUT, which
+    equalises shot noise over the range) or ``linear``."""
+
+
+@register_effect
+class IRCapture(Effect):
+    """Radiance -> IR image: speckle, optical blur, exposure, shot + read noise, saturation, ADC.
+
+    Physics: the coherent laser light forms speckle (multiplicative noise of contrast c on the
+    pattern), the lens blurs it (Gaussian PSF), the sensor converts it to electrons
+    (``gain_e`` per unit radiance, plus the ambient radiance from ``ambient_light``), photon
+    shot noise (Poisson, approximated by a Gaussian of variance S) and read noise are added,
+    the well saturates at ``full_well_e`` and the ADC quantises to ``adc_bits``. The matcher
+    sees an 8-bit companded image. Draws: two N(0, 1) fields per camera (speckle, temporal
+    noise); the reference image uses a zero draw and is normalised to 90 % of the range.
+    Approximations: Gaussian shot noise, white (pixel-sized) speckle, no dark current/FPN.
+    """
+
+    name = "ir_capture"
+    Params = IRCaptureParams
+    FITTABLE = {"gain_e": (100.0, 1e6), "full_well_e": (1000.0, 1e6), "read_noise_e": (0.0, 200.0),
+                "speckle_contrast": (0.0, 1.0), "psf_sigma_px": (0.0, 3.0)}
+    stage = STAGE_CAPTURE
+    physical = True
+    in_reference = True
+
+    def validate(self) -> None:
+        super().validate()
+        from data_tools.errors import ConfigError
+        if not 6 <= int(self.params.adc_bits) <= 16:
+            raise ConfigError(f"effect 'ir_capture': adc_bits must be in [6, 16], got {self.params.adc_bits}")
+        if self.params.companding not in ("sqrt", "linear"):
+            raise ConfigError(f"effect 'ir_capture': companding must be 'sqrt' or 'linear', got {self.params.companding!r}")
+
+    def sample(self, rng, state):
+        sh = state.shape
+        d = {"speckle": rng.standard_normal(sh, dtype=np.float32), "noise": rng.standard_normal(sh, dtype=np.float32)}
+        if state.preset.type == "active_stereo":
+            d["speckle_second"] = rng.standard_normal(sh, dtype=np.float32)
+            d["noise_second"] = rng.standard_normal(sh, dtype=np.float32)
+        return d
+
+    def null_draw(self, state):
+        return None
+
+    def _capture(self, radiance, ambient, speckle, noise, reference: bool):
+        import cv2
+        p = self.params
+        rad = radiance
+        if speckle is not None and p.speckle_contrast > 0:
+            rad = rad * np.maximum(1.0 + np.float32(p.speckle_contrast) * speckle, 0.0)
+        if ambient is not None:
+            rad = rad + ambient
+        if p.psf_sigma_px > 0:
+            rad = cv2.GaussianBlur(rad, (0, 0), p.psf_sigma_px)
+        top = float(2 ** int(p.adc_bits) - 1)
+        if reference:  # the stored reference: noise-free, normalised to 90 % of the range
+            hi = float(np.percentile(rad[rad > 0], 99.9)) if np.any(rad > 0) else 1.0
+            S = rad * np.float32(0.9 * p.full_well_e / max(hi, 1e-12))
+        else:
+            S = rad * np.float32(p.gain_e)
+        if noise is not None:
+            S = S + np.sqrt(S + np.float32(p.read_noise_e) ** 2) * noise
+        sat = S >= p.full_well_e
+        dn = np.clip(np.rint(S * np.float32(top / p.full_well_e)), 0, top)
+        if p.companding == "sqrt":
+            im8 = np.rint(np.sqrt(dn * np.float32(1.0 / top)) * 255.0)
+        else:
+            im8 = np.rint(dn * np.float32(255.0 / top))
+        return dn.astype(np.uint16), im8.astype(np.uint8), sat
+
+    def apply(self, state, draw) -> None:
+        if state.radiance is None:
+            from data_tools.errors import ConfigError
+            raise ConfigError("effect 'ir_capture' needs 'pattern_projection' earlier in the model")
+        sh = state.shape
+        if state.is_reference or draw is None:
+            sp = nz = sp2 = nz2 = None
+        else:
+            sp = check_draw(draw, "speckle", sh, self.name)
+            nz = check_draw(draw, "noise", sh, self.name)
+            sp2, nz2 = draw.get("speckle_second"), draw.get("noise_second")
+        ref = state.is_reference
+        state.ir, state.ir8, state.saturated = self._capture(state.radiance, state.scratch.get("ambient"), sp, nz, ref)
+        if state.radiance_second is not None:
+            state.ir_second, state.ir8_second, _ = self._capture(state.radiance_second,
+                                                                 state.scratch.get("ambient_second"), sp2, nz2, ref)
+        state.log[self.name] = {"saturated_px": int(state.saturated.sum()),
+                                "mean_counts": float(state.ir.mean())}

@@ -1,0 +1,58 @@
+"""Direct model: pixels the projector (or the second stereo camera) cannot see are holes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+
+
+@dataclass
+class ProjectorShadowParams:
+    eps_m: float = 0.002
+    """Free gap at both ends of each shadow ray, metres (no self-shadowing)."""
+
+
+@register_effect
+class ProjectorShadow(Effect):
+    """Holes where the surface is hidden from the projector (structured light) or from the
+    second camera (active stereo).
+
+    Physics: the projector sits ``baseline`` to the side of the camera, so a foreground object
+    casts a shadow on the background that the camera can see: no pattern, no depth. With the
+    projector at +x (right of the camera in the image) the shadow band lies on the LEFT (-u)
+    side of the object, ``f b (1/z_fg - 1/z_bg)`` pixels wide. The same geometry makes a band
+    of background visible to only one camera of a stereo pair. Implementation: one shadow ray
+    per valid pixel through the scene's RaycastingScene, plus back-facing surfaces (projector
+    behind the surface). The physical pipeline gets this inside ``pattern_projection``; this
+    is the direct stand-in. No-op for ToF (illuminator next to the lens).
+    """
+
+    name = "projector_shadow"
+    Params = ProjectorShadowParams
+    FITTABLE = {"eps_m": (0.0, 0.05)}
+    stage = STAGE_DROPOUT
+
+    def source_offset(self, preset):
+        if preset.type == "active_stereo":
+            return (preset.projector_side * preset.baseline_m, 0.0, 0.0)
+        return tuple(preset.projector_offset_m)
+
+    def apply(self, state, draw) -> None:
+        from synth.sensor.effects.pattern_projection import normalized_coords, shadow_test
+        if state.preset.type == "tof" or state.baseline_free():
+            state.log[self.name] = {"active": False}
+            return
+        renderer = state.require_renderer(self.name)
+        v = state.view
+        src = np.asarray(self.source_offset(state.preset), np.float32)
+        xn, yn = normalized_coords(state.ray_dirs_cam)
+        Z = np.where(v.hit, v.points_cam[..., 2], np.float32(0)).astype(np.float32)
+        Lx, Ly, Lz = xn * Z - src[0], yn * Z - src[1], Z - src[2]
+        n = v.normals_cam
+        back = (n[..., 0] * Lx + n[..., 1] * Ly + n[..., 2] * Lz) >= 0   # source behind the surface
+        cand = state.valid & v.hit & ~back
+        r = np.sqrt(Lx * Lx + Ly * Ly + Lz * Lz)
+        shadow = (back & v.hit) | shadow_test(renderer, v, src, Lx, Ly, Lz, r, cand, self.params.eps_m)
+        state.invalidate(shadow, self.name)

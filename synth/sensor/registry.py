@@ -1,0 +1,243 @@
+"""The effect registry: every physical effect of a depth sensor is a small registered class.
+
+An effect has
+
+* a unique ``name`` (the key used in JSON models and on the command line),
+* a typed ``Params`` dataclass (one docstring per field, units in the names),
+* ``FITTABLE``: the parameters a sensor lab may fit, with (low, high) bounds,
+* ``sample(rng, state) -> draw``: the random draw of one frame (unit noise fields, uniform
+  variates...), independent of the parameters wherever possible so that a fit sees common
+  random numbers,
+* ``apply(state, draw)``: deterministic given the state and the draw; it reads and writes the
+  per-frame :class:`~synth.sensor.state.SensorState`.
+
+Effects are ordered by ``stage`` (geometry < projection < optics < capture < matching < depth
+< post-processing), so a model can list them in any order. Modules in
+``synth/sensor/effects/`` are discovered lazily (on first lookup, never at import time): adding
+an effect is one new file with a ``@register_effect`` class.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import pkgutil
+import zlib
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+
+from data_tools.errors import ConfigError
+
+# Stage numbers (effects run in increasing stage order; ties keep the model's order).
+STAGE_GEOMETRY = 10
+"""Changes what each pixel sees (rolling shutter re-renders rows)."""
+STAGE_PROJECTION = 20
+"""Computes the radiance of the projected pattern (physical pipeline)."""
+STAGE_LIGHT = 25
+"""Adds further light to the radiance (ambient IR)."""
+STAGE_OPTICS = 30
+"""Optical transforms of the radiance image before the sensor (motion blur, lens distortion)."""
+STAGE_CAPTURE = 40
+"""Sensor: speckle, blur, shot/read noise, exposure, saturation, ADC."""
+STAGE_MATCHING = 50
+"""Image -> disparity -> depth (block matching)."""
+STAGE_DROPOUT = 60
+"""Direct (analytic) effects that remove pixels."""
+STAGE_DEPTH = 70
+"""Direct effects that change depth values (noise, bias, ToF errors)."""
+STAGE_QUANTIZE = 80
+"""Quantisation of the disparity / depth code."""
+STAGE_WARP = 85
+"""Direct geometric warps of the depth image (lens distortion on depth)."""
+STAGE_POST = 90
+"""Device post-processing (range limits, hole filling)."""
+
+
+class Effect(ABC):
+    """Base class of all sensor effects. Subclasses set the class attributes and ``apply``."""
+
+    name: ClassVar[str] = ""
+    """Registry key."""
+    Params: ClassVar[type] = None  # type: ignore[assignment]
+    """Dataclass of typed parameters (defaults = generic defaults; presets override)."""
+    FITTABLE: ClassVar[dict[str, tuple[float, float]]] = {}
+    """Parameters a sensor lab may fit, with (low, high) bounds in the parameter's units."""
+    stage: ClassVar[int] = STAGE_DEPTH
+    """Where the effect runs (see the STAGE_* constants)."""
+    physical: ClassVar[bool] = False
+    """True for the stages of the physical pipeline (projection, capture, matching)."""
+    in_reference: ClassVar[bool] = False
+    """True when the effect also shapes the stored reference image (noise-free draw)."""
+
+    def __init__(self, params: Any = None, enabled: bool = True):
+        if params is None:
+            params = self.Params()
+        elif isinstance(params, dict):
+            params = params_from_dict(self.Params, params, self.name)
+        elif not isinstance(params, self.Params):
+            raise ConfigError(f"effect {self.name!r}: params must be a {self.Params.__name__} or a dict")
+        self.params = params
+        self.enabled = bool(enabled)
+        self.validate()
+
+    # -- overridable -----------------------------------------------------------------------
+    def validate(self) -> None:
+        """Raise ConfigError for impossible parameter values (default: check FITTABLE bounds)."""
+        for k, (lo, hi) in self.FITTABLE.items():
+            v = getattr(self.params, k)
+            if not (lo <= float(v) <= hi):
+                raise ConfigError(f"effect {self.name!r}: {k}={v} is outside its bounds [{lo}, {hi}]")
+
+    def stage_for(self, physical_model: bool) -> int:
+        """Stage in a model that does (``physical_model``) or does not run the physical pipeline."""
+        return self.stage
+
+    def sample(self, rng: np.random.Generator, state) -> Any:
+        """Random draw of one frame (default: nothing random)."""
+        return None
+
+    def null_draw(self, state) -> Any:
+        """The noise-free draw used for the reference image (default: same as no randomness)."""
+        return None
+
+    @abstractmethod
+    def apply(self, state, draw: Any) -> None:
+        """Deterministically apply the effect to ``state`` given ``draw``."""
+
+    # -- helpers ---------------------------------------------------------------------------
+    def to_json(self) -> dict:
+        return {"name": self.name, "enabled": self.enabled, "params": params_to_dict(self.params)}
+
+    def replace(self, **changes) -> "Effect":
+        """A copy with some parameters changed (validated)."""
+        return type(self)(dataclasses.replace(self.params, **changes), self.enabled)
+
+    def fittable(self) -> dict[str, tuple[float, float, float]]:
+        """{param: (value, low, high)} for the fittable parameters."""
+        return {k: (float(getattr(self.params, k)), lo, hi) for k, (lo, hi) in self.FITTABLE.items()}
+
+    def rng(self, seed: int) -> np.random.Generator:
+        """Per-effect generator: depends on the frame seed and the effect name only, so switching
+        another effect on or off never changes this effect's draw."""
+        return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(self.name.encode())])
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.params!r}, enabled={self.enabled})"
+
+
+def params_to_dict(params) -> dict:
+    d = dataclasses.asdict(params)
+    for k, v in d.items():
+        if isinstance(v, tuple):
+            d[k] = list(v)
+    return d
+
+
+def params_from_dict(cls, d: dict, effect_name: str = ""):
+    """Build a Params dataclass from a dict; unknown keys and wrong types are ConfigErrors."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"effect {effect_name!r}: params must be a JSON object")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        raise ConfigError(f"effect {effect_name!r}: unknown parameter(s) {', '.join(unknown)}; "
+                          f"known: {', '.join(fields)}")
+    kw = {}
+    for k, v in d.items():
+        default = getattr(cls(), k)
+        try:
+            if isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise TypeError("expected true/false")
+                kw[k] = v
+            elif isinstance(default, int) and not isinstance(default, bool):
+                if float(v) != int(v):
+                    raise TypeError("expected an integer")
+                kw[k] = int(v)
+            elif isinstance(default, float):
+                kw[k] = float(v)
+            elif isinstance(default, tuple):
+                kw[k] = tuple(float(x) for x in v)
+            elif isinstance(default, str):
+                if not isinstance(v, str):
+                    raise TypeError("expected a string")
+                kw[k] = v
+            else:
+                kw[k] = v
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"effect {effect_name!r}: parameter {k}={v!r} has the wrong type ({e})") from None
+    return cls(**kw)
+
+
+_REGISTRY: dict[str, type[Effect]] = {}
+_DISCOVERED = False
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Class decorator: add an effect to the registry (names must be unique)."""
+    if not cls.name:
+        raise TypeError(f"{cls.__name__} has no name")
+    if cls.Params is None or not dataclasses.is_dataclass(cls.Params):
+        raise TypeError(f"{cls.__name__}.Params must be a dataclass")
+    for k in cls.FITTABLE:
+        if k not in {f.name for f in dataclasses.fields(cls.Params)}:
+            raise TypeError(f"{cls.__name__}.FITTABLE names unknown parameter {k!r}")
+    other = _REGISTRY.get(cls.name)
+    if other is not None and other.__qualname__ != cls.__qualname__:
+        raise TypeError(f"effect name {cls.name!r} registered twice ({other.__qualname__}, {cls.__qualname__})")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def discover_effects() -> None:
+    """Import every module of ``synth.sensor.effects`` (once) so their classes register."""
+    global _DISCOVERED
+    if _DISCOVERED:
+        return
+    from synth.sensor import effects as pkg
+    for mod in pkgutil.iter_modules(pkg.__path__):
+        if not mod.name.startswith("_"):
+            importlib.import_module(f"{pkg.__name__}.{mod.name}")
+    _DISCOVERED = True
+
+
+def effect_names() -> list[str]:
+    """Sorted names of all registered effects."""
+    discover_effects()
+    return sorted(_REGISTRY)
+
+
+def effect_class(name: str) -> type[Effect]:
+    """The effect class registered as ``name``; ConfigError listing the known names otherwise."""
+    discover_effects()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ConfigError(f"unknown sensor effect {name!r}; known effects: {', '.join(sorted(_REGISTRY))}") from None
+
+
+def make_effect(spec, defaults: dict | None = None) -> Effect:
+    """An Effect from a name, a ``{"name", "enabled", "params"}`` dict, or an Effect instance.
+
+    ``defaults`` (preset-specific parameter values) are applied under the explicit params.
+    """
+    if isinstance(spec, Effect):
+        return spec
+    if isinstance(spec, str):
+        name, params, enabled = spec, {}, True
+    elif isinstance(spec, dict):
+        if "name" not in spec:
+            raise ConfigError(f"effect entry {spec!r} has no 'name'")
+        name, params, enabled = spec["name"], spec.get("params") or {}, spec.get("enabled", True)
+        extra = set(spec) - {"name", "params", "enabled"}
+        if extra:
+            raise ConfigError(f"effect entry {name!r}: unknown key(s) {', '.join(sorted(extra))}")
+    elif isinstance(spec, (tuple, list)) and len(spec) == 2:
+        name, params, enabled = spec[0], dict(spec[1] or {}), True
+    else:
+        raise ConfigError(f"cannot build a sensor effect from {spec!r}")
+    cls = effect_class(name)
+    merged = dict(defaults or {})
+    merged.update(params)
+    return cls(params_from_dict(cls.Params, merged, name), enabled)

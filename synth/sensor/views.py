@@ -1,0 +1,262 @@
+"""Object-centred views for CAD-based recognition: one object, a sensor, many viewpoints.
+
+Viewpoints are the vertices of a subdivided icosahedron on the upper half sphere around the
+object (object resting on a ground plane), each with a set of in-plane rotations of the
+camera about its optical axis; optional random clutter (boxes and cylinders on the ground)
+and background walls. Every view is simulated by the chosen sensor model and written as
+
+    OUT/depth/NNNNNN.png        16-bit sensor depth (metres = value / depth_scale)
+    OUT/ideal/NNNNNN.png        16-bit ideal depth (optional)
+    OUT/mask/NNNNNN.png         8-bit mask of the object's visible pixels (255)
+    OUT/views.jsonl             one JSON line per view: object name, 4x4 object-to-camera
+                                pose (OpenCV camera axes), viewpoint, in-plane angle, seed
+    OUT/labels.json             all of them in one JSON document (written at the end)
+    OUT/camera.json, sensor_config.json, views_config.json
+
+so a run can be resumed (views already in views.jsonl are skipped).
+
+    render_views(load_mesh("obj_01.ply", scale=0.001), "kinect_v1", "out/obj_01", subdivisions=2,
+                 inplane_deg=(-30, 0, 30), clutter=5)
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import ConfigError, RealgapError
+from data_tools.mesh import TriMesh
+from data_tools.scene_spec import Material, SceneSpec
+
+
+def icosphere_vertices(subdivisions: int = 1) -> np.ndarray:
+    """(N, 3) unit vertices of an icosahedron subdivided ``subdivisions`` times (12, 42, 162, ...)."""
+    t = (1 + 5 ** 0.5) / 2
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
+         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2),
+         (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11),
+         (6, 2, 10), (8, 6, 7), (9, 8, 1)]
+    verts = [np.asarray(p, float) / np.linalg.norm(p) for p in v]
+    faces = list(f)
+    for _ in range(int(subdivisions)):
+        cache: dict = {}
+
+        def mid(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+        new = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            new += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = new
+    return np.asarray(verts)
+
+
+def hemisphere_viewpoints(subdivisions: int = 1, min_elevation_deg: float = 5.0) -> np.ndarray:
+    """Unit directions (object -> camera) of the icosphere vertices with elevation above
+    ``min_elevation_deg`` (z up), sorted by elevation then azimuth."""
+    v = icosphere_vertices(subdivisions)
+    v = v[np.degrees(np.arcsin(np.clip(v[:, 2], -1, 1))) >= min_elevation_deg - 1e-9]
+    order = np.lexsort((np.arctan2(v[:, 1], v[:, 0]), -v[:, 2]))
+    return v[order]
+
+
+def _look_at_with_roll(eye, target, roll_deg: float) -> np.ndarray:
+    from data_tools.geometry import look_at
+    T = look_at(eye, target, up=(0.0, 0.0, 1.0))
+    a = math.radians(roll_deg)
+    Rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    T[:3, :3] = T[:3, :3] @ Rz  # rotate the camera about its own optical axis
+    return T
+
+
+@dataclass
+class ViewsConfig:
+    """Settings of :func:`render_views` (saved as views_config.json)."""
+
+    subdivisions: int = 1
+    """Icosahedron subdivisions (1: 42 vertices, ~23 on the upper half)."""
+    inplane_deg: tuple[float, ...] = (0.0,)
+    """In-plane rotations of the camera about its optical axis, degrees."""
+    distance_m: float | None = None
+    """Camera distance to the object centre; None = so the object fills ~40 % of the image
+    height, but at least 0.2 m beyond the sensor's minimum depth."""
+    min_elevation_deg: float = 5.0
+    """Lowest viewpoint elevation above the ground, degrees."""
+    ground: bool = True
+    """Put a ground plane under the object."""
+    clutter: int = 0
+    """Number of random clutter objects around the object."""
+    background: bool = False
+    """Surround the set-up with four walls (every view has a background)."""
+    seed: int = 0
+    """Seed of the clutter layout and of the sensor draws (view i uses seed + i)."""
+    write_ideal: bool = True
+    """Also write the ideal depth PNGs."""
+
+
+@dataclass
+class ViewsResult:
+    out_dir: str
+    n_views: int
+    n_written: int
+    object_name: str
+    views: list = field(default_factory=list)
+
+
+def _clutter(rng: np.random.Generator, n: int, obj_radius: float, keep_out: float) -> list[TriMesh]:
+    from synth.sensor.testscenes import box_mesh
+    out = []
+    for i in range(n):
+        for _ in range(50):
+            r = rng.uniform(keep_out + 0.05, keep_out + 4 * obj_radius + 0.3)
+            a = rng.uniform(0, 2 * np.pi)
+            s = rng.uniform(0.3, 1.2) * max(obj_radius, 0.05) * np.array([rng.uniform(0.5, 1.5), rng.uniform(0.5, 1.5),
+                                                                           rng.uniform(0.5, 2.0)])
+            c = np.array([r * np.cos(a), r * np.sin(a), s[2] / 2])
+            if np.hypot(*c[:2]) - np.hypot(*s[:2]) / 2 > keep_out:
+                out.append(box_mesh(c, s, f"clutter_{i}", f"clutter_{i}"))
+                break
+    return out
+
+
+def build_views_scene(model: TriMesh, config: ViewsConfig, material: Material | None = None):
+    """(SceneSpec, object-to-world 4x4, object radius): the model with its lowest point on the
+    ground (z = 0) and its bounding-box centre above the origin, plus ground/clutter/walls."""
+    from synth.sensor.testscenes import quad_mesh
+    lo, hi = model.bounds
+    centre = (lo + hi) / 2
+    T_place = np.eye(4)
+    T_place[:3, 3] = [-centre[0], -centre[1], -lo[2]]
+    obj = model.transformed(T_place)
+    obj.material = "object"
+    radius = float(np.linalg.norm(hi - lo) / 2)
+    if not radius > 0:
+        raise RealgapError(f"model {model.name!r} has no extent")
+    meshes = [obj]
+    mats = {"object": material or Material(0.6, 0.05), "ground": Material(0.45, 0.05),
+            "wall": Material(0.7, 0.0)}
+    rng = np.random.default_rng(config.seed)
+    if config.ground:
+        g = max(20 * radius, 3.0)
+        meshes.append(quad_mesh([0, 0, 0], [g, 0, 0], [0, g, 0], "ground", "ground", 4))
+    for m in _clutter(rng, config.clutter, radius, keep_out=radius * 1.2):
+        mats[m.material] = Material(float(rng.uniform(0.1, 0.9)), float(rng.choice([0.0, 0.0, 0.3, 0.7])))
+        meshes.append(m)
+    if config.background:
+        w = max(8 * radius, 2.5)
+        h = 2 * w
+        for k, (c, a) in enumerate([((w, 0, w), (0, w, 0)), ((-w, 0, w), (0, w, 0)),
+                                    ((0, w, w), (w, 0, 0)), ((0, -w, w), (w, 0, 0))]):
+            meshes.append(quad_mesh(c, a, [0, 0, w], f"wall_{k}", "wall", 2))
+    return SceneSpec(meshes, mats), T_place, radius
+
+
+def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: ViewsConfig | None = None,
+                 material: Material | None = None, resume: bool = False, overwrite: bool = False,
+                 progress: bool = True, **overrides) -> ViewsResult:
+    """Simulate object-centred views of ``model`` with ``sensor`` and write them to ``out_dir``.
+
+    ``sensor``: preset name, SensorPreset, SensorConfig, sensor_config.json path, or a
+    SensorSimulator (its config is reused). ``overrides`` set ViewsConfig fields
+    (e.g. ``subdivisions=2, inplane_deg=(-30, 0, 30), clutter=5``). Returns a ViewsResult.
+    """
+    import cv2
+    from data_tools.camera import write_camera_json
+    from data_tools.sequence import encode_depth
+    from synth.sensor.simulator import SensorSimulator
+    cfg = config or ViewsConfig()
+    if overrides:
+        unknown = set(overrides) - set(ViewsConfig.__dataclass_fields__)
+        if unknown:
+            raise ConfigError(f"render_views: unknown option(s) {', '.join(sorted(unknown))}")
+        cfg = ViewsConfig(**{**asdict(cfg), **overrides})
+    cfg.inplane_deg = tuple(float(a) for a in cfg.inplane_deg)
+    if cfg.subdivisions < 0 or cfg.subdivisions > 5:
+        raise ConfigError(f"render_views: subdivisions must be in 0..5, got {cfg.subdivisions}")
+    out = Path(out_dir)
+    index_path = out / "views.jsonl"
+    if index_path.exists() and not (resume or overwrite):
+        raise RealgapError(f"{out}: already holds views (use resume or overwrite)")
+    if overwrite and index_path.exists():
+        index_path.unlink()
+    sensor_cfg = sensor.config if isinstance(sensor, SensorSimulator) else sensor
+    scene, T_place, radius = build_views_scene(model, cfg, material)
+    sim = SensorSimulator(sensor_cfg, None, scene)
+    pre = sim.preset
+    intr = pre.intrinsics
+    centre = np.array([0.0, 0.0, (model.bounds[1][2] - model.bounds[0][2]) / 2])
+    dist = cfg.distance_m
+    if dist is None:
+        half_fov = math.atan(intr.height / 2 / intr.fy)
+        dist = radius / math.tan(0.4 * half_fov) + 0.0
+        dist = max(dist, pre.min_depth_m + radius + 0.2)
+    if dist - radius < pre.min_depth_m:
+        raise ConfigError(f"render_views: distance {dist:.2f} m puts the object nearer than the sensor's "
+                          f"minimum depth {pre.min_depth_m} m")
+    for sub in ("depth", "mask") + (("ideal",) if cfg.write_ideal else ()):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    write_camera_json(out / "camera.json", sim.camera())
+    sim.config.save(out / "sensor_config.json")
+    (out / "views_config.json").write_text(json.dumps({**asdict(cfg), "distance_m": dist,
+                                                       "object": model.name}, indent=2) + "\n")
+    done = set()
+    if index_path.exists():
+        for line in index_path.read_text().splitlines():
+            if line.strip():
+                done.add(json.loads(line)["index"])
+    dirs = hemisphere_viewpoints(cfg.subdivisions, cfg.min_elevation_deg)
+    jobs = [(i * len(cfg.inplane_deg) + j, d, a) for i, d in enumerate(dirs) for j, a in enumerate(cfg.inplane_deg)]
+    it = jobs
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(jobs, desc=f"views of {model.name}", leave=False)
+    scale = sim.camera().depth_scale
+    written = 0
+    views = []
+    for idx, d, roll in it:
+        if idx in done:
+            continue
+        T_c2w = _look_at_with_roll(centre + d * dist, centre, roll)
+        res = sim.simulate(T_c2w, seed=cfg.seed + idx)
+        name = f"{idx:06d}.png"
+        for sub, arr in (("depth", res.depth),) + ((("ideal", res.ideal_depth),) if cfg.write_ideal else ()):
+            if not cv2.imwrite(str(out / sub / name), encode_depth(arr, scale)):
+                raise RealgapError(f"{out / sub / name}: cannot write image")
+        mask = (res.instance_ids == 1).astype(np.uint8) * 255
+        cv2.imwrite(str(out / "mask" / name), mask)
+        from data_tools.geometry import invert_pose
+        T_obj2cam = invert_pose(T_c2w) @ T_place
+        rec = {"index": idx, "object": model.name, "depth": f"depth/{name}", "mask": f"mask/{name}",
+               "pose_obj_to_cam": [[float(x) for x in row] for row in T_obj2cam],
+               "viewpoint": [float(x) for x in d], "inplane_deg": float(roll), "distance_m": float(dist),
+               "seed": cfg.seed + idx, "visible_px": int((mask > 0).sum()),
+               "valid_object_px": int(((mask > 0) & res.valid).sum())}
+        if cfg.write_ideal:
+            rec["ideal_depth"] = f"ideal/{name}"
+        with open(index_path, "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        views.append(rec)
+        written += 1
+    all_recs = read_views(out)
+    (out / "labels.json").write_text(json.dumps({"object": model.name, "camera": "camera.json",
+                                                 "views": all_recs}, indent=1) + "\n")
+    return ViewsResult(str(out), len(jobs), written, model.name, views)
+
+
+def read_views(out_dir: str | os.PathLike) -> list[dict]:
+    """The view records of a render_views folder, sorted by index."""
+    p = Path(out_dir) / "views.jsonl"
+    if not p.exists():
+        raise RealgapError(f"{p}: not found (not a render_views output?)")
+    recs = [json.loads(l) for l in p.read_text().splitlines() if l.strip()]
+    return sorted(recs, key=lambda r: r["index"])

@@ -1,0 +1,288 @@
+"""Per-effect tests: each proves its effect on a tiny analytic scene (160x120 crop of the
+Kinect v1 geometry, same focal length and baseline)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from synth.sensor import SensorSimulator, get_preset, make_effect
+from synth.sensor.matching import MatchSetup
+from synth.sensor.testscenes import box_before_wall_scene, camera_pose, corner_scene, wall_scene
+
+K1 = get_preset("kinect_v1")
+SMALL = K1.cropped(160, 120)
+FB = K1.fb
+T = camera_pose()
+
+
+@pytest.fixture(scope="module")
+def box_scene():
+    # box front face at 1.4 m (left edge at u = 38.1 in the crop), wall at 2 m
+    return box_before_wall_scene(2.0, 1.5, 0.2)
+
+
+def run(effects, scene, preset=SMALL, seed=0, **kw):
+    return SensorSimulator(preset, effects, scene).simulate(T, seed=seed, **kw)
+
+
+def apply_one(name, scene, params=None, preset=SMALL, seed=0, prepare=None):
+    """Apply one effect to the ideal state by hand; returns the state."""
+    sim = SensorSimulator(preset, [], scene)
+    st, _, _ = sim.make_state(T)
+    if prepare:
+        prepare(st)
+    e = make_effect({"name": name, "params": params or {}}, preset.effect_params.get(name))
+    e.apply(st, e.sample(e.rng(seed), st))
+    return st
+
+
+# ---------------------------------------------------------------- projector shadow
+@pytest.mark.parametrize("model", ["physical", "direct"])
+@pytest.mark.parametrize("side", [+1, -1])
+def test_projector_shadow_side(box_scene, model, side):
+    """Projector at +x: light comes from the image's right, the box shadows the wall on its
+    LEFT (-u) side, in a band f b (1/z_box - 1/z_wall) = 9.3 px wide; at -x, mirrored."""
+    pre = SMALL.replace(projector_offset_m=(side * 0.075, 0.0, 0.0))
+    effects = ["projector_shadow"] if model == "direct" else None
+    res = run(effects, box_scene, pre)
+    rows = slice(45, 75)
+    width = FB * (1 / 1.4 - 1 / 2.0)
+    left_band = (~res.valid[rows, 38 - 14:38]).sum(1).mean()      # wall just left of the box
+    right_band = (~res.valid[rows, 121:121 + 14]).sum(1).mean()   # wall just right of it
+    shadow, lit = (left_band, right_band) if side > 0 else (right_band, left_band)
+    assert abs(shadow - width) < 2.0, (shadow, width)
+    assert lit < 1.0
+
+
+def test_projector_shadow_cast_by_geometry_only(box_scene):
+    st = apply_one("projector_shadow", box_scene)
+    hidden = ~st.valid & st.ideal.hit
+    cols = np.nonzero(hidden[60])[0]
+    u_shadow_start = 79.5 + 580 * (0.075 - 0.125 * 2.0) / 2.0     # ray through the box's front-left corner
+    u_box = 79.5 - 580 * 0.1 / 1.4                              # box's left edge, 38.07
+    assert cols.min() == pytest.approx(u_shadow_start, abs=1.0)
+    assert cols.max() == int(np.floor(u_box)) and st.ideal.depth[60, int(np.ceil(u_box))] == pytest.approx(1.4)
+
+
+# ---------------------------------------------------------------- quantisation
+def test_disparity_quantization_levels():
+    scene = wall_scene(2.5, 40.0)
+    st = apply_one("disparity_quantization", scene)
+    z = st.depth[st.valid]
+    setup = MatchSetup.for_preset(SMALL)
+    k = (FB * (1 / z - 1 / setup.z0)) / setup.step
+    assert np.allclose(k, np.round(k), atol=2e-3), "every depth is on a 1/8 px disparity level"
+    levels = np.unique(np.round(k).astype(int))
+    assert len(levels) > 20
+    zl = 1 / (1 / setup.z0 + levels * setup.step / FB)
+    gaps = -np.diff(zl)
+    mid = (zl[1:] + zl[:-1]) / 2
+    np.testing.assert_allclose(gaps, mid ** 2 * 0.125 / FB, rtol=0.02)   # dz = z^2 / (8 f b)
+    # depth error bounded by half a step
+    err = np.abs(st.depth - st.ideal.depth)[st.valid]
+    assert np.all(err <= 0.5 * st.ideal.depth[st.valid] ** 2 * 0.125 / FB * 1.01 + 1e-5)
+
+
+def test_physical_pipeline_quantises_to_eighth_pixel(box_scene):
+    res = run(None, box_scene, seed=1)
+    d = res.disparity[res.valid]
+    assert np.allclose(d * 8, np.round(d * 8), atol=1e-4)
+    q = run(None, box_scene, seed=1)
+    st_d = apply_one("disparity_quantization", box_scene, prepare=lambda s: (setattr(s, "depth", res.depth.copy()),
+                                                                             setattr(s, "valid", res.valid.copy())))
+    np.testing.assert_allclose(st_d.depth, q.depth, atol=2e-6)  # idempotent after block matching
+
+
+# ---------------------------------------------------------------- dropouts
+def test_incidence_dropout_grows_with_tilt():
+    fr = [run(["incidence_dropout"], wall_scene(1.5, a)).valid_fraction for a in (0, 60, 75, 80, 85)]
+    assert fr[0] > 0.99 and fr[1] > 0.99
+    assert fr[1] > fr[2] > fr[3] > fr[4]
+    assert fr[3] < 0.6 and fr[4] < 0.3
+
+
+def test_low_reflectance_drops_dark_surfaces():
+    white = run(["low_reflectance"], wall_scene(3.0, albedo=0.8)).valid_fraction
+    black = run(["low_reflectance"], wall_scene(3.0, albedo=0.03)).valid_fraction
+    assert white > 0.99 and black < 0.7
+    pw = run(None, wall_scene(3.0, albedo=0.8)).valid_fraction
+    pb = run(None, wall_scene(3.0, albedo=0.03)).valid_fraction
+    assert pb < pw - 0.1, "the physical pipeline loses dark surfaces through shot noise"
+
+
+def test_specular_dropout():
+    metal = wall_scene(1.5, 30, albedo=0.1, specular=0.9)
+    matte = wall_scene(1.5, 30, albedo=0.1, specular=0.0)
+    assert run(["specular_dropout"], metal).valid_fraction < 0.1
+    assert run(["specular_dropout"], matte).valid_fraction == 1.0
+    assert run(None, metal).valid_fraction < run(None, matte).valid_fraction - 0.05
+
+
+def test_specular_highlight_saturates_physically():
+    """A mirror-like wall facing the rig reflects the projector into the camera: saturation."""
+    res = run(None, wall_scene(1.0, 0.0, albedo=0.2, specular=0.8))
+    assert res.log["ir_capture"]["saturated_px"] > 100
+
+
+@pytest.mark.parametrize("model", ["physical", "direct"])
+def test_ambient_light_reduces_valid_pixels(model):
+    eff = None if model == "physical" else ["ambient_light"]
+    frac = []
+    for lvl in (0.0, 0.05, 2.0):
+        sim = SensorSimulator(SMALL, eff, wall_scene(2.0))
+        sim.effect("ambient_light").params.level = lvl
+        frac.append(sim.simulate(T, seed=0).valid_fraction)
+    assert frac[0] >= frac[1] > frac[2]
+    assert frac[2] < 0.5
+
+
+# ---------------------------------------------------------------- noise, bias, fattening
+def test_axial_noise_std_follows_model():
+    st = apply_one("axial_noise", wall_scene(2.0), {"sigma0_m": 0.0, "sigma2_per_m": 0.0014})
+    e = (st.depth - st.ideal.depth)[st.valid]
+    assert abs(e.std() - 0.0014 * 4) < 0.05 * 0.0056
+    assert abs(e.mean()) < 0.0056 * 4 / np.sqrt(e.size)
+
+
+def test_depth_bias_disparity_offset():
+    st = apply_one("depth_bias", wall_scene(2.0), {"disparity_offset_px": 0.5})
+    z = st.ideal.depth[st.valid]
+    np.testing.assert_allclose(st.depth[st.valid], 1 / (1 / z + 0.5 / FB), rtol=1e-5)
+
+
+def test_edge_fattening_direct(box_scene):
+    st = apply_one("edge_fattening", box_scene, {"radius_px": 3})
+    box_ideal = (np.abs(st.ideal.depth - 1.4) < 0.01)[60]
+    box_now = (np.abs(st.depth - 1.4) < 0.01)[60]
+    assert box_now.sum() == box_ideal.sum() + 6      # 3 px on each side
+    assert np.all(box_now[box_ideal])
+
+
+def test_physical_edges_differ_from_ideal(box_scene):
+    """The matching window changes depth edges (fattening / holes) within half a window."""
+    res = run(None, box_scene)
+    wrong = res.valid & (np.abs(res.depth - res.ideal_depth) > 0.1)
+    cols = np.nonzero(wrong[40:80].any(0))[0]
+    assert np.all((np.abs(cols - 38) <= 5) | (np.abs(cols - 121) <= 5))
+
+
+# ---------------------------------------------------------------- geometry / optics
+def test_range_limits():
+    assert run(["range_limits"], wall_scene(9.0)).valid_fraction == 0.0
+    assert run(["range_limits"], wall_scene(0.3)).valid_fraction == 0.0
+    assert run(["range_limits"], wall_scene(3.0)).valid_fraction == 1.0
+
+
+def test_hole_filling_small_holes_only():
+    def punch(st):
+        st.valid[50:52, 50:52] = False          # 4 px hole
+        st.valid[20:40, 100:130] = False        # 600 px hole
+        st.depth[~st.valid] = 0
+    st = apply_one("hole_filling", wall_scene(2.0), {"max_hole_px": 30}, prepare=punch)
+    assert st.valid[50:52, 50:52].all() and np.allclose(st.depth[50:52, 50:52], 2.0, atol=1e-4)
+    assert not st.valid[25:35, 105:125].any()
+
+
+def test_lens_distortion_direct_matches_opencv():
+    import cv2
+    from synth.sensor.effects.lens_distortion import undistort_pixels
+    coeffs = (-0.25, 0.08, 0.001, -0.002, 0.0)
+    ramp = lambda st: setattr(st, "depth", (1.0 + np.arange(160, dtype=np.float32)[None, :] * 0.01
+                                            + np.arange(120, dtype=np.float32)[:, None] * 1e-4).repeat(1, 0))
+    st = apply_one("lens_distortion", wall_scene(2.0), {"coefficients": coeffs}, prepare=ramp)
+    K = SMALL.intrinsics.K
+    # a pixel of the distorted output shows the ideal image where the distortion model says
+    for (u, v) in [(10, 10), (150, 100), (80, 60), (30, 110)]:
+        und = undistort_pixels(np.array([[[u, v]]], np.float64), K, coeffs)[0, 0]
+        if 0 <= und[0] < 159.5 and 0 <= und[1] < 119.5:
+            uu, vv = int(np.rint(und[0])), int(np.rint(und[1]))
+            assert st.depth[v, u] == pytest.approx(1.0 + uu * 0.01 + vv * 1e-4, abs=1e-5)
+            # and projecting that ideal pixel through the distortion model lands back on (u, v)
+            ray = np.array([[(und[0] - K[0, 2]) / K[0, 0], (und[1] - K[1, 2]) / K[1, 1], 1.0]])
+            back = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, np.array(coeffs))[0][0, 0]
+            assert np.allclose(back, (u, v), atol=1e-3)
+    zero = apply_one("lens_distortion", wall_scene(2.0), {"coefficients": (0, 0, 0, 0, 0)}, prepare=ramp)
+    assert zero.log["lens_distortion"]["active"] is False
+
+
+def test_rolling_shutter_shears_moving_edges(box_scene):
+    prev = T.copy()
+    prev[0, 3] = -0.3                    # camera moves +x by 0.3 m per frame period
+    still = run(["rolling_shutter"], box_scene)
+    static = run(["rolling_shutter"], box_scene, prev_pose=T)
+    np.testing.assert_array_equal(static.depth, still.depth)   # no motion -> no effect
+    moving = run(["rolling_shutter"], box_scene, prev_pose=prev)
+
+    def left_edge(res, row):
+        return int(np.nonzero(np.abs(res.depth[row] - 1.4) < 0.01)[0].min())
+    r1, r2 = 45, 75
+    s = (np.array([r1, r2]) / 119 - 0.5) * 0.03 * 30          # row times in frame periods
+    x_cam = 0.3 * s                                            # camera x at those rows
+    expected = 580 * (x_cam[0] - x_cam[1]) / 1.4               # the edge moves opposite to the camera
+    got = left_edge(moving, r2) - left_edge(moving, r1)
+    assert expected < -20 and got == pytest.approx(expected, abs=1.5)
+    assert left_edge(still, r2) == left_edge(still, r1)
+
+
+def test_motion_blur_pattern_moves_with_the_rig():
+    """Translating parallel to a flat wall: the dots move with the rig, the IR image is as
+    sharp as when static (same draws); an edge sweeping by is blurred."""
+    prev = T.copy()
+    prev[0, 3] = -0.2
+    wall = wall_scene(2.0)
+    a = run(None, wall, seed=4)
+    b = run(None, wall, seed=4, prev_pose=prev)
+    assert np.abs(a.ir.astype(int) - b.ir.astype(int)).max() <= 1
+    box = box_before_wall_scene(2.0, 1.5, 0.2)
+    c = run(["motion_blur"], box, prev_pose=prev)
+    d = run(["motion_blur"], box)
+    assert c.valid.sum() < d.valid.sum() and d.valid.all()
+
+
+# ---------------------------------------------------------------- capture physics
+def test_radiance_falls_with_distance_squared():
+    def mean_rad(z):
+        st = SensorSimulator(SMALL, ["pattern_projection"], wall_scene(z)).make_state(T)[0]
+        e = st.model["pattern_projection"]
+        e.apply(st, None)
+        return st.radiance.mean()
+    assert mean_rad(1.0) / mean_rad(2.0) == pytest.approx(4.0, rel=0.03)
+
+
+def test_ir_capture_saturates_near_and_dims_far():
+    near = run(None, wall_scene(0.5))
+    far = run(None, wall_scene(2.0))
+    assert near.log["ir_capture"]["saturated_px"] > 0 and far.log["ir_capture"]["saturated_px"] == 0
+    assert near.ir.max() == 1023
+
+
+# ---------------------------------------------------------------- ToF
+TOF = get_preset("kinect_v2").cropped(128, 106)
+
+
+def test_multipath_biases_concave_corners_only():
+    flat = apply_one("multipath", wall_scene(2.0), preset=TOF)
+    assert np.abs(flat.depth - flat.ideal.depth)[flat.valid].max() < 1e-6
+    corner = apply_one("multipath", corner_scene(2.0), preset=TOF)
+    err = (corner.depth - corner.ideal.depth)[corner.valid]
+    assert err.mean() > 0.002, "indirect light lengthens the measured path in a concave corner"
+    assert err.min() > -1e-3
+
+
+def test_wiggling_formula():
+    st = apply_one("wiggling", wall_scene(2.0), {"amplitude_m": 0.004, "period_m": 0.5}, preset=TOF)
+    c = st.ray_dirs_cam[..., 2]
+    r = st.ideal.depth / c
+    np.testing.assert_allclose(st.depth, st.ideal.depth + 0.004 * np.sin(2 * np.pi * r / 0.5) * c, atol=1e-6)
+
+
+def test_flying_pixels_lie_between_surfaces(box_scene):
+    st = apply_one("flying_pixels", box_scene, {"probability": 1.0}, preset=TOF)
+    changed = np.abs(st.depth - st.ideal.depth) > 1e-6
+    assert changed.sum() > 50
+    z = st.depth[changed]
+    assert np.all((z > 1.4 - 1e-4) & (z < 2.0 + 1e-4))
+    import cv2
+    k = np.ones((3, 3), np.uint8)
+    span = cv2.dilate(st.ideal.depth, k) - cv2.erode(st.ideal.depth, k)
+    assert np.all(span[changed] > 0.1), "only pixels on a depth edge fly"

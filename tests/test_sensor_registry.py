@@ -1,0 +1,174 @@
+"""Effect registry, sensor configs (JSON round trip), presets and bad input."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from data_tools.errors import ConfigError, FormatError, RealgapError
+from synth.sensor import (PRESETS, SensorConfig, SensorPreset, effect_class, effect_names, get_preset,
+                          make_effect)
+from synth.sensor.registry import Effect, register_effect
+
+REQUIRED = ["axial_noise", "edge_fattening", "projector_shadow", "incidence_dropout", "low_reflectance",
+            "specular_dropout", "disparity_quantization", "lens_distortion", "depth_bias", "range_limits",
+            "ambient_light", "motion_blur", "rolling_shutter", "hole_filling", "pattern_projection",
+            "ir_capture", "block_matching", "multipath", "wiggling", "flying_pixels"]
+
+
+def test_required_effects_are_registered():
+    names = effect_names()
+    for n in REQUIRED:
+        assert n in names
+
+
+@pytest.mark.parametrize("name", REQUIRED)
+def test_effect_class_is_documented_typed_and_fittable(name):
+    cls = effect_class(name)
+    assert cls.name == name
+    assert cls.__doc__ and len(cls.__doc__) > 200, "each effect explains its physics"
+    assert dataclasses.is_dataclass(cls.Params)
+    fields = {f.name for f in dataclasses.fields(cls.Params)}
+    assert set(cls.FITTABLE) <= fields
+    for k, (lo, hi) in cls.FITTABLE.items():
+        assert lo < hi
+    e = cls()  # defaults are valid
+    assert e.enabled
+
+
+def test_unknown_effect_lists_known_names():
+    with pytest.raises(ConfigError) as ei:
+        effect_class("gaussian_blurr")
+    msg = str(ei.value)
+    assert "gaussian_blurr" in msg and "axial_noise" in msg and "block_matching" in msg
+    assert "\n" not in msg
+    with pytest.raises(ConfigError):
+        SensorConfig.build("kinect_v1", ["axial_noise", "nope"])
+
+
+def test_bad_params_are_config_errors():
+    with pytest.raises(ConfigError, match="unknown parameter"):
+        make_effect({"name": "axial_noise", "params": {"sigma": 1}})
+    with pytest.raises(ConfigError, match="outside its bounds"):
+        make_effect({"name": "incidence_dropout", "params": {"angle50_deg": 120}})
+    with pytest.raises(ConfigError, match="wrong type"):
+        make_effect({"name": "hole_filling", "params": {"max_hole_px": "many"}})
+    with pytest.raises(ConfigError, match="twice"):
+        SensorConfig.build("kinect_v1", ["axial_noise", "axial_noise"])
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+@pytest.mark.parametrize("model", ["physical", "direct"])
+def test_config_json_round_trip(preset, model, tmp_path):
+    cfg = SensorConfig.build(preset, model)
+    cfg.effects[0].enabled = False
+    d = cfg.to_json()
+    text = json.dumps(d)  # plain JSON data
+    back = SensorConfig.from_json(json.loads(text))
+    assert back.to_json() == d
+    assert back.preset == cfg.preset
+    p = cfg.save(tmp_path / "sensor_config.json")
+    assert SensorConfig.load(p).to_json() == d
+
+
+def test_preset_defaults_reach_effect_params():
+    cfg = SensorConfig.build("kinect_v1")
+    assert cfg.effect("ir_capture").params.gain_e == PRESETS["kinect_v1"].effect_params["ir_capture"]["gain_e"]
+    # explicit params win over preset defaults
+    cfg2 = SensorConfig.build("kinect_v1", [{"name": "ir_capture", "params": {"read_noise_e": 7.0}}])
+    p = cfg2.effect("ir_capture").params
+    assert p.read_noise_e == 7.0 and p.gain_e == 30000.0
+
+
+def test_fittable_and_with_params():
+    cfg = SensorConfig.build("kinect_v1", "direct")
+    fit = cfg.fittable()
+    assert "axial_noise.sigma2_per_m" in fit and "incidence_dropout.angle50_deg" in fit
+    v, lo, hi = fit["axial_noise.sigma2_per_m"]
+    c2 = cfg.with_params({"axial_noise.sigma2_per_m": 0.003})
+    assert c2.effect("axial_noise").params.sigma2_per_m == 0.003
+    assert cfg.effect("axial_noise").params.sigma2_per_m == v  # original untouched
+    with pytest.raises(ConfigError):
+        cfg.with_params({"axial_noise.sigma2_per_m": hi * 10})
+    with pytest.raises(ConfigError):
+        cfg.with_params({"axial_noise.not_a_param": 1.0})
+
+
+@pytest.fixture
+def clean_registry():
+    from synth.sensor import registry
+    before = dict(registry._REGISTRY)
+    yield
+    registry._REGISTRY.clear()
+    registry._REGISTRY.update(before)
+
+
+def test_register_a_new_effect_by_class(clean_registry):
+    @dataclasses.dataclass
+    class P:
+        value_m: float = 0.01
+        """Offset, metres."""
+
+    @register_effect
+    class _TestOffset(Effect):
+        """Adds a constant (test-only effect registered at run time to prove the extension
+        point works without touching any other file of the package). It has no physics at all,
+        but it is a complete effect: typed params, fittable bounds, sample/apply split."""
+        name = "_test_offset"
+        Params = P
+        FITTABLE = {"value_m": (0.0, 1.0)}
+
+        def apply(self, state, draw):
+            state.depth = state.depth + self.params.value_m
+
+    assert "_test_offset" in effect_names()
+    e = make_effect({"name": "_test_offset", "params": {"value_m": 0.5}})
+    assert e.params.value_m == 0.5
+    with pytest.raises(TypeError):
+        @register_effect
+        class _Dup(Effect):  # same name, other class
+            name = "_test_offset"
+            Params = P
+
+            def apply(self, state, draw):
+                pass
+
+
+def test_presets_have_published_specs():
+    k = get_preset("kinect_v1")
+    assert (k.width, k.height, k.fx, k.baseline_m, k.block_size, k.subpixel_step_px) == (640, 480, 580.0, 0.075, 9, 0.125)
+    d = get_preset("realsense_d435")
+    assert (d.width, d.height, d.baseline_m, d.type, d.matcher) == (848, 480, 0.05, "active_stereo", "sgbm")
+    v2 = get_preset("kinect_v2")
+    assert (v2.width, v2.height, v2.type) == (512, 424, "tof")
+    for name in ("multipath", "wiggling", "flying_pixels"):
+        assert name in v2.physical_effects
+    for p in PRESETS.values():
+        assert p.source and p.description
+        for n in p.physical_effects + p.direct_effects + tuple(p.effect_params):
+            effect_class(n)  # every name a preset uses exists
+
+
+def test_bad_presets():
+    k = get_preset("kinect_v1")
+    with pytest.raises(ConfigError, match="baseline"):
+        k.replace(baseline_m=-0.075)
+    with pytest.raises(ConfigError, match="x axis"):
+        k.replace(projector_offset_m=(0.0, 0.075, 0.0))
+    with pytest.raises(ConfigError, match="unknown sensor preset"):
+        get_preset("kinect_v3")
+    with pytest.raises(ConfigError):
+        SensorPreset.from_json({**k.to_json(), "colour": "red"})
+    assert SensorPreset.from_json(k.to_json()) == k
+
+
+def test_bad_config_file(tmp_path):
+    p = tmp_path / "bad.json"
+    p.write_text("{not json")
+    with pytest.raises(FormatError, match="bad.json"):
+        SensorConfig.load(p)
+    p.write_text(json.dumps({"preset": "kinect_v1", "effects": [{"name": "warp_drive"}]}))
+    with pytest.raises(FormatError, match="warp_drive"):
+        SensorConfig.load(p)
+    assert issubclass(FormatError, RealgapError)

@@ -1,0 +1,84 @@
+"""Batch runs (slam.batch): local process pool vs Ray, report files, CLI."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from app.cli import main
+from slam.batch import get_executor, run_batch
+from slam.pipeline import make_config
+from tests.slam_scenes import camera_path, render_frames, room_scene, write_sequence
+
+NUMBERS = ("frames", "frames_tracked", "frames_failed", "failed_timestamps", "ate_rmse_m",
+           "ape_median_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "pairs")
+
+
+@pytest.fixture(scope="module")
+def two_sequences(tmp_path_factory):
+    root = tmp_path_factory.mktemp("batchseqs")
+    scene = room_scene()
+    a = render_frames(scene, camera_path(5, 0.02, 1.0))
+    b = render_frames(scene, camera_path(5, 0.015, -1.0))
+    b[2].depth[:] = 0                                   # one dropped frame in the second one
+    return [write_sequence(root / "a", a), write_sequence(root / "b", b)]
+
+
+def _configs():
+    return {"icp": make_config("icp", "default", {"tsdf.voxel_size_m": 0.02, "tsdf.mesh_weight_threshold": 1.0,
+                                                  "backend_config.raycast_scale": 1.0}),
+            "rgbd_odometry": make_config("rgbd_odometry", "default", {"tsdf.voxel_size_m": 0.02,
+                                                                      "backend_config.levels": [2, 1, 0]})}
+
+
+def test_local_batch_writes_report(tmp_path, two_sequences):
+    rep = run_batch(two_sequences, ["icp", "rgbd_odometry"], tmp_path / "rep", _configs(),
+                    executor="local", workers=2, progress=False)
+    assert len(rep.results) == 4 and all(r["ok"] for r in rep.results), rep.results
+    tab = rep.table()
+    assert tab[("b", "icp")]["frames_failed"] == 1 and tab[("a", "icp")]["frames_failed"] == 0
+    for r in rep.results:
+        assert r["ate_rmse_m"] < 0.01 and r["frames_per_second"] > 0 and r["pairs"] >= 4
+    data = json.loads((tmp_path / "rep" / "results.json").read_text())
+    assert data["meta"]["executor"] == "local" and len(data["results"]) == 4
+    index = (tmp_path / "rep" / "index.html").read_text()
+    assert "a.html" in index and "b.html" in index and "rgbd_odometry" in index
+    assert (tmp_path / "rep" / "b.html").is_file()
+    assert (tmp_path / "rep" / "runs" / "a" / "icp" / "trajectory.txt").is_file()
+
+
+def test_ray_executor_gives_the_same_numbers_as_local(tmp_path, two_sequences):
+    pytest.importorskip("ray")
+    local = run_batch(two_sequences, ["icp"], tmp_path / "local", _configs(), executor="local",
+                      workers=2, progress=False, write_html=False)
+    ray_rep = run_batch(two_sequences, ["icp"], tmp_path / "ray", _configs(), executor="ray",
+                        workers=2, progress=False, write_html=False)
+    assert all(r["ok"] for r in ray_rep.results), ray_rep.results
+    for (k, a), b in zip(local.table().items(), ray_rep.results):
+        assert (b["name"], b["backend"]) == k
+        for key in NUMBERS:
+            assert a[key] == b[key], (k, key)          # one thread per job: bit-identical
+
+
+def test_bad_sequence_is_reported_not_fatal(tmp_path, two_sequences):
+    bad = tmp_path / "empty_seq"
+    bad.mkdir()
+    rep = run_batch([two_sequences[0], bad], ["icp"], tmp_path / "rep", _configs(), executor="local",
+                    workers=1, progress=False)
+    ok = {r["name"]: r for r in rep.results}
+    assert ok["a"]["ok"] and not ok["empty_seq"]["ok"] and "depth.txt" in ok["empty_seq"]["error"]
+
+
+def test_unknown_executor():
+    from data_tools.errors import ConfigError
+    with pytest.raises(ConfigError, match="executor"):
+        get_executor("slurm")
+
+
+def test_cli_batch(tmp_path, two_sequences, capsys):
+    rc = main(["batch", str(two_sequences[0]), "--backends", "icp", "--out", str(tmp_path / "rep"),
+               "--workers", "1", "--no-progress", "--tsdf.voxel_size_m", "0.02",
+               "--tsdf.mesh_weight_threshold", "1", "--icp.raycast_scale", "1"])
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert "report:" in out and (tmp_path / "rep" / "index.html").is_file()

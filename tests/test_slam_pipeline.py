@@ -1,0 +1,188 @@
+"""The SLAM run loop and RUN folder: outputs, failures, resume, configuration, CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from data_tools.errors import ConfigError, RealgapError
+from data_tools.sequence import SequenceReader
+from data_tools.trajectory import read_tum
+from slam.pipeline import SlamConfig, load_run, make_config, run_slam
+from slam.registration import config_to_dict
+from tests.slam_scenes import camera_path, render_frames, room_scene, write_sequence
+
+N_FRAMES = 8
+
+
+def _small(backend="icp", **over):
+    """A configuration sized for the 320x240 test sequences."""
+    o = {"tsdf.voxel_size_m": 0.01, "tsdf.mesh_weight_threshold": 1.0}
+    o.update({"backend_config.raycast_scale": 1.0} if backend == "icp" else
+             {"backend_config.levels": [2, 1, 0]})
+    o.update(over)
+    return make_config(backend, "default", o)
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    root = tmp_path_factory.mktemp("slamseq")
+    frames = render_frames(room_scene(), camera_path(N_FRAMES, 0.02, 1.0))
+    return write_sequence(root / "seq", frames)
+
+
+@pytest.fixture(scope="module")
+def seq_black(tmp_path_factory):
+    """The same sequence with frame 3 dropped to an all-zero (black) depth and colour image."""
+    root = tmp_path_factory.mktemp("slamseq_black")
+    frames = render_frames(room_scene(), camera_path(N_FRAMES, 0.02, 1.0))
+    frames[3].depth[:] = 0
+    frames[3].rgb[:] = 0
+    return write_sequence(root / "seq", frames)
+
+
+def _ate(run_traj, seq_path):
+    from slam.metrics import ate
+    return ate(SequenceReader(seq_path).trajectory, run_traj).stats["rmse"]
+
+
+@pytest.mark.parametrize("backend", ["icp", "rgbd_odometry"])
+def test_run_writes_the_run_folder(tmp_path, seq, backend):
+    res = run_slam(seq, tmp_path / "run", _small(backend), progress=False)
+    run = tmp_path / "run"
+    for name in ("trajectory.txt", "stats.json", "config.json", "camera.json", "mesh.ply"):
+        assert (run / name).is_file(), name
+    assert not (run / "checkpoint.json").exists()
+    stats = json.loads((run / "stats.json").read_text())
+    assert stats["backend"] == backend and stats["complete"] is True
+    assert stats["frames"] == N_FRAMES and stats["frames_failed"] == 0 and stats["failed_timestamps"] == []
+    assert stats["frames_per_second"] > 0
+    assert len(stats["per_frame"]) == N_FRAMES
+    assert {"timestamp", "fitness", "inlier_rmse", "failed"} <= set(stats["per_frame"][1])
+    assert 0.5 < stats["per_frame"][1]["fitness"] <= 1.0
+    traj = read_tum(run / "trajectory.txt")
+    assert len(traj) == N_FRAMES
+    np.testing.assert_allclose(traj.poses[0], np.eye(4), atol=1e-7)
+    assert _ate(traj, seq) < 0.003                      # 3 mm on noise-free data
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["config"]["backend"] == backend and cfg["sequence"] == str(seq.resolve())
+    assert res.frames_per_second == pytest.approx(stats["frames_per_second"])
+
+
+@pytest.mark.parametrize("backend", ["icp", "rgbd_odometry"])
+def test_black_depth_frame_is_reported_not_a_crash(tmp_path, seq_black, backend):
+    res = run_slam(seq_black, tmp_path / "run", _small(backend), progress=False)
+    ts = SequenceReader(seq_black).timestamps
+    assert res.failed_timestamps == [pytest.approx(ts[3])]
+    row = res.stats["per_frame"][3]
+    assert row["failed"] and "valid depth" in row["reason"]
+    assert len(res.trajectory) == N_FRAMES - 1
+    assert not np.any(np.isclose(res.trajectory.timestamps, ts[3]))
+    assert _ate(res.trajectory, seq_black) < 0.005
+
+
+def test_unreadable_frame_is_a_failure(tmp_path, seq):
+    import shutil
+    s = tmp_path / "seq"
+    shutil.copytree(seq, s)
+    victim = sorted((s / "depth").iterdir())[2]
+    victim.write_bytes(b"not a png")
+    res = run_slam(s, tmp_path / "run", _small(), progress=False)
+    assert res.stats["frames_failed"] == 1 and "unreadable" in res.stats["per_frame"][2]["reason"]
+
+
+@pytest.fixture
+def one_thread():
+    """Open3D's parallel float reductions differ in the last bits from run to run; with one
+    thread runs are bit-reproducible."""
+    import open3d as o3d
+    o3d.utility.set_max_threads(1)
+    yield
+    o3d.utility.set_max_threads(0)
+
+
+def test_interrupted_run_resumes_to_the_same_result(tmp_path, seq, one_thread):
+    cfg = _small(checkpoint_every=2)
+    full = run_slam(seq, tmp_path / "full", cfg, progress=False)
+    part = run_slam(seq, tmp_path / "part", cfg, progress=False, stop_after=3)
+    assert not part.complete and (tmp_path / "part" / "checkpoint.json").is_file()
+    assert not (tmp_path / "part" / "trajectory.txt").exists()
+    seen = []
+    done = run_slam(seq, tmp_path / "part", cfg, progress=False, on_frame=lambda i, r: seen.append(i))
+    assert seen == list(range(3, N_FRAMES))            # continued, did not restart
+    assert done.complete
+    # the checkpoint keeps poses exactly and re-integration rebuilds the same volume
+    np.testing.assert_array_equal(done.trajectory.poses, full.trajectory.poses)
+    again = run_slam(seq, tmp_path / "part", cfg, progress=False, on_frame=lambda i, r: seen.append(i))
+    assert again.complete and seen == list(range(3, N_FRAMES))     # finished runs are not redone
+
+
+def test_ctrl_c_leaves_a_checkpoint(tmp_path, seq):
+    cfg = _small()
+
+    def boom(i, r):
+        if i == 4:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_slam(seq, tmp_path / "run", cfg, progress=False, on_frame=boom)
+    ck = json.loads((tmp_path / "run" / "checkpoint.json").read_text())
+    assert ck["next"] == 5
+    res = run_slam(seq, tmp_path / "run", cfg, progress=False)
+    assert res.complete and len(res.trajectory) == N_FRAMES
+
+
+def test_existing_run_with_another_config_is_refused(tmp_path, seq):
+    run_slam(seq, tmp_path / "run", _small(), progress=False, stop_after=2)
+    other = _small(**{"tsdf.voxel_size_m": 0.02})
+    with pytest.raises(RealgapError, match="different configuration.*voxel_size_m"):
+        run_slam(seq, tmp_path / "run", other, progress=False)
+    res = run_slam(seq, tmp_path / "run", other, progress=False, overwrite=True)
+    assert res.complete and load_run(tmp_path / "run").config.tsdf.voxel_size_m == 0.02
+
+
+def test_config_round_trip_and_errors():
+    cfg = make_config("rgbd_odometry", "fast", {"backend_config.method": "point_to_plane", "max_frames": 5})
+    d = json.loads(json.dumps(cfg.to_dict()))
+    back = SlamConfig.from_dict(d)
+    assert config_to_dict(back) == d and back.tsdf.voxel_size_m == 0.02
+    assert back.backend_config.method == "point_to_plane" and back.backend_config.levels == (3, 2, 1)
+    with pytest.raises(ConfigError, match="unknown option"):
+        make_config("icp", "default", {"tsdf.voxel": 1})
+    with pytest.raises(ConfigError, match="min_fitness"):
+        make_config("icp", "default", {"backend_config.min_fitness": "abc"})
+    with pytest.raises(ConfigError, match="preset"):
+        make_config("icp", "nope")
+    with pytest.raises(ConfigError, match="unknown option"):
+        SlamConfig.from_dict({"backend": "icp", "bogus": 1})
+
+
+def test_cli_run_and_render(tmp_path, seq, capsys):
+    run = tmp_path / "run"
+    rc = main(["slam", "run", str(seq), "--backend", "icp", "--out", str(run), "--no-progress",
+               "--tsdf.voxel_size_m", "0.01", "--tsdf.mesh-weight-threshold", "1",
+               "--icp.raycast_scale", "1", "--icp.iterations", "10,5,4"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert f"{N_FRAMES}/{N_FRAMES} frames registered" in out
+    cfg = load_run(run).config
+    assert cfg.backend_config.iterations == (10, 5, 4) and cfg.tsdf.mesh_weight_threshold == 1.0
+    # re-running the finished command is a no-op that reports the same run
+    assert main(["slam", "run", str(seq), "--backend", "icp", "--out", str(run), "--no-progress",
+                 "--tsdf.voxel_size_m", "0.01", "--tsdf.mesh-weight-threshold", "1",
+                 "--icp.raycast_scale", "1", "--icp.iterations", "10,5,4"]) == 0
+    png = tmp_path / "view.png"
+    assert main(["slam", "render", str(run), "--frame", "2", "--out", str(png)]) == 0
+    assert png.is_file() and (tmp_path / "view_depth.png").is_file() and (tmp_path / "view.json").is_file()
+
+
+def test_cli_errors_are_one_line(tmp_path, seq, capsys):
+    rc = main(["slam", "run", str(seq), "--backend", "icp", "--out", str(tmp_path / "r"),
+               "--rgbd_odometry.method", "hybrid"])
+    assert rc == 1
+    assert "option of backend rgbd_odometry" in capsys.readouterr().err
+    rc = main(["slam", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")])
+    assert rc == 1
+    assert "sequence folder not found" in capsys.readouterr().err
