@@ -238,3 +238,23 @@ def test_cli_sequence_and_scenes(tmp_path, capsys):
     for name in ("room", "chair_a", "chair_c", "scenenet_room", "tless_obj"):
         assert name in listing
     assert "path=<required>" in listing
+
+
+def test_cli_sensor_sequence_writes_simulated_and_ideal(tmp_path):
+    from app.cli import main as cli_main
+    from data_tools.sequence import SequenceReader
+    out = tmp_path / "sim"
+    assert cli_main(["synth", "sequence", "--scene", "room", "--frames", "2", "--sensor", "kinect_v1",
+                     "--out", str(out)]) == 0
+    sim, ideal = SequenceReader(out), SequenceReader(out / "ideal")
+    assert len(sim) == len(ideal) == 2
+    assert sim.camera.sensor is not None and sim.camera.sensor.type == "structured_light"
+    assert (out / "sensor_config.json").exists() and sim.has_scene
+    # frame 0 has no previous pose (no motion effects); a 2-frame walkthrough jumps across the
+    # room between frames, so frame 1 is dominated by rolling shutter / motion on that jump
+    d_sim, d_ideal = sim[0].depth, ideal[0].depth
+    both = (d_sim > 0) & (d_ideal > 0)
+    assert both.mean() > 0.3                      # the sensor sees most of the room
+    assert not np.array_equal(d_sim, d_ideal)     # and is not the ideal depth
+    assert np.median(np.abs(d_sim[both] - d_ideal[both])) < 0.02
+    np.testing.assert_allclose(sim.poses, ideal.poses, atol=1e-7)

@@ -70,6 +70,10 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--trajectory", choices=sorted(TRAJECTORY_KINDS), help="camera path (default walkthrough)")
     p.add_argument("--seed", type=int, help="seed of scene, trajectory and jitter (default 0)")
     p.add_argument("--no-jitter", action="store_true", help="no hand-held shake on the trajectory")
+    p.add_argument("--sensor", help="simulate this depth-sensor preset (kinect_v1, structure, realsense_d435, "
+                                    "kinect_v2) instead of writing ideal depth; the ideal sequence goes to SEQ/ideal")
+    p.add_argument("--effects", default=None,
+                   help="with --sensor: 'physical' (default), 'direct' or a comma list of effect names")
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)
     p.add_argument("--height", type=int, help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
@@ -102,11 +106,38 @@ def sequence_config_from_args(args: argparse.Namespace):
 def _cmd_sequence(args: argparse.Namespace) -> int:
     from synth.sequence import generate_sequence
     cfg = sequence_config_from_args(args)
+    if args.sensor:
+        return _cmd_sensor_sequence(args, cfg)
     res = generate_sequence(cfg, args.out, resume=args.resume, overwrite=args.overwrite, progress=True)
     kept = f", kept {res.frames_skipped} already there" if res.frames_skipped else ""
     empty = f", {res.empty_frames} with an empty view" if res.empty_frames else ""
     timing = f" ({res.render_ms_mean:.1f} ms/frame ray casting)" if res.frames_written else ""
     print(f"{res.out_dir}: wrote {res.frames_written} frames{kept}{empty}; {res.frames_total} in total{timing}")
+    return 0
+
+
+def _cmd_sensor_sequence(args: argparse.Namespace, cfg) -> int:
+    """Ideal sequence in SEQ/ideal (ground truth, ideal depth), simulated sensor frames in SEQ."""
+    import shutil
+    from pathlib import Path
+
+    from data_tools.sequence import SequenceReader, SequenceWriter
+    from synth.sensor import SensorSimulator, simulate_trajectory
+    from synth.sequence import generate_sequence
+
+    out = Path(args.out)
+    if args.overwrite and out.exists():
+        shutil.rmtree(out)
+    ideal_dir = out / "ideal"
+    generate_sequence(cfg, ideal_dir, resume=args.resume and (ideal_dir / "depth.txt").exists(), progress=True)
+    ideal = SequenceReader(ideal_dir)
+    traj = ideal.trajectory
+    sim = SensorSimulator(args.sensor, args.effects, ideal.scene)
+    with SequenceWriter(out, sim.camera(), ideal.scene, resume=args.resume) as w:
+        sim.config.save(out / "sensor_config.json")
+        done = len(w)
+        n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=cfg.seed)
+    print(f"{out}: simulated {n} {args.sensor} frames (kept {done}); ideal depth and ground truth in {ideal_dir}")
     return 0
 
 
