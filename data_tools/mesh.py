@@ -6,7 +6,7 @@ conversion to Open3D/trimesh happens at the boundary.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np

@@ -28,8 +28,6 @@ from data_tools.scene_spec import SceneSpec, read_scene_json, write_scene_json
 from data_tools.trajectory import (DEFAULT_MAX_DT, Trajectory, associate, check_timestamps,
                                    read_tum)
 
-MAX_DEPTH_M_WARN = 65535
-
 
 @dataclass
 class Frame:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
-from data_tools.errors import FormatError, RealgapError
+from data_tools.errors import FormatError
 from data_tools.geometry import pose_to_tum
 
 SEVENSCENES_DEFAULT_K = (585.0, 585.0, 320.0, 240.0)

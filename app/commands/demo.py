@@ -49,7 +49,7 @@ def run(args) -> int:
         simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=args.seed)
 
     print(f"[3/4] registering the simulated sequence with frame-to-model ICP + TSDF -> {run_dir}")
-    result = run_slam(sim_dir, run_dir, make_config("icp"), resume=True)
+    run_slam(sim_dir, run_dir, make_config("icp"), resume=True)
 
     print("[4/4] evaluating the estimated trajectory against the ground truth")
     from data_tools.trajectory import read_tum
