@@ -7,6 +7,7 @@ timestamps, NaN/inf values, quaternions that are not unit length.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,8 +85,14 @@ def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
     return rows
 
 
-def read_tum(path: str | os.PathLike) -> Trajectory:
-    """Read a TUM trajectory file; every problem is a FormatError naming the file and line."""
+def read_tum(path: str | os.PathLike, drop_duplicate_timestamps: bool = False) -> Trajectory:
+    """Read a TUM trajectory file; every problem is a FormatError naming the file and line.
+
+    With ``drop_duplicate_timestamps`` a pose whose timestamp equals the previous pose's is
+    dropped (the first one is kept) instead of being an error, and a ``UserWarning`` says how
+    many were dropped: the official TUM ``fr2/desk`` ground truth has one such repeated stamp
+    with two different poses. Every other check still applies.
+    """
     path = Path(path)
     rows = _data_lines(path)
     if not rows:
@@ -103,6 +110,13 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         qn = np.linalg.norm(data[i, 4:8])
         if abs(qn - 1.0) > UNIT_QUAT_TOL:
             raise FormatError(path, f"line {lineno}: quaternion is not unit length (|q| = {qn:.6f})")
+    if drop_duplicate_timestamps and len(data) > 1:
+        keep = np.concatenate([[True], np.diff(data[:, 0]) != 0])
+        dropped = int(np.count_nonzero(~keep))
+        if dropped:
+            data = data[keep]
+            warnings.warn(f"{path}: dropped {dropped} pose(s) with a duplicated timestamp (kept the first)",
+                          stacklevel=2)
     check_timestamps(data[:, 0], path)
     return Trajectory(data[:, 0], pose_from_tum(data[:, 1:]))
 

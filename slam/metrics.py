@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
-import warnings
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -64,8 +62,9 @@ class EvalConfig:
     rel_delta_tol: float = field(default=0.1, metadata={"help": "relative tolerance of a metres delta in all-pairs mode"})
     """Relative tolerance of a path-length delta in all-pairs mode (evo's default 0.1)."""
     drop_duplicate_timestamps: bool = field(default=False, metadata={"help": "drop poses whose timestamp repeats the previous one (keep the first) instead of failing"})
-    """Read trajectories with :func:`read_trajectory` dropping repeated timestamps (e.g. the
-    official TUM fr2/desk ground truth has one) instead of failing."""
+    """Read trajectories dropping repeated timestamps (``data_tools.trajectory.read_tum(...,
+    drop_duplicate_timestamps=True)``; e.g. the official TUM fr2/desk ground truth has one)
+    instead of failing."""
 
     def validate(self) -> "EvalConfig":
         if self.align not in ALIGNERS:
@@ -95,55 +94,6 @@ PRESETS: dict[str, EvalConfig] = {
 }
 """Named presets: ``tum`` (TUM benchmark: association within 0.02 s, SE(3) alignment) and
 ``evo`` (``evo_ape -a`` / ``evo_rpe`` defaults: association within 0.01 s)."""
-
-
-# --------------------------------------------------------------------------------------------
-# reading
-
-
-def read_trajectory(path: str | os.PathLike, drop_duplicate_timestamps: bool = False) -> Trajectory:
-    """Read a TUM trajectory with :func:`data_tools.trajectory.read_tum`.
-
-    With ``drop_duplicate_timestamps`` a pose whose timestamp equals the previous pose's is
-    dropped (the first one is kept) with a warning, instead of being an error: the official
-    TUM ``fr2/desk`` ground truth has one such repeated stamp with two different poses. All
-    other checks of ``read_tum`` still apply and errors name the original file and line.
-    """
-    path = Path(path)
-    if not drop_duplicate_timestamps:
-        return read_tum(path)
-    try:
-        lines = path.read_text().splitlines()
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
-    except UnicodeDecodeError:
-        raise FormatError(path, "not a text file") from None
-    prev, dropped = None, 0
-    for k, line in enumerate(lines):
-        tok = line.split("#", 1)[0].replace(",", " ").split()
-        if not tok:
-            continue
-        try:
-            ts = float(tok[0])
-        except ValueError:
-            prev = None
-            continue
-        if prev is not None and ts == prev:
-            lines[k] = "# realgap: dropped pose with duplicated timestamp"  # keeps line numbers
-            dropped += 1
-        prev = ts
-    if not dropped:
-        return read_tum(path)
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp_path = Path(tmp) / path.name
-        tmp_path.write_text("\n".join(lines) + "\n")
-        try:
-            traj = read_tum(tmp_path)
-        except FormatError as e:
-            raise FormatError(path, e.problem) from None
-    warnings.warn(f"{path}: dropped {dropped} pose(s) with a duplicated timestamp (kept the first)",
-                  stacklevel=2)
-    return traj
 
 
 # --------------------------------------------------------------------------------------------

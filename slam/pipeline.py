@@ -109,11 +109,12 @@ class SlamConfig:
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "fast": {"tsdf.voxel_size_m": 0.02, "tsdf.trunc_voxel_multiplier": 3.0},
-    "fine": {"tsdf.voxel_size_m": 0.006, "tsdf.trunc_voxel_multiplier": 6.0},
+    "fine": {"tsdf.voxel_size_m": 0.006, "tsdf.trunc_voxel_multiplier": 6.0, "tsdf.block_resolution": 16},
 }
 """Named presets as dotted overrides of the defaults: ``default`` (1 cm voxels), ``fast``
 (2 cm voxels: about 3x faster fusion and ray casting, coarser mesh and tracking model) and
-``fine`` (6 mm voxels, for small objects / short range)."""
+``fine`` (6 mm voxels, for small objects / short range; 16-voxel blocks keep them about
+10 cm wide: Open3D's ray caster leaves more holes with blocks of a few centimetres)."""
 
 
 def make_config(backend: str = "icp", preset: str = "default", overrides: dict[str, Any] | None = None,

@@ -180,6 +180,55 @@ def implausible_motion(T_prev: np.ndarray, T_new: np.ndarray, dt_s: float, max_s
 
 
 # --------------------------------------------------------------------------------------------
+# failure check and re-localisation options (shared by the online backends)
+
+MOTION_MODELS = ("constant_velocity", "static")
+"""Initial-guess models of the online backends."""
+
+
+@dataclass
+class TrackingCheckConfig:
+    """Initial guess, failure check and re-localisation options of an online backend.
+
+    The backends' Config classes derive from this one and re-declare the fields whose default
+    differs (``icp`` tracks a denoised model, so it expects more correspondences and a smaller
+    residual than frame-to-frame ``rgbd_odometry``); the command-line names
+    (``--icp.min_fitness``, ``--rgbd_odometry.min_fitness``, ...) come from the field names.
+    """
+
+    motion_model: str = "constant_velocity"
+    """Initial guess: ``constant_velocity`` (repeat the last inter-frame motion) or ``static``."""
+    min_valid_fraction: float = 0.05
+    """Fail when fewer than this fraction of the pixels hold a depth in range (black/dropped frame)."""
+    min_correspondences: int = 500
+    """Fail when the finest stage has fewer inlier correspondences."""
+    min_fitness: float = 0.3
+    """Fail when fewer than this fraction of the valid pixels have an inlier correspondence."""
+    max_rmse_m: float = 0.03
+    """Fail when the RMS point-to-plane residual of the inliers is larger, metres."""
+    max_speed_m_s: float = 1.5
+    """Fail when the camera would move faster than this, metres per second."""
+    max_angular_speed_deg_s: float = 150.0
+    """Fail when the camera would turn faster than this, degrees per second."""
+    relocalise: bool = True
+    """After a failure, try the static and an ORB/PnP initial guess before giving up."""
+    orb_features: int = 1500
+    """ORB key points per image for the re-localisation guess."""
+    pnp_min_inliers: int = 25
+    """Fewest PnP RANSAC inliers for a re-localisation guess to be tried."""
+
+    def validate_checks(self) -> None:
+        """ConfigError for a bad value of the fields above (called by the subclasses' validate)."""
+        name = type(self).__name__
+        if self.motion_model not in MOTION_MODELS:
+            raise ConfigError(f"{name}.motion_model must be one of {', '.join(MOTION_MODELS)}, "
+                              f"got {self.motion_model!r}")
+        check_positive(self, "max_rmse_m", "max_speed_m_s", "max_angular_speed_deg_s", "orb_features")
+        check_positive(self, "min_valid_fraction", "min_correspondences", "min_fitness",
+                       "pnp_min_inliers", allow_zero=True)
+
+
+# --------------------------------------------------------------------------------------------
 # typed configuration helpers
 
 
@@ -340,5 +389,5 @@ def check_positive(obj: Any, *names: str, allow_zero: bool = False) -> None:
 
 
 __all__ = ["TrackResult", "RegistrationBackend", "register_backend", "get_backend", "backend_names",
-           "implausible_motion", "rotation_angle_deg", "field_docs", "config_to_dict",
+           "TrackingCheckConfig", "MOTION_MODELS", "implausible_motion", "rotation_angle_deg", "field_docs", "config_to_dict",
            "config_from_dict", "config_replace", "parse_value", "check_positive"]

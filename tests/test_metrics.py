@@ -246,21 +246,34 @@ def test_too_few_pairs_and_degenerate_alignment():
         M.rpe(ref, ref, delta=10)
 
 
-def test_read_trajectory_duplicate_timestamps(tmp_path):
+def test_read_tum_drops_duplicate_timestamps_on_request(tmp_path):
     p = tmp_path / "dup.txt"
-    p.write_text("# c\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n2.0 5 0 0 0 0 0 1\n3.0 2 0 0 0 0 0 1\n")
+    p.write_text("# c\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n2.0 5 0 0 0 0 0 1\n2.0 6 0 0 0 0 0 1\n"
+                 "3.0 2 0 0 0 0 0 1\n")
     with pytest.raises(FormatError, match="duplicated timestamp"):
-        M.read_trajectory(p)
-    with pytest.warns(UserWarning, match="dropped 1 pose"):
-        t = M.read_trajectory(p, drop_duplicate_timestamps=True)
+        read_tum(p)
+    with pytest.warns(UserWarning, match=r"dup\.txt: dropped 2 pose\(s\)"):
+        t = read_tum(p, drop_duplicate_timestamps=True)
     np.testing.assert_array_equal(t.timestamps, [1, 2, 3])
     np.testing.assert_array_equal(t.positions[:, 0], [0, 1, 2])      # the first one is kept
+    ok = _write(tmp_path / "ok.txt", "1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                               # nothing dropped: no warning
+        assert len(read_tum(ok, drop_duplicate_timestamps=True)) == 2
     bad = tmp_path / "bad.txt"
     bad.write_text("1.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")
     with pytest.raises(FormatError, match=r"bad\.txt: line 3: expected 8 values"):
+        read_tum(bad, drop_duplicate_timestamps=True)
+    unsorted = _write(tmp_path / "unsorted.txt", "2.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(FormatError, match="not sorted"):                # other checks still apply
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            M.read_trajectory(bad, drop_duplicate_timestamps=True)
+            read_tum(unsorted, drop_duplicate_timestamps=True)
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path
 
 
 def test_eval_config_validation():
@@ -329,7 +342,7 @@ def _load(names):
         pr, pe = (shared_path("evo_trajectories", n) for n in names)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            _cache[names] = (M.read_trajectory(pr, drop_duplicate_timestamps=True), read_tum(pe), pr, pe)
+            _cache[names] = (read_tum(pr, drop_duplicate_timestamps=True), read_tum(pe), pr, pe)
     return _cache[names]
 
 

@@ -27,11 +27,17 @@ def test_tum_fr1_xyz_ate_below_1_5_cm(tmp_path, backend):
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_sevenscenes_chess_icp_ate_below_3_cm(tmp_path):
-    """1000 frames of 7-Scenes chess (about 3-4 minutes on 2 cores)."""
+    """1000 frames of 7-Scenes chess (about 3-4 minutes on 2 cores) against its reference
+    trajectory, which is KinectFusion's own output (not a metric ground truth): tracking
+    against Open3D's raw ray cast with 16-voxel blocks (the former defaults, like Open3D's
+    dense SLAM) reproduces it within 3 cm (2.84 cm; 2.96 cm with 8-voxel blocks). The default
+    refined model gives 4.43 cm here while it is more accurate against metric ground truth
+    (TUM fr1/xyz, simulated sequences): see ``ICPConfig.refine_model``."""
     from data_tools.sevenscenes import convert_7scenes
     seq = tmp_path / "chess"
     convert_7scenes(shared_path("sevenscenes_chess_1000"), seq, progress=False)
-    res = run_slam(seq, tmp_path / "run", make_config("icp"), progress=False)
+    cfg = make_config("icp", overrides={"backend_config.refine_model": False, "tsdf.block_resolution": 16})
+    res = run_slam(seq, tmp_path / "run", cfg, progress=False)
     err = ate(SequenceReader(seq).trajectory, res.trajectory)
     assert res.stats["frames_failed"] <= 5
     assert err.stats["rmse"] <= 0.03

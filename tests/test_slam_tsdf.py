@@ -57,6 +57,51 @@ def test_raycast_refinement_removes_the_marching_bias():
     assert abs(np.median(ref.depth[m] - f.depth[m])) < 1e-4
 
 
+@pytest.mark.parametrize("block_resolution", [16, 8])
+def test_raycast_repairs_false_hits_after_block_skips(block_resolution):
+    """Open3D's marcher crosses unallocated space a whole block at a time and, landing behind
+    the surface, interpolates a crossing from the stale value before the jump: on a
+    one-frame volume seen from 3 cm away a quarter of its hits are > 1 cm off (mostly in
+    front). The verified/repaired cast keeps < 3 % such pixels (disocclusions) and no bias."""
+    scene = room_scene()
+    poses = camera_path(2, step_m=0.03, step_deg=1.0)
+    fr = render_frames(scene, poses)
+    vol = TSDFVolume(TSDFConfig(voxel_size_m=0.01, block_resolution=block_resolution, integrate_color=False))
+    vol.integrate(fr[0].depth, None, INTR, poses[0])
+    truth = fr[1].depth
+    raw = vol.raycast(INTR, poses[1], with_color=False, with_normal=False, refine=False)
+    ref = vol.raycast(INTR, poses[1], with_color=False, with_normal=False, refine=True)
+    far_raw = np.mean((raw.depth > 0) & (np.abs(raw.depth - truth) > 0.01))
+    far_ref = np.mean((ref.depth > 0) & (np.abs(ref.depth - truth) > 0.01))
+    assert far_raw > 0.1                      # the artefact exists (else this test proves nothing)
+    assert far_ref < 0.03
+    hit = ref.depth > 0
+    assert abs(np.median(ref.depth[hit] - truth[hit])) < 1e-3
+    assert hit.mean() > (raw.depth > 0).mean() - 0.03     # false hits dropped, few holes added
+
+
+def test_sample_tsdf_is_the_trilinear_signed_distance():
+    """A wall fused face-on: the sampled TSDF in front of it is distance / truncation, its
+    gradient points to the camera, and unobserved points are not ok."""
+    from data_tools.geometry import look_at
+    wall = TriMesh(np.array([[-2.0, 1.0, -2.0], [2.0, 1.0, -2.0], [2.0, 1.0, 2.0], [-2.0, 1.0, 2.0]]),
+                   np.array([[0, 1, 2], [0, 2, 3]]))
+    T = look_at(np.zeros(3), np.array([0.0, 1.0, 0.0]), up=(0, 0, 1))
+    view = render_mesh(wall, INTR, T)
+    vol = TSDFVolume(TSDFConfig(voxel_size_m=0.01, integrate_color=False))
+    vol.integrate(view.depth, None, INTR, T)
+    d = np.array([0.0, 0.013, -0.021, 0.027])
+    pts = np.stack([np.full(4, 0.05), 1.0 - d, np.full(4, -0.03)], 1)
+    f, grad, ok, lin = vol.sample_tsdf(pts)
+    assert ok.all() and (lin >= 0).all()
+    np.testing.assert_allclose(f * vol.config.sdf_trunc_m, d, atol=1e-3)
+    np.testing.assert_allclose(grad[:, 1] * vol.config.sdf_trunc_m, -1.0, atol=0.05)
+    f2, _, ok2, _ = vol.sample_tsdf(np.array([[0.05, 3.0, 0.0], [9.0, 9.0, 9.0]]))
+    assert not ok2.any()
+    fn, _, okn, _ = vol.sample_tsdf(pts, nearest=True)
+    assert okn.all() and np.all(np.abs(fn * vol.config.sdf_trunc_m - d) <= 0.0051)
+
+
 def test_fragment_estimate_matches_open3d():
     """Our count of Open3D's range-map fragments (used to pre-size its buffer) is exact: a
     second cast with a larger buffer sees nothing more."""

@@ -49,7 +49,7 @@ def run(args) -> int:
         simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=args.seed)
 
     print(f"[3/4] registering the simulated sequence with frame-to-model ICP + TSDF -> {run_dir}")
-    run_slam(sim_dir, run_dir, make_config("icp"), resume=True)
+    res = run_slam(sim_dir, run_dir, make_config("icp"), resume=True)
 
     print("[4/4] evaluating the estimated trajectory against the ground truth")
     from data_tools.trajectory import read_tum
@@ -57,12 +57,13 @@ def run(args) -> int:
     m = ate(traj, est, align="se3")
     m.save(out / "ate")
     summary = {"frames": len(ideal), "sensor": args.sensor, "ate_rmse_m": m.stats["rmse"],
-               "ate_pairs": m.stats.get("pairs", m.pairs), "seconds": round(time.time() - t0, 1),
+               "ate_pairs": m.stats.get("pairs", m.pairs), "frames_failed": res.stats["frames_failed"],
+               "frames_relocalised": res.stats["frames_relocalised"], "seconds": round(time.time() - t0, 1),
                "ideal_sequence": str(ideal_dir), "simulated_sequence": str(sim_dir),
                "slam_run": str(run_dir), "mesh": str(run_dir / "mesh.ply")}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"\nATE rmse of ICP on the simulated {args.sensor} sequence: {m.stats['rmse'] * 100:.2f} cm "
-          f"over {summary['ate_pairs']} frames ({summary['seconds']} s)")
+          f"over {summary['ate_pairs']} frames, {summary['frames_failed']} failed ({summary['seconds']} s)")
     print(f"outputs in {out.resolve()}: room_ideal/ (ideal RGB-D), {sim_dir.name}/ (simulated), "
           f"slam_icp/ (trajectory.txt, mesh.ply, stats.json), ate/, summary.json")
     return 0

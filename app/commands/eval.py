@@ -12,9 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import FormatError
-from data_tools.trajectory import Trajectory, write_tum
-from slam.metrics import (ALIGNERS, DELTA_UNITS, PRESETS, STAT_KEYS, EvalConfig, MetricResult, ape, ate,
-                          read_trajectory, rpe)
+from data_tools.trajectory import Trajectory, read_tum, write_tum
+from slam.metrics import ALIGNERS, DELTA_UNITS, PRESETS, STAT_KEYS, EvalConfig, MetricResult, ape, ate, rpe
 
 NAME = "eval"
 HELP = "evaluate estimated trajectories against ground truth (ATE, APE, RPE; agrees with evo)"
@@ -121,11 +120,11 @@ def _outputs(args) -> tuple[Path, Path, str]:
 
 
 def _read(path, cfg: EvalConfig) -> Trajectory:
-    """read_trajectory, with its warnings (dropped duplicates) printed as one line each."""
+    """read_tum, with its warnings (dropped duplicates) printed as one line each."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            traj = read_trajectory(path, cfg.drop_duplicate_timestamps)
+            traj = read_tum(path, drop_duplicate_timestamps=cfg.drop_duplicate_timestamps)
         except FormatError as e:
             if "duplicated timestamp" in e.problem:
                 raise FormatError(e.path, f"{e.problem}; --drop-duplicate-timestamps keeps the first") from None

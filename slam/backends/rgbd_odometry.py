@@ -21,15 +21,16 @@ from data_tools.camera import Intrinsics
 from data_tools.errors import ConfigError
 from slam.backends._features import orb_features, pnp_guess
 from slam.backends._pyramid import Pyramid, SolveResult, rgbd_hybrid
-from slam.registration import (RegistrationBackend, TrackResult, check_positive, implausible_motion,
-                               register_backend)
+from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
+                               implausible_motion, register_backend)
 
 METHODS = ("hybrid", "point_to_plane", "intensity")
 
 
 @dataclass
-class RGBDOdometryConfig:
-    """Frame-to-frame RGB-D odometry options."""
+class RGBDOdometryConfig(TrackingCheckConfig):
+    """Frame-to-frame RGB-D odometry options (the failure-check and re-localisation fields
+    come from :class:`slam.registration.TrackingCheckConfig`)."""
 
     method: str = "hybrid"
     """Loss: ``hybrid`` (intensity + depth), ``point_to_plane`` (depth only) or ``intensity``."""
@@ -43,27 +44,9 @@ class RGBDOdometryConfig:
     """Huber width of the depth residual, metres."""
     intensity_huber: float = 0.1
     """Huber width of the intensity residual (intensities in [0, 1])."""
-    motion_model: str = "constant_velocity"
-    """Initial guess: ``constant_velocity`` (repeat the last inter-frame motion) or ``static``."""
-    min_valid_fraction: float = 0.05
-    """Fail when fewer than this fraction of the pixels hold a depth in range (black/dropped frame)."""
-    min_correspondences: int = 500
-    """Fail when the finest level has fewer inlier correspondences."""
     min_fitness: float = 0.3
     """Fail when fewer than this fraction of the valid pixels have an inlier correspondence
     (Open3D's reconstruction system uses the same 0.3 overlap threshold)."""
-    max_rmse_m: float = 0.03
-    """Fail when the RMS point-to-plane residual of the inliers is larger, metres."""
-    max_speed_m_s: float = 1.5
-    """Fail when the camera would move faster than this, metres per second."""
-    max_angular_speed_deg_s: float = 150.0
-    """Fail when the camera would turn faster than this, degrees per second."""
-    relocalise: bool = True
-    """After a failure, try the static and an ORB/PnP initial guess before giving up."""
-    orb_features: int = 1500
-    """ORB key points per image for the re-localisation guess."""
-    pnp_min_inliers: int = 25
-    """Fewest PnP RANSAC inliers for a re-localisation guess to be tried."""
 
     def validate(self) -> "RGBDOdometryConfig":
         if self.method not in METHODS:
@@ -74,12 +57,8 @@ class RGBDOdometryConfig:
             raise ConfigError(f"RGBDOdometryConfig.levels must be in 0..5, got {self.levels}")
         if any(i < 1 for i in self.iterations):
             raise ConfigError("RGBDOdometryConfig.iterations must be >= 1")
-        if self.motion_model not in ("constant_velocity", "static"):
-            raise ConfigError(f"RGBDOdometryConfig.motion_model must be constant_velocity or static, got {self.motion_model!r}")
-        check_positive(self, "depth_diff_m", "depth_huber_m", "intensity_huber", "max_rmse_m",
-                       "max_speed_m_s", "max_angular_speed_deg_s", "orb_features")
-        check_positive(self, "min_valid_fraction", "min_correspondences", "min_fitness",
-                       "pnp_min_inliers", allow_zero=True)
+        self.validate_checks()
+        check_positive(self, "depth_diff_m", "depth_huber_m", "intensity_huber")
         return self
 
 
