@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from synth.sensor import SensorSimulator, get_preset, make_effect
+from synth.sensor import MotionLimits, SensorConfig, SensorSimulator, get_preset, make_effect
 from synth.sensor.matching import MatchSetup
 from synth.sensor.testscenes import box_before_wall_scene, camera_pose, corner_scene, wall_scene
 
@@ -21,8 +21,12 @@ def box_scene():
     return box_before_wall_scene(2.0, 1.5, 0.2)
 
 
-def run(effects, scene, preset=SMALL, seed=0, **kw):
-    return SensorSimulator(preset, effects, scene).simulate(T, seed=seed, **kw)
+NO_MOTION_LIMIT = MotionLimits(0.0, 0.0)   # the motion tests use large motions to make effects measurable
+
+
+def run(effects, scene, preset=SMALL, seed=0, motion=None, **kw):
+    cfg = SensorConfig.build(preset, effects, motion=motion)
+    return SensorSimulator(cfg, None, scene).simulate(T, seed=seed, **kw)
 
 
 def apply_one(name, scene, params=None, preset=SMALL, seed=0, prepare=None):
@@ -62,6 +66,53 @@ def test_projector_shadow_cast_by_geometry_only(box_scene):
     u_box = 79.5 - 580 * 0.1 / 1.4                              # box's left edge, 38.07
     assert cols.min() == pytest.approx(u_shadow_start, abs=1.0)
     assert cols.max() == int(np.floor(u_box)) and st.ideal.depth[60, int(np.ceil(u_box))] == pytest.approx(1.4)
+
+
+def _shadow_masks(scene, preset=SMALL):
+    """{method: (unlit-by-shadow mask, stats)} of pattern_projection on ``scene``."""
+    import dataclasses
+    from synth.sensor.effects.pattern_projection import blurred_pattern, compute_radiance
+    sim = SensorSimulator(preset, None, scene)
+    st = sim.make_state(T)[0]
+    pp = sim.effect("pattern_projection")
+    pb = blurred_pattern(st.scratch["pattern"], pp.params.dot_sigma_px, {})
+    out = {}
+    for m in ("raycast", "hybrid", "scanline"):
+        prm = dataclasses.replace(pp.params, shadow_method=m)
+        rad, stats = compute_radiance(st.view, (0, 0, 0), st.preset, pb, prm, sim.renderer, st.ray_dirs_cam)
+        out[m] = (rad, stats)
+    return out
+
+
+def _plank_scenes():
+    from data_tools.scene_spec import Material, SceneSpec
+    from synth.sensor.testscenes import box_mesh, quad_mesh
+    wall = quad_mesh([0.0, 0.0, 2.0], [10.0, 0, 0], [0, 10.0, 0], "wall", "wall")
+    m = {"wall": Material(0.8, 0.0), "obj": Material(0.8, 0.0)}
+    # beside the rig, outside the camera's view (right edge at x = 0.138 z) but in the projector's
+    outside = box_mesh([0.13, 0.0, 0.3], [0.14, 2.0, 0.1], "outside", "obj")
+    # a 1.5 cm rod 1 m in front of the wall: narrower than its shadow offset, so the ordering
+    # test alone marks wall pixels whose projector ray passes beside it
+    rod = box_mesh([0.0, 0.0, 1.0], [0.015, 2.0, 0.015], "rod", "obj")
+    return {"outside": SceneSpec([wall, outside], m), "rod": SceneSpec([wall, rod], m)}
+
+
+@pytest.mark.parametrize("which", ["box", "outside", "rod"])
+def test_hybrid_shadow_matches_one_ray_per_pixel(box_scene, which):
+    """The default 'hybrid' projector visibility gives the shadows of one exact shadow ray per
+    pixel, also for an occluder outside the camera's view and for a thin rod (where the
+    ordering test alone is wrong), with far fewer rays."""
+    scene = box_scene if which == "box" else _plank_scenes()[which]
+    out = _shadow_masks(scene)
+    exact, hybrid, scan = (out[m][0] > 0 for m in ("raycast", "hybrid", "scanline"))
+    n_shadow = out["raycast"][1]["shadowed_px"]
+    assert n_shadow > 200
+    assert np.count_nonzero(exact != hybrid) <= 2, np.count_nonzero(exact != hybrid)
+    np.testing.assert_array_equal(out["hybrid"][0][hybrid & exact], out["raycast"][0][hybrid & exact])
+    if which != "outside":  # (an occluder 25 cm from the projector needs the out-of-view rays)
+        assert out["hybrid"][1]["shadow_rays"] < 0.5 * out["hybrid"][1]["lit_px"]
+    if which != "box":      # where the ordering test alone fails
+        assert np.count_nonzero(exact != scan) > 100
 
 
 # ---------------------------------------------------------------- quantisation
@@ -211,7 +262,7 @@ def test_rolling_shutter_shears_moving_edges(box_scene):
     still = run(["rolling_shutter"], box_scene)
     static = run(["rolling_shutter"], box_scene, prev_pose=T)
     np.testing.assert_array_equal(static.depth, still.depth)   # no motion -> no effect
-    moving = run(["rolling_shutter"], box_scene, prev_pose=prev)
+    moving = run(["rolling_shutter"], box_scene, prev_pose=prev, motion=NO_MOTION_LIMIT)
 
     def left_edge(res, row):
         return int(np.nonzero(np.abs(res.depth[row] - 1.4) < 0.01)[0].min())
@@ -231,12 +282,57 @@ def test_motion_blur_pattern_moves_with_the_rig():
     prev[0, 3] = -0.2
     wall = wall_scene(2.0)
     a = run(None, wall, seed=4)
-    b = run(None, wall, seed=4, prev_pose=prev)
+    b = run(None, wall, seed=4, prev_pose=prev, motion=NO_MOTION_LIMIT)
+    assert b.log["motion_blur"]["active"] and not b.warnings
     assert np.abs(a.ir.astype(int) - b.ir.astype(int)).max() <= 1
     box = box_before_wall_scene(2.0, 1.5, 0.2)
-    c = run(["motion_blur"], box, prev_pose=prev)
+    c = run(["motion_blur"], box, prev_pose=prev, motion=NO_MOTION_LIMIT)
     d = run(["motion_blur"], box)
     assert c.valid.sum() < d.valid.sum() and d.valid.all()
+
+
+def test_implausible_motion_is_a_cut(box_scene):
+    """A previous pose implying more than the motion limits is treated as a cut: the frame is
+    the static one (same seed), the motion effects are inactive and a warning says why."""
+    effects = ["rolling_shutter", "motion_blur"]
+    static = run(effects, box_scene, seed=2)
+    jump = T.copy()
+    jump[0, 3] = -1.0                                   # 1 m in one frame period = 30 m/s
+    cut = run(effects, box_scene, seed=2, prev_pose=jump)
+    np.testing.assert_array_equal(cut.depth, static.depth)
+    assert cut.log["rolling_shutter"]["active"] is False and cut.log["motion_blur"]["active"] is False
+    assert len(cut.warnings) == 1 and "max_speed_m_s" in cut.warnings[0] and "30 m/s" in cut.warnings[0]
+    assert cut.log["motion"]["cut"] is True
+    turn = T.copy()                                     # 10 deg in one frame period = 5.2 rad/s
+    a = np.radians(10.0)
+    turn[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    cut = run(effects, box_scene, seed=2, prev_pose=turn)
+    assert "max_angular_speed_rad_s" in cut.warnings[0]
+    np.testing.assert_array_equal(cut.depth, static.depth)
+    # a plausible hand-held motion (3 cm per frame = 0.9 m/s) keeps the motion effects
+    walk = T.copy()
+    walk[0, 3] = -0.03
+    ok = run(effects, box_scene, seed=2, prev_pose=walk)
+    assert not ok.warnings and ok.log["rolling_shutter"]["active"] is True
+    assert not np.array_equal(ok.depth, static.depth)
+    # the limits are part of the model: raising them lets the same jump through
+    loose = run(effects, box_scene, seed=2, prev_pose=jump, motion=MotionLimits(50.0, 10.0))
+    assert not loose.warnings and loose.log["rolling_shutter"]["active"] is True
+
+
+def test_motion_limits_round_trip_and_bad_values():
+    from data_tools.errors import ConfigError
+    cfg = SensorConfig.build("kinect_v1", "direct", motion=MotionLimits(1.5, 2.0))
+    back = SensorConfig.from_json(cfg.to_json())
+    assert back.motion == MotionLimits(1.5, 2.0)
+    assert back.with_params({"axial_noise.sigma2_per_m": 0.002}).motion == MotionLimits(1.5, 2.0)
+    old = cfg.to_json()
+    del old["motion"]                                   # configs saved before the limits existed
+    assert SensorConfig.from_json(old).motion == MotionLimits()
+    with pytest.raises(ConfigError, match="max_speed_m_s"):
+        MotionLimits(-1.0, 2.0)
+    with pytest.raises(ConfigError, match="unknown key"):
+        SensorConfig.from_json({**cfg.to_json(), "motion": {"max_speed": 2}})
 
 
 # ---------------------------------------------------------------- capture physics

@@ -92,14 +92,20 @@ def test_camera_block():
     assert sim2.camera().intrinsics.distortion == (-0.1, 0.05, 0.0, 0.0, 0.0)
 
 
-def test_no_geometry_in_view_is_reported_not_a_crash():
+@pytest.mark.parametrize("preset,model", [(SMALL, None), (SMALL, "direct"),
+                                          (get_preset("kinect_v2").cropped(128, 106), None)])
+def test_no_geometry_in_view_is_reported_not_a_crash(preset, model):
     scene = wall_scene(2.0)
-    sim = SensorSimulator(SMALL, None, scene)
+    sim = SensorSimulator(preset, model, scene)
     T = camera_pose().copy()
     T[:3, :3] = np.diag([-1.0, 1.0, -1.0])  # looking away from the wall
     res = sim.simulate(T, seed=0)
     assert not res.valid.any() and np.all(res.depth == 0)
     assert any("no geometry in view" in w for w in res.warnings)
+    moving = T.copy()
+    moving[0, 3] = 0.01
+    res = sim.simulate(T, seed=0, prev_pose=moving)          # motion effects with nothing to see
+    assert not res.valid.any() and any("no geometry in view" in w for w in res.warnings)
     empty = SensorSimulator(SMALL, None, SceneSpec([], {}))
     res = empty.simulate(camera_pose(), seed=0)
     assert not res.valid.any() and res.warnings
@@ -114,6 +120,22 @@ def test_bad_input():
         SensorSimulator(SMALL, ["block_matching"], wall_scene()).simulate(camera_pose(), seed=0)
     with pytest.raises(ConfigError, match="known effects"):
         SensorSimulator("kinect_v1", ["shot_noise"], None)
+
+
+def test_bad_pattern_inputs(tmp_path):
+    from synth.sensor import generate_dot_pattern
+    from data_tools.errors import FormatError
+    small = generate_dot_pattern((50, 40), (2, 2), 0.1, seed=1)          # 100x80 px, preset wants 633x495
+    with pytest.raises(ConfigError, match="100x80 px but preset 'kinect_v1' expects 633x495"):
+        SensorSimulator(SMALL, None, wall_scene(), pattern=small).simulate(camera_pose(), seed=0)
+    dark = tmp_path / "dark.png"
+    from PIL import Image
+    Image.fromarray(np.zeros((495, 633), np.uint8)).save(dark)
+    with pytest.raises(FormatError, match="entirely dark"):
+        SensorSimulator(SMALL.replace(pattern=str(dark)), None, wall_scene()).simulate(camera_pose(), seed=0)
+    with pytest.raises(FormatError, match="not found"):
+        SensorSimulator(SMALL.replace(pattern=str(tmp_path / "none.png")), None, wall_scene()).simulate(
+            camera_pose(), seed=0)
 
 
 def test_wrong_size_pattern_image(tmp_path):

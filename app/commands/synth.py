@@ -5,6 +5,8 @@ Subcommands (one ``_add_<name>`` function each; add new ones the same way):
 * ``realgap synth sequence --scene room --frames N --out SEQ`` renders an ideal RGB-D
   sequence (:func:`synth.sequence.generate_sequence`).
 * ``realgap synth scenes`` lists the registered scenes and their parameters.
+* ``realgap synth views --model M.ply --sensor kinect_v1 --out DIR`` simulates object-centred
+  views of one model with labels for recognition training (:func:`synth.sensor.views.render_views`).
 
 :func:`add_sequence_arguments` and :func:`sequence_config_from_args` are separate so other
 options (e.g. a depth-sensor model) can be added to ``synth sequence`` without touching them.
@@ -30,6 +32,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     sub = add_group(parser)
     _add_sequence(sub)
     _add_scenes(sub)
+    _add_views(sub)
 
 
 # --------------------------------------------------------------------------- synth sequence
@@ -160,4 +163,111 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
         if params:
             print(f"{'':15s} parameters: {', '.join(params)}")
     sys.stdout.flush()
+    return 0
+
+
+# --------------------------------------------------------------------------- synth views
+
+def _add_views(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "views", help="simulate object-centred depth views of one model, with pose labels",
+        description="Simulate a depth sensor looking at one object from the vertices of a subdivided "
+                    "half-icosahedron (object on a ground plane), with in-plane rotations and optional "
+                    "clutter/background walls. Writes depth/, ideal/, mask/ PNGs, views.jsonl and "
+                    "labels.json (object name, 4x4 object-to-camera pose per view), camera.json, "
+                    "sensor_config.json and views_config.json (the effective settings). Interrupted "
+                    "runs continue with --resume.")
+    p.add_argument("--model", required=True, metavar="MESH", help="PLY/OBJ/STL/OFF model of the object")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--sensor", default="kinect_v1",
+                   help="sensor preset (kinect_v1, structure, realsense_d435, kinect_v2) or a sensor_config.json "
+                        "(default kinect_v1)")
+    p.add_argument("--effects", default=None,
+                   help="'physical' (default), 'direct' or a comma list of effect names")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="factor from the model's units to metres (T-LESS models are in mm: 0.001; default 1)")
+    p.add_argument("--subdivisions", type=int, default=1,
+                   help="icosahedron subdivisions: 0 -> 4, 1 -> 17, 2 -> 73 viewpoints above 5 deg elevation "
+                        "(default 1)")
+    rolls = p.add_mutually_exclusive_group()
+    rolls.add_argument("--rolls", type=int, default=None, metavar="N",
+                       help="in-plane rotations per viewpoint, evenly spaced over 360 deg (default 1: none)")
+    rolls.add_argument("--roll-angles", default=None, metavar="A,B,...",
+                       help="explicit in-plane angles in degrees (write --roll-angles=-30,0,30)")
+    p.add_argument("--distance", type=float, default=None, metavar="M",
+                   help="camera distance to the object centre, metres (default: the object fills ~40%% of "
+                        "the image height)")
+    p.add_argument("--min-elevation", type=float, default=5.0, metavar="DEG",
+                   help="lowest viewpoint elevation above the ground, degrees (default 5)")
+    p.add_argument("--clutter", type=int, default=0, metavar="N", help="random clutter boxes around the object")
+    p.add_argument("--background", action="store_true", help="surround the set-up with four walls")
+    p.add_argument("--no-ground", action="store_true", help="no ground plane under the object")
+    p.add_argument("--no-ideal", action="store_true", help="do not write the ideal depth images")
+    p.add_argument("--seed", type=int, default=0, help="seed of the clutter and of the sensor draws (default 0)")
+    p.add_argument("--limit", type=int, default=None, metavar="N",
+                   help="render only the first N views (a later --resume without --limit adds the rest)")
+    p.add_argument("--width", type=int, help=argparse.SUPPRESS)   # centred crop of the sensor image (tests)
+    p.add_argument("--height", type=int, help=argparse.SUPPRESS)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--resume", action="store_true", help="continue an interrupted run in DIR")
+    g.add_argument("--overwrite", action="store_true", help="replace views already in DIR")
+    p.set_defaults(func=_cmd_views)
+    return p
+
+
+def views_config_from_args(args: argparse.Namespace):
+    """The :class:`synth.sensor.views.ViewsConfig` of parsed ``synth views`` arguments."""
+    from pathlib import Path
+
+    from synth.sensor.views import ViewsConfig
+    if args.roll_angles is not None:
+        try:
+            angles = tuple(float(a) for a in args.roll_angles.split(",") if a.strip())
+        except ValueError:
+            raise ConfigError(f"--roll-angles: expected comma-separated degrees, got {args.roll_angles!r}") from None
+        if not angles:
+            raise ConfigError("--roll-angles: give at least one angle")
+    else:
+        n = 1 if args.rolls is None else args.rolls
+        if n < 1:
+            raise ConfigError(f"--rolls must be >= 1, got {n}")
+        angles = tuple(360.0 * k / n for k in range(n))
+    return ViewsConfig(subdivisions=args.subdivisions, inplane_deg=angles, distance_m=args.distance,
+                       min_elevation_deg=args.min_elevation, ground=not args.no_ground, clutter=args.clutter,
+                       background=args.background, seed=args.seed, write_ideal=not args.no_ideal,
+                       max_views=args.limit, model_path=str(Path(args.model).resolve()),
+                       model_scale=args.scale)
+
+
+def _views_sensor(args: argparse.Namespace):
+    """The sensor config of ``synth views`` (preset or JSON file, effects, optional crop)."""
+    from synth.sensor import SensorConfig
+    if args.sensor.endswith(".json"):
+        if args.effects:
+            raise ConfigError("--effects cannot be combined with a sensor_config.json (edit the file instead)")
+        cfg = SensorConfig.load(args.sensor)
+    else:
+        cfg = SensorConfig.build(args.sensor, args.effects)
+    if args.width is not None or args.height is not None:
+        pre = cfg.preset
+        cfg = SensorConfig(pre.cropped(args.width or pre.width, args.height or pre.height), cfg.effects)
+    return cfg
+
+
+def _cmd_views(args: argparse.Namespace) -> int:
+    from data_tools.mesh import load_mesh
+    from synth.sensor.views import check_model_size, render_views
+    if not args.scale > 0:
+        raise ConfigError(f"--scale must be positive, got {args.scale}")
+    cfg = views_config_from_args(args)
+    sensor = _views_sensor(args)
+    model = load_mesh(args.model, scale=args.scale)
+    check_model_size(model, args.model, args.scale)
+    res = render_views(model, sensor, args.out, cfg, resume=args.resume, overwrite=args.overwrite, progress=True)
+    kept = res.n_views - res.n_written
+    part = f" (first {res.n_views} of {res.n_views_all}; --resume without --limit adds the rest)" \
+        if res.n_views < res.n_views_all else ""
+    print(f"{res.out_dir}: wrote {res.n_written} views of {res.object_name!r}"
+          f"{f', kept {kept} already there' if kept else ''}; {res.n_views} in total{part}; "
+          f"labels in {res.out_dir}/labels.json")
     return 0

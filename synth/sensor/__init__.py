@@ -14,10 +14,11 @@ per effect), pattern (dot patterns), matching (block matching), state, simulator
 from synth.sensor.pattern import DotPattern, generate_dot_pattern, load_pattern
 from synth.sensor.presets import PRESETS, SensorPreset, get_preset
 from synth.sensor.registry import Effect, effect_class, effect_names, make_effect, register_effect
-from synth.sensor.simulator import SensorConfig, SensorSimulator, SimResult, list_presets, simulate_trajectory
+from synth.sensor.simulator import (MotionLimits, SensorConfig, SensorSimulator, SimResult, list_presets,
+                                    simulate_trajectory)
 
 __all__ = ["DotPattern", "generate_dot_pattern", "load_pattern", "PRESETS", "SensorPreset", "get_preset",
-           "Effect", "effect_class", "effect_names", "make_effect", "register_effect", "SensorConfig",
+           "Effect", "effect_class", "effect_names", "make_effect", "register_effect", "MotionLimits", "SensorConfig",
            "SensorSimulator", "SimResult", "list_presets", "simulate_trajectory", "render_views"]
 
 

@@ -181,7 +181,7 @@ def match(left8: np.ndarray, right8: np.ndarray, setup: MatchSetup, method: str 
     R = right8
     if setup.side < 0:
         L = np.ascontiguousarray(L[:, ::-1])
-        R = np.ascontiguousarray(R[:, ::-1])
+        R = _flipped(right8)
     key = (setup, method, params)
     m = _MATCHER_CACHE.get(key)
     if m is None:
@@ -189,11 +189,37 @@ def match(left8: np.ndarray, right8: np.ndarray, setup: MatchSetup, method: str 
     D16 = m.compute(np.ascontiguousarray(L), np.ascontiguousarray(R))
     d = D16.astype(np.float32) * np.float32(1.0 / 16.0)
     d[D16 < setup.min_disp * 16] = np.nan
+    # the image's columns in the (possibly mirrored) working frame
+    c0 = setup.pad_before if setup.side > 0 else Wt - setup.pad_before - W
+    c1 = c0 + W
     if params.subpixel_iterations > 0:
-        d = refine_subpixel(L, R, d, setup.block, params.subpixel_iterations, params.max_refine_px)
+        # refine only the image's columns plus the margin its windows reach: each of the
+        # iterations and the normalisation widen the dependency by half a window, so the
+        # result there is the same as refining the whole padded width
+        M = (int(params.subpixel_iterations) + 1) * (setup.block // 2) + 2
+        a, b = max(c0 - M, 0), min(c1 + M, Wt)
+        sub = refine_subpixel(L[:, a:b], R, d[:, a:b], setup.block, params.subpixel_iterations,
+                              params.max_refine_px, col_offset=a)
+        d = sub[:, c0 - a:c1 - a]
+    else:
+        d = d[:, c0:c1]
     if setup.side < 0:
         d = d[:, ::-1]
-    return np.ascontiguousarray(d[:, setup.pad_before:setup.pad_before + W])
+    return np.ascontiguousarray(d)
+
+
+_FLIP_CACHE: list = []
+
+
+def _flipped(img: np.ndarray) -> np.ndarray:
+    """Horizontally mirrored contiguous copy, cached for the last image (the stored reference
+    is the same array every frame, so its normalisation cache keeps working)."""
+    for src, out in _FLIP_CACHE:
+        if src is img:
+            return out
+    out = np.ascontiguousarray(img[:, ::-1])
+    _FLIP_CACHE[:] = [(img, out)]
+    return out
 
 
 _REF_CACHE: list = []
@@ -223,7 +249,7 @@ def _normalized_with_gradient(img: np.ndarray, block: int) -> tuple[np.ndarray, 
 
 
 def refine_subpixel(left: np.ndarray, right: np.ndarray, d: np.ndarray, block: int, iterations: int = 2,
-                    max_shift_px: float = 1.0) -> np.ndarray:
+                    max_shift_px: float = 1.0, col_offset: int = 0) -> np.ndarray:
     """Gauss-Newton sub-pixel refinement of a disparity map (L(u) = R(u - d)).
 
     Both images are normalised per window (zero mean, unit contrast: the captured pattern is
@@ -232,34 +258,60 @@ def refine_subpixel(left: np.ndarray, right: np.ndarray, d: np.ndarray, block: i
     ``d(p) <- sum_W g^2 d / sum_W g^2 - sum_W e g / sum_W g^2``: the window's weighted mean
     disparity plus the least-squares shift, i.e. a window-constant (plus linear) disparity is
     recovered without the integer pixel-locking of cost-curve interpolation. Everything is
-    box filters and remaps (no per-pixel Python). Where the refinement moves more than
-    ``max_shift_px`` from the matcher's value (a window straddling a depth edge, where a
-    single shift cannot explain it) the matcher's own value is kept.
+    box filters and remaps (no per-pixel Python; element-wise steps in place, float32). Where
+    the refinement moves more than ``max_shift_px`` from the matcher's value (a window
+    straddling a depth edge, where a single shift cannot explain it) the matcher's own value
+    is kept. ``left``/``d`` may be a column band of the full images starting at column
+    ``col_offset`` of ``right`` (results within (iterations + 1) half-windows of the band's
+    ends are affected by its borders).
     """
     import cv2
     H, W = left.shape
     Ln = _normalized(left, block)
     Rn, Rx = _normalized_with_gradient(right, block)
-    u = np.broadcast_to(np.arange(W, dtype=np.float32)[None, :], (H, W))
-    v = np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W))
+    u = np.arange(col_offset, col_offset + W, dtype=np.float32)[None, :]
+    v = _row_map(H, W)
     ok = np.isfinite(d)
     okf = ok.astype(np.float32)
     d0 = np.where(ok, d, np.float32(0.0)).astype(np.float32)
     cur = d0
     k = (block, block)
+    mx = np.empty((H, W), np.float32)
     for _ in range(int(iterations)):
-        mx = u - cur
+        np.subtract(u, cur, out=mx)
         Rw = cv2.remap(Rn, mx, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         g = cv2.remap(Rx, mx, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        g2 = g * g * okf
-        sg = np.maximum(cv2.boxFilter(g2, -1, k, normalize=False), np.float32(1e-6))
-        dm = cv2.boxFilter(g2 * cur, -1, k, normalize=False)
-        de = cv2.boxFilter((Ln - Rw) * g * okf, -1, k, normalize=False)
-        cur = (dm - de) / sg
+        g2 = g * g
+        g2 *= okf
+        sg = cv2.boxFilter(g2, -1, k, normalize=False)
+        np.maximum(sg, np.float32(1e-6), out=sg)
+        g2 *= cur
+        dm = cv2.boxFilter(g2, -1, k, normalize=False)
+        np.subtract(Ln, Rw, out=Rw)
+        Rw *= g
+        Rw *= okf
+        de = cv2.boxFilter(Rw, -1, k, normalize=False)
+        dm -= de
+        dm /= sg
+        cur = dm
     keep = ~np.isfinite(cur) | (np.abs(cur - d0) > max_shift_px)
     cur[keep] = d0[keep]
     cur[~ok] = np.nan
     return cur
+
+
+_ROW_MAPS: dict = {}
+
+
+def _row_map(H: int, W: int) -> np.ndarray:
+    """(H, W) float32 row coordinate of every pixel (cached, read-only)."""
+    m = _ROW_MAPS.get((H, W))
+    if m is None:
+        m = np.ascontiguousarray(np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W)))
+        m.setflags(write=False)
+        _ROW_MAPS.clear()
+        _ROW_MAPS[(H, W)] = m
+    return m
 
 
 def sad_block_match(left: np.ndarray, right: np.ndarray, min_disp: int, num_disp: int, block: int,

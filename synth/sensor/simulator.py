@@ -13,6 +13,7 @@ A model is just the preset plus a list of ``{"name", "enabled", "params"}`` entr
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -32,6 +33,53 @@ from synth.sensor.registry import Effect, effect_class, make_effect
 # ------------------------------------------------------------------------------------------
 
 @dataclass
+class MotionLimits:
+    """Plausibility limits of the camera motion between ``prev_pose`` and ``pose`` (one frame
+    period apart) for the motion effects (rolling shutter, motion blur).
+
+    A trajectory sampled with few frames can jump metres between consecutive poses; read as
+    the motion during one frame period that is an absurd velocity, and the motion effects
+    (which interpolate at constant velocity between the two poses) would then dominate the
+    frame. Above either limit the previous pose is treated as a cut: the frame is simulated as
+    if the camera were static (motion effects inactive) and SimResult.warnings says so.
+    Defaults: a fast hand-held camera or mobile robot (walking pace ~1.5 m/s; hand-held
+    rotations in TUM RGB-D fr1 peak around 1-2 rad/s).
+    """
+
+    max_speed_m_s: float = 3.0
+    """Largest plausible camera speed, metres/second (0 = no limit)."""
+    max_angular_speed_rad_s: float = 4.0
+    """Largest plausible camera rotation rate, radians/second (0 = no limit)."""
+
+    def __post_init__(self) -> None:
+        for k in ("max_speed_m_s", "max_angular_speed_rad_s"):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"motion limits: {k} must be a number >= 0 (0 = no limit), got {v!r}")
+            setattr(self, k, float(v))
+
+    def speeds(self, pose_c2w: np.ndarray, prev_pose_c2w: np.ndarray, frame_dt_s: float) -> tuple[float, float]:
+        """(speed m/s, angular speed rad/s) implied by the two poses one frame period apart."""
+        T1, T0 = np.asarray(pose_c2w, np.float64), np.asarray(prev_pose_c2w, np.float64)
+        dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        c = (float(np.trace(T1[:3, :3] @ T0[:3, :3].T)) - 1.0) / 2.0
+        ang = math.acos(min(1.0, max(-1.0, c)))
+        return dist / frame_dt_s, ang / frame_dt_s
+
+    def violation(self, pose_c2w: np.ndarray, prev_pose_c2w: np.ndarray, frame_dt_s: float) -> str | None:
+        """A one-line reason when the motion exceeds a limit, else None."""
+        v, w = self.speeds(pose_c2w, prev_pose_c2w, frame_dt_s)
+        if self.max_speed_m_s and v > self.max_speed_m_s:
+            return (f"camera moved {v * frame_dt_s:.3g} m in one frame period ({v:.3g} m/s > max_speed_m_s "
+                    f"{self.max_speed_m_s:g}): previous pose treated as a cut, motion effects skipped")
+        if self.max_angular_speed_rad_s and w > self.max_angular_speed_rad_s:
+            return (f"camera turned {math.degrees(w * frame_dt_s):.3g} deg in one frame period ({w:.3g} rad/s > "
+                    f"max_angular_speed_rad_s {self.max_angular_speed_rad_s:g}): previous pose treated as a cut, "
+                    f"motion effects skipped")
+        return None
+
+
+@dataclass
 class SensorConfig:
     """A sensor model: the device preset and the ordered effects (each with its parameters)."""
 
@@ -39,11 +87,16 @@ class SensorConfig:
     """Device geometry, pattern, matcher and range."""
     effects: list[Effect] = field(default_factory=list)
     """Effects in model order (they run sorted by stage; disabled ones are kept but skipped)."""
+    motion: MotionLimits = field(default_factory=MotionLimits)
+    """Plausibility limits of the motion between ``prev_pose`` and ``pose`` (above them the
+    previous pose is a cut: no motion effects for that frame, a warning)."""
 
     @classmethod
-    def build(cls, preset: str | SensorPreset = "kinect_v1", effects=None) -> "SensorConfig":
+    def build(cls, preset: str | SensorPreset = "kinect_v1", effects=None,
+              motion: MotionLimits | None = None) -> "SensorConfig":
         """Config from a preset and ``effects``: None/"physical" (the preset's physical
-        pipeline), "direct" (its analytic model), or a list of names / dicts / Effects."""
+        pipeline), "direct" (its analytic model), or a list of names / dicts / Effects;
+        ``motion``: the motion plausibility limits (default :class:`MotionLimits`)."""
         pre = get_preset(preset) if isinstance(preset, str) else preset
         if not isinstance(pre, SensorPreset):
             raise ConfigError(f"expected a sensor preset name or SensorPreset, got {type(preset).__name__}")
@@ -65,10 +118,12 @@ class SensorConfig:
             if e.name in seen:
                 raise ConfigError(f"sensor model lists effect {e.name!r} twice")
             seen.add(e.name)
-        return cls(pre, built)
+        return cls(pre, built, motion if motion is not None else MotionLimits())
 
     def to_json(self) -> dict:
-        return {"preset": self.preset.to_json(), "effects": [e.to_json() for e in self.effects]}
+        return {"preset": self.preset.to_json(), "effects": [e.to_json() for e in self.effects],
+                "motion": {"max_speed_m_s": self.motion.max_speed_m_s,
+                           "max_angular_speed_rad_s": self.motion.max_angular_speed_rad_s}}
 
     @classmethod
     def from_json(cls, d: dict) -> "SensorConfig":
@@ -78,7 +133,14 @@ class SensorConfig:
         pre = get_preset(p) if isinstance(p, str) else SensorPreset.from_json(p)
         if not isinstance(d["effects"], list):
             raise ConfigError("sensor config 'effects' must be a list")
-        return cls(pre, [make_effect(e) for e in d["effects"]])
+        motion = d.get("motion") or {}
+        if not isinstance(motion, dict):
+            raise ConfigError("sensor config 'motion' must be a JSON object")
+        unknown = sorted(set(motion) - {"max_speed_m_s", "max_angular_speed_rad_s"})
+        if unknown:
+            raise ConfigError(f"sensor config 'motion': unknown key(s) {', '.join(unknown)}; "
+                              f"known: max_speed_m_s, max_angular_speed_rad_s")
+        return cls(pre, [make_effect(e) for e in d["effects"]], MotionLimits(**motion))
 
     def save(self, path: str | os.PathLike) -> Path:
         path = Path(path)
@@ -145,7 +207,7 @@ class SensorConfig:
                     break
             else:
                 raise ConfigError(f"{key}: effect {en!r} is not in this sensor model")
-        return SensorConfig(self.preset, effects)
+        return SensorConfig(self.preset, effects, self.motion)
 
 
 # ------------------------------------------------------------------------------------------
@@ -177,7 +239,8 @@ class SimResult:
     draws: dict
     """{effect name: draw}: pass back as ``simulate(..., draws=...)`` to replay the frame."""
     log: dict
-    """{effect name: statistics} plus ``timings_ms``."""
+    """{effect name: statistics} plus ``timings_ms`` (wall time per stage) and ``cpu_ms`` (CPU
+    time of all threads of the process per stage: less sensitive to a shared machine)."""
     warnings: list[str] = field(default_factory=list)
     """Human-readable notes (e.g. 'no geometry in view')."""
     rgb: np.ndarray | None = None
@@ -347,7 +410,14 @@ class SensorSimulator:
         intr = p.intrinsics
         rgb = None
         warnings: list[str] = []
-        if self.renderer is None:
+        cut = None
+        if Tp is not None:
+            cut = self.config.motion.violation(T, Tp, 1.0 / p.fps)
+            if cut:
+                warnings.append(cut)
+                Tp = None
+        no_scene = self.renderer is None
+        if no_scene:
             ideal = empty_view(intr.shape)
             warnings.append("scene has no geometry: all pixels invalid")
         else:
@@ -359,8 +429,10 @@ class SensorSimulator:
         ordered = self.config.ordered()
         state = SensorState(p, intr, T, Tp, 1.0 / p.fps, self.renderer, self.ray_dirs(), ideal, ideal,
                             ideal.depth, ideal.hit.copy(), {e.name: e for e in ordered}, phys)
+        if cut:
+            state.log["motion"] = {"cut": True, "reason": cut}
         if not ideal.hit.any():
-            if not warnings:
+            if not no_scene:
                 warnings.append("no geometry in view: all pixels invalid")
         elif phys:
             state.scratch["pattern"] = self.pattern().image
@@ -373,14 +445,16 @@ class SensorSimulator:
 
         ``seed`` fixes every random draw (per effect: the effect's draw depends only on the
         seed and its name). ``prev_pose`` (pose one frame period earlier) switches on the
-        motion effects. ``draws`` replays a previous result's draws exactly. ``render`` reuses
+        motion effects, unless the motion it implies exceeds ``config.motion`` (then it is
+        treated as a cut: static frame, a warning in ``SimResult.warnings``). ``draws`` replays a previous result's draws exactly. ``render`` reuses
         an ideal :class:`RenderResult` of this pose. Deterministic given (seed or draws).
         """
         if draws is None and seed is None:
             raise ConfigError("simulate needs a seed or the draws of a previous frame")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb)
         timings = {"render": (time.perf_counter() - t0) * 1e3}
+        cpu = {"render": (time.process_time() - c0) * 1e3}
         ideal = state.ideal
         used_draws: dict = {}
         if not ideal.hit.any():
@@ -388,7 +462,7 @@ class SensorSimulator:
             state.depth[:] = 0
         else:
             for e in state.model.values():  # already in execution order
-                t1 = time.perf_counter()
+                t1, c1 = time.perf_counter(), time.process_time()
                 if draws is not None:
                     if e.name in draws:
                         d = draws[e.name]
@@ -401,13 +475,16 @@ class SensorSimulator:
                 e.apply(state, d)
                 used_draws[e.name] = d
                 timings[e.name] = (time.perf_counter() - t1) * 1e3
+                cpu[e.name] = (time.process_time() - c1) * 1e3
         depth = np.where(state.valid & (state.depth > 0), state.depth, 0).astype(np.float32)
         valid = depth > 0
         if not valid.any() and ideal.hit.any():
             warnings.append("the sensor measured no valid pixel in this frame")
         log = dict(state.log)
         timings["total"] = (time.perf_counter() - t0) * 1e3
+        cpu["total"] = (time.process_time() - c0) * 1e3
         log["timings_ms"] = timings
+        log["cpu_ms"] = cpu
         disp = state.disparity
         if disp is not None:
             disp = np.where(valid, disp, np.nan).astype(np.float32)
@@ -429,8 +506,9 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     """Simulate every pose and append the frames to a :class:`data_tools.sequence.SequenceWriter`
     (open it with ``camera=sim.camera()``); frames already in the writer (``len(writer)``, a
     resumed run) are skipped, so the result is identical to an uninterrupted run (frame i
-    always uses seed ``seed + i`` and pose i - 1 as its previous pose). Returns the number of
-    frames written now.
+    always uses seed ``seed + i`` and pose i - 1 as its previous pose; where that implies more
+    than ``sim.config.motion`` allows, the frame is a cut - static - and the progress bar counts
+    it). Returns the number of frames written now.
 
         with SequenceWriter(out, sim.camera(), scene, resume=resume) as w:
             sim.config.save(out / "sensor_config.json")
@@ -445,12 +523,16 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     if progress:
         from tqdm import tqdm
         idx = tqdm(idx, desc=f"simulating {sim.preset.name}", initial=start, total=len(poses))
-    n = 0
+    n = cuts = 0
     for i in idx:
         prev = poses[i - 1] if (motion and i > 0) else None
         res = sim.simulate(poses[i], seed=seed + i, prev_pose=prev, with_rgb=with_rgb)
         writer.write(res.to_frame(ts[i], i))
         n += 1
+        if res.log.get("motion", {}).get("cut"):
+            cuts += 1
+            if progress:  # frames whose motion exceeded sim.config.motion (motion effects skipped)
+                idx.set_postfix_str(f"{cuts} motion cut(s)")
     return n
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.errors import ConfigError, RealgapError
+from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh
 from data_tools.scene_spec import Material, SceneSpec
 
@@ -84,7 +84,8 @@ class ViewsConfig:
     """Settings of :func:`render_views` (saved as views_config.json)."""
 
     subdivisions: int = 1
-    """Icosahedron subdivisions (1: 42 vertices, ~23 on the upper half)."""
+    """Icosahedron subdivisions (0: 12 vertices, 1: 42, 2: 162; 4, 17, 73 of them lie above 5 deg
+    elevation)."""
     inplane_deg: tuple[float, ...] = (0.0,)
     """In-plane rotations of the camera about its optical axis, degrees."""
     distance_m: float | None = None
@@ -102,15 +103,59 @@ class ViewsConfig:
     """Seed of the clutter layout and of the sensor draws (view i uses seed + i)."""
     write_ideal: bool = True
     """Also write the ideal depth PNGs."""
+    max_views: int | None = None
+    """Render only the views with index < max_views (a quick subset; a later run with a larger
+    value or None and ``resume`` adds the rest). None = all views."""
+    model_path: str = ""
+    """Where the model was loaded from (provenance only; render_views takes the loaded mesh)."""
+    model_scale: float = 1.0
+    """Scale applied to the file's coordinates to get metres (provenance only)."""
+
+
+MODEL_SIZE_RANGE_M = (0.005, 10.0)
+"""Plausible bounding-box diagonal of a recognition object, metres; outside it the model's
+units are almost certainly wrong (T-LESS CAD models are in millimetres: scale 0.001)."""
+
+
+def check_model_size(model: TriMesh, source: str | os.PathLike | None = None, scale: float | None = None) -> float:
+    """Bounding-box diagonal of ``model`` in metres; ConfigError (one line naming ``source`` or
+    the model, with a hint about the scale) when it lies outside :data:`MODEL_SIZE_RANGE_M`."""
+    lo, hi = model.bounds
+    diag = float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+    where = str(source) if source is not None else f"model {model.name!r}"
+    used = f" after scale {scale:g}" if scale is not None else ""
+    a, b = MODEL_SIZE_RANGE_M
+    if not diag > 0:
+        raise ConfigError(f"{where}: model has no extent (all vertices coincide)")
+    if diag > b:
+        hint = (" - are its units millimetres? use --scale 0.001" if a <= diag * 1e-3 <= b else
+                " - check its units (--scale converts them to metres)")
+        raise ConfigError(f"{where}: model is {diag:.4g} m across{used}, absurd for a recognition object "
+                          f"(expected {a:g}..{b:g} m){hint}")
+    if diag < a:
+        hint = (" - is it already in metres? drop --scale 0.001" if scale is not None and scale < 1 and
+                a <= diag / scale <= b else " - check its units (--scale converts them to metres)")
+        raise ConfigError(f"{where}: model is only {diag * 1e3:.3g} mm across{used}, too small for the "
+                          f"sensor (expected {a:g}..{b:g} m){hint}")
+    return diag
 
 
 @dataclass
 class ViewsResult:
+    """What :func:`render_views` did."""
+
     out_dir: str
+    """The output folder."""
     n_views: int
+    """Views this run covers (all, or the first ``max_views``)."""
     n_written: int
+    """Views written now (the others were already there: resumed run)."""
     object_name: str
+    """Name of the model (the ``object`` label)."""
     views: list = field(default_factory=list)
+    """The records written now (see views.jsonl)."""
+    n_views_all: int = 0
+    """Views of the full set (n_views is the subset of this run when max_views is set)."""
 
 
 def _clutter(rng: np.random.Generator, n: int, obj_radius: float, keep_out: float) -> list[TriMesh]:
@@ -181,14 +226,27 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
             raise ConfigError(f"render_views: unknown option(s) {', '.join(sorted(unknown))}")
         cfg = ViewsConfig(**{**asdict(cfg), **overrides})
     cfg.inplane_deg = tuple(float(a) for a in cfg.inplane_deg)
+    if not cfg.inplane_deg:
+        raise ConfigError("render_views: need at least one in-plane angle")
     if cfg.subdivisions < 0 or cfg.subdivisions > 5:
         raise ConfigError(f"render_views: subdivisions must be in 0..5, got {cfg.subdivisions}")
+    if cfg.clutter < 0:
+        raise ConfigError(f"render_views: clutter must be >= 0, got {cfg.clutter}")
+    if cfg.max_views is not None and cfg.max_views < 1:
+        raise ConfigError(f"render_views: max_views must be >= 1, got {cfg.max_views}")
+    if cfg.distance_m is not None and not (math.isfinite(cfg.distance_m) and cfg.distance_m > 0):
+        raise ConfigError(f"render_views: distance_m must be a positive number, got {cfg.distance_m}")
+    check_model_size(model)
     out = Path(out_dir)
     index_path = out / "views.jsonl"
     if index_path.exists() and not (resume or overwrite):
         raise RealgapError(f"{out}: already holds views (use resume or overwrite)")
     if overwrite and index_path.exists():
+        import shutil
         index_path.unlink()
+        for sub in ("depth", "mask", "ideal"):   # no stale images of the previous run
+            if (out / sub).is_dir():
+                shutil.rmtree(out / sub)
     sensor_cfg = sensor.config if isinstance(sensor, SensorSimulator) else sensor
     scene, T_place, radius = build_views_scene(model, cfg, material)
     sim = SensorSimulator(sensor_cfg, None, scene)
@@ -203,12 +261,14 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     if dist - radius < pre.min_depth_m:
         raise ConfigError(f"render_views: distance {dist:.2f} m puts the object nearer than the sensor's "
                           f"minimum depth {pre.min_depth_m} m")
+    effective = {**asdict(cfg), "distance_m": dist, "object": model.name}
+    if resume and index_path.exists():
+        _check_same_run(out, effective, sim.config.to_json())
     for sub in ("depth", "mask") + (("ideal",) if cfg.write_ideal else ()):
         (out / sub).mkdir(parents=True, exist_ok=True)
     write_camera_json(out / "camera.json", sim.camera())
     sim.config.save(out / "sensor_config.json")
-    (out / "views_config.json").write_text(json.dumps({**asdict(cfg), "distance_m": dist,
-                                                       "object": model.name}, indent=2) + "\n")
+    (out / "views_config.json").write_text(json.dumps(effective, indent=2) + "\n")
     done = set()
     if index_path.exists():
         for line in index_path.read_text().splitlines():
@@ -216,10 +276,14 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
                 done.add(json.loads(line)["index"])
     dirs = hemisphere_viewpoints(cfg.subdivisions, cfg.min_elevation_deg)
     jobs = [(i * len(cfg.inplane_deg) + j, d, a) for i, d in enumerate(dirs) for j, a in enumerate(cfg.inplane_deg)]
-    it = jobs
+    n_all = len(jobs)
+    if cfg.max_views is not None:
+        jobs = jobs[:cfg.max_views]
+    todo = [j for j in jobs if j[0] not in done]
+    it = todo
     if progress:
         from tqdm import tqdm
-        it = tqdm(jobs, desc=f"views of {model.name}", leave=False)
+        it = tqdm(todo, desc=f"views of {model.name}", initial=len(jobs) - len(todo), total=len(jobs))
     scale = sim.camera().depth_scale
     written = 0
     views = []
@@ -250,7 +314,35 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     all_recs = read_views(out)
     (out / "labels.json").write_text(json.dumps({"object": model.name, "camera": "camera.json",
                                                  "views": all_recs}, indent=1) + "\n")
-    return ViewsResult(str(out), len(jobs), written, model.name, views)
+    return ViewsResult(str(out), len(jobs), written, model.name, views, n_all)
+
+
+# fields that may differ between a run and its resumption (they do not change any view)
+_RESUME_FREE = ("max_views", "model_path")
+
+
+def _check_same_run(out: Path, effective: dict, sensor_json: dict) -> None:
+    """ConfigError when a resumed run would mix views of different settings in ``out``."""
+    p = out / "views_config.json"
+    if p.exists():
+        try:
+            old = json.loads(p.read_text())
+        except json.JSONDecodeError as e:
+            raise FormatError(p, f"not valid JSON ({e.msg})") from None
+        new = json.loads(json.dumps(effective))  # tuples -> lists, as stored
+        diff = sorted(k for k in set(old) | set(new) if k not in _RESUME_FREE and old.get(k) != new.get(k))
+        if diff:
+            raise ConfigError(f"{out}: cannot resume, the views there were made with other settings "
+                              f"({', '.join(diff)}); use overwrite or another folder")
+    s = out / "sensor_config.json"
+    if s.exists():
+        try:
+            old_s = json.loads(s.read_text())
+        except json.JSONDecodeError as e:
+            raise FormatError(s, f"not valid JSON ({e.msg})") from None
+        if old_s != json.loads(json.dumps(sensor_json)):
+            raise ConfigError(f"{out}: cannot resume, the views there were made with another sensor model; "
+                              f"use overwrite or another folder")
 
 
 def read_views(out_dir: str | os.PathLike) -> list[dict]:

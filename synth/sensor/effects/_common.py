@@ -30,9 +30,18 @@ def check_draw(draw, key: str, shape, effect: str) -> np.ndarray:
     return a
 
 
+def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(H, W) a . b of two (H, W, 3) float32 fields, summed in the order x, y, z (element-wise
+    float32, no einsum)."""
+    out = a[..., 0] * b[..., 0]
+    out += a[..., 1] * b[..., 1]
+    out += a[..., 2] * b[..., 2]
+    return out
+
+
 def cos_view(view, ray_dirs_cam: np.ndarray) -> np.ndarray:
     """(H, W) cosine between the camera-facing normal and the reversed viewing ray (0 = no hit)."""
-    c = -np.einsum("hwk,hwk->hw", view.normals_cam, ray_dirs_cam)
+    c = -_dot3(view.normals_cam, ray_dirs_cam)
     c[~view.hit] = 0.0
     return np.clip(c, 0.0, 1.0).astype(np.float32)
 
@@ -40,9 +49,9 @@ def cos_view(view, ray_dirs_cam: np.ndarray) -> np.ndarray:
 def cos_incidence(view, source_cam) -> tuple[np.ndarray, np.ndarray]:
     """(cos of incidence from a point light at ``source_cam`` (3,), distance to it) per pixel."""
     L = view.points_cam - np.asarray(source_cam, np.float32)
-    r = np.sqrt(np.einsum("hwk,hwk->hw", L, L)).astype(np.float32)
+    r = np.sqrt(_dot3(L, L)).astype(np.float32)
     r = np.maximum(r, 1e-6)
-    c = -np.einsum("hwk,hwk->hw", view.normals_cam, L) / r
+    c = -_dot3(view.normals_cam, L) / r
     c[~view.hit] = 0.0
     return np.clip(c, 0.0, 1.0).astype(np.float32), r
 

@@ -28,6 +28,10 @@ class IRCaptureParams:
     equalises shot noise over the range) or ``linear``."""
 
 
+_LUTS: dict = {}
+"""(adc bits, companding) -> companding look-up table (pure function of the key)."""
+
+
 @register_effect
 class IRCapture(Effect):
     """Radiance -> IR image: speckle, optical blur, exposure, shot + read noise, saturation, ADC.
@@ -74,7 +78,11 @@ class IRCapture(Effect):
         p = self.params
         rad = radiance
         if speckle is not None and p.speckle_contrast > 0:
-            rad = rad * np.maximum(1.0 + np.float32(p.speckle_contrast) * speckle, 0.0)
+            m = np.float32(p.speckle_contrast) * speckle
+            m += np.float32(1.0)
+            np.maximum(m, np.float32(0.0), out=m)
+            m *= rad
+            rad = m
         if ambient is not None:
             rad = rad + ambient
         if p.psf_sigma_px > 0:
@@ -86,14 +94,32 @@ class IRCapture(Effect):
         else:
             S = rad * np.float32(p.gain_e)
         if noise is not None:
-            S = S + np.sqrt(S + np.float32(p.read_noise_e) ** 2) * noise
+            sd = S + np.float32(p.read_noise_e) ** 2
+            np.sqrt(sd, out=sd)
+            sd *= noise
+            S = S + sd
         sat = S >= p.full_well_e
-        dn = np.clip(np.rint(S * np.float32(top / p.full_well_e)), 0, top)
-        if p.companding == "sqrt":
-            im8 = np.rint(np.sqrt(dn * np.float32(1.0 / top)) * 255.0)
-        else:
-            im8 = np.rint(dn * np.float32(255.0 / top))
-        return dn.astype(np.uint16), im8.astype(np.uint8), sat
+        dn = S * np.float32(top / p.full_well_e)
+        np.rint(dn, out=dn)
+        np.clip(dn, 0, top, out=dn)
+        dn16 = dn.astype(np.uint16)
+        # 8-bit companding through a look-up table of the same float32 formula (dn is integral)
+        return dn16, self._lut(int(p.adc_bits), p.companding)[dn16], sat
+
+    @staticmethod
+    def _lut(bits: int, companding: str) -> np.ndarray:
+        """(2^bits,) uint8 companded value of every ADC count (cached per bits/companding)."""
+        key = (bits, companding)
+        lut = _LUTS.get(key)
+        if lut is None:
+            top = float(2 ** bits - 1)
+            dn = np.arange(2 ** bits, dtype=np.float32)
+            if companding == "sqrt":
+                im8 = np.rint(np.sqrt(dn * np.float32(1.0 / top)) * 255.0)
+            else:
+                im8 = np.rint(dn * np.float32(255.0 / top))
+            lut = _LUTS[key] = im8.astype(np.uint8)
+        return lut
 
     def apply(self, state, draw) -> None:
         if state.radiance is None:

@@ -1,6 +1,7 @@
 """Physical stage 1: the virtual projector casts its dot pattern onto the scene."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,11 +23,16 @@ class PatternProjectionParams:
     """Cast a shadow ray from every lit surface point to the projector (projector shadows)."""
     shadow_eps_m: float = 0.002
     """Free gap at both ends of a shadow ray, metres (no self-shadowing)."""
-    shadow_method: str = "raycast"
+    shadow_method: str = "hybrid"
     """``raycast``: one shadow ray per lit pixel through the scene's RaycastingScene (exact);
     ``scanline``: the rectified-rig ordering test on the camera's own depth (a pixel is
     shadowed when a pixel farther towards the projector along its row maps to the same or an
-    earlier projector column) - O(pixels), misses occluders the camera cannot see."""
+    earlier projector column) - O(pixels), misses occluders the camera cannot see;
+    ``hybrid`` (default): the scanline test for the part of each shadow ray inside the
+    camera's field of view plus real shadow rays for the part outside it, cast only where that
+    part is longer than the distance from the projector to the nearest scene surface - the
+    same shadows as ``raycast`` up to pixel sampling at shadow boundaries (see
+    :func:`hybrid_shadow`), at a fraction of the rays."""
 
 
 def blurred_pattern(pattern_img: np.ndarray, sigma: float, cache: dict) -> np.ndarray:
@@ -69,15 +75,26 @@ def shadow_test(renderer, view, src_cam: np.ndarray, Lx, Ly, Lz, r, mask: np.nda
     """(H, W) bool: True where the segment from the light source at ``src_cam`` (camera frame
     of ``view``) to the surface point is blocked. ``L = X - src`` per pixel (camera frame),
     ``r = |L|``; only ``mask`` pixels are tested. Rays start at the source and stop ``eps_m``
-    before the surface (no self-shadowing); one Open3D occlusion query per pixel. All
-    per-pixel work is element-wise float32 on contiguous arrays (no (N, 3) matmuls)."""
-    import open3d as o3d
+    before the surface (no self-shadowing); one Open3D occlusion query per pixel. The per-pixel
+    work is element-wise float32 on the gathered ``mask`` pixels only (no (N, 3) matmuls)."""
     out = np.zeros(mask.shape, bool)
-    n = int(np.count_nonzero(mask))
-    if n == 0:
+    idx = np.flatnonzero(mask)
+    if len(idx) == 0:
         return out
+    rf = r.reshape(-1)[idx]
+    scale = np.float32(1.0) - np.float32(eps_m) / np.maximum(rf, np.float32(2 * eps_m))
+    Dx, Dy, Dz = (a.reshape(-1)[idx] * scale for a in (Lx, Ly, Lz))
+    out.reshape(-1)[idx] = _segment_occluded(renderer, view, src_cam, Dx, Dy, Dz, idx, eps_m)
+    return out
+
+
+def _segment_occluded(renderer, view, src_cam, Dx, Dy, Dz, idx: np.ndarray, eps_m: float) -> np.ndarray:
+    """(n,) bool: segments from the source ``src_cam`` to source + D (camera frame of the row of
+    flat pixel index ``idx``; D given as (n,) float32 components) that hit geometry (ray
+    parameter in [eps_m / 10, 1] of D), by Open3D occlusion queries."""
+    import open3d as o3d
     src_cam = np.asarray(src_cam, np.float32)
-    scale = np.float32(1.0) - np.float32(eps_m) / np.maximum(r, np.float32(2 * eps_m))
+    n = len(idx)
     rays = np.empty((n, 6), np.float32)
     rows = view.row_c2w
     if np.all(rows == rows[0]):
@@ -85,19 +102,130 @@ def shadow_test(renderer, view, src_cam: np.ndarray, Lx, Ly, Lz, r, mask: np.nda
         o = R @ src_cam + rows[0, :3, 3].astype(np.float32)
         for i in range(3):
             rays[:, i] = o[i]
-            rays[:, 3 + i] = ((Lx * R[i, 0] + Ly * R[i, 1] + Lz * R[i, 2]) * scale)[mask]
+            rays[:, 3 + i] = Dx * R[i, 0] + Dy * R[i, 1] + Dz * R[i, 2]
     else:  # one pose per row (rolling shutter)
-        H, W = mask.shape
+        W = view.hit.shape[1]
+        row = idx // W
         R = rows[:, :3, :3].astype(np.float32)                     # (H, 3, 3)
         o = np.einsum("hij,j->hi", R, src_cam) + rows[:, :3, 3].astype(np.float32)
+        Rr = R[row]
         for i in range(3):
-            rays[:, i] = np.broadcast_to(o[:, i:i + 1], (H, W))[mask]
-            d = Lx * R[:, i, 0:1] + Ly * R[:, i, 1:2] + Lz * R[:, i, 2:3]
-            rays[:, 3 + i] = (d * scale)[mask]
+            rays[:, i] = o[row, i]
+            rays[:, 3 + i] = Dx * Rr[:, i, 0] + Dy * Rr[:, i, 1] + Dz * Rr[:, i, 2]
     occ = renderer.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=np.float32(eps_m) / 10,
                                                     tfar=1.0, nthreads=_nthreads()).numpy()
-    out[mask] = occ.astype(bool)
-    return out
+    return occ.astype(bool)
+
+
+def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.ndarray, xn: np.ndarray,
+                  yn: np.ndarray, Lx, Ly, Lz, r, mask: np.ndarray, eps_m: float) -> tuple[np.ndarray, int]:
+    """(H, W) bool projector shadow of the ``mask`` pixels and the number of shadow rays cast.
+
+    The same shadows as :func:`shadow_test` (one exact ray per pixel) with far fewer rays, by
+    ruling out most pixels with a necessary condition. Rectified rig: the source S at
+    ``src_cam`` = (+-b, 0, 0) in the camera frame of each row, camera centre C. The shadow ray
+    of pixel p in row v runs from S to its surface point X inside the epipolar plane of row v
+    (the plane through the baseline and X; every point of it projects into row v). If a surface
+    crosses the segment S-X at Y and the camera ray of Y lies inside the image, the first
+    surface Z on the segment C-Y (Y itself or a nearer one) lies inside the triangle C-S-X, so
+    the camera sees it in row v on the source's side of p at a projector column <= that of X:
+    the :func:`scanline_shadow` ordering test is true. So every pixel for which that test is
+    false is lit, as far as occluders inside the field of view go; the test is not sufficient
+    (a thin object inside the triangle need not cross S-X), so every pixel it marks gets an
+    exact shadow ray. Sampling: the test sees the surfaces only at pixel centres, so an
+    occluder's outline can lie up to a pixel beyond its last sample; pixels within two columns
+    (away from the source) of a marked pixel or of a nearer surface (inverse depth above the
+    linear extrapolation of the pixel's own surface - planes never trigger) get an exact ray
+    too. The part of each segment outside the field of view, from S to the plane through the
+    outermost pixel column on the source's side (a fraction s* = |S_x| / (|S_x| + g) of it, g =
+    the horizontal distance of X from that plane), is tested with a real shadow ray, but only
+    where its length s* r exceeds the distance from S to the nearest scene surface
+    (``RaycastingScene.compute_distance``: nothing nearer can block it); in a room that leaves
+    the pixels within some dozens of columns of the image border on the source's side (whole
+    columns farther from it are skipped with a bound on s* r). ``xn``, ``yn``: (H, W) x/z and
+    y/z of each pixel's ray.
+    Remaining difference to :func:`shadow_test`: an occluder visible over less than one pixel
+    spacing of the row (no sample on it) that casts a shadow away from any sampled edge.
+    Falls back to :func:`shadow_test` when the source is off the camera's x axis.
+    """
+    import open3d as o3d
+    src_cam = np.asarray(src_cam, np.float32)
+    if abs(float(src_cam[1])) > 1e-9 or abs(float(src_cam[2])) > 1e-9 or float(src_cam[0]) == 0.0:
+        sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, mask, eps_m)
+        return sh, int(np.count_nonzero(mask))
+    side = 1.0 if src_cam[0] > 0 else -1.0
+    marked = scanline_shadow(up, ok, side) & mask
+    Z = Lz + src_cam[2]
+    W = mask.shape[1]
+    iz = np.float32(1.0) / np.where(ok, Z, np.float32(np.inf))
+    if side < 0:  # mirror so that the source is at +x and occluders lie at larger u
+        iz, mk, okm = iz[:, ::-1], marked[:, ::-1], ok[:, ::-1]
+    else:
+        mk, okm = marked, ok
+    slope = np.zeros_like(iz)
+    slope[:, 1:] = iz[:, 1:] - iz[:, :-1]
+    slope[:, 1:][~okm[:, :-1]] = 0.0
+    tol = iz * np.float32(1.002)
+    near = mk.copy()
+    for k in (1, 2):
+        a, b = np.s_[:, :W - k], np.s_[:, k:]
+        near[a] |= mk[b] | (okm[b] & (iz[b] > tol[a] + np.float32(k) * slope[a]))
+    if side < 0:
+        near = near[:, ::-1]
+    exact = mask & near
+    n_exact = int(np.count_nonzero(exact))
+    sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, exact, eps_m) if n_exact else np.zeros(mask.shape, bool)
+    rest = mask & ~exact
+    if not rest.any():
+        return sh, n_exact
+    # distance from the source (per row pose) to the nearest scene surface
+    rows = view.row_c2w
+    if np.all(rows == rows[0]):
+        pw = (rows[0, :3, :3] @ src_cam + rows[0, :3, 3]).astype(np.float32)[None]
+    else:
+        pw = (np.einsum("hij,j->hi", rows[:, :3, :3], src_cam) + rows[:, :3, 3]).astype(np.float32)
+    dmin_rows = renderer.raycasting_scene.compute_distance(
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(pw)), nthreads=_nthreads()).numpy().astype(np.float64)
+    # the out-of-view part of a shadow ray from S: from S to the plane x = x_edge z, a fraction
+    # s* = b / (b + g) of it, g = side (x_edge Z - X) >= 0. Columns where even the longest such
+    # part is shorter than dmin are skipped: s* r <= b (Z m + b) / (b + Z d) with d = side
+    # (x_edge - x/z) and m = |(x/z, y/z, 1)| <= m_max, which is < dmin whenever
+    # d >= b m_max / dmin (b < dmin)
+    bx = abs(float(src_cam[0]))
+    x_edge = float(xn[0, -1] if side > 0 else xn[0, 0])
+    dmin_all = float(dmin_rows.min())
+    d_col = side * (x_edge - xn[0].astype(np.float64))                 # (W,) >= 0
+    if bx < dmin_all - eps_m:
+        m_max = float(np.sqrt(1.0 + np.max(xn[0].astype(np.float64) ** 2) + np.max(yn[:, 0].astype(np.float64) ** 2)))
+        cols = np.flatnonzero(d_col < bx * m_max / (dmin_all - eps_m) * (1.0 + 1e-6) + 1e-9)
+    else:
+        cols = np.arange(W)
+    n = 0
+    if len(cols):
+        c0, c1 = int(cols.min()), int(cols.max()) + 1
+        sub = rest[:, c0:c1]
+        idx2 = np.flatnonzero(sub)
+        if len(idx2):
+            wsub = c1 - c0
+            idx = (idx2 // wsub) * W + c0 + idx2 % wsub                # flat indices in the full image
+            Lxf, Lyf, Lzf, rf = (a.reshape(-1)[idx] for a in (Lx, Ly, Lz, r))
+            Zf = Lzf + src_cam[2]
+            Xf = Lxf + src_cam[0]
+            g = (np.float32(x_edge) * Zf - Xf) if side > 0 else (Xf - np.float32(x_edge) * Zf)
+            b32 = np.float32(bx)
+            s_star = b32 / (b32 + np.maximum(g, np.float32(0.0)))
+            dmin = dmin_rows.astype(np.float32)
+            dmin = dmin[idx // W] if len(dmin) > 1 else dmin[0]
+            sel = s_star * rf >= dmin - np.float32(eps_m)
+            n = int(np.count_nonzero(sel))
+            if n:
+                # the out-of-view part only: scale the segment to s* (and keep the eps gap at X)
+                seg = np.minimum(s_star[sel], np.float32(1.0) - np.float32(eps_m)
+                                 / np.maximum(rf[sel], np.float32(2 * eps_m)))
+                occ = _segment_occluded(renderer, view, src_cam, Lxf[sel] * seg, Lyf[sel] * seg, Lzf[sel] * seg,
+                                        idx[sel], eps_m)
+                sh.reshape(-1)[idx[sel][occ]] = True
+    return sh, n + n_exact
 
 
 def scanline_shadow(up: np.ndarray, valid: np.ndarray, side: float, tol_px: float = 0.05) -> np.ndarray:
@@ -167,6 +295,11 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
         sh = scanline_shadow(up, ok, 1.0 if proj[0] >= 0 else -1.0) & lit
         lit &= ~sh
         stats["shadowed_px"] = int(np.count_nonzero(sh))
+    elif params.shadow_rays and params.shadow_method == "hybrid" and renderer is not None and stats["lit_px"]:
+        sh, stats["shadow_rays"] = hybrid_shadow(renderer, view, proj, up, ok, xn, yn, Lx, Ly, Lz, r, lit,
+                                                 params.shadow_eps_m)
+        lit &= ~sh
+        stats["shadowed_px"] = int(np.count_nonzero(sh))
     elif params.shadow_rays and renderer is not None and stats["lit_px"]:
         sh = shadow_test(renderer, view, proj, Lx, Ly, Lz, r, lit, params.shadow_eps_m)
         lit &= ~sh
@@ -179,20 +312,47 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
         E *= np.float32(params.power)
     spec = view.specular
     refl = view.albedo * (np.float32(1.0) - spec)
-    if np.any(spec[lit] > 0):
+    cand = lit & (spec > 0)                      # the lobe only matters where light arrives
+    k = np.float32(params.specular_exponent)
+    thr = np.float32(1e-4) ** (np.float32(1.0) / k)
+    if cand.any():
+        # ... and near the mirror direction (cos^k >= 1e-4, i.e. within alpha = acos(thr) of
+        # it). Exact pre-selection: with theta the angle between the normal and the direction
+        # to the camera and beta the angle between the directions from the camera and from
+        # the projector to the point (sin beta <= b / |X - P| <= b / (z - b)), the mirror is at
+        # least 2 theta - beta away from the camera, so pixels with theta > (alpha + beta) / 2
+        # (plus a 1 degree margin) cannot contribute.
+        zmin = float(Z[cand].min())
+        bproj = float(np.linalg.norm(proj))
+        beta = math.asin(min(1.0, bproj / max(zmin - bproj, 1e-9)))
+        alpha = math.acos(min(1.0, float(thr)))
+        theta_max = (alpha + beta) / 2 + math.radians(1.0)
+        if theta_max < math.pi / 2:
+            rd = ray_dirs_cam
+            cosv = -(nx * rd[..., 0] + ny * rd[..., 1] + nz * rd[..., 2])
+            cand &= cosv > np.float32(math.cos(theta_max))
+    idx = np.flatnonzero(cand)
+    if len(idx):
         # Phong lobe: mirror direction of the projector ray m = l - 2 (l.n) n (l = L / r, unit)
         # against the unit direction to the camera v = -X / |X|; cos(alpha) = m.v
-        inv_r = np.float32(1.0) / np.maximum(r, np.float32(1e-9))
-        lx, ly, lz = Lx * inv_r, Ly * inv_r, Lz * inv_r
-        ln2 = np.float32(2.0) * (lx * nx + ly * ny + lz * nz)
-        Xx, Xy = xn * Z, yn * Z
-        inv_d = np.float32(-1.0) / np.maximum(np.sqrt(Xx * Xx + Xy * Xy + Z * Z), np.float32(1e-9))
-        c = ((lx - ln2 * nx) * Xx + (ly - ln2 * ny) * Xy + (lz - ln2 * nz) * Z) * inv_d
-        k = np.float32(params.specular_exponent)
+        # (element-wise float32 on the gathered pixels only)
+        g = lambda a: a.reshape(-1)[idx]
+        nf = n.reshape(-1, 3)[idx]
+        gnx, gny, gnz = nf[:, 0], nf[:, 1], nf[:, 2]
+        gZ = g(Z)
+        inv_r = np.float32(1.0) / np.maximum(g(r), np.float32(1e-9))
+        lx, ly, lz = g(Lx) * inv_r, g(Ly) * inv_r, g(Lz) * inv_r
+        ln2 = np.float32(2.0) * (lx * gnx + ly * gny + lz * gnz)
+        Xx, Xy = g(xn) * gZ, g(yn) * gZ
+        inv_d = np.float32(-1.0) / np.maximum(np.sqrt(Xx * Xx + Xy * Xy + gZ * gZ), np.float32(1e-9))
+        c = ((lx - ln2 * gnx) * Xx + (ly - ln2 * gny) * Xy + (lz - ln2 * gnz) * gZ) * inv_d
         # the lobe matters only near the mirror direction: cos^k < 1e-4 elsewhere is skipped
-        near = (c > np.float32(1e-4) ** (np.float32(1.0) / k)) & (spec > 0)
-        refl = refl.copy()
-        refl[near] += spec[near] * ((k + np.float32(2.0)) / np.float32(2.0)) * np.power(c[near], k)
+        near = c > thr
+        if near.any():
+            sel = idx[near]
+            refl = refl.copy()
+            refl.reshape(-1)[sel] += (g(spec)[near] * ((k + np.float32(2.0)) / np.float32(2.0))
+                                      * np.power(c[near], k))
     E *= refl
     return E.astype(np.float32, copy=False), stats
 
@@ -206,7 +366,9 @@ class PatternProjection(Effect):
     pinhole of focal length ``preset.projector_focal_px``. The irradiance on a surface falls
     with the squared distance to the projector and with the cosine of the incidence angle,
     is zero where a shadow ray to the projector is blocked (projector shadows, on the side of
-    foreground objects away from the projector), and is reflected towards the camera by the
+    foreground objects away from the projector; ``shadow_method`` ``hybrid`` gives the shadows
+    of one exact ray per pixel while casting only the rays an ordering test cannot settle,
+    see :func:`hybrid_shadow`), and is reflected towards the camera by the
     material (Lambertian albedo + a Phong mirror lobe). Writes ``state.radiance`` (and
     ``radiance_second`` for an active-stereo rig, casting the second camera's view).
     Approximations: single bounce, point-sampled pattern with a Gaussian dot spread instead of
@@ -226,10 +388,10 @@ class PatternProjection(Effect):
 
     def validate(self) -> None:
         super().validate()
-        if self.params.shadow_method not in ("raycast", "scanline"):
+        if self.params.shadow_method not in ("raycast", "scanline", "hybrid"):
             from data_tools.errors import ConfigError
-            raise ConfigError(f"effect 'pattern_projection': shadow_method must be 'raycast' or 'scanline', "
-                              f"got {self.params.shadow_method!r}")
+            raise ConfigError(f"effect 'pattern_projection': shadow_method must be 'hybrid', 'raycast' or "
+                              f"'scanline', got {self.params.shadow_method!r}")
 
     def apply(self, state, draw) -> None:
         from synth.sensor.state import cast_view

@@ -12,6 +12,10 @@ from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
 class ProjectorShadowParams:
     eps_m: float = 0.002
     """Free gap at both ends of each shadow ray, metres (no self-shadowing)."""
+    method: str = "hybrid"
+    """``raycast``: one shadow ray per valid pixel; ``hybrid`` (default): the same shadows
+    with exact rays only where the rectified-rig ordering test cannot rule a shadow out (see
+    :func:`synth.sensor.effects.pattern_projection.hybrid_shadow`)."""
 
 
 @register_effect
@@ -25,8 +29,9 @@ class ProjectorShadow(Effect):
     side of the object, ``f b (1/z_fg - 1/z_bg)`` pixels wide. The same geometry makes a band
     of background visible to only one camera of a stereo pair. Implementation: one shadow ray
     per valid pixel through the scene's RaycastingScene, plus back-facing surfaces (projector
-    behind the surface). The physical pipeline gets this inside ``pattern_projection``; this
-    is the direct stand-in. No-op for ToF (illuminator next to the lens).
+    behind the surface), ruled out for most pixels by the ordering test of ``method`` hybrid.
+    The physical pipeline gets this inside ``pattern_projection``; this is the direct
+    stand-in. No-op for ToF (illuminator next to the lens).
     """
 
     name = "projector_shadow"
@@ -34,13 +39,20 @@ class ProjectorShadow(Effect):
     FITTABLE = {"eps_m": (0.0, 0.05)}
     stage = STAGE_DROPOUT
 
+    def validate(self) -> None:
+        super().validate()
+        if self.params.method not in ("hybrid", "raycast"):
+            from data_tools.errors import ConfigError
+            raise ConfigError(f"effect 'projector_shadow': method must be 'hybrid' or 'raycast', "
+                              f"got {self.params.method!r}")
+
     def source_offset(self, preset):
         if preset.type == "active_stereo":
             return (preset.projector_side * preset.baseline_m, 0.0, 0.0)
         return tuple(preset.projector_offset_m)
 
     def apply(self, state, draw) -> None:
-        from synth.sensor.effects.pattern_projection import normalized_coords, shadow_test
+        from synth.sensor.effects.pattern_projection import hybrid_shadow, normalized_coords, shadow_test
         if state.preset.type == "tof" or state.baseline_free():
             state.log[self.name] = {"active": False}
             return
@@ -54,5 +66,15 @@ class ProjectorShadow(Effect):
         back = (n[..., 0] * Lx + n[..., 1] * Ly + n[..., 2] * Lz) >= 0   # source behind the surface
         cand = state.valid & v.hit & ~back
         r = np.sqrt(Lx * Lx + Ly * Ly + Lz * Lz)
-        shadow = (back & v.hit) | shadow_test(renderer, v, src, Lx, Ly, Lz, r, cand, self.params.eps_m)
+        if self.params.method == "hybrid":
+            ok = v.hit & (Lz > 1e-4)
+            # column of the source's image (any pinhole along the camera axes orders rays the
+            # same way; the camera's focal length sets the scale of the 0.05 px tolerance)
+            up = np.where(ok, np.float32(state.intr.fx) * Lx / np.where(ok, Lz, np.float32(1.0)),
+                          np.float32(-10.0)).astype(np.float32)
+            sh, n_rays = hybrid_shadow(renderer, v, src, up, ok, xn, yn, Lx, Ly, Lz, r, cand, self.params.eps_m)
+        else:
+            sh, n_rays = shadow_test(renderer, v, src, Lx, Ly, Lz, r, cand, self.params.eps_m), int(cand.sum())
+        shadow = (back & v.hit) | sh
         state.invalidate(shadow, self.name)
+        state.log[self.name]["shadow_rays"] = n_rays
