@@ -1,0 +1,413 @@
+"""Which sensor effect is missing from a model? Fit every candidate, rank by how much it lowers the gap.
+
+    ms = MeasuredSequence.load("SEQ", max_frames=24)
+    d = diagnose(ms, ms.default_config(["axial_noise", "range_limits"]))
+    d.ranking[0].effect, d.ranking[0].gain, d.ranking[0].evidence
+    d.save(out_dir)                                # out_dir/diagnosis.json
+
+Method (all gaps on the same search frames, seeds and compare pixels, so they are comparable):
+
+1. **Refit the model** (``DiagnoseConfig.refit_model``): the current model's own fittable
+   parameters are fitted first (:func:`synth.lab.fit.search`), so a candidate is not credited
+   for what a better noise level of the existing model would explain. ``Diagnosis.gap`` is the
+   gap of this refitted model (``gap_given``: of the model as passed in).
+2. **Candidates**: every registered effect not in the model (or ``candidates``), minus those
+   that cannot apply, each with the reason in ``Diagnosis.skipped``: effects of the physical
+   pipeline (``Effect.physical``) when the model is direct; effects whose physics needs another
+   sensor type (:data:`SENSOR_TYPES`); effects that leave the simulated depth unchanged on a
+   probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
+   in a scene without specular materials, motion effects for a static camera).
+3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
+   the data-driven estimates of :data:`synth.lab.fit.STARTERS` when they score better, a coarser
+   grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
+   parameter up to ``candidate_evaluations`` / ``candidate_seconds``; only parameters whose scan
+   beats the model's gap are refined), then **refine the best**
+   ``refine_top`` jointly with the model's parameters (budget ``refine_evaluations``; a local
+   search around the fitted values: an effect that the refitted model's noise had partly
+   absorbed, e.g. disparity steps seen as extra noise, gets the noise back).
+4. **Rank** by ``gain = (gap - gap_after) / gap``; each candidate gets an ``evidence``
+   sentence computed from the measured data (:mod:`synth.lab.evidence`).
+
+Nothing is special-cased by effect name except the applicability table, the evidence
+sentences and the optional data-driven starting values (:data:`synth.lab.fit.STARTERS`).
+
+Cost (measured on the shared 2-core machine, load average 5-7): a 24-frame 640x480 sequence
+with the default settings (4 search frames, 4000 compare samples per frame, 10 candidates
+tried, 8 skipped) takes ~95 s wall / 70 s CPU and ~250 gap evaluations; a 320x240 8-frame
+sequence 35-70 s. The budget knobs are in :class:`DiagnoseConfig` and :class:`FitConfig`.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import ConfigError
+from synth.lab.evidence import EvidenceContext, evidence_for
+from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
+                           start_values)
+
+__all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "SENSOR_TYPES", "DIAGNOSIS_FILE"]
+
+DIAGNOSIS_FILE = "diagnosis.json"
+
+SENSOR_TYPES: dict[str, tuple[str, ...]] = {
+    "multipath": ("tof",),
+    "wiggling": ("tof",),
+    "flying_pixels": ("tof",),
+    "projector_shadow": ("structured_light", "active_stereo"),
+    "disparity_quantization": ("structured_light", "active_stereo"),
+    "edge_fattening": ("structured_light", "active_stereo"),
+}
+"""Sensor types whose physics an effect models (effects not listed apply to every type):
+multipath, wiggling and flying pixels come from the phase measurement of continuous-wave ToF;
+shadows, disparity steps and window fattening from triangulation."""
+
+
+@dataclass
+class DiagnoseConfig:
+    """Budgets and switches of :func:`diagnose` (the search itself: :class:`FitConfig`)."""
+
+    refit_model: bool = True
+    """Fit the model's own parameters before trying candidates."""
+    model_evaluations: int = 60
+    """Evaluation budget of that refit."""
+    candidate_grid_points: int = 5
+    """Coarse grid values per parameter of a candidate's first scan."""
+    candidate_evaluations_per_param: int = 10
+    """Evaluation budget of a candidate's fit per fitted parameter."""
+    candidate_evaluations: int = 36
+    """Upper limit of a candidate's evaluation budget."""
+    candidate_seconds: float = 8.0
+    """Wall-clock budget of each candidate's fit, seconds."""
+    refine_top: int = 3
+    """How many of the best candidates are refined jointly with the model's parameters."""
+    refine_evaluations: int = 30
+    """Evaluation budget of each joint refinement."""
+    probe: bool = True
+    """Skip candidates that leave the depth unchanged on a probe frame."""
+    evaluate: bool = True
+    """Score the refitted model and the ``refine_top`` best candidates on the evaluation set too."""
+
+    def validate(self) -> "DiagnoseConfig":
+        for k in ("model_evaluations", "candidate_evaluations", "refine_evaluations",
+                  "candidate_evaluations_per_param", "candidate_grid_points"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"diagnose: {k} must be >= 1")
+        if int(self.refine_top) < 0 or not self.candidate_seconds > 0:
+            raise ConfigError("diagnose: refine_top must be >= 0 and candidate_seconds > 0")
+        return self
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+@dataclass
+class Candidate:
+    """One effect tried on top of the model."""
+
+    effect: str
+    """Effect name."""
+    gap_after: float
+    """Gap of the model + this effect (fitted)."""
+    gain: float
+    """(gap - gap_after) / gap."""
+    params: dict
+    """{"effect.param": value} of the fitted candidate, plus those of the model's parameters that
+    moved away from the refitted model while fitting it (joint refinement)."""
+    evidence: str
+    """One sentence from the measured data."""
+    gap_default: float = float("nan")
+    """Gap with the effect at its default parameters (before its fit)."""
+    evaluations: int = 0
+    """Objective evaluations spent on it."""
+    seconds: float = 0.0
+    """Time spent on it."""
+    refined: bool = False
+    """True when it was refined jointly with the model's parameters."""
+    eval_gap_after: float | None = None
+    """Gap after, scored on the evaluation set (``FitConfig.eval_frames`` /
+    ``eval_pixels_per_frame``) for the ``refine_top`` best candidates (at least the best one);
+    None for the others."""
+    config: object = None
+    """The fitted :class:`SensorConfig` (model + effect); not in ``to_json``."""
+
+    def to_json(self) -> dict:
+        return {"effect": self.effect, "gap_after": self.gap_after, "gain": self.gain,
+                "params": dict(self.params), "evidence": self.evidence, "gap_default": self.gap_default,
+                "evaluations": self.evaluations, "seconds": self.seconds, "refined": self.refined,
+                "eval_gap_after": self.eval_gap_after}
+
+
+@dataclass
+class Diagnosis:
+    """Outcome of :func:`diagnose`."""
+
+    gap: float
+    """Gap of the (refitted) current model on the diagnosis frames."""
+    model: list[str]
+    """Effects of the current model."""
+    ranking: list[Candidate]
+    """Candidates sorted by gain, best first."""
+    gap_given: float = float("nan")
+    """Gap of the model as passed in (before its refit)."""
+    model_params: dict = field(default_factory=dict)
+    """{"effect.param": value} of the refitted model."""
+    skipped: dict[str, str] = field(default_factory=dict)
+    """Effect -> why it was not tried."""
+    frames: list[int] = field(default_factory=list)
+    """Sequence indices of the diagnosis frames."""
+    seconds: float = 0.0
+    """Wall-clock time."""
+    evaluations: int = 0
+    """Objective evaluations in total."""
+    sequence: str = ""
+    """The measured sequence folder."""
+    settings: dict = field(default_factory=dict)
+    """Effective FitConfig and DiagnoseConfig."""
+    model_config: object = None
+    """The refitted model (:class:`SensorConfig`); not in ``to_json``."""
+    eval_gap: float | None = None
+    """Gap of the refitted model on the evaluation set (all loaded frames and the default compare
+    sampling unless ``FitConfig`` says otherwise); compare with the refined candidates'
+    ``eval_gap_after``."""
+    eval_frames: list[int] = field(default_factory=list)
+    """Sequence indices of the evaluation frames."""
+
+    @property
+    def best(self) -> Candidate | None:
+        return self.ranking[0] if self.ranking else None
+
+    def to_json(self) -> dict:
+        return _clean({"gap": self.gap, "ranking": [c.to_json() for c in self.ranking], "model": list(self.model),
+                       "gap_given": self.gap_given, "model_params": dict(self.model_params),
+                       "skipped": dict(self.skipped), "frames": list(self.frames), "seconds": self.seconds,
+                       "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
+                       "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
+                       "eval_gain": self.eval_gain})
+
+    @property
+    def eval_gain(self) -> float | None:
+        """Gain of the best candidate on the evaluation set (None when it was not scored there)."""
+        b = self.best
+        if b is None or b.eval_gap_after is None or not self.eval_gap:
+            return None
+        return float((self.eval_gap - b.eval_gap_after) / self.eval_gap)
+
+    def save(self, out_dir: str | os.PathLike) -> Path:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        p = out / DIAGNOSIS_FILE
+        p.write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        return p
+
+
+def _clean(x):
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+def _with_effect(config, name: str):
+    import dataclasses
+    from synth.sensor.simulator import SensorConfig
+    cand = SensorConfig.build(config.preset, [name]).effects[0]
+    return dataclasses.replace(config, effects=list(config.effects) + [cand])
+
+
+def _applicability(config, name: str) -> str | None:
+    from synth.sensor.registry import effect_class
+    cls = effect_class(name)
+    if getattr(cls, "physical", False) and not config.physical:
+        return ("part of the physical pipeline (pattern_projection -> ir_capture -> block_matching); "
+                "diagnose a physical model to fit it")
+    types = SENSOR_TYPES.get(name)
+    if types and config.preset.type not in types:
+        return f"models {' / '.join(types)} physics, the sensor is {config.preset.type}"
+    return None
+
+
+def _changes_depth(measured, base_cfg, cand_cfg, name: str, frame: int, seed: int) -> bool:
+    """Does the candidate change the simulated depth of ``frame`` at its defaults or at any
+    parameter bound?"""
+    base = measured.simulate(base_cfg, seed, [frame])[0]
+    trials = [{}]
+    for s in param_specs(cand_cfg, [name]):
+        trials += [{s.key: s.low}, {s.key: s.high}]
+    for t in trials:
+        try:
+            cfg = set_params(cand_cfg, t) if t else cand_cfg
+            d = measured.simulate(cfg, seed, [frame])[0]
+        except ConfigError:
+            continue
+        if not np.array_equal(d, base):
+            return True
+    return False
+
+
+def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_config: FitConfig | None = None,
+             progress: bool = False, diagnose_config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Rank the effects missing from ``config`` by how much they lower the gap on ``measured``
+    (a :class:`~synth.lab.measured.MeasuredSequence`); see the module docstring."""
+    from synth.sensor.registry import effect_class, effect_names
+    fc = (fit_config or FitConfig()).validate()
+    dc = (diagnose_config or DiagnoseConfig()).validate()
+    t0 = time.perf_counter()
+    frames = spread(len(measured), fc.max_frames)
+    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
+    model_names = config.names(enabled_only=True)
+    if candidates is None:
+        cands = [n for n in effect_names() if n not in config.names()]
+    else:
+        cands = []
+        for n in candidates:
+            effect_class(n)  # unknown -> ConfigError listing the known ones
+            if n in model_names:
+                raise ConfigError(f"candidate effect {n!r} is already in the model")
+            if n not in cands:
+                cands.append(n)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(cands) + 1, desc="diagnose", unit="effect")
+
+    def fitcfg(evals, seconds, grid=None):
+        d = fc.to_dict()
+        d.update(max_evaluations=int(evals), max_seconds=float(seconds))
+        if grid is not None:
+            d["grid_points"] = int(grid)
+        return FitConfig.from_dict(d)
+
+    # 1. the model itself
+    gap_given = obj(config)
+    base_cfg, gap0, model_params = config, gap_given, {}
+    model_specs = param_specs(config) if dc.refit_model else []
+    if model_specs:
+        x, g, _ = search(obj, config, model_specs,
+                         fitcfg(dc.model_evaluations, fc.max_seconds, dc.candidate_grid_points),
+                         start_gap=gap_given)
+        if g < gap_given:
+            base_cfg, gap0 = set_params(config, x), g
+        model_params = {k: float(v) for k, v in (x if g < gap_given else
+                                                 {s.key: s.value for s in model_specs}).items()}
+    if bar is not None:
+        bar.update(1)
+    base_sims = measured.simulate(base_cfg, fc.seed, frames)
+    base_obs = measured.observations(base_sims, frames)
+    from synth.lab.compare import compare
+    base_result = compare(base_obs, obj.compare_config)
+    albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
+    ctx = EvidenceContext(base_obs, measured.preset, albedo)
+
+    # 2. + 3. candidates
+    skipped: dict[str, str] = {}
+    tried: list[Candidate] = []
+    for name in cands:
+        tc = time.perf_counter()
+        why = _applicability(base_cfg, name)
+        cand_cfg = None
+        if why is None:
+            try:
+                cand_cfg = _with_effect(base_cfg, name)
+            except ConfigError as e:
+                why = f"cannot be added to this model ({e})"
+        if why is None and dc.probe and not _changes_depth(measured, base_cfg, cand_cfg, name,
+                                                           frames[len(frames) // 2], fc.seed):
+            why = "leaves the simulated depth unchanged here (tried its defaults and every parameter at its bounds)"
+        if why is not None:
+            skipped[name] = why
+            if bar is not None:
+                bar.update(1)
+            continue
+        n0 = obj.evaluations
+        g_def = obj(cand_cfg)
+        data_start = start_values(measured, cand_cfg, [name], frames)
+        if data_start:
+            # the refitted model may have absorbed part of the effect (e.g. disparity steps seen
+            # as extra noise): from the data-driven start, the model's parameters are re-fitted
+            # locally before the start is compared with the defaults
+            alt = set_params(cand_cfg, data_start)
+            g_alt = obj(alt)
+            if model_specs:
+                xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names),
+                                      fitcfg(dc.refine_evaluations, dc.candidate_seconds, dc.candidate_grid_points),
+                                      start_gap=g_alt, local=True)
+                alt = set_params(alt, xa)
+            if g_alt < g_def:
+                cand_cfg, g_def = alt, g_alt
+        specs = param_specs(cand_cfg, [name])
+        if specs:
+            budget = min(int(dc.candidate_evaluations), int(dc.candidate_evaluations_per_param) * len(specs))
+            x, g, _ = search(obj, cand_cfg, specs, fitcfg(budget, dc.candidate_seconds, dc.candidate_grid_points),
+                             start_gap=g_def, refine_below=gap0)
+            fitted = set_params(cand_cfg, x)
+        else:
+            x, g, fitted = {}, g_def, cand_cfg
+        tried.append(Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
+                               evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted))
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+
+    tried.sort(key=lambda c: c.gap_after)
+    top = tried[:max(int(dc.refine_top), 1)]
+    for c in tried[:int(dc.refine_top)]:
+        if not c.gap_after < gap0:
+            continue
+        tc = time.perf_counter()
+        n0 = obj.evaluations
+        specs = param_specs(c.config, [*model_names, c.effect])
+        x, g, _ = search(obj, c.config, specs, fitcfg(dc.refine_evaluations, fc.max_seconds, dc.candidate_grid_points),
+                         start_gap=c.gap_after, local=True)
+        if g < c.gap_after:
+            c.config = set_params(c.config, x)
+            c.gap_after = float(g)
+            c.params = {k: float(v) for k, v in x.items()}
+            c.refined = True
+        c.evaluations += obj.evaluations - n0
+        c.seconds += time.perf_counter() - tc
+
+    # 4. rank + evidence; the model and the refined candidates are also scored on the evaluation set
+    for c in tried:
+        c.gain = float((gap0 - c.gap_after) / gap0) if gap0 > 0 else 0.0
+    tried.sort(key=lambda c: -c.gain)
+    eval_idx = spread(len(measured), fc.eval_frames)
+    ev = Objective(measured, eval_idx, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+    eval_gap = ev(base_cfg) if dc.evaluate else None
+    for c in top:
+        if dc.evaluate:
+            c.eval_gap_after = float(ev(c.config))
+    for c in tried:
+        # the candidate's fitted parameters, plus the model's where they moved away from the refit
+        vals = get_params(c.config, param_specs(c.config, [*model_names, c.effect]))
+        c.params = {k: v for k, v in vals.items()
+                    if k.split(".", 1)[0] == c.effect or abs(v - model_params.get(k, v)) > 1e-12}
+        after = None
+        if c.effect not in _evidence_names():
+            after = compare(measured.observations(measured.simulate(c.config, fc.seed, frames), frames),
+                            obj.compare_config)
+        c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after)
+    return Diagnosis(float(gap0), list(model_names), tried, float(gap_given), model_params, skipped,
+                     [measured.frame_indices[k] for k in frames], time.perf_counter() - t0,
+                     obj.evaluations + ev.evaluations, str(measured.seq_dir),
+                     {"fit": fc.to_dict(), "diagnose": dc.to_dict()}, base_cfg,
+                     None if eval_gap is None else float(eval_gap), [measured.frame_indices[k] for k in eval_idx])
+
+
+def _evidence_names():
+    from synth.lab.evidence import EVIDENCE
+    return set(EVIDENCE)

@@ -1,0 +1,71 @@
+"""Sensor-model files of the lab: a :class:`~synth.sensor.simulator.SensorConfig` JSON plus fit info.
+
+A model file is exactly ``SensorConfig.to_json()`` (``{"preset": {...}, "effects": [...]}``),
+so ``synth sequence --sensor model.json`` and :class:`SensorSimulator` read it directly; the lab
+adds an optional ``"fit"`` object (gaps, fitted parameters, sequence, timings) that the
+simulator ignores.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from data_tools.errors import ConfigError, FormatError
+
+__all__ = ["load_model", "save_model", "load_fit_info"]
+
+
+def _read(path: Path) -> dict:
+    try:
+        d = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except IsADirectoryError:
+        raise FormatError(path, "is a folder, expected a model JSON file") from None
+    except json.JSONDecodeError as e:
+        raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(d, dict):
+        raise FormatError(path, "a sensor model must be a JSON object")
+    return d
+
+
+def load_model(path: str | os.PathLike):
+    """The :class:`SensorConfig` stored in a model JSON (FormatError naming the file otherwise)."""
+    from synth.sensor.simulator import SensorConfig
+    path = Path(path)
+    d = _read(path)
+    d = {k: v for k, v in d.items() if k != "fit"}
+    try:
+        return SensorConfig.from_json(d)
+    except ConfigError as e:
+        raise FormatError(path, str(e)) from None
+    except (TypeError, ValueError) as e:
+        raise FormatError(path, f"bad sensor model ({e})") from None
+
+
+def load_fit_info(path: str | os.PathLike) -> dict | None:
+    """The ``"fit"`` object of a model JSON, or None."""
+    return _read(Path(path)).get("fit")
+
+
+def save_model(config, path: str | os.PathLike, fit_info: dict | None = None) -> Path:
+    """Write ``config`` (+ ``fit_info`` under ``"fit"``) to ``path`` (folders created); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    d = config.to_json()
+    if fit_info is not None:
+        d["fit"] = fit_info
+    path.write_text(json.dumps(d, indent=2, default=_jsonable) + "\n")
+    return path
+
+
+def _jsonable(x):
+    import numpy as np
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Path):
+        return str(x)
+    raise TypeError(f"not JSON-serialisable: {type(x).__name__}")
