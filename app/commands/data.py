@@ -25,6 +25,29 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("seq", help="sequence folder (TUM layout)")
     p.set_defaults(func=_info)
 
+    p = sub.add_parser("make-reference", help="fuse a reference mesh (scene.json) from a sequence and its poses",
+                       description="Fuse every frame of SEQ at its ground-truth pose into a TSDF and write the "
+                                   "cleaned mesh as scene.json + meshes/reference.ply (the reference geometry the "
+                                   "sensor lab needs). With --out the sequence is copied there (images "
+                                   "hard-linked when possible) and SEQ is left untouched; without it the "
+                                   "reference is written into SEQ. reference_config.json records the options.")
+    p.add_argument("seq", help="sequence folder (TUM layout with groundtruth.txt)")
+    p.add_argument("--out", metavar="SEQ_OUT", help="write a copy of the sequence with the reference here")
+    p.add_argument("--camera", metavar="JSON|NAME",
+                   help="camera.json to use (and write) instead of the sequence's own, or one of "
+                        "tum_fr1, tum_fr2, tum_fr3, sevenscenes (TUM folders have no camera.json)")
+    p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
+    p.add_argument("--depth-max", type=float, default=4.0, metavar="M",
+                   help="ignore depth beyond this many metres (default 4)")
+    p.add_argument("--frames", type=int, default=0, metavar="N",
+                   help="fuse at most N frames, evenly spread (default: all with a pose)")
+    p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")
+    p.add_argument("--albedo", type=float, default=0.5, help="albedo of that material (default 0.5)")
+    p.add_argument("--min-component", type=int, default=200, metavar="TRIANGLES",
+                   help="drop connected pieces with fewer triangles (default 200)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing scene.json")
+    p.set_defaults(func=_make_reference)
+
 
 def _convert_7scenes(args) -> int:
     from data_tools.sevenscenes import convert_7scenes
@@ -54,4 +77,20 @@ def _info(args) -> int:
         info["scene_meshes"] = len(sc.meshes)
         info["scene_triangles"] = int(sum(len(m.triangles) for m in sc.meshes))
     print(json.dumps(info, indent=2))
+    return 0
+
+
+def _make_reference(args) -> int:
+    from slam.reference import ReferenceConfig, make_reference, named_camera
+    from slam.tsdf import TSDFConfig
+    cfg = ReferenceConfig(tsdf=TSDFConfig(voxel_size_m=args.voxel, depth_max_m=args.depth_max,
+                                          integrate_color=False),
+                          max_frames=args.frames, min_component_triangles=args.min_component,
+                          material=args.material, albedo=args.albedo).validate()
+    cam = named_camera(args.camera) if args.camera else None
+    r = make_reference(args.seq, args.out, cfg, camera=cam, overwrite=args.overwrite, progress=True)
+    info = r.to_json()
+    print(f"{r.out_dir / 'scene.json'}: reference mesh with {info['triangles']} triangles fused from "
+          f"{r.frames_fused} frames ({r.frames_without_pose} without a pose; {info['triangles_dropped']} "
+          f"triangles cleaned away) in {r.seconds:.1f} s")
     return 0
