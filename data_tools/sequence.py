@@ -218,6 +218,21 @@ class SequenceReader:
             yield self[i]
 
 
+def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Hard-link ``src`` to ``dst`` (a copy across file systems); an existing ``dst`` is kept.
+
+    Used to put a sequence's images beside a derived sequence without doubling the disk use."""
+    import shutil
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if dst.exists():
+        return
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
 def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     """Metres -> uint16 PNG values; NaN, <= 0 and values beyond the uint16 range become 0."""
     d = np.asarray(depth_m, dtype=np.float64) * depth_scale

@@ -39,7 +39,7 @@ from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh, check_mesh
 from data_tools.scene_spec import Material, SceneSpec, write_scene_json
-from data_tools.sequence import SequenceReader
+from data_tools.sequence import SequenceReader, link_or_copy
 from slam.registration import config_from_dict, config_to_dict
 from slam.tsdf import TSDFConfig, TSDFVolume
 
@@ -241,14 +241,6 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
     return ReferenceResult(mesh, len(idx), int((~has_pose).sum()), dropped, time.perf_counter() - t0)
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        return
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def _copy_sequence(reader: SequenceReader, out: Path, camera: Camera) -> None:
@@ -259,11 +251,11 @@ def _copy_sequence(reader: SequenceReader, out: Path, camera: Camera) -> None:
         if (src / name).is_file():
             shutil.copyfile(src / name, out / name)
     for rel in reader.depth_files:
-        _link_or_copy(src / rel, out / rel)
+        link_or_copy(src / rel, out / rel)
     if (src / "rgb.txt").is_file():
         from data_tools.sequence import read_index
         for rel in read_index(src / "rgb.txt")[1]:
-            _link_or_copy(src / rel, out / rel)
+            link_or_copy(src / rel, out / rel)
     write_camera_json(out / "camera.json", camera)
 
 

@@ -322,17 +322,6 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst`` (copy across file systems); an existing ``dst`` is kept."""
-    import os
-    import shutil
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if dst.exists():
-        return
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def _read_index_lines(path: Path) -> dict[str, str]:
@@ -373,7 +362,7 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
 
     from data_tools.camera import write_camera_json
     from data_tools.scene_spec import write_scene_json
-    from data_tools.sequence import SequenceReader, encode_depth
+    from data_tools.sequence import SequenceReader, encode_depth, link_or_copy
 
     out = Path(out_dir)
     src = Path(measured.seq_dir)
@@ -436,7 +425,7 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
             raise RealgapError(f"{dst}: cannot write image")
         rgb_rel = reader.rgb_files[i]
         if rgb_rel is not None and rgb_rel not in done_rgb:
-            _link_or_copy(src / rgb_rel, out / rgb_rel)
+            link_or_copy(src / rgb_rel, out / rgb_rel)
             with open(out / "rgb.txt", "a") as f:
                 f.write(rgb_lines.get(rgb_rel, f"{reader.rgb_timestamps[i]:.6f} {rgb_rel}") + "\n")
             done_rgb.add(rgb_rel)
