@@ -15,7 +15,7 @@ from data_tools.errors import ConfigError, FormatError, RealgapError
 from synth.lab import (CompareConfig, FrameObservation, append_history, compare, compare_preset,
                        error_map, load_history, load_result, run_lab, validity_map, worst_bins,
                        worst_blocks, worst_regions)
-from synth.lab.compare import error_scale_m, wasserstein1
+from synth.lab.compare import CompareCache, error_scale_m, wasserstein1
 from synth.lab.features import (depth_edges, incidence_angle_deg, radial_distance,
                                 shadow_edge_distance, signed_edge_distance)
 from synth.lab.history import step_labels
@@ -337,6 +337,39 @@ def test_subsampling_is_seeded_and_close_to_exact():
     exact = compare(obs, EXACT)
     assert a.gap == b.gap and a.n_samples == 3 * 8000
     assert a.gap == pytest.approx(exact.gap, rel=0.15)
+
+
+def _same_data(obs, **sim):
+    """Observations sharing the measured/ideal arrays of ``obs`` with new simulated depth."""
+    out = []
+    for k, o in enumerate(obs):
+        simd = sense(o.ideal, np.random.default_rng([500, k]), shadow=_SHADOWS[k], **sim)
+        out.append(FrameObservation(o.measured, simd, o.ideal, o.normals, o.material_ids, NAMES, INTR, PROJ,
+                                    index=o.index))
+    return out
+
+
+def test_cache_gives_identical_results_and_is_keyed_on_the_data():
+    obs = frames(noise=1.5)
+    other = _same_data(obs, noise=0.7, hole_rate=0.1)
+    for cfg in (CompareConfig(max_pixels_per_frame=4000, seed=3), EXACT):
+        cache = CompareCache()
+        for o in (obs, other, obs):
+            assert compare(o, cfg, cache=cache).to_json() == compare(o, cfg).to_json()
+        assert (cache.misses, cache.hits) == (3, 6)
+    # a different measured array at the same position is not served from the cache
+    cache = CompareCache()
+    compare(obs, EXACT, cache=cache)
+    changed = [FrameObservation(o.measured.copy(), o.simulated, o.ideal, o.normals, o.material_ids, NAMES, INTR,
+                                PROJ, index=o.index) for o in obs]
+    changed[1].measured[changed[1].measured > 0] += 0.05
+    assert compare(changed, EXACT, cache=cache).to_json() == compare(changed, EXACT).to_json()
+    assert cache.misses == 6
+    # other sampling settings are other entries; the size is bounded
+    small = CompareCache(max_entries=4)
+    compare(obs, CompareConfig(max_pixels_per_frame=1000), cache=small)
+    compare(obs, CompareConfig(max_pixels_per_frame=2000), cache=small)
+    assert len(small) == 4 and small.misses == 6
 
 
 # ------------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 parameter recovery on sequences of the independent generator (tests/hidden_effects.py)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -62,6 +63,49 @@ def test_param_specs_and_set_params_cover_extra_parameters():
         set_params(cfg, {"depth_bias.offset_m": 0.01})
     with pytest.raises(ConfigError):
         param_specs(cfg, ["depth_bias"])
+
+
+def test_extra_parameters_are_documented_and_yield_to_sensor_declarations(monkeypatch):
+    from synth.lab.effect_extras import EXTRA_PARAMETERS, extra_parameters
+    from synth.sensor.registry import effect_class, effect_names
+    for effect, table in EXTRA_PARAMETERS.items():
+        assert effect in effect_names()
+        for name, x in table.items():
+            assert x.low < x.high and len(x.reason) > 40 and "FITTABLE" in x.sensor_side, (effect, name)
+            assert f"'{x.replaced_by}'" in x.sensor_side, (effect, name)
+    cfg = SensorConfig.build("kinect_v1", ["lens_distortion", "disparity_quantization"])
+    assert {s.key for s in param_specs(cfg)} == {"lens_distortion.k1", "lens_distortion.k2",
+                                                 "disparity_quantization.step_px", "disparity_quantization.level_phase"}
+    # once the effect declares the proposed parameter itself, the lab entry steps aside
+    monkeypatch.setattr(effect_class("lens_distortion"), "FITTABLE", {"k1": (-0.5, 0.5)})
+    assert set(extra_parameters(cfg, cfg.effect("lens_distortion"))) == {"k2"}
+    monkeypatch.setattr(effect_class("disparity_quantization"), "FITTABLE", {"step_px": (0, 1), "phase": (0, 1)})
+    assert extra_parameters(cfg, cfg.effect("disparity_quantization")) == {}
+    monkeypatch.undo()
+    # the level phase exists only where the device quantises relative to a reference plane
+    stereo = SensorConfig.build("realsense_d435", ["disparity_quantization"])
+    assert [s.key for s in param_specs(stereo)] == ["disparity_quantization.step_px"]
+
+
+def test_lens_coefficients_are_fitted_on_top_of_the_calibrated_distortion():
+    pre = SensorConfig.build("kinect_v1").preset.replace(distortion=(0.1, -0.2, 0.001, 0.0, 0.0))
+    cfg = SensorConfig.build(pre, ["lens_distortion"])
+    assert get_params(cfg, param_specs(cfg)) == {"lens_distortion.k1": 0.0, "lens_distortion.k2": 0.0}
+    new = set_params(cfg, {"lens_distortion.k1": 0.05})
+    assert new.effect("lens_distortion").coefficients(pre) == pytest.approx((0.15, -0.2, 0.001, 0.0, 0.0))
+    assert get_params(new, param_specs(new))["lens_distortion.k1"] == pytest.approx(0.05)
+
+
+def test_set_params_keeps_every_other_config_field():
+    from synth.sensor.simulator import MotionLimits
+    motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
+    cfg = dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise", "disparity_quantization",
+                                                               "lens_distortion"]), motion=motion)
+    new = set_params(cfg, {"axial_noise.sigma2_per_m": 0.002, "lens_distortion.k1": 0.1,
+                           "disparity_quantization.level_phase": 0.4})
+    assert new.motion == motion and new.preset.reference_depth_m != cfg.preset.reference_depth_m
+    assert get_params(new, param_specs(new))["disparity_quantization.level_phase"] == pytest.approx(0.4)
+    assert set_params(cfg, {}).motion == motion
 
 
 class _Quadratic:
@@ -143,6 +187,9 @@ def test_fit_config_validation_and_round_trip():
         FitConfig(max_frames=0).validate()
     with pytest.raises(ConfigError):
         FitConfig(grid_points=1).validate()
+    with pytest.raises(ConfigError, match="max_seconds"):
+        FitConfig(max_seconds=0).validate()
+    assert FitConfig().max_seconds is None      # the wall-clock guard is off by default
     with pytest.raises(ConfigError, match="unknown fit config"):
         FitConfig.from_dict({"nope": 1})
     fc = FitConfig(max_frames=3, seed=7)

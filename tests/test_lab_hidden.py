@@ -36,7 +36,8 @@ def _check(tmp_path, effect, seed, *, n_frames, width, height, candidates=None, 
     best = d.ranking[0]
     print(f"\nHIDDEN {scene} {effect} seed {seed}: rank 1, gap {d.gap:.3f} -> {best.gap_after:.3f} (gain {best.gain:.2f}); "
           f"eval {d.eval_gap:.3f} -> {best.eval_gap_after:.3f} (gain {d.eval_gain:.2f}); {d.seconds:.0f} s; "
-          f"fitted { {k: round(v, 4) for k, v in best.params.items() if k.startswith(effect)} }; truth {truth}")
+          f"fitted { {k: round(v, 4) for k, v in best.params.items() if k.startswith(effect)} }; truth {truth}; "
+          f"evidence: {best.evidence}")
     return d, truth
 
 
@@ -64,4 +65,6 @@ def test_no_hidden_effect_no_false_alarm(tmp_path, scene):
     he.generate(path, None, seed=21, n_frames=8, width=320, height=240, scene=scene)
     ms = MeasuredSequence.load(path)
     d = diagnose(ms, ms.default_config(["axial_noise", "range_limits"]))
+    print(f"\nFALSE ALARM {scene}: best {d.ranking[0].effect} gain {d.ranking[0].gain:.3f}; "
+          f"evidence: {d.ranking[0].evidence}")
     assert d.ranking and d.ranking[0].gain < 0.15, [(c.effect, c.gain) for c in d.ranking]

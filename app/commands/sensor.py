@@ -121,7 +121,7 @@ def _add_diagnose(sub) -> None:
     p.add_argument("--report-frames", type=int, default=3, metavar="K",
                    help="frames simulated per top candidate for the figures (default 3)")
     p.add_argument("--diagnose-option", action="append", default=[], metavar="KEY=VALUE",
-                   help="DiagnoseConfig option, repeatable (e.g. candidate_seconds=4, refit_model=false)")
+                   help="DiagnoseConfig option, repeatable (e.g. candidate_evaluations=20, refit_model=false)")
     p.set_defaults(func=_cmd_diagnose)
 
 

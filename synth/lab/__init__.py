@@ -19,9 +19,13 @@ Modules: :mod:`~synth.lab.features` (per-pixel features, registry), :mod:`~synth
 (the gap, error maps, worst regions), :mod:`~synth.lab.report` (HTML + PNG),
 :mod:`~synth.lab.history` (gap per step), :mod:`~synth.lab.measured` (measured sequence + cached
 ideal renders), :mod:`~synth.lab.model` (model JSON), :mod:`~synth.lab.fit` (parameter fit),
-:mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (sentences).
+:mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (sentences),
+:mod:`~synth.lab.effect_extras` (what the lab knows about effects beyond their classes: extra
+fittable parameters, sensor types, each with the sensor-side declaration that would replace it).
+Fits and diagnoses are deterministic (evaluation-count budgets): the same data, model, settings
+and seed give the same result on any machine.
 """
-from synth.lab.compare import (PRESETS, CompareConfig, CompareResult, Region, compare,
+from synth.lab.compare import (PRESETS, CompareCache, CompareConfig, CompareResult, Region, compare,
                                compare_preset, error_map, load_result, validity_map, worst_bins,
                                worst_blocks, worst_regions)
 from synth.lab.diagnose import Candidate, DiagnoseConfig, Diagnosis, diagnose
@@ -33,7 +37,7 @@ from synth.lab.measured import MeasuredSequence
 from synth.lab.model import load_model, save_model
 from synth.lab.report import run_lab, write_report
 
-__all__ = ["FrameObservation", "CompareConfig", "CompareResult", "Region", "PRESETS",
+__all__ = ["FrameObservation", "CompareConfig", "CompareResult", "CompareCache", "Region", "PRESETS",
            "compare", "compare_preset", "error_map", "validity_map", "worst_bins", "worst_blocks",
            "worst_regions", "load_result", "FEATURES", "Feature", "FeatureConfig",
            "register_feature", "material_table_from_scene", "append_history", "load_history",

@@ -79,7 +79,11 @@ which bins and image blocks :func:`worst_regions` reports (term > 3x floor).
 Cost: per frame, 4 exact distance transforms (edges) on the full image; then one float sort of
 the pooled normalised errors and one integer (radix) sort per feature and grouping (pooled and
 per frame). 24 VGA frames with the default 20 000 samples per frame: ~1.6 s on a loaded 2-core
-machine (``fast``: ~0.6 s; ``exact``, all 7.4 M pixels: tens of seconds).
+machine (``fast``: ~0.6 s; ``exact``, all 7.4 M pixels: tens of seconds). Everything that depends
+on the measured depth and the ideal geometry only (the sampled pixels, the distance transforms and
+other feature values, the measured errors and block hole counts) can be kept between calls in a
+:class:`CompareCache` (``compare(..., cache=...)``): a fit compares the same measured frames with
+hundreds of simulations and then pays only for the simulated side (see ``benchmarks/bench_lab.py``).
 """
 from __future__ import annotations
 
@@ -97,7 +101,7 @@ from synth.lab.features import (FEATURES, CategoricalValues, FeatureConfig,
                                 FrameFeatures, FrameObservation, make_feature,
                                 radial_max_px)
 
-__all__ = ["CompareConfig", "CompareResult", "Region", "PRESETS", "compare_preset", "compare",
+__all__ = ["CompareConfig", "CompareResult", "CompareCache", "Region", "PRESETS", "compare_preset", "compare",
            "error_map", "validity_map", "worst_bins", "worst_blocks", "worst_regions",
            "load_result", "error_scale_m", "wasserstein1", "FrameObservation",
            "VALIDITY_LABELS", "BREAKDOWN_FEATURES"]
@@ -408,64 +412,148 @@ class _Samples:
     diagnostics: dict
 
 
-def _spatial_blocks(geom, valid_m, valid_s, cfg: CompareConfig):
-    """Per-block (n geometry pixels, spatial disagreement d) of one frame."""
-    B = int(cfg.spatial_block_px)
-    h, w = geom.shape
+def _blocksum(mask: np.ndarray, B: int) -> np.ndarray:
+    """Sum of ``mask`` over B x B image blocks (the image zero-padded to whole blocks)."""
+    h, w = mask.shape
     H, W = -(-h // B) * B, -(-w // B) * B
-
-    def blocksum(mask):
-        p = np.zeros((H, W), np.int32)
-        p[:h, :w] = mask
-        return p.reshape(H // B, B, W // B, B).sum(axis=(1, 3))
-
-    n = blocksum(geom).astype(np.float64)
-    im = blocksum(geom & ~valid_m)
-    is_ = blocksum(geom & ~valid_s)
-    ok = n >= max(1.0, B * B / 4.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        qm, qs = im / n, is_ / n
-        q = 0.5 * (qm + qs)
-        thr = cfg.spatial_kappa * np.sqrt(2.0 * q * (1.0 - q) / n)
-        d = np.maximum(0.0, np.abs(qm - qs) - thr)
-    n = np.where(ok, n, 0.0)
-    d = np.where(ok, d, 0.0)
-    return n, d
+    p = np.zeros((H, W), np.int32)
+    p[:h, :w] = mask
+    return p.reshape(H // B, B, W // B, B).sum(axis=(1, 3))
 
 
-def _collect(obs: list[FrameObservation], cfg: CompareConfig, feats: dict) -> _Samples:
+@dataclass
+class _FrameStatic:
+    """Everything :func:`compare` derives from one frame's measured depth and ideal geometry
+    alone (independent of the simulated depth): the sampled pixels, their ideal depth, measured
+    errors and feature values (the edge distance transforms are computed here), and the
+    measured side of the spatial term."""
+
+    geom: np.ndarray          # (H, W) bool, ideal > 0
+    flat: np.ndarray          # (N,) sampled flat pixel indices (sorted)
+    z: np.ndarray             # (N,) ideal depth, metres
+    err_m: np.ndarray         # (N,) measured - ideal, metres; NaN where invalid
+    values: dict              # feature -> (N,) float array | CategoricalValues | None (unavailable)
+    block_n: np.ndarray       # (by, bx) float geometry pixels per spatial block
+    block_inv_m: np.ndarray   # (by, bx) int measured holes on geometry per block
+    counts: tuple             # (no-geometry px, no-geometry px measured valid, geometry px)
+
+
+def _frame_static(i: int, o: FrameObservation, cfg: CompareConfig, feats: dict) -> _FrameStatic:
+    geom = o.ideal > 0
+    vm = o.measured > 0
+    ng = ~geom
+    B = int(cfg.spatial_block_px)
+    flat = np.flatnonzero(geom.ravel())
+    m = cfg.max_pixels_per_frame
+    if m is not None and flat.size > m:
+        rng = np.random.default_rng([int(cfg.seed), i])
+        flat = np.sort(rng.choice(flat, size=int(m), replace=False))
+    z = o.ideal.reshape(-1)[flat].astype(np.float64)
+    me = o.measured.reshape(-1)[flat].astype(np.float64)
+    ff = FrameFeatures(o, cfg.features)
+    values = {}
+    for name, feat in feats.items():
+        values[name] = feat.values(ff, flat) if feat.available(ff) else None
+    return _FrameStatic(geom, flat, z, np.where(me > 0, me - z, np.nan), values,
+                        _blocksum(geom, B).astype(np.float64), _blocksum(geom & ~vm, B),
+                        (int(ng.sum()), int((ng & vm).sum()), int(geom.sum())))
+
+
+class CompareCache:
+    """Per-frame cache of what :func:`compare` derives from the measured depth and the ideal
+    geometry alone (sampled pixels, feature values incl. the 4 edge distance transforms,
+    measured errors, measured block hole counts), for callers that compare the *same* measured
+    frames with many simulations (a fit: hundreds of comparisons).
+
+    An entry is keyed by the frame's position in the observation list and the settings that
+    shape it (pixel count, seed, features), and is used only when the frame's ``measured``,
+    ``ideal``, ``normals`` and ``material_ids`` are the *same array objects* as when it was
+    stored (and intrinsics, projector offset and material table are equal); the entry holds
+    references to them, so an id cannot be reused while it lives. The arrays must not be
+    modified in place while cached (:class:`~synth.lab.measured.MeasuredSequence` never does).
+    With or without the cache :func:`compare` returns identical results (tested).
+
+    ``max_entries`` bounds the memory (least recently used entries are dropped; an entry holds
+    ~10 arrays of ``max_pixels_per_frame`` values plus an (H, W) mask: ~0.6 MB at 4000 samples
+    of a VGA frame, ~2 MB at 20000).
+    """
+
+    def __init__(self, max_entries: int = 96):
+        from collections import OrderedDict
+        self.max_entries = int(max_entries)
+        self._entries: OrderedDict = OrderedDict()
+        self.hits = 0
+        """Lookups served from the cache."""
+        self.misses = 0
+        """Lookups that computed (and stored) an entry."""
+
+    @staticmethod
+    def _settings(cfg: CompareConfig) -> tuple:
+        return (cfg.max_pixels_per_frame, int(cfg.seed), int(cfg.spatial_block_px),
+                json.dumps(cfg.features.to_dict(), sort_keys=True), tuple(cfg.feature_names()))
+
+    def frame(self, i: int, o: FrameObservation, cfg: CompareConfig, feats: dict) -> _FrameStatic:
+        key = (int(i), self._settings(cfg))
+        e = self._entries.get(key)
+        if e is not None:
+            src, static = e
+            if (src[0] is o.measured and src[1] is o.ideal and src[2] is o.normals and src[3] is o.material_ids
+                    and src[4] == (o.intrinsics, o.projector_offset_m, dict(o.material_names))):
+                self._entries.move_to_end(key)
+                self.hits += 1
+                return static
+        static = _frame_static(i, o, cfg, feats)
+        self.misses += 1
+        self._entries[key] = ((o.measured, o.ideal, o.normals, o.material_ids,
+                               (o.intrinsics, o.projector_offset_m, dict(o.material_names))), static)
+        self._entries.move_to_end(key)
+        while len(self._entries) > self.max_entries:
+            self._entries.popitem(last=False)
+        return static
+
+    def clear(self) -> None:
+        self._entries.clear()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+def _collect(obs: list[FrameObservation], cfg: CompareConfig, feats: dict,
+             cache: CompareCache | None = None) -> _Samples:
     frames, zs, ems, ess, values, cats = [], [], [], [], {k: [] for k in feats}, {}
     cat_index: dict[str, dict[str, int]] = {}
     available = {k: False for k in feats}
     spatial = np.zeros((len(obs), 2))
     unmod = np.zeros(4)
     for i, o in enumerate(obs):
-        geom = o.ideal > 0
-        vm = o.measured > 0
+        st = cache.frame(i, o, cfg, feats) if cache is not None else _frame_static(i, o, cfg, feats)
+        geom = st.geom
         vs = o.simulated > 0
-        n, d = _spatial_blocks(geom, vm, vs, cfg)
+        # spatial term (module docstring): hole-rate difference per block beyond binomial noise
+        n = st.block_n
+        with np.errstate(invalid="ignore", divide="ignore"):
+            qm, qs = st.block_inv_m / n, _blocksum(geom & ~vs, int(cfg.spatial_block_px)) / n
+            q = 0.5 * (qm + qs)
+            thr = cfg.spatial_kappa * np.sqrt(2.0 * q * (1.0 - q) / n)
+            d = np.maximum(0.0, np.abs(qm - qs) - thr)
+        ok = n >= max(1.0, cfg.spatial_block_px ** 2 / 4.0)
+        n = np.where(ok, n, 0.0)
+        d = np.where(ok, d, 0.0)
         spatial[i] = ((n * d).sum(), n.sum())
-        ng = ~geom
-        unmod += (int(ng.sum()), int((ng & vm).sum()), int((ng & vs).sum()), int(geom.sum()))
-        flat = np.flatnonzero(geom.ravel())
-        m = cfg.max_pixels_per_frame
-        if m is not None and flat.size > m:
-            rng = np.random.default_rng([int(cfg.seed), i])
-            flat = np.sort(rng.choice(flat, size=int(m), replace=False))
-        z = o.ideal.reshape(-1)[flat].astype(np.float64)
-        me = o.measured.reshape(-1)[flat].astype(np.float64)
+        ng_count, ng_vm, geom_count = st.counts
+        unmod += (ng_count, ng_vm, int(np.count_nonzero(vs)) - int(np.count_nonzero(vs & geom)), geom_count)
+        flat = st.flat
         se = o.simulated.reshape(-1)[flat].astype(np.float64)
         frames.append(np.full(flat.size, i, np.int32))
-        zs.append(z)
-        ems.append(np.where(me > 0, me - z, np.nan))
-        ess.append(np.where(se > 0, se - z, np.nan))
-        ff = FrameFeatures(o, cfg.features)
+        zs.append(st.z)
+        ems.append(st.err_m)
+        ess.append(np.where(se > 0, se - st.z, np.nan))
         for name, feat in feats.items():
-            if not feat.available(ff):
+            v = st.values[name]
+            if v is None:
                 values[name].append(np.full(flat.size, -1 if feat.categorical else np.nan))
                 continue
             available[name] = True
-            v = feat.values(ff, flat)
             if feat.categorical:
                 assert isinstance(v, CategoricalValues)
                 idx = cat_index.setdefault(name, {})
@@ -637,12 +725,16 @@ def _check_observations(observations) -> list[FrameObservation]:
 
 
 def compare(observations: Sequence[FrameObservation], config: CompareConfig | None = None, *,
-            effects: Sequence[str] = (), label: str | None = None) -> CompareResult:
-    """Compare measured and simulated depth of the same frames; see the module docstring."""
+            effects: Sequence[str] = (), label: str | None = None,
+            cache: CompareCache | None = None) -> CompareResult:
+    """Compare measured and simulated depth of the same frames; see the module docstring.
+
+    ``cache``: a :class:`CompareCache` to reuse what depends on the measured depth and the ideal
+    geometry only (for repeated comparisons of the same measured frames; same result)."""
     cfg = (config or CompareConfig()).validate()
     obs = _check_observations(observations)
     feats = {name: make_feature(name, cfg.features) for name in cfg.feature_names()}
-    smp = _collect(obs, cfg, feats)
+    smp = _collect(obs, cfg, feats, cache)
     nf = len(obs)
     if smp.z.size == 0:
         raise RealgapError("compare: no frame has ideal geometry (ideal depth is 0 everywhere)")

@@ -14,13 +14,14 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
 2. **Candidates**: every registered effect not in the model (or ``candidates``), minus those
    that cannot apply, each with the reason in ``Diagnosis.skipped``: effects of the physical
    pipeline (``Effect.physical``) when the model is direct; effects whose physics needs another
-   sensor type (:data:`SENSOR_TYPES`); effects that leave the simulated depth unchanged on a
+   sensor type (``Effect.sensor_types`` when the class declares it, else the lab-side table
+   :data:`synth.lab.effect_extras.SENSOR_TYPES`); effects that leave the simulated depth unchanged on a
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
    the data-driven estimates of :data:`synth.lab.fit.STARTERS` when they score better, a coarser
    grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
-   parameter up to ``candidate_evaluations`` / ``candidate_seconds``; only parameters whose scan
+   parameter up to ``candidate_evaluations``; only parameters whose scan
    beats the model's gap are refined), then **refine the best**
    ``refine_top`` jointly with the model's parameters (budget ``refine_evaluations``; a local
    search around the fitted values: an effect that the refitted model's noise had partly
@@ -28,13 +29,20 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
 4. **Rank** by ``gain = (gap - gap_after) / gap``; each candidate gets an ``evidence``
    sentence computed from the measured data (:mod:`synth.lab.evidence`).
 
-Nothing is special-cased by effect name except the applicability table, the evidence
-sentences and the optional data-driven starting values (:data:`synth.lab.fit.STARTERS`).
+Every budget is a number of gap evaluations, so the diagnosis is deterministic: the same input,
+settings and seed give the same ranking, parameters and gaps on any machine under any load
+(only the ``seconds`` fields differ); ``FitConfig.max_seconds`` is an optional safety guard
+(off by default; ``Diagnosis.time_capped`` says when it cut a search short).
 
-Cost (measured on the shared 2-core machine, load average 5-7): a 24-frame 640x480 sequence
-with the default settings (4 search frames, 4000 compare samples per frame, 10 candidates
-tried, 8 skipped) takes ~95 s wall / 70 s CPU and ~250 gap evaluations; a 320x240 8-frame
-sequence 35-70 s. The budget knobs are in :class:`DiagnoseConfig` and :class:`FitConfig`.
+Nothing is special-cased by effect name except :mod:`synth.lab.effect_extras` (sensor types,
+extra fittable parameters), the evidence sentences and the optional data-driven starting values
+(:data:`synth.lab.fit.STARTERS`).
+
+Cost (``benchmarks/bench_lab.py --diagnose``, shared 2-core machine, load average ~3): a
+24-frame 640x480 sequence of the hidden-effect generator with the default settings (4 search
+frames, 4000 compare samples per frame, 10 candidates tried, 8 skipped) takes ~43 s wall / 48 s
+CPU for ~230 gap evaluations; 6 frames of TUM fr1/xyz ~70 s (candidates that ray-cast again).
+The budget knobs are in :class:`DiagnoseConfig` and :class:`FitConfig`.
 """
 from __future__ import annotations
 
@@ -49,6 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import ConfigError
+from synth.lab.effect_extras import SENSOR_TYPES, effect_sensor_types
 from synth.lab.evidence import EvidenceContext, evidence_for
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
@@ -57,22 +66,14 @@ __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "SENSOR_TYPES
 
 DIAGNOSIS_FILE = "diagnosis.json"
 
-SENSOR_TYPES: dict[str, tuple[str, ...]] = {
-    "multipath": ("tof",),
-    "wiggling": ("tof",),
-    "flying_pixels": ("tof",),
-    "projector_shadow": ("structured_light", "active_stereo"),
-    "disparity_quantization": ("structured_light", "active_stereo"),
-    "edge_fattening": ("structured_light", "active_stereo"),
-}
-"""Sensor types whose physics an effect models (effects not listed apply to every type):
-multipath, wiggling and flying pixels come from the phase measurement of continuous-wave ToF;
-shadows, disparity steps and window fattening from triangulation."""
-
-
 @dataclass
 class DiagnoseConfig:
-    """Budgets and switches of :func:`diagnose` (the search itself: :class:`FitConfig`)."""
+    """Budgets and switches of :func:`diagnose` (the search itself: :class:`FitConfig`).
+
+    Every budget is a number of gap evaluations, so a diagnosis is deterministic: the same
+    sequence, model, settings and seed give the same ``diagnosis.json`` (apart from the timing
+    fields ``seconds``) on any machine under any load. The only wall-clock limit is the optional
+    safety guard ``FitConfig.max_seconds`` (per search, off by default)."""
 
     refit_model: bool = True
     """Fit the model's own parameters before trying candidates."""
@@ -84,8 +85,6 @@ class DiagnoseConfig:
     """Evaluation budget of a candidate's fit per fitted parameter."""
     candidate_evaluations: int = 36
     """Upper limit of a candidate's evaluation budget."""
-    candidate_seconds: float = 8.0
-    """Wall-clock budget of each candidate's fit, seconds."""
     refine_top: int = 3
     """How many of the best candidates are refined jointly with the model's parameters."""
     refine_evaluations: int = 30
@@ -100,8 +99,8 @@ class DiagnoseConfig:
                   "candidate_evaluations_per_param", "candidate_grid_points"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"diagnose: {k} must be >= 1")
-        if int(self.refine_top) < 0 or not self.candidate_seconds > 0:
-            raise ConfigError("diagnose: refine_top must be >= 0 and candidate_seconds > 0")
+        if int(self.refine_top) < 0:
+            raise ConfigError(f"diagnose: refine_top must be >= 0, got {self.refine_top}")
         return self
 
     def to_dict(self) -> dict:
@@ -179,6 +178,9 @@ class Diagnosis:
     ``eval_gap_after``."""
     eval_frames: list[int] = field(default_factory=list)
     """Sequence indices of the evaluation frames."""
+    time_capped: bool = False
+    """True when the wall-clock guard ``FitConfig.max_seconds`` stopped at least one search (the
+    diagnosis then depends on the machine's speed; off by default)."""
 
     @property
     def best(self) -> Candidate | None:
@@ -190,7 +192,7 @@ class Diagnosis:
                        "skipped": dict(self.skipped), "frames": list(self.frames), "seconds": self.seconds,
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
-                       "eval_gain": self.eval_gain})
+                       "eval_gain": self.eval_gain, "time_capped": self.time_capped})
 
     @property
     def eval_gain(self) -> float | None:
@@ -234,7 +236,7 @@ def _applicability(config, name: str) -> str | None:
     if getattr(cls, "physical", False) and not config.physical:
         return ("part of the physical pipeline (pattern_projection -> ir_capture -> block_matching); "
                 "diagnose a physical model to fit it")
-    types = SENSOR_TYPES.get(name)
+    types = effect_sensor_types(cls)
     if types and config.preset.type not in types:
         return f"models {' / '.join(types)} physics, the sensor is {config.preset.type}"
     return None
@@ -284,21 +286,21 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
         from tqdm import tqdm
         bar = tqdm(total=len(cands) + 1, desc="diagnose", unit="effect")
 
-    def fitcfg(evals, seconds, grid=None):
+    def fitcfg(evals: int) -> FitConfig:
+        """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
         d = fc.to_dict()
-        d.update(max_evaluations=int(evals), max_seconds=float(seconds))
-        if grid is not None:
-            d["grid_points"] = int(grid)
+        d.update(max_evaluations=int(evals), grid_points=int(dc.candidate_grid_points))
         return FitConfig.from_dict(d)
+
+    stats: dict = {}   # search statistics (time_capped: the optional wall-clock guard stopped one)
 
     # 1. the model itself
     gap_given = obj(config)
     base_cfg, gap0, model_params = config, gap_given, {}
     model_specs = param_specs(config) if dc.refit_model else []
     if model_specs:
-        x, g, _ = search(obj, config, model_specs,
-                         fitcfg(dc.model_evaluations, fc.max_seconds, dc.candidate_grid_points),
-                         start_gap=gap_given)
+        x, g, _ = search(obj, config, model_specs, fitcfg(dc.model_evaluations), start_gap=gap_given,
+                         stats=stats)
         if g < gap_given:
             base_cfg, gap0 = set_params(config, x), g
         model_params = {k: float(v) for k, v in (x if g < gap_given else
@@ -308,7 +310,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     base_sims = measured.simulate(base_cfg, fc.seed, frames)
     base_obs = measured.observations(base_sims, frames)
     from synth.lab.compare import compare
-    base_result = compare(base_obs, obj.compare_config)
+    base_result = compare(base_obs, obj.compare_config, cache=obj.cache)
     albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
     ctx = EvidenceContext(base_obs, measured.preset, albedo)
 
@@ -342,17 +344,16 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             alt = set_params(cand_cfg, data_start)
             g_alt = obj(alt)
             if model_specs:
-                xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names),
-                                      fitcfg(dc.refine_evaluations, dc.candidate_seconds, dc.candidate_grid_points),
-                                      start_gap=g_alt, local=True)
+                xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), fitcfg(dc.refine_evaluations),
+                                      start_gap=g_alt, local=True, stats=stats)
                 alt = set_params(alt, xa)
             if g_alt < g_def:
                 cand_cfg, g_def = alt, g_alt
         specs = param_specs(cand_cfg, [name])
         if specs:
             budget = min(int(dc.candidate_evaluations), int(dc.candidate_evaluations_per_param) * len(specs))
-            x, g, _ = search(obj, cand_cfg, specs, fitcfg(budget, dc.candidate_seconds, dc.candidate_grid_points),
-                             start_gap=g_def, refine_below=gap0)
+            x, g, _ = search(obj, cand_cfg, specs, fitcfg(budget), start_gap=g_def, refine_below=gap0,
+                             stats=stats)
             fitted = set_params(cand_cfg, x)
         else:
             x, g, fitted = {}, g_def, cand_cfg
@@ -371,8 +372,8 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
         tc = time.perf_counter()
         n0 = obj.evaluations
         specs = param_specs(c.config, [*model_names, c.effect])
-        x, g, _ = search(obj, c.config, specs, fitcfg(dc.refine_evaluations, fc.max_seconds, dc.candidate_grid_points),
-                         start_gap=c.gap_after, local=True)
+        x, g, _ = search(obj, c.config, specs, fitcfg(dc.refine_evaluations), start_gap=c.gap_after, local=True,
+                         stats=stats)
         if g < c.gap_after:
             c.config = set_params(c.config, x)
             c.gap_after = float(g)
@@ -399,13 +400,14 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
         after = None
         if c.effect not in _evidence_names():
             after = compare(measured.observations(measured.simulate(c.config, fc.seed, frames), frames),
-                            obj.compare_config)
-        c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after)
+                            obj.compare_config, cache=obj.cache)
+        c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after, gain=c.gain)
     return Diagnosis(float(gap0), list(model_names), tried, float(gap_given), model_params, skipped,
                      [measured.frame_indices[k] for k in frames], time.perf_counter() - t0,
                      obj.evaluations + ev.evaluations, str(measured.seq_dir),
                      {"fit": fc.to_dict(), "diagnose": dc.to_dict()}, base_cfg,
-                     None if eval_gap is None else float(eval_gap), [measured.frame_indices[k] for k in eval_idx])
+                     None if eval_gap is None else float(eval_gap), [measured.frame_indices[k] for k in eval_idx],
+                     bool(stats.get("time_capped", False)))
 
 
 def _evidence_names():

@@ -23,8 +23,10 @@ simulation of the same frames, with three savings that keep it cheap and smooth:
 Search
 ------
 Bounded coordinate descent over the fittable parameters (each effect's ``FITTABLE`` bounds, plus
-the extra parameterisations of :data:`EXTRA_PARAMETERS` for effects whose parameters are not
-plain numbers, e.g. the lens distortion coefficients):
+the lab-side extra parameters of :data:`synth.lab.effect_extras.EXTRA_PARAMETERS` for effects
+that do not declare them yet, e.g. the lens distortion coefficients k1, k2 and the phase of the
+disparity levels; that module lists each with its reason and the sensor-side declaration that
+would replace it):
 
 1. scan: per parameter, from the current point, a coarse grid of ``grid_points`` values over
    its bounds on the parameter's search scale (:class:`ParamSpec`: logarithmic for positive
@@ -41,8 +43,10 @@ plain numbers, e.g. the lens distortion coefficients):
 4. further sweeps (``sweeps``) scan every parameter in a bracket of one grid spacing around
    its current value, until a sweep improves the gap by less than ``tolerance`` (relative).
 
-The search stops early when ``max_evaluations`` or ``max_seconds`` is reached. Evaluations are
-cached by parameter values. Finally the start and the best configuration are both scored on the
+The budget is a number of evaluations (``max_evaluations``), never a time: the same data, model,
+settings and seed give the same fit on any machine under any load. (``max_seconds`` is an
+optional safety guard, off by default; a result it cut short says so in ``time_capped``.)
+Evaluations are cached by parameter values. Finally the start and the best configuration are both scored on the
 evaluation set (``eval_frames`` frames, ``eval_pixels_per_frame`` samples: by default every
 loaded frame and the default compare sampling); if the fitted model is not better there (an
 over-fit to the search subset), the starting parameters are kept and ``FitResult.kept_start``
@@ -52,10 +56,13 @@ Starting point: the given parameter values, or the data-driven estimates of :dat
 (e.g. the disparity step from a periodogram of the measured disparities) when those score
 better.
 
-Cost: one evaluation = simulate the search frames + :func:`compare`; ~0.2 s for 4 frames at
-320x240 and ~0.4 s at 640x480 with the defaults (the comparison's edge distance transforms
-and the W1 sorts dominate; effects that ray-cast again, rolling shutter and motion blur, cost
-~0.1 s per frame more).
+Cost: one evaluation = simulate the search frames + :func:`compare`. The comparison reuses the
+measured sequence's :class:`~synth.lab.compare.CompareCache` (sampled pixels, the 4 edge distance
+transforms and the other feature values, measured errors: computed once per frame), so it pays
+only for the simulated side: 4 VGA frames with ``axial_noise, range_limits`` and the defaults
+take ~80 ms (~150-190 ms without the cache; measured by ``benchmarks/bench_lab.py
+--diagnose``), the preset's direct model ~0.28 s (its simulation dominates); effects that
+ray-cast again, rolling shutter and motion blur, cost ~0.1 s per frame more.
 
 Approximations: coordinate descent finds a local optimum of a non-convex objective (strongly
 coupled parameters, e.g. a constant and a quadratic noise term, are refined alternately, not
@@ -74,6 +81,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError, RealgapError
 from synth.lab.compare import CompareConfig, compare
+from synth.lab.effect_extras import EXTRA_PARAMETERS, ExtraParameter, extra_parameters
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "ExtraParameter", "EXTRA_PARAMETERS", "fit_model",
            "param_specs", "set_params", "get_params", "Objective", "search", "STARTERS",
@@ -99,9 +107,14 @@ class FitConfig:
     eval_pixels_per_frame: int | None = 20000
     """Compare samples per frame of the final gaps (None = every pixel)."""
     max_evaluations: int = 80
-    """Most objective evaluations of one fit."""
-    max_seconds: float = 120.0
-    """Wall-clock budget of one fit, seconds (checked between evaluations)."""
+    """Most objective evaluations of one fit (the budget: the search is deterministic, the same
+    data, model and seed give the same result on any machine)."""
+    max_seconds: float | None = None
+    """Optional wall-clock SAFETY GUARD per search, seconds (checked between evaluations);
+    None = off (default). Not a budget: it exists only to bound a pathological run (e.g. an
+    effect that ray-casts again on a huge image). When it stops a search the result depends on
+    the machine's speed and load, and ``FitResult.time_capped`` / ``Diagnosis.time_capped``
+    say so. Set it generously (several times the expected time)."""
     grid_points: int = 7
     """Coarse grid values per parameter in the first sweep."""
     refine_iterations: int = 4
@@ -124,8 +137,10 @@ class FitConfig:
             raise ConfigError(f"fit: max_pixels_per_frame must be >= 100, got {self.max_pixels_per_frame}")
         if self.eval_pixels_per_frame is not None and int(self.eval_pixels_per_frame) < 100:
             raise ConfigError(f"fit: eval_pixels_per_frame must be >= 100 or None, got {self.eval_pixels_per_frame}")
-        if int(self.max_evaluations) < 1 or not self.max_seconds > 0:
-            raise ConfigError("fit: max_evaluations must be >= 1 and max_seconds > 0")
+        if int(self.max_evaluations) < 1:
+            raise ConfigError(f"fit: max_evaluations must be >= 1, got {self.max_evaluations}")
+        if self.max_seconds is not None and not float(self.max_seconds) > 0:
+            raise ConfigError(f"fit: max_seconds must be > 0 or None (no guard), got {self.max_seconds}")
         if int(self.grid_points) < 2 or int(self.refine_iterations) < 0 or int(self.sweeps) < 1:
             raise ConfigError("fit: need grid_points >= 2, refine_iterations >= 0, sweeps >= 1")
         if not self.tolerance >= 0:
@@ -185,6 +200,9 @@ class FitResult:
     """Sequence indices of the search frames."""
     eval_frames: list[int] = field(default_factory=list)
     """Sequence indices of the evaluation frames."""
+    time_capped: bool = False
+    """True when the wall-clock guard ``FitConfig.max_seconds`` stopped the search (the result
+    then depends on the machine's speed)."""
 
     @property
     def gain(self) -> float:
@@ -197,91 +215,12 @@ class FitResult:
                 "seconds": self.seconds, "search_gap_before": self.search_gap_before,
                 "search_gap": self.search_gap, "kept_start": self.kept_start,
                 "search_frames": list(self.frames), "eval_frames": list(self.eval_frames),
-                "effects": self.config.names(enabled_only=True)}
+                "time_capped": self.time_capped, "effects": self.config.names(enabled_only=True)}
 
 
 # ------------------------------------------------------------------------------------------
 # Parameter spaces
 # ------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class ExtraParameter:
-    """A fittable number of an effect that is not a plain numeric ``Params`` field."""
-
-    low: float
-    """Lower bound."""
-    high: float
-    """Upper bound."""
-    get: Callable
-    """get(config, effect) -> current value."""
-    set: Callable
-    """set(config, effect, value) -> a new SensorConfig with the value."""
-
-
-def _replace_effect(config, new_effect):
-    return dataclasses.replace(config, effects=[new_effect if e.name == new_effect.name else e
-                                                for e in config.effects])
-
-
-def _lens_get(i):
-    def get(config, effect):
-        return float((list(effect.coefficients(config.preset)) + [0.0] * 5)[i])
-    return get
-
-
-def _lens_set(i):
-    def set_(config, effect, value):
-        cur = list(effect.coefficients(config.preset))
-        c = (cur + [0.0] * 5)[:max(5, len(cur))]
-        c[i] = float(value)
-        return _replace_effect(config, effect.replace(coefficients=tuple(c)))
-    return set_
-
-
-def _quant_step(config, effect) -> float:
-    return float(effect.params.step_px or config.preset.subpixel_step_px)
-
-
-def _quant_phase_get(config, effect):
-    pre = config.preset
-    if pre.fb <= 0 or pre.type != "structured_light":
-        return 0.0
-    r = pre.fb / pre.reference_depth_m / _quant_step(config, effect)
-    return float(r - math.floor(r))
-
-
-def _quant_phase_set(config, effect, value):
-    pre = config.preset
-    if pre.fb <= 0 or pre.type != "structured_light":
-        return config
-    step = _quant_step(config, effect)
-    n = math.floor(pre.fb / pre.reference_depth_m / step)
-    z0 = pre.fb / ((n + min(max(float(value), 0.0), 0.999999)) * step)
-    return dataclasses.replace(config, preset=pre.replace(reference_depth_m=float(z0)), effects=list(config.effects))
-
-
-EXTRA_PARAMETERS: dict[str, dict[str, ExtraParameter]] = {
-    "lens_distortion": {
-        "k1": ExtraParameter(-0.5, 0.5, _lens_get(0), _lens_set(0)),
-        "k2": ExtraParameter(-0.5, 0.5, _lens_get(1), _lens_set(1)),
-    },
-    "disparity_quantization": {
-        "phase": ExtraParameter(0.0, 1.0, _quant_phase_get, _quant_phase_set),
-    },
-}
-"""Fittable parameters beyond ``Effect.FITTABLE``, by effect name (add an entry for any effect
-with structured parameters):
-
-* ``lens_distortion.k1``, ``.k2``: the radial terms of the OpenCV coefficient tuple (the
-  tangential terms of real lenses are small and poorly constrained by depth alone);
-* ``disparity_quantization.phase``: where the disparity levels sit, as a fraction of a step.
-  A structured-light device quantises the disparity relative to its reference plane, so the
-  absolute levels are f b / z0 + k step; the preset's reference depth z0 is a nominal value,
-  and for flat surfaces the per-distance error depends on the level phase. Setting the phase
-  moves ``preset.reference_depth_m`` by less than one step's worth of disparity (z0 changes by
-  ~2 % for Kinect v1 at VGA), which the direct model uses only for this quantisation (a
-  physical model's stored reference is re-made with it)."""
-
 
 # ------------------------------------------------------------------------------------------
 # Starting values measured from the data
@@ -308,7 +247,9 @@ def _quantization_start(measured, config, frames) -> dict[str, float]:
     disparities d = f b / z is ~1 when d takes values on a grid of spacing s (or a divisor of it)
     and ~0 for continuous disparities; the largest s with R >= 0.5 max R is the step, the
     argument of the mean gives the level phase (the peak of the last run of R >= 0.5 max R). Nothing is returned (defaults kept) when no step
-    in [0.02, 1] px reaches R = 0.3.
+    in [0.02, 1] px reaches R = 0.3. The phase is the absolute one of the lab-side parameter
+    ``disparity_quantization.level_phase`` (:data:`synth.lab.effect_extras.EXTRA_PARAMETERS`); it is
+    dropped by :func:`start_values` where that parameter does not apply (active stereo).
     """
     pre = config.preset
     if pre.fb <= 0:
@@ -339,7 +280,7 @@ def _quantization_start(measured, config, frames) -> dict[str, float]:
         run = np.concatenate([[j], run])
     i = int(run[np.argmax(R[run])])     # ... and its peak
     phase = (ph[i] / (2 * np.pi)) % 1.0
-    return {"disparity_quantization.step_px": float(steps[i]), "disparity_quantization.phase": float(phase)}
+    return {"disparity_quantization.step_px": float(steps[i]), "disparity_quantization.level_phase": float(phase)}
 
 
 def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
@@ -348,7 +289,8 @@ def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) 
     for n in names:
         fn = STARTERS.get(n)
         if fn is not None:
-            out.update(fn(measured, config, frames))
+            known = {s.key for s in param_specs(config, [n])}
+            out.update({k: v for k, v in fn(measured, config, frames).items() if k in known})
     return out
 
 
@@ -415,7 +357,7 @@ def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
         if not e.enabled:
             raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
         items = [(k, lo, hi, getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()]
-        items += [(k, x.low, x.high, x.get(config, e)) for k, x in EXTRA_PARAMETERS.get(n, {}).items()]
+        items += [(k, x.low, x.high, x.get(config, e)) for k, x in extra_parameters(config, e).items()]
         for k, lo, hi, v in items:
             integer = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
             lo, hi = float(lo), float(hi)
@@ -437,26 +379,31 @@ def get_params(config, specs: Sequence[ParamSpec]) -> dict[str, float]:
     for s in specs:
         en, pn = s.key.split(".", 1)
         e = _effect(config, en)
-        extra = EXTRA_PARAMETERS.get(en, {}).get(pn)
+        extra = extra_parameters(config, e).get(pn)
         out[s.key] = float(extra.get(config, e)) if extra else float(getattr(e.params, pn))
     return out
 
 
 def set_params(config, values: dict[str, float]):
-    """A copy of ``config`` with ``{"effect.param": value}`` set (FITTABLE or extra parameters)."""
+    """A copy of ``config`` with ``{"effect.param": value}`` set (FITTABLE or extra parameters).
+
+    Only the effects (and, for the extra parameters that need it, the preset) change: every
+    other field of ``config`` (e.g. ``motion``) is carried over with ``dataclasses.replace``."""
     plain, extra = {}, []
     for k, v in values.items():
         if "." not in k:
             raise ConfigError(f"parameter key {k!r} must be 'effect.param'")
         en, pn = k.split(".", 1)
-        x = EXTRA_PARAMETERS.get(en, {}).get(pn)
+        e = _effect(config, en)
+        x = extra_parameters(config, e).get(pn)
         if x is not None:
             extra.append((en, x, v))
         else:
-            e = _effect(config, en)
             cur = getattr(e.params, pn, None)
             plain[k] = int(round(v)) if isinstance(cur, int) and not isinstance(cur, bool) else v
-    cfg = config.with_params(plain) if plain else dataclasses.replace(config, effects=list(config.effects))
+    # with_params validates names and bounds; only its effects are taken
+    effects = config.with_params(plain).effects if plain else list(config.effects)
+    cfg = dataclasses.replace(config, effects=effects)
     for en, x, v in extra:
         cfg = x.set(cfg, _effect(cfg, en), v)
     return cfg
@@ -483,39 +430,61 @@ class Objective:
         self.seed = int(seed)
         self.evaluations = 0
         self.last_result = None
+        self.cache = getattr(measured, "compare_cache", None)
+        """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
 
     def __call__(self, config) -> float:
         self.evaluations += 1
         sims = self.measured.simulate(config, self.seed, self.frames)
         obs = self.measured.observations(sims, self.frames)
-        self.last_result = compare(obs, self.compare_config)
+        self.last_result = compare(obs, self.compare_config, cache=self.cache)
         g = float(self.last_result.gap)
         return g if math.isfinite(g) else float("inf")
 
 
 class _Budget:
-    def __init__(self, max_evals: int, max_seconds: float):
+    """Evaluation budget of one search, plus the optional wall-clock guard (``FitConfig.max_seconds``)."""
+
+    def __init__(self, max_evals: int, max_seconds: float | None = None):
         self.max_evals = int(max_evals)
-        self.deadline = time.perf_counter() + float(max_seconds)
+        self.deadline = None if max_seconds is None else time.perf_counter() + float(max_seconds)
         self.used = 0
+        self.time_capped = False
 
     @property
     def left(self) -> bool:
-        return self.used < self.max_evals and time.perf_counter() < self.deadline
+        if self.used >= self.max_evals:
+            return False
+        if self.deadline is not None and time.perf_counter() >= self.deadline:
+            self.time_capped = True
+            return False
+        return True
 
 
 def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: FitConfig,
            progress=None, start_gap: float | None = None, refine_below: float | None = None,
-           local: bool = False) -> tuple[dict[str, float], float, int]:
+           local: bool = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
     """Bounded coordinate descent (module docstring). Returns (best values, best gap, evaluations).
 
     ``start_gap``: the already known gap of the starting values. ``refine_below``: only
     parameters whose scan reached a gap below this value are refined (a candidate effect that
     cannot beat the model without it costs only its scans). ``local``: skip the coarse grid,
     every sweep scans one grid spacing around the current values (polishing a good start).
+    ``stats``: a dict that receives ``time_capped`` (True when the wall-clock guard
+    ``FitConfig.max_seconds`` stopped the search) and ``evaluations``.
     """
     fc = fit_config
     budget = _Budget(fc.max_evaluations, fc.max_seconds)
+    try:
+        return _search(objective, config, specs, fc, budget, progress, start_gap, refine_below, local)
+    finally:
+        if stats is not None:
+            stats["time_capped"] = bool(stats.get("time_capped", False) or budget.time_capped)
+            stats["evaluations"] = int(stats.get("evaluations", 0)) + budget.used
+
+
+def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap, refine_below,
+            local) -> tuple[dict[str, float], float, int]:
     cache: dict[tuple, float] = {}
     x = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
 
@@ -665,8 +634,10 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             if g < g_start:
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names)
+        stats: dict = {}
         if specs:
-            best_x, g_best, _ = search(obj, start_cfg, specs, fc, bar.update if bar else None, start_gap=g_start)
+            best_x, g_best, _ = search(obj, start_cfg, specs, fc, bar.update if bar else None, start_gap=g_start,
+                                       stats=stats)
         else:
             best_x, g_best = {}, g_start
     finally:
@@ -683,4 +654,4 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      {s.key: s.value for s in specs}, obj.evaluations + ev.evaluations,
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
                      [measured.frame_indices[k] for k in frames],
-                     [measured.frame_indices[k] for k in eval_frames])
+                     [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)))

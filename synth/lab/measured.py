@@ -34,6 +34,7 @@ import numpy as np
 from data_tools.camera import Camera, Intrinsics
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.scene_spec import SceneSpec
+from synth.lab.compare import CompareCache
 from synth.lab.features import FrameObservation, material_table_from_scene
 
 __all__ = ["MeasuredSequence", "DEFAULT_PRESET_FOR_TYPE", "preset_from_camera"]
@@ -107,6 +108,10 @@ class MeasuredSequence:
     motion effects (rolling shutter, motion blur) use it as the pose one frame period earlier."""
     skipped_no_pose: int
     """Frames left out because no ground-truth pose lies within 0.02 s."""
+    compare_cache: object
+    """A :class:`~synth.lab.compare.CompareCache` for comparisons of this sequence's frames
+    (sampled pixels, edge distance transforms, measured errors per frame); the fit objectives
+    and :func:`~synth.lab.diagnose.diagnose` pass it to :func:`~synth.lab.compare.compare`."""
 
     def __init__(self, seq_dir, camera, scene, preset, reader, frame_indices, prev_poses, skipped):
         self.seq_dir = Path(seq_dir)
@@ -124,6 +129,7 @@ class MeasuredSequence:
         self._render: dict[int, object] = {}
         self._renderer = None
         self._material_names = material_table_from_scene(scene)
+        self.compare_cache = CompareCache()
 
     # ------------------------------------------------------------------ loading
     @classmethod
