@@ -28,21 +28,27 @@ def downsample_depth(depth: np.ndarray, max_diff_m: float) -> np.ndarray:
     """(H, W) float32 metres with NaN = invalid -> (H//2, W//2): mean of the valid pixels of
     each 2x2 block that lie within ``max_diff_m`` of the block's smallest valid depth."""
     h, w = depth.shape
-    d = depth[: h // 2 * 2, : w // 2 * 2].reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3).reshape(h // 2, w // 2, 4)
-    with np.errstate(invalid="ignore"):
-        dmin = np.nanmin(np.where(np.isnan(d), np.inf, d), axis=2)
-        ok = np.isfinite(d) & (d <= dmin[..., None] + max_diff_m)
-        s = np.where(ok, d, 0.0).sum(axis=2)
-        n = ok.sum(axis=2)
-        out = np.where(n > 0, s / np.maximum(n, 1), np.nan)
-    return out.astype(np.float32)
+    h2, w2 = h // 2 * 2, w // 2 * 2
+    quad = (depth[0:h2:2, 0:w2:2], depth[0:h2:2, 1:w2:2], depth[1:h2:2, 0:w2:2], depth[1:h2:2, 1:w2:2])
+    dmin = np.fmin(np.fmin(quad[0], quad[1]), np.fmin(quad[2], quad[3]))   # NaN where all are NaN
+    lim = dmin + np.float32(max_diff_m)
+    total = np.zeros(dmin.shape, np.float32)
+    count = np.zeros(dmin.shape, np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for x in quad:
+            ok = x <= lim                                   # False for NaN
+            total += np.where(ok, x, np.float32(0.0))
+            count += ok
+        out = total / count                                 # 0 / 0 = NaN where nothing is valid
+    return out.astype(np.float32, copy=False)
 
 
 def downsample_image(img: np.ndarray) -> np.ndarray:
     """2x2 block mean of a float image (H, W) -> (H//2, W//2)."""
     h, w = img.shape[:2]
-    x = img[: h // 2 * 2, : w // 2 * 2]
-    return x.reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3)).astype(np.float32)
+    h2, w2 = h // 2 * 2, w // 2 * 2
+    x = np.asarray(img, np.float32)
+    return ((x[0:h2:2, 0:w2:2] + x[0:h2:2, 1:w2:2]) + (x[1:h2:2, 0:w2:2] + x[1:h2:2, 1:w2:2])) * np.float32(0.25)
 
 
 def vertex_map(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -55,29 +61,39 @@ def vertex_map(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.stack([x, y, depth], axis=-1).astype(np.float32)
 
 
+def _stencil_normals(V: np.ndarray, s: int, max_diff_m: float) -> np.ndarray:
+    """Unit normals (H, W, 3) of a vertex map from the cross product of central differences
+    ``s`` pixels to either side; NaN at the border, where a neighbour is missing or where the
+    second difference of the depth exceeds ``max_diff_m`` (a discontinuity; a slanted plane
+    has none). Oriented towards the camera. Computed per component in the input precision."""
+    n = np.full_like(V, np.nan)
+    x, y, z = V[..., 0], V[..., 1], V[..., 2]
+    c = (slice(s, -s), slice(s, -s))
+    r, l = (slice(s, -s), slice(2 * s, None)), (slice(s, -s), slice(None, -2 * s))
+    d, u = (slice(2 * s, None), slice(s, -s)), (slice(None, -2 * s), slice(s, -s))
+    ax, ay, az = x[r] - x[l], y[r] - y[l], z[r] - z[l]            # d/du
+    bx, by, bz = x[d] - x[u], y[d] - y[u], z[d] - z[u]            # d/dv
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    zc = z[c]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        inv = 1.0 / np.sqrt(cx * cx + cy * cy + cz * cz)
+        ddx = np.abs(z[r] - 2 * zc + z[l])
+        ddy = np.abs(z[d] - 2 * zc + z[u])
+        bad = ~np.isfinite(inv) | (ddx > max_diff_m) | (ddy > max_diff_m)
+        # orient towards the camera (the point itself is the viewing ray)
+        inv = np.where(cx * x[c] + cy * y[c] + cz * zc > 0, -inv, inv)
+    inv[bad] = np.nan
+    n[c + (0,)] = cx * inv
+    n[c + (1,)] = cy * inv
+    n[c + (2,)] = cz * inv
+    return n
+
+
 def normal_map(vertex: np.ndarray, max_diff_m: float) -> np.ndarray:
     """Unit normals (H, W, 3) float32 from a vertex map by central differences; NaN where a
     neighbour is missing or at a depth discontinuity (second difference of the depth above
     ``max_diff_m``). Normals point towards the camera."""
-    V = vertex
-    n = np.full_like(V, np.nan)
-    dx = V[1:-1, 2:] - V[1:-1, :-2]
-    dy = V[2:, 1:-1] - V[:-2, 1:-1]
-    c = np.cross(dx, dy)
-    norm = np.linalg.norm(c, axis=-1, keepdims=True)
-    z = V[..., 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = c / norm
-        # a discontinuity makes the second difference large (a slanted plane does not)
-        ddx = np.abs(z[1:-1, 2:] - 2 * z[1:-1, 1:-1] + z[1:-1, :-2])
-        ddy = np.abs(z[2:, 1:-1] - 2 * z[1:-1, 1:-1] + z[:-2, 1:-1])
-        bad = (~np.isfinite(c).all(-1)) | (ddx > max_diff_m) | (ddy > max_diff_m)
-    c[bad] = np.nan
-    # orient towards the camera (the point itself is the viewing ray)
-    flip = (c * V[1:-1, 1:-1]).sum(-1) > 0
-    c[flip] *= -1
-    n[1:-1, 1:-1] = c
-    return n
+    return _stencil_normals(vertex, 1, max_diff_m)
 
 
 def smooth_normal_map(depth: np.ndarray, K: np.ndarray, max_diff_m: float, stencil: int = 2,
@@ -89,23 +105,7 @@ def smooth_normal_map(depth: np.ndarray, K: np.ndarray, max_diff_m: float, stenc
     d = np.nan_to_num(depth, nan=0.0).astype(np.float32)
     sm = cv2.bilateralFilter(d, 2 * stencil + 1, sigma_depth_m, sigma_px)
     sm[~np.isfinite(depth)] = np.nan
-    V = vertex_map(sm, K)
-    s = stencil
-    n = np.full_like(V, np.nan)
-    dx = V[s:-s, 2 * s:] - V[s:-s, :-2 * s]
-    dy = V[2 * s:, s:-s] - V[:-2 * s, s:-s]
-    c = np.cross(dx, dy)
-    z = V[..., 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = c / np.linalg.norm(c, axis=-1, keepdims=True)
-        ddx = np.abs(z[s:-s, 2 * s:] - 2 * z[s:-s, s:-s] + z[s:-s, :-2 * s])
-        ddy = np.abs(z[2 * s:, s:-s] - 2 * z[s:-s, s:-s] + z[:-2 * s, s:-s])
-        bad = (~np.isfinite(c).all(-1)) | (ddx > max_diff_m) | (ddy > max_diff_m)
-    c[bad] = np.nan
-    flip = (c * V[s:-s, s:-s]).sum(-1) > 0
-    c[flip] *= -1
-    n[s:-s, s:-s] = c
-    return n
+    return _stencil_normals(vertex_map(sm, K), stencil, max_diff_m)
 
 
 def _t(a: np.ndarray):
