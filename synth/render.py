@@ -135,9 +135,16 @@ def _shade(base_color: np.ndarray, cos: np.ndarray, hit: np.ndarray, ambient: fl
     return rgb.astype(np.uint8)
 
 
+RAY_THREADS: int | None = None
+"""Threads per Open3D query; None = the CPUs this process may use. Set to 1 in worker
+processes that each simulate their own frame (synth.sensor.simulator.SimulationPool)."""
+
+
 def _n_threads() -> int:
-    """Threads for Open3D ray casting: the CPUs this process may use (Open3D's automatic
-    choice counts the host's CPUs and oversubscribes a restricted container)."""
+    """Threads for Open3D ray casting: ``RAY_THREADS`` or the CPUs this process may use
+    (Open3D's automatic choice counts the host's CPUs and oversubscribes a restricted container)."""
+    if RAY_THREADS:
+        return int(RAY_THREADS)
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):

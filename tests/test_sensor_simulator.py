@@ -182,3 +182,20 @@ def test_simulate_trajectory_writes_and_resumes(box_scene, tmp_path):
     assert len(a) == 4 and a.camera.sensor.extra["preset"] == "kinect_v1"
     for i in range(4):
         np.testing.assert_array_equal(a[i].depth, b[i].depth)
+
+
+def test_simulation_pool_gives_the_serial_results_in_order(box_scene):
+    from synth.sensor.simulator import SimulationPool
+    sim = SensorSimulator(SMALL, "physical", box_scene)
+    T = camera_pose()
+    T2 = T.copy()
+    T2[0, 3] += 0.01  # 1 cm in one frame period: a moving camera, motion effects on
+    poses, seeds, prevs = [T, T2, T], [3, 4, 5], [None, T, None]
+    with SimulationPool(sim, workers=2) as pool:
+        got = list(pool.map(poses, seeds, prevs, max_in_flight=3))
+        with pytest.raises(RealgapError, match="2 poses, 1 seeds"):
+            list(pool.map(poses[:2], seeds[:1]))
+    assert len(got) == 3
+    for P, s, prev, g in zip(poses, seeds, prevs, got):
+        _same(sim.simulate(P, seed=s, prev_pose=prev), g)
+    assert not np.array_equal(got[0].depth, got[1].depth)

@@ -64,11 +64,9 @@ def normalized_coords(ray_dirs_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def _nthreads() -> int:
-    import os
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return 0
+    """Threads per Open3D query (synth.render's setting: RAY_THREADS or the usable CPUs)."""
+    from synth.render import _n_threads
+    return _n_threads()
 
 
 def shadow_test(renderer, view, src_cam: np.ndarray, Lx, Ly, Lz, r, mask: np.ndarray, eps_m: float) -> np.ndarray:
