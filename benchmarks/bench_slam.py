@@ -216,6 +216,7 @@ def main(argv=None) -> int:
     for name, seq, cam, target in _datasets(work, [d.strip() for d in args.datasets.split(",")]):
         for m in methods:
             t = time.perf_counter()
+            c = time.process_time()
             if m in ("icp", "rgbd_odometry"):
                 r = run_ours(m, seq, cam, work, args.frames, {})
             elif m == "icp_raw":
@@ -228,11 +229,13 @@ def main(argv=None) -> int:
                 r = run_o3d_dense_slam(seq, cam, args.frames)
             else:
                 raise SystemExit(f"unknown method {m}")
-            r.update(dataset=name, method=m, wall=time.perf_counter() - t, target=target)
+            r.update(dataset=name, method=m, wall=time.perf_counter() - t, target=target,
+                     cpu_ms=(time.process_time() - c) * 1000 / max(r["frames"], 1), load=os.getloadavg()[0])
             rows.append(r)
             extra = f"  (ms/frame: {', '.join(f'{k} {v:.0f}' for k, v in r['ms'].items())})" if "ms" in r else ""
             print(f"{name:6s} {m:15s} frames {r['frames']:5d}  ATE {r['ate'] * 100:6.2f} cm  "
-                  f"{r['fps']:6.2f} frames/s  failed {r['failed']}{extra}", flush=True)
+                  f"{r['fps']:6.2f} frames/s  failed {r['failed']}{extra}  [CPU {r['cpu_ms']:.0f} ms/frame "
+                  f"all threads, incl. setup; load {r['load']:.2f}]", flush=True)
     print(f"load average after: {os.getloadavg()}")
     print("\nsummary (ratios against Open3D measured in this run):")
     for name in dict.fromkeys(r["dataset"] for r in rows):
