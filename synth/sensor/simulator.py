@@ -240,7 +240,9 @@ class SimResult:
     """{effect name: draw}: pass back as ``simulate(..., draws=...)`` to replay the frame."""
     log: dict
     """{effect name: statistics} plus ``timings_ms`` (wall time per stage) and ``cpu_ms`` (CPU
-    time of all threads of the process per stage: less sensitive to a shared machine)."""
+    time of all threads of the process per stage: less sensitive to a shared machine). Draws of
+    ``DRAW_FROM_SHAPE`` effects run in a background thread from the start of the frame, so
+    their time is counted in whichever stages they overlap (mostly ``render``)."""
     warnings: list[str] = field(default_factory=list)
     """Human-readable notes (e.g. 'no geometry in view')."""
     rgb: np.ndarray | None = None
@@ -452,6 +454,9 @@ class SensorSimulator:
         if draws is None and seed is None:
             raise ConfigError("simulate needs a seed or the draws of a previous frame")
         t0, c0 = time.perf_counter(), time.process_time()
+        # draws that depend only on the image shape are made in a background thread while the
+        # frame is rendered (the same generators, so the same values as drawing them in turn)
+        early = self._start_draws(seed) if draws is None else None
         state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb)
         timings = {"render": (time.perf_counter() - t0) * 1e3}
         cpu = {"render": (time.process_time() - c0) * 1e3}
@@ -470,12 +475,16 @@ class SensorSimulator:
                         d = e.sample(e.rng(seed), state) if seed is not None else None
                         if d is not None:
                             raise RealgapError(f"replay: the given draws lack effect {e.name!r}")
+                elif early is not None and e.name in early[1]:
+                    d = early[0].result()[e.name]
                 else:
                     d = e.sample(e.rng(seed), state)
                 e.apply(state, d)
                 used_draws[e.name] = d
                 timings[e.name] = (time.perf_counter() - t1) * 1e3
                 cpu[e.name] = (time.process_time() - c1) * 1e3
+        if early is not None:
+            early[0].result()  # finished (frames without geometry skip the effects) and errors raised
         depth = np.where(state.valid & (state.depth > 0), state.depth, 0).astype(np.float32)
         valid = depth > 0
         if not valid.any() and ideal.hit.any():
@@ -491,6 +500,17 @@ class SensorSimulator:
         return SimResult(depth, valid, ideal.depth, np.asarray(ideal.normals_cam), ideal.instance_ids.copy(),
                          state.ir, disp, state.pose_c2w, None if draws is not None else seed, used_draws, log,
                          warnings, rgb)
+
+    def _start_draws(self, seed: int):
+        """Start the draws of the enabled ``DRAW_FROM_SHAPE`` effects in the background thread:
+        (future of {name: draw}, their names), or None when there are none."""
+        from synth.sensor.state import DrawContext
+        effects = [e for e in self.config.ordered() if e.DRAW_FROM_SHAPE]
+        if not effects:
+            return None
+        ctx = DrawContext(self.preset, self.preset.intrinsics, self.config.physical)
+        fut = _draw_executor().submit(_draw_all, effects, int(seed), ctx)
+        return fut, {e.name for e in effects}
 
     def simulate_sequence(self, poses_c2w: np.ndarray, seed: int = 0, motion: bool = True):
         """Yield one SimResult per pose; frame i uses seed ``seed + i`` and, with ``motion``,
@@ -628,6 +648,23 @@ def _pool_ready(_i: int) -> bool:
 
 def _pool_simulate(pose, seed, prev) -> SimResult:
     return _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev)
+
+
+_DRAW_EXECUTOR: list = []
+"""[(pid, ThreadPoolExecutor)] of the draws made while rendering (one thread per process)."""
+
+
+def _draw_executor():
+    """The process's background thread for early draws (a new one after a fork: a forked
+    child has no threads of its parent's executor)."""
+    from concurrent.futures import ThreadPoolExecutor
+    if not _DRAW_EXECUTOR or _DRAW_EXECUTOR[0][0] != os.getpid():
+        _DRAW_EXECUTOR[:] = [(os.getpid(), ThreadPoolExecutor(1, thread_name_prefix="realgap-draws"))]
+    return _DRAW_EXECUTOR[0][1]
+
+
+def _draw_all(effects, seed: int, ctx) -> dict:
+    return {e.name: e.sample(e.rng(seed), ctx) for e in effects}
 
 
 def _check_pose(T, name: str) -> np.ndarray:

@@ -211,6 +211,26 @@ def interpolate_pose(pose_c2w: np.ndarray, prev_pose_c2w: np.ndarray, s) -> np.n
 
 
 @dataclass
+class DrawContext:
+    """What :meth:`Effect.sample` of an effect with ``DRAW_FROM_SHAPE`` may read: a stand-in
+    for the :class:`SensorState` of a frame that is not rendered yet (the simulator draws such
+    effects in a background thread while it renders the frame)."""
+
+    preset: Any
+    """The :class:`~synth.sensor.presets.SensorPreset`."""
+    intr: Intrinsics
+    """Intrinsics of the frame's arrays."""
+    physical: bool
+    """True when the model runs the physical pipeline."""
+    is_reference: bool = False
+    """Always False: the reference image uses null draws."""
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.intr.shape
+
+
+@dataclass
 class SensorState:
     """Everything one simulated frame reads and writes (see the module docstring)."""
 

@@ -34,6 +34,7 @@ class AmbientLight(Effect):
     """
 
     name = "ambient_light"
+    DRAW_FROM_SHAPE = True
     Params = AmbientLightParams
     FITTABLE = {"level": (0.0, 100.0), "contrast50": (0.0, 1.0), "contrast_width": (0.005, 1.0)}
 

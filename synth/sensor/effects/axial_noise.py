@@ -37,6 +37,7 @@ class AxialNoise(Effect):
     """
 
     name = "axial_noise"
+    DRAW_FROM_SHAPE = True
     Params = AxialNoiseParams
     FITTABLE = {"sigma0_m": (0.0, 0.1), "sigma1": (0.0, 0.1), "sigma2_per_m": (0.0, 0.05),
                 "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0)}

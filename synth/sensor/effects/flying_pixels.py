@@ -30,6 +30,7 @@ class FlyingPixels(Effect):
     """
 
     name = "flying_pixels"
+    DRAW_FROM_SHAPE = True
     Params = FlyingPixelsParams
     FITTABLE = {"jump_m": (0.005, 2.0), "probability": (0.0, 1.0)}
     stage = STAGE_DEPTH - 1

@@ -30,6 +30,7 @@ class IncidenceDropout(Effect):
     """
 
     name = "incidence_dropout"
+    DRAW_FROM_SHAPE = True
     Params = IncidenceDropoutParams
     FITTABLE = {"angle50_deg": (30.0, 90.0), "width_deg": (0.1, 30.0)}
     stage = STAGE_DROPOUT

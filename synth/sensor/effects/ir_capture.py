@@ -47,6 +47,7 @@ class IRCapture(Effect):
     """
 
     name = "ir_capture"
+    DRAW_FROM_SHAPE = True
     Params = IRCaptureParams
     FITTABLE = {"gain_e": (100.0, 1e6), "full_well_e": (1000.0, 1e6), "read_noise_e": (0.0, 200.0),
                 "speckle_contrast": (0.0, 1.0), "psf_sigma_px": (0.0, 3.0)}

@@ -30,6 +30,7 @@ class LowReflectance(Effect):
     """
 
     name = "low_reflectance"
+    DRAW_FROM_SHAPE = True
     Params = LowReflectanceParams
     FITTABLE = {"signal50": (1e-6, 1.0), "width_decades": (0.01, 3.0)}
     stage = STAGE_DROPOUT

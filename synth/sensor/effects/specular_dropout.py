@@ -32,6 +32,7 @@ class SpecularDropout(Effect):
     """
 
     name = "specular_dropout"
+    DRAW_FROM_SHAPE = True
     Params = SpecularDropoutParams
     FITTABLE = {"specular50": (0.0, 1.0), "width": (0.01, 1.0), "highlight_deg": (0.0, 45.0)}
     stage = STAGE_DROPOUT
