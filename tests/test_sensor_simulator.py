@@ -195,7 +195,14 @@ def test_simulation_pool_gives_the_serial_results_in_order(box_scene):
         got = list(pool.map(poses, seeds, prevs, max_in_flight=3))
         with pytest.raises(RealgapError, match="2 poses, 1 seeds"):
             list(pool.map(poses[:2], seeds[:1]))
+    with SimulationPool(sim, workers=1, slot_bytes=0) as pool:  # results too big for a slot: pickled
+        pickled = list(pool.map(poses, seeds, prevs))
     assert len(got) == 3
-    for P, s, prev, g in zip(poses, seeds, prevs, got):
-        _same(sim.simulate(P, seed=s, prev_pose=prev), g)
+    for P, s, prev, g, p in zip(poses, seeds, prevs, got, pickled):
+        ref = sim.simulate(P, seed=s, prev_pose=prev)
+        _same(ref, g)
+        _same(ref, p)
+        for res in (g, p):
+            np.testing.assert_array_equal(res.normals, ref.normals)
+            np.testing.assert_array_equal(res.draws["ir_capture"]["noise"], ref.draws["ir_capture"]["noise"])
     assert not np.array_equal(got[0].depth, got[1].depth)

@@ -571,11 +571,15 @@ class SimulationPool:
     ``cast_rays``), so two threads cannot overlap two frames' ray casts. Workers are started
     with ``spawn`` (forking a process whose Open3D/TBB and OpenCV thread pools are running is
     unsafe) and each builds its Embree scene and the reference image once, in
-    :meth:`__init__` (a few seconds). This raises throughput, not single-frame latency; the
-    result arrays are pickled back (about 10 MB per VGA frame with the draws).
+    :meth:`__init__` (a few seconds). This raises throughput, not single-frame latency. The
+    result arrays (about 12 MB per VGA frame with the draws) come back through shared-memory
+    slots owned by this object (one memcpy each way instead of pickling them through a pipe,
+    which cost ~10 ms of CPU per frame); results that do not fit a slot are pickled.
     """
 
-    def __init__(self, sim: "SensorSimulator", workers: int = 2):
+    def __init__(self, sim: "SensorSimulator", workers: int = 2, slot_bytes: int = 32 << 20):
+        """``slot_bytes``: size of one shared-memory result slot (a VGA frame needs ~12 MB,
+        active stereo more; 0 = pickle every result)."""
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
         if workers < 1:
@@ -585,6 +589,8 @@ class SimulationPool:
             raise ConfigError("SimulationPool: the simulator's renderer has no scene to copy into the workers")
         pattern = sim.pattern() if sim.config.physical else sim._pattern_override
         self.workers = int(workers)
+        self._slots: list = []
+        self.slot_bytes = max(int(slot_bytes), 0)
         self._ex = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                        initializer=_pool_init, initargs=(sim.config.to_json(), scene, pattern))
         # wait until every worker is up (imports, BVH, reference image), so timings exclude it
@@ -600,17 +606,35 @@ class SimulationPool:
         if not (len(poses) == len(seeds) == len(prevs)):
             raise RealgapError(f"SimulationPool.map: {len(poses)} poses, {len(seeds)} seeds, "
                                f"{len(prevs)} previous poses")
-        ahead = max_in_flight or 2 * self.workers
+        from multiprocessing.shared_memory import SharedMemory
+        ahead = max(1, max_in_flight or 2 * self.workers)
+        while len(self._slots) < ahead:
+            self._slots.append(SharedMemory(create=True, size=max(self.slot_bytes, 1)))
+        free = deque(self._slots[:ahead])
         pending: deque = deque()
+
+        def collect():
+            fut, slot = pending.popleft()
+            try:
+                return _unpack_result(fut.result(), slot)
+            finally:
+                free.append(slot)
+
         for i in range(len(poses)):
-            pending.append(self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i]))
+            slot = free.popleft()
+            pending.append((self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i], slot.name,
+                                            self.slot_bytes), slot))
             if len(pending) >= ahead:
-                yield pending.popleft().result()
+                yield collect()
         while pending:
-            yield pending.popleft().result()
+            yield collect()
 
     def close(self) -> None:
         self._ex.shutdown(wait=True, cancel_futures=True)
+        for shm in self._slots:
+            shm.close()
+            shm.unlink()
+        self._slots = []
 
     def __enter__(self) -> "SimulationPool":
         return self
@@ -646,8 +670,62 @@ def _pool_ready(_i: int) -> bool:
     return _POOL_SIM is not None
 
 
-def _pool_simulate(pose, seed, prev) -> SimResult:
-    return _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev)
+_RESULT_ARRAYS = ("depth", "valid", "ideal_depth", "normals", "instance_ids", "ir", "disparity", "rgb")
+_POOL_SLOTS: dict = {}
+"""Worker side: shared-memory slots attached so far, by name."""
+
+
+def _result_arrays(res: SimResult) -> list:
+    """[(key, array)] of the large arrays of a result: its image fields and the arrays among its
+    draws (a draw that is an array, or a dict holding arrays)."""
+    out = [((f,), getattr(res, f)) for f in _RESULT_ARRAYS if isinstance(getattr(res, f), np.ndarray)]
+    for name, d in res.draws.items():
+        if isinstance(d, np.ndarray):
+            out.append((("draws", name), d))
+        elif isinstance(d, dict):
+            out += [(("draws", name, k), v) for k, v in d.items() if isinstance(v, np.ndarray)]
+    return out
+
+
+def _set_result_array(res: SimResult, key: tuple, value) -> None:
+    if key[0] != "draws":
+        setattr(res, key[0], value)
+    elif len(key) == 2:
+        res.draws[key[1]] = value
+    else:
+        res.draws[key[1]][key[2]] = value
+
+
+def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int):
+    """Simulate one frame; its arrays go into the shared-memory slot when they fit:
+    ("shm", result without them, [(key, dtype, shape, offset)]), else ("pickle", result)."""
+    res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev)
+    arrays = _result_arrays(res)
+    need = sum(-(-a.nbytes // 64) * 64 for _, a in arrays)
+    if need > slot_size:
+        return ("pickle", res)
+    shm = _POOL_SLOTS.get(slot_name)
+    if shm is None:  # the pool (parent) owns and unlinks the slot; spawned workers share its
+        # resource tracker, so attaching here (which registers the name again) leaks nothing
+        from multiprocessing.shared_memory import SharedMemory
+        shm = _POOL_SLOTS[slot_name] = SharedMemory(name=slot_name)
+    meta, off = [], 0
+    for key, a in arrays:
+        np.ndarray(a.shape, a.dtype, buffer=shm.buf, offset=off)[...] = a
+        meta.append((key, a.dtype.str, a.shape, off))
+        _set_result_array(res, key, None)
+        off += -(-a.nbytes // 64) * 64
+    return ("shm", res, meta)
+
+
+def _unpack_result(packed, slot) -> SimResult:
+    """Parent side of :func:`_pool_simulate`: the result with its arrays copied out of the slot."""
+    if packed[0] == "pickle":
+        return packed[1]
+    _, res, meta = packed
+    for key, dtype, shape, off in meta:
+        _set_result_array(res, key, np.ndarray(shape, np.dtype(dtype), buffer=slot.buf, offset=off).copy())
+    return res
 
 
 _DRAW_EXECUTOR: list = []
