@@ -485,7 +485,7 @@ class SensorSimulator:
                 cpu[e.name] = (time.process_time() - c1) * 1e3
         if early is not None:
             early[0].result()  # finished (frames without geometry skip the effects) and errors raised
-        depth = np.where(state.valid & (state.depth > 0), state.depth, 0).astype(np.float32)
+        depth = np.where(state.valid & (state.depth > 0), state.depth, 0).astype(np.float32, copy=False)
         valid = depth > 0
         if not valid.any() and ideal.hit.any():
             warnings.append("the sensor measured no valid pixel in this frame")
@@ -496,7 +496,7 @@ class SensorSimulator:
         log["cpu_ms"] = cpu
         disp = state.disparity
         if disp is not None:
-            disp = np.where(valid, disp, np.nan).astype(np.float32)
+            disp = np.where(valid, disp, np.nan).astype(np.float32, copy=False)
         return SimResult(depth, valid, ideal.depth, np.asarray(ideal.normals_cam), ideal.instance_ids.copy(),
                          state.ir, disp, state.pose_c2w, None if draws is not None else seed, used_draws, log,
                          warnings, rgb)

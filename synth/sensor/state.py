@@ -45,7 +45,7 @@ class ViewGeometry:
     @property
     def depth(self) -> np.ndarray:
         """(H, W) float32 z-depth, metres (0 = no hit)."""
-        return np.where(self.hit, self.points_cam[..., 2], np.float32(0.0)).astype(np.float32)
+        return np.where(self.hit, self.points_cam[..., 2], np.float32(0.0)).astype(np.float32, copy=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -63,7 +63,7 @@ def geometry_from_render(render, renderer, pose_c2w: np.ndarray) -> ViewGeometry
     """ViewGeometry of an ideal :class:`synth.render.RenderResult` (global shutter)."""
     hit = np.asarray(render.hit, dtype=bool)
     H, W = hit.shape
-    t = np.where(hit, render.t_hit, 0.0).astype(np.float32)
+    t = np.where(hit, render.t_hit, 0.0).astype(np.float32, copy=False)
     pts = render.ray_dirs_cam * t[..., None]
     ids = np.asarray(render.instance_ids, dtype=np.int32)
     if renderer is not None:
@@ -72,7 +72,7 @@ def geometry_from_render(render, renderer, pose_c2w: np.ndarray) -> ViewGeometry
         albedo = np.where(hit, np.float32(0.5), np.float32(0.0))
         spec = np.zeros((H, W), np.float32)
     rows = np.broadcast_to(np.asarray(pose_c2w, dtype=np.float64), (H, 4, 4))
-    return ViewGeometry(pts.astype(np.float32), np.asarray(render.normals_cam, np.float32), hit, ids,
+    return ViewGeometry(pts.astype(np.float32, copy=False), np.asarray(render.normals_cam, np.float32), hit, ids,
                         np.asarray(albedo, np.float32), np.asarray(spec, np.float32),
                         np.asarray(render.points_world, np.float32), rows)
 
@@ -146,7 +146,7 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
     pw = np.where(hit[..., None], pw, np.float32(0.0))
     rows = row_c2w.copy()
     rows[:, :3, 3] = origin_rows
-    return ViewGeometry(pts_cam.astype(np.float32), n_cam, hit, ids, np.asarray(albedo, np.float32),
+    return ViewGeometry(pts_cam.astype(np.float32, copy=False), n_cam, hit, ids, np.asarray(albedo, np.float32),
                         np.asarray(spec, np.float32), pw, rows)
 
 
