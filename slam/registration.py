@@ -90,6 +90,10 @@ class RegistrationBackend(ABC):
     uses_color: ClassVar[bool] = False
     """True when the backend needs the colour images to register (not only to colour the mesh)."""
 
+    sensor: Any = None
+    """The camera's :class:`data_tools.camera.SensorSpec` (how the depth was measured), or None;
+    set by the pipeline after construction from the sequence's camera.json."""
+
     def __init__(self, config: Any, intrinsics: Intrinsics, tsdf_config: Any):
         self.config = config
         self.intrinsics = intrinsics

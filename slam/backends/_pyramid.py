@@ -247,15 +247,18 @@ def point_to_plane_stats(src_vertex, tgt_vertex, tgt_normal, K, T: np.ndarray, m
 
 
 def icp_point_to_plane(src: list, tgt: list, init: np.ndarray, iterations: list[int],
-                       max_dist_m: list[float], huber_delta_m: float = 0.0, eps: float = 1e-6
-                       ) -> SolveResult:
+                       max_dist_m: list[float], huber_delta_m: float = 0.0, eps: float = 1e-6,
+                       stats_target: tuple | None = None) -> SolveResult:
     """Coarse-to-fine projective point-to-plane ICP (KinectFusion's tracking step).
 
     ``src[k]`` is the source :class:`Level` and ``tgt[k]`` a (vertex, normal, K) tuple of Open3D
     tensors for stage k (coarse to fine; the target may have another resolution than the
     source: the source points are projected with the target's K). ``max_dist_m[k]`` rejects
     pairs whose point-to-plane distance is larger; ``huber_delta_m`` > 0 down-weights residuals
-    above it (0 = plain truncated least squares). Returns the source-to-target transform.
+    above it (0 = plain truncated least squares). Target normals may be scaled by the square
+    root of per-point weights (weighted least squares); ``stats_target`` is then the finest
+    target with unit normals, for the statistics (default ``tgt[-1]``). Returns the
+    source-to-target transform.
     """
     o3d = o3d_quiet()
     od = o3d.t.pipelines.odometry
@@ -277,7 +280,7 @@ def icp_point_to_plane(src: list, tgt: list, init: np.ndarray, iterations: list[
             its += 1
             if _step_small(D, eps):
                 break
-    tv, tn, tK = tgt[-1]
+    tv, tn, tK = tgt[-1] if stats_target is None else stats_target
     inl, rmse = point_to_plane_stats(src[-1].vertex(), tv, tn, tK, T, max_dist_m[-1])
     return SolveResult(T, inl, src[-1].valid, rmse, its, inl > 0, "" if inl > 0 else "no inliers")
 
