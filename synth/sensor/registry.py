@@ -72,8 +72,8 @@ class Effect(ABC):
     DRAW_FROM_SHAPE: ClassVar[bool] = False
     """True when ``sample`` reads nothing of the state but ``shape``, ``preset``, ``intr``,
     ``physical`` and ``is_reference``: the simulator may then draw it in a background thread
-    while the frame is being rendered (same generator, same values; numpy's generators release
-    the GIL while filling arrays). Leave False when ``sample`` looks at the scene."""
+    while earlier stages run (same generator, same values; numpy's generators release the GIL
+    while filling arrays). Leave False when ``sample`` looks at the scene."""
 
     def __init__(self, params: Any = None, enabled: bool = True):
         if params is None:

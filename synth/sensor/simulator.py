@@ -241,8 +241,8 @@ class SimResult:
     log: dict
     """{effect name: statistics} plus ``timings_ms`` (wall time per stage) and ``cpu_ms`` (CPU
     time of all threads of the process per stage: less sensitive to a shared machine). Draws of
-    ``DRAW_FROM_SHAPE`` effects run in a background thread from the start of the frame, so
-    their time is counted in whichever stages they overlap (mostly ``render``)."""
+    ``DRAW_FROM_SHAPE`` effects run in a background thread from the end of ``render`` on, so
+    their time is counted in whichever stages they overlap (mostly ``pattern_projection``)."""
     warnings: list[str] = field(default_factory=list)
     """Human-readable notes (e.g. 'no geometry in view')."""
     rgb: np.ndarray | None = None
@@ -454,12 +454,14 @@ class SensorSimulator:
         if draws is None and seed is None:
             raise ConfigError("simulate needs a seed or the draws of a previous frame")
         t0, c0 = time.perf_counter(), time.process_time()
-        # draws that depend only on the image shape are made in a background thread while the
-        # frame is rendered (the same generators, so the same values as drawing them in turn)
-        early = self._start_draws(seed) if draws is None else None
         state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb)
         timings = {"render": (time.perf_counter() - t0) * 1e3}
         cpu = {"render": (time.process_time() - c0) * 1e3}
+        # draws that depend only on the image shape are made in a background thread while the
+        # first stages run (the same generators, so the same values as drawing them in turn).
+        # Started after the ray cast, which already keeps both cores of a 2-core machine busy,
+        # so that they overlap the single-threaded numpy work of the projection stage instead
+        early = self._start_draws(seed) if draws is None and state.ideal.hit.any() else None
         ideal = state.ideal
         used_draws: dict = {}
         if not ideal.hit.any():
@@ -483,8 +485,6 @@ class SensorSimulator:
                 used_draws[e.name] = d
                 timings[e.name] = (time.perf_counter() - t1) * 1e3
                 cpu[e.name] = (time.process_time() - c1) * 1e3
-        if early is not None:
-            early[0].result()  # finished (frames without geometry skip the effects) and errors raised
         depth = np.where(state.valid & (state.depth > 0), state.depth, 0).astype(np.float32, copy=False)
         valid = depth > 0
         if not valid.any() and ideal.hit.any():

@@ -213,8 +213,8 @@ def interpolate_pose(pose_c2w: np.ndarray, prev_pose_c2w: np.ndarray, s) -> np.n
 @dataclass
 class DrawContext:
     """What :meth:`Effect.sample` of an effect with ``DRAW_FROM_SHAPE`` may read: a stand-in
-    for the :class:`SensorState` of a frame that is not rendered yet (the simulator draws such
-    effects in a background thread while it renders the frame)."""
+    for the :class:`SensorState` in the background thread that draws such effects while the
+    simulator runs the stages before them."""
 
     preset: Any
     """The :class:`~synth.sensor.presets.SensorPreset`."""
