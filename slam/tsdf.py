@@ -113,6 +113,9 @@ class RaycastResult:
     """(H, W, 3) float32 RGB in [0, 1] (zeros where nothing was hit), or None."""
     normal: np.ndarray | None
     """(H, W, 3) float32 unit surface normals in the camera frame (zeros where nothing was hit)."""
+    weight: np.ndarray | None = None
+    """(H, W) float32 integration weight (observations) at the hit, the mean over the 8 voxels
+    of its cell (0 where nothing was hit); only with ``refine`` (else None)."""
 
     @property
     def mask(self) -> np.ndarray:
@@ -351,7 +354,11 @@ class TSDFVolume:
             color[miss] = 0.0
         if normal is not None:
             normal[miss] = 0.0
-        return RaycastResult(depth, color, normal)
+        weight = None
+        if refine:
+            weight = self._hit_weight
+            weight[miss] = 0.0
+        return RaycastResult(depth, color, normal, weight)
 
     def _refine_depth(self, depth: np.ndarray, r, intr: Intrinsics, pose_c2w: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
@@ -372,6 +379,7 @@ class TSDFVolume:
             else mask.all(axis=-1)
         sel = np.flatnonzero(hit & full)
         if len(sel) == 0:
+            self._hit_weight = np.zeros(depth.shape, np.float32)
             return depth, verified
         idx = r["index"].cpu().numpy().reshape(-1, 8)[sel]              # (N, 8) linear voxel indices
         w = r["interp_ratio"].cpu().numpy().reshape(-1, 8)[sel]         # (N, 8) trilinear weights
@@ -418,6 +426,9 @@ class TSDFVolume:
         verified.reshape(-1)[sel] = good & (np.abs(f) <= 1.0 / self.config.trunc_voxel_multiplier)
         out = depth.copy()
         out.reshape(-1)[sel] += s.astype(np.float32)
+        wts = self.vbg.attribute("weight").cpu().numpy().reshape(-1)
+        self._hit_weight = np.zeros(depth.shape, np.float32)
+        self._hit_weight.reshape(-1)[sel] = wts[idx].mean(axis=1)
         return out, verified
 
     # ---------------------------------------------------------------- TSDF sampling

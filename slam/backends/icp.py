@@ -25,8 +25,8 @@ import numpy as np
 from data_tools.camera import Intrinsics
 from data_tools.errors import ConfigError
 from slam.backends._features import orb_features, pnp_guess
-from slam.backends._pyramid import (Level, Pyramid, SolveResult, downsample_depth, icp_point_to_plane,
-                                    normal_map, smooth_normal_map)
+from slam.backends._pyramid import (Level, Pyramid, SolveResult, downsample_depth, downsample_image,
+                                    icp_point_to_plane, normal_map, smooth_normal_map)
 from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
                                implausible_motion, register_backend)
 from slam.tsdf import o3d_quiet
@@ -88,9 +88,10 @@ class ICPConfig(TrackingCheckConfig):
     (fx x baseline), where fx and the baseline come from the camera (``sensor`` block of
     camera.json). 0.07 px gives Kinect v1's measured 4 cm at 5 m (Khoshelham and Elberink
     2012; it includes the 1/8 px disparity quantisation). Each point-to-plane residual gets the
-    inverse-variance weight w = sigma_0^2 / (sigma_0^2 + sigma_z^2), where sigma_0 = voxel size /
-    sqrt(12) is the noise of the model itself (2.9 mm for 1 cm voxels): for Kinect v1 w = 1/2 at
-    1.34 m and 1/17 at 3 m. Open3D's kernel has no per-point weight, so the model normals are
+    inverse-variance weight w = sigma_0^2 / (sigma_0^2 + (sigma_z cos)^2), where cos = |n . ray|
+    (the depth noise lies along the viewing ray; the residual along the normal sees cos of it)
+    and sigma_0 = voxel size / sqrt(12) is the noise of the model itself (2.9 mm for 1 cm
+    voxels): for Kinect v1 and a surface facing the camera w = 1/2 at 1.34 m and 1/17 at 3 m. Open3D's kernel has no per-point weight, so the model normals are
     scaled by sqrt(w) (the rejection distance then applies to sqrt(w) x r: a far point is kept
     up to a proportionally larger distance, as a test on r / sigma would). Without a sensor
     block (rendered depth, or a camera given without one) and with 0 the residuals are
@@ -141,25 +142,37 @@ class ModelView:
             nrm = smooth_normal_map(depth, intr.K, max_diff_m)
         lvl = Level(depth, intr)
         self.valid = int(np.count_nonzero(~miss))
+        obs = r.weight
         self.unit_levels = [(lvl.vertex(), o3d.core.Tensor(nrm), lvl.K())]
-        self.levels = [(lvl.vertex(), self._weighted(nrm, lvl.depth, noise_depth_m), lvl.K())]
+        self.levels = [(lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K())]
         for _ in range(1, n_levels):
             lvl = Level(downsample_depth(lvl.depth, max_diff_m), lvl.intr.scaled(0.5))
             nrm = normal_map(lvl.vertex_np(), max_diff_m)
+            if obs is not None:
+                obs = downsample_image(obs)
             self.unit_levels.append((lvl.vertex(), o3d.core.Tensor(nrm), lvl.K()))
-            self.levels.append((lvl.vertex(), self._weighted(nrm, lvl.depth, noise_depth_m), lvl.K()))
+            self.levels.append((lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K()))
 
     @staticmethod
-    def _weighted(nrm: np.ndarray, depth: np.ndarray, noise_depth_m: float):
-        """Normals (H, W, 3) times sqrt(w), w = 1 / (1 + (z / noise_depth_m)^4), i.e. the depth
-        at which the sensor noise equals the model noise (see ``ICPConfig.disparity_noise_px``),
-        as an Open3D tensor; unit normals when 0."""
+    def _weighted(nrm: np.ndarray, vertex: np.ndarray, noise_depth_m: float, obs: np.ndarray | None = None):
+        """Normals (H, W, 3) times sqrt(w) as an Open3D tensor, w = 1 / (1 + q^2 (1 + 1 / n)),
+        q = z^2 cos / z0^2, with z0 = ``noise_depth_m`` (the depth at which the sensor noise
+        equals the model noise, see ``ICPConfig.disparity_noise_px``), cos = |n . ray| (depth
+        noise lies along the viewing ray, so a point-to-plane residual sees cos times it) and
+        n = ``obs``, the observations fused at the model point (a model point seen n times
+        carries 1/n of a frame's noise; None = many); unit normals when z0 is 0."""
         o3d = o3d_quiet()
         if not noise_depth_m > 0:
             return o3d.core.Tensor(np.ascontiguousarray(nrm, dtype=np.float32))
-        with np.errstate(invalid="ignore", over="ignore"):
-            q = (depth / np.float32(noise_depth_m)) ** 2
-            scale = (1.0 / np.sqrt(1.0 + q * q)).astype(np.float32)
+        x, y, z = vertex[..., 0], vertex[..., 1], vertex[..., 2]
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            r = np.sqrt(x * x + y * y + z * z)
+            cos = np.abs(nrm[..., 0] * x + nrm[..., 1] * y + nrm[..., 2] * z) / r
+            q = z * z * cos / np.float32(noise_depth_m * noise_depth_m)
+            q2 = q * q
+            if obs is not None:
+                q2 = q2 * (1.0 + 1.0 / np.maximum(obs, np.float32(1.0)))
+            scale = (1.0 / np.sqrt(1.0 + q2)).astype(np.float32)
         return o3d.core.Tensor(np.ascontiguousarray(nrm * scale[..., None], dtype=np.float32))
 
 
