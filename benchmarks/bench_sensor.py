@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--preset", default="kinect_v1")
