@@ -522,13 +522,16 @@ class SensorSimulator:
 
 
 def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps: np.ndarray, writer,
-                        seed: int = 0, motion: bool = True, with_rgb: bool = True, progress: bool = True) -> int:
+                        seed: int = 0, motion: bool = True, with_rgb: bool = True, progress: bool = True,
+                        workers: int = 1) -> int:
     """Simulate every pose and append the frames to a :class:`data_tools.sequence.SequenceWriter`
     (open it with ``camera=sim.camera()``); frames already in the writer (``len(writer)``, a
     resumed run) are skipped, so the result is identical to an uninterrupted run (frame i
     always uses seed ``seed + i`` and pose i - 1 as its previous pose; where that implies more
     than ``sim.config.motion`` allows, the frame is a cut - static - and the progress bar counts
-    it). Returns the number of frames written now.
+    it). Returns the number of frames written now. ``workers`` > 1 simulates that many frames
+    at once in worker processes (:class:`SimulationPool`: more frames per second when cores are
+    free, identical frames, a few seconds of start-up); frames are still written in order.
 
         with SequenceWriter(out, sim.camera(), scene, resume=resume) as w:
             sim.config.save(out / "sensor_config.json")
@@ -538,21 +541,33 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     ts = np.asarray(timestamps, dtype=np.float64)
     if len(poses) != len(ts):
         raise RealgapError(f"simulate_trajectory: {len(poses)} poses but {len(ts)} timestamps")
+    if int(workers) < 1:
+        raise ConfigError(f"simulate_trajectory: workers must be >= 1, got {workers}")
     start = len(writer)
     idx = range(start, len(poses))
     if progress:
         from tqdm import tqdm
         idx = tqdm(idx, desc=f"simulating {sim.preset.name}", initial=start, total=len(poses))
+    prevs = [poses[i - 1] if (motion and i > 0) else None for i in range(len(poses))]
+    pool = SimulationPool(sim, workers=int(workers)) if int(workers) > 1 and start < len(poses) else None
+    if pool is None:
+        results = (sim.simulate(poses[i], seed=seed + i, prev_pose=prevs[i], with_rgb=with_rgb)
+                   for i in range(start, len(poses)))
+    else:
+        results = pool.map(poses[start:], [seed + i for i in range(start, len(poses))], prevs[start:],
+                           with_rgb=with_rgb)
     n = cuts = 0
-    for i in idx:
-        prev = poses[i - 1] if (motion and i > 0) else None
-        res = sim.simulate(poses[i], seed=seed + i, prev_pose=prev, with_rgb=with_rgb)
-        writer.write(res.to_frame(ts[i], i))
-        n += 1
-        if res.log.get("motion", {}).get("cut"):
-            cuts += 1
-            if progress:  # frames whose motion exceeded sim.config.motion (motion effects skipped)
-                idx.set_postfix_str(f"{cuts} motion cut(s)")
+    try:
+        for i, res in zip(idx, results):
+            writer.write(res.to_frame(ts[i], i))
+            n += 1
+            if res.log.get("motion", {}).get("cut"):
+                cuts += 1
+                if progress:  # frames whose motion exceeded sim.config.motion (motion effects skipped)
+                    idx.set_postfix_str(f"{cuts} motion cut(s)")
+    finally:
+        if pool is not None:
+            pool.close()
     return n
 
 
@@ -596,9 +611,10 @@ class SimulationPool:
         # wait until every worker is up (imports, BVH, reference image), so timings exclude it
         list(self._ex.map(_pool_ready, range(self.workers)))
 
-    def map(self, poses_c2w, seeds, prev_poses=None, max_in_flight: int | None = None):
-        """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i])`` in order,
-        with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead."""
+    def map(self, poses_c2w, seeds, prev_poses=None, max_in_flight: int | None = None,
+            with_rgb: bool = False):
+        """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i], with_rgb=with_rgb)``
+        in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead."""
         from collections import deque
         poses = list(poses_c2w)
         seeds = list(seeds)
@@ -623,7 +639,7 @@ class SimulationPool:
         for i in range(len(poses)):
             slot = free.popleft()
             pending.append((self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i], slot.name,
-                                            self.slot_bytes), slot))
+                                            self.slot_bytes, with_rgb), slot))
             if len(pending) >= ahead:
                 yield collect()
         while pending:
@@ -696,10 +712,10 @@ def _set_result_array(res: SimResult, key: tuple, value) -> None:
         res.draws[key[1]][key[2]] = value
 
 
-def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int):
+def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: bool = False):
     """Simulate one frame; its arrays go into the shared-memory slot when they fit:
     ("shm", result without them, [(key, dtype, shape, offset)]), else ("pickle", result)."""
-    res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev)
+    res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev, with_rgb=with_rgb)
     arrays = _result_arrays(res)
     need = sum(-(-a.nbytes // 64) * 64 for _, a in arrays)
     if need > slot_size:
