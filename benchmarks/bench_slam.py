@@ -6,8 +6,8 @@ Open3D's own pipelines measured in the same run.
 Datasets (from ../shared/data; skipped when absent):
   chess : 7-Scenes chess, 1000 frames 640x480 (converted once to TUM layout in --work with
           data_tools.sevenscenes), reference = KinectFusion poses (not a metric ground
-          truth: the raw-cast icp_raw reproduces it better than the refined default,
-          2.96 vs 4.43 cm, see ICPConfig.refine_model).                 Target: ATE <= 3 cm
+          truth; see ICPConfig.refine_model and ICPConfig.disparity_noise_px for why the
+          unweighted refined model drifted against it).                Target: ATE <= 3 cm
   tum   : TUM fr1/xyz, 10 frames, fr1 intrinsics (517.3, 516.5, 318.6, 255.3), mocap reference.
                                                                         Target: icp ATE <= 1.5 cm
   room_sN : the ``realgap demo`` sequence (built-in room, 60 frames walkthrough, kinect_v1
@@ -24,7 +24,8 @@ Methods:
                  integrate + synthesize_model_frame), same voxel size and depth range as ours
 Speed targets on this 2-core CPU: rgbd_odometry + TSDF >= 10 frames/s, icp >= 5 frames/s.
 frames/s counts reading the images, registering and fusing (what ``slam run`` reports). The
-machine may be shared: the load average is printed before and after.
+machine may be shared: the load average is printed before and after and with every row, next
+to the CPU time per frame of all threads (process time, including set-up and mesh export).
 """
 from __future__ import annotations
 

@@ -326,11 +326,12 @@ class TSDFVolume:
         several centimetres in front of the surface (or, past the whole band, a hole). With
         ``refine`` every hit is therefore verified on the trilinear TSDF (all 8 corners observed,
         value within a quarter voxel of zero); a hit that fails is searched again along its ray
-        (one block length on either side, half-voxel steps, first observed + to - crossing) and
+        (one block length on either side, one-voxel steps, first observed + to - crossing) and
         dropped (depth 0) when no crossing is found (see :meth:`_repair_hits`). With ``repair =
         False`` the hits that fail the check are dropped without the search (about 10 % of the
         pixels of a real Kinect model view, half of them false; the search costs more than the
-        rest of the refinement: frame-to-model tracking uses this, renders do not).
+        rest of the refinement: frame-to-model tracking uses this, renders do not). With
+        ``refine`` the result also holds the integration weight at each hit (``weight``).
         """
         attrs = ["depth"] + (["color"] if with_color and self.config.integrate_color else [])
         if with_normal:
@@ -505,20 +506,24 @@ class TSDFVolume:
         if nearest:
             return v[:, 0], np.zeros((len(q), 3)), ok, lin
         fr = q - base
-        x, y, z = fr[:, 0:1], fr[:, 1:2], fr[:, 2:3]
-        wx = np.where(offs[None, :, 0] == 1, x, 1 - x)
-        wy = np.where(offs[None, :, 1] == 1, y, 1 - y)
-        wz = np.where(offs[None, :, 2] == 1, z, 1 - z)
-        sx, sy, sz = (np.where(offs[None, :, i] == 1, 1.0, -1.0) for i in range(3))
-        f = (v * wx * wy * wz).sum(1)
-        grad = np.stack([(v * sx * wy * wz).sum(1), (v * wx * sy * wz).sum(1), (v * wx * wy * sz).sum(1)], -1)
+        x, y, z = fr[:, 0], fr[:, 1], fr[:, 2]
+        c0, c1, c2, c3, c4, c5, c6, c7 = v.T             # corner k at (k & 1, k >> 1 & 1, k >> 2 & 1)
+        d01, d23, d45, d67 = c1 - c0, c3 - c2, c5 - c4, c7 - c6
+        c00, c10, c01, c11 = c0 + x * d01, c2 + x * d23, c4 + x * d45, c6 + x * d67
+        e0, e1 = c10 - c00, c11 - c01
+        f0, f1 = c00 + y * e0, c01 + y * e1
+        f = f0 + z * (f1 - f0)
+        grad = np.stack([(d01 + y * (d23 - d01)) * (1 - z) + (d45 + y * (d67 - d45)) * z,
+                         e0 + z * (e1 - e0), f1 - f0], -1)
         return f, grad / cfg.voxel_size_m, ok, lin
 
     def _repair_hits(self, depth: np.ndarray, suspect: np.ndarray, intr: Intrinsics,
                      pose_c2w: np.ndarray, color: np.ndarray | None, normal: np.ndarray | None
                      ) -> np.ndarray:
         """Search the zero crossing again along the rays of the ``suspect`` hits (see
-        :meth:`raycast`): nearest-voxel samples half a voxel apart over one block length and a
+        :meth:`raycast`): nearest-voxel samples one voxel apart (the negative band behind a
+        surface is ``trunc_voxel_multiplier`` voxels deep, so no crossing falls between two
+        samples; half-voxel steps cost twice as much for the same hits) over one block length and a
         voxel on either side of the reported depth, the first observed + to - sign change,
         then a secant and a Newton step on the trilinear TSDF; the result must pass the same
         quarter-voxel check, else the pixel becomes a miss (depth 0). ``color`` and ``normal``
@@ -553,8 +558,8 @@ class TSDFVolume:
         v, u, d_w, z = v[rest], u[rest], d_w[rest], z[rest]
         if len(v) == 0:
             return out
-        step = 0.5 * vs / np.linalg.norm(d_w, axis=1)                   # depth step of half a voxel
-        reach = 2 * cfg.block_resolution + 2
+        step = vs / np.linalg.norm(d_w, axis=1)                         # depth step of one voxel
+        reach = cfg.block_resolution + 1
         offs = np.arange(-reach, reach + 1, dtype=np.float64)
         zs = z[:, None] + offs[None, :] * step[:, None]                 # (M, S) depths along each ray
         fs, _, oks, _ = self.sample_tsdf((C + zs[..., None] * d_w[:, None, :]).reshape(-1, 3), nearest=True)

@@ -61,16 +61,21 @@ class ICPConfig(TrackingCheckConfig):
     36 cm in 9 frames. ATE refined vs raw against metric ground truth: simulated kinect_v1 room
     (the demo, 60 frames, seeds 0/1/2) 0.17/0.14/0.28 cm vs 7.25/0.46/0.49 cm (1.46 cm on seed
     0 with the false hits removed but no sub-voxel refinement); TUM fr1/xyz (motion capture)
-    0.23 vs 0.60 cm. Against the 7-Scenes chess reference (1000 frames), which is KinectFusion's
-    own trajectory rather than a metric ground truth, the raw cast agrees better: 4.43 cm
-    refined vs 2.96 cm raw (2.84 cm raw with 16-voxel blocks; Sim(3) alignment leaves 4.18 vs
-    2.92 cm, scale 1.024 vs 0.993; the refined run's rotation drift relative to the reference
-    is smaller, 0.87 vs 1.28 deg RMS over 30 frames)."""
-    repair_model: bool = False
+    0.23 vs 0.60 cm. On 7-Scenes chess (1000 frames; the reference is KinectFusion's own
+    trajectory, not a metric ground truth) the raw cast agreed better while the residuals were
+    unweighted (2.96 vs 4.48 cm): not because the refined surface is worse (it lies closer to
+    the frame just fused: median offset -0.4 to -3 mm by incidence angle vs +3 to +12 mm raw)
+    but because the unweighted fit was dominated by far, coarsely quantised depth (25 mm steps
+    at 3 m) and its sideways motion ran 6 % short of the reference over 30-frame windows (raw:
+    1 %). With the sensor noise weights (``disparity_noise_px``) and the failed hits repaired
+    (``repair_model``) the refined default gives 2.86 cm there (3.03 cm with them dropped)."""
+    repair_model: bool = True
     """With ``refine_model``: search the crossing again along the rays whose hit fails the
-    check (:meth:`slam.tsdf.TSDFVolume.raycast` with ``repair``) instead of dropping them.
-    Off by default: dropping them leaves about 10 % holes in a real Kinect model view, which
-    projective ICP does not miss, and the search cost about 90 ms per 320 x 240 view."""
+    check (:meth:`slam.tsdf.TSDFVolume.raycast` with ``repair``) instead of dropping them. In a
+    real Kinect model view about 10 % of the hits fail, mostly on slanted surfaces (a quarter
+    of the hits at 60-75 deg incidence): dropped, they leave the surfaces that pin sideways
+    motion under-represented. Chess, 1000 frames, with the noise weights: 2.86 cm ATE
+    repaired vs 3.03 cm dropped, for about 40 ms more CPU per frame."""
     raycast_scale: float = 0.5
     """Resolution of the model ray cast relative to the frame (1, 0.5 or 0.25): the model view is
     the target of projective association; half resolution costs a quarter of the ray casting."""
@@ -91,14 +96,19 @@ class ICPConfig(TrackingCheckConfig):
     inverse-variance weight w = sigma_0^2 / (sigma_0^2 + (sigma_z cos)^2), where cos = |n . ray|
     (the depth noise lies along the viewing ray; the residual along the normal sees cos of it)
     and sigma_0 = voxel size / sqrt(12) is the noise of the model itself (2.9 mm for 1 cm
-    voxels): for Kinect v1 and a surface facing the camera w = 1/2 at 1.34 m and 1/17 at 3 m. Open3D's kernel has no per-point weight, so the model normals are
-    scaled by sqrt(w) (the rejection distance then applies to sqrt(w) x r: a far point is kept
-    up to a proportionally larger distance, as a test on r / sigma would). Without a sensor
-    block (rendered depth, or a camera given without one) and with 0 the residuals are
-    unweighted. Why: on 7-Scenes chess (Kinect v1: 25 mm depth steps at 3 m, half the pixels
-    beyond 1.9 m) the unweighted fit is dominated by the far, coarsely quantised points and
-    drifts sideways against the reference (x motion 6 % short over 30-frame windows; 4.48 cm
-    ATE over 1000 frames, 4.63 cm over 600); weighted, 3.38 cm over 600 frames."""
+    voxels): for Kinect v1 and a surface facing the camera w = 1/2 at 1.34 m and 1/17 at 3 m.
+    A model point fused from n observations adds 1/n of a frame's noise: sigma_z^2 counts
+    (1 + 1/n) times (n from :attr:`slam.tsdf.RaycastResult.weight`). Open3D's kernel has no
+    per-point weight, so the model normals are scaled by sqrt(w) (the rejection distance then
+    applies to sqrt(w) x r: a far point is kept up to a proportionally larger distance, as a
+    test on r / sigma would); fitness and RMS residual of the failure check stay unweighted.
+    Without a sensor block (rendered depth, or a camera given without one) and with 0 the
+    residuals are unweighted. Why: on 7-Scenes chess (Kinect v1: 25 mm depth steps at 3 m,
+    half the pixels beyond 1.9 m) the unweighted fit is dominated by the far, coarsely
+    quantised points and drifts sideways against the reference: ATE over 1000 frames 4.48 cm
+    unweighted, 3.11 cm with the depth term alone, 3.05 cm with the incidence angle, 3.03 cm
+    with the observation count; the simulated kinect_v1 room (seeds 0/1/2) stays at
+    0.18/0.15/0.28 cm."""
 
     def validate(self) -> "ICPConfig":
         n = len(self.source_levels)
