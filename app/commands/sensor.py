@@ -26,6 +26,7 @@ import argparse
 import json
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 from data_tools.errors import ConfigError, RealgapError
@@ -305,14 +306,37 @@ def _step_label(args, config, fit) -> str | None:
     return None
 
 
+def _measured_and_model(args, preload: bool = True):
+    """(measured sequence of ``args.seq``, sensor model from ``--effects`` / ``--model``)."""
+    measured = _load_measured(args, preload=preload)
+    return measured, build_config(measured, args.effect_list, args.model)
+
+
+def _effect_names_option(text: str, flag: str) -> list[str]:
+    """A non-empty comma list of effect names given to ``flag``."""
+    names = parse_effects(text)
+    if not isinstance(names, list) or not names:
+        raise ConfigError(f"{flag} needs a comma list of effect names")
+    return names
+
+
+@contextmanager
+def _timed(timings: dict, key: str):
+    """Store the wall time of the block in ``timings[key]`` (seconds)."""
+    t = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[key] = time.perf_counter() - t
+
+
 # --------------------------------------------------------------------------- simulate
 
 def _cmd_simulate(args) -> int:
     _check_model_args(args)
     out = Path(args.out)
     t0 = time.perf_counter()
-    measured = _load_measured(args, preload=False)  # streams; a fit reads only its own frames
-    config = build_config(measured, args.effect_list, args.model)
+    measured, config = _measured_and_model(args, preload=False)  # streams; a fit reads only its own frames
     config, fit = _maybe_fit(args, measured, config, out)
     n_new, n_kept = write_simulated_sequence(measured, config, out, seed=args.seed, overwrite=args.overwrite,
                                              lab_config=_lab_config(args, "simulate", measured, config))
@@ -446,24 +470,19 @@ def _cmd_compare(args) -> int:
     _check_model_args(args)
     out = Path(args.out)
     timings = {}
-    t = time.perf_counter()
-    measured = _load_measured(args)
-    config = build_config(measured, args.effect_list, args.model)
-    timings["load_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    config, fit = _maybe_fit(args, measured, config, out)
-    timings["fit_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    sims = _simulate_all(measured, config, args.seed)
-    timings["simulate_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    obs = measured.observations(sims)
-    ccfg = compare_preset(args.compare_preset)
-    ccfg.seed = int(args.seed)
-    effects = config.names(enabled_only=True)
-    result = run_lab(obs, out, effects=effects, label=_step_label(args, config, fit), config=ccfg,
-                     compare_against=args.compare_against, report_frames=args.report_frames)
-    timings["compare_report_s"] = time.perf_counter() - t
+    with _timed(timings, "load_s"):
+        measured, config = _measured_and_model(args)
+    with _timed(timings, "fit_s"):
+        config, fit = _maybe_fit(args, measured, config, out)
+    with _timed(timings, "simulate_s"):
+        sims = _simulate_all(measured, config, args.seed)
+    with _timed(timings, "compare_report_s"):
+        obs = measured.observations(sims)
+        ccfg = compare_preset(args.compare_preset)
+        ccfg.seed = int(args.seed)
+        effects = config.names(enabled_only=True)
+        result = run_lab(obs, out, effects=effects, label=_step_label(args, config, fit), config=ccfg,
+                         compare_against=args.compare_against, report_frames=args.report_frames)
     config.save(out / "sensor_config.json")
     extra = {"compare_preset": args.compare_preset, "compare_against": args.compare_against,
              "label": args.label, "gap": result.gap, "timings_s": {k: round(v, 3) for k, v in timings.items()}}
@@ -495,27 +514,20 @@ def _cmd_diagnose(args) -> int:
     from synth.lab.report import write_diagnosis_report
     _check_model_args(args)
     out = Path(args.out)
-    candidates = None
-    if args.candidates:
-        candidates = parse_effects(args.candidates)
-        if not isinstance(candidates, list) or not candidates:
-            raise ConfigError("--candidates needs a comma list of effect names")
+    candidates = _effect_names_option(args.candidates, "--candidates") if args.candidates else None
     timings = {}
-    t = time.perf_counter()
-    measured = _load_measured(args)
-    config = build_config(measured, args.effect_list, args.model)
-    timings["load_s"] = time.perf_counter() - t
-    t = time.perf_counter()
-    diag = diagnose(measured, config, candidates=candidates, fit_config=_fit_config(args), progress=True,
-                    diagnose_config=_diagnose_config(args))
-    timings["diagnose_s"] = time.perf_counter() - t
+    with _timed(timings, "load_s"):
+        measured, config = _measured_and_model(args)
+    with _timed(timings, "diagnose_s"):
+        diag = diagnose(measured, config, candidates=candidates, fit_config=_fit_config(args), progress=True,
+                        diagnose_config=_diagnose_config(args))
     diag.save(out)
     models = save_diagnosis_models(diag, out, top=args.top)
-    t = time.perf_counter()
-    figs = diagnosis_figure_data(measured, config, diag, top=args.top, n_frames=args.report_frames, seed=args.seed)
-    path = write_diagnosis_report(diag.to_json(), figs["base"], figs["candidates"], out,
-                                  measured_name=str(args.seq))
-    timings["report_s"] = time.perf_counter() - t
+    with _timed(timings, "report_s"):
+        figs = diagnosis_figure_data(measured, config, diag, top=args.top, n_frames=args.report_frames,
+                                     seed=args.seed)
+        path = write_diagnosis_report(diag.to_json(), figs["base"], figs["candidates"], out,
+                                      measured_name=str(args.seq))
     config.save(out / "sensor_config.json")
     _write_json(out / LAB_CONFIG_FILE, _lab_config(args, "diagnose", measured, config, {
         "candidates": candidates, "top": args.top, "gap": diag.gap,
@@ -593,15 +605,12 @@ def _cmd_fit(args) -> int:
     from synth.lab.model import save_model
     _check_model_args(args)
     out = Path(args.out)
-    measured = _load_measured(args)
-    config = build_config(measured, args.effect_list, args.model)
+    measured, config = _measured_and_model(args)
     if not config.fittable():
         raise ConfigError("the model has no fittable parameter (add effects with --effects)")
     names = None
     if args.only:
-        names = parse_effects(args.only)
-        if not isinstance(names, list) or not names:
-            raise ConfigError("--only needs a comma list of effect names")
+        names = _effect_names_option(args.only, "--only")
         missing = [n for n in names if n not in config.names()]
         if missing:
             raise ConfigError(f"--only names effects that are not in the model: {', '.join(missing)}")
