@@ -233,6 +233,14 @@ def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
         shutil.copy2(src, dst)
 
 
+def spread_indices(n_total: int, n: int | None) -> list[int]:
+    """``n`` indices evenly spread over ``range(n_total)``, first and last included (all of them
+    when ``n`` is None or >= n_total; none when n is 0)."""
+    if n is None or n >= n_total:
+        return list(range(n_total))
+    return sorted(set(np.linspace(0, n_total - 1, int(n)).round().astype(int).tolist()))
+
+
 def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     """Metres -> uint16 PNG values; NaN, <= 0 and values beyond the uint16 range become 0."""
     d = np.asarray(depth_m, dtype=np.float64) * depth_scale

@@ -39,7 +39,7 @@ from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh, check_mesh
 from data_tools.scene_spec import Material, SceneSpec, write_scene_json
-from data_tools.sequence import SequenceReader, link_or_copy
+from data_tools.sequence import SequenceReader, link_or_copy, spread_indices
 from slam.registration import config_from_dict, config_to_dict
 from slam.tsdf import TSDFConfig, TSDFVolume
 
@@ -162,14 +162,11 @@ def clean_mesh(mesh: TriMesh, min_component_triangles: int = 0) -> tuple[TriMesh
     tri = tri[keep]
     _, first = np.unique(np.sort(tri, axis=1), axis=0, return_index=True)
     tri = tri[np.sort(first)]
-    for _ in range(3):  # dropping triangles can only lower edge counts; one pass is usually enough
-        e = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], 1), axis=2)  # (F, 3, 2)
-        flat = e.reshape(-1, 2)
-        _, inv, cnt = np.unique(flat, axis=0, return_inverse=True, return_counts=True)
-        bad_tri = (cnt[inv.reshape(-1)] > 2).reshape(-1, 3).any(1)
-        if not bad_tri.any():
-            break
-        tri = tri[~bad_tri]
+    # one pass: every triangle on an edge shared by > 2 triangles goes, so that edge is gone and
+    # the counts of all other edges can only fall
+    e = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], 1), axis=2)  # (F, 3, 2)
+    _, inv, cnt = np.unique(e.reshape(-1, 2), axis=0, return_inverse=True, return_counts=True)
+    tri = tri[~(cnt[inv.reshape(-1)] > 2).reshape(-1, 3).any(1)]
     if min_component_triangles > 0 and len(tri):
         e = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], 1), axis=2).reshape(-1, 2)
         _, inv = np.unique(e, axis=0, return_inverse=True)
@@ -194,12 +191,6 @@ def clean_mesh(mesh: TriMesh, min_component_triangles: int = 0) -> tuple[TriMesh
     return out, n0 - len(tri)
 
 
-def _spread(n: int, k: int) -> list[int]:
-    if k <= 0 or k >= n:
-        return list(range(n))
-    return sorted(set(np.linspace(0, n - 1, k).round().astype(int).tolist()))
-
-
 def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: ReferenceConfig | None = None, *,
                    camera: Camera | None = None, progress: bool = False) -> ReferenceResult:
     """Fuse the frames of ``sequence`` at their ground-truth poses into one TSDF and return its
@@ -215,7 +206,7 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
     idx = np.flatnonzero(has_pose).tolist()
     if not idx:
         raise FormatError(reader.path / "groundtruth.txt", "no ground-truth pose within 0.02 s of any depth frame")
-    idx = [idx[i] for i in _spread(len(idx), int(cfg.max_frames))]
+    idx = [idx[i] for i in spread_indices(len(idx), int(cfg.max_frames) or None)]
     t0 = time.perf_counter()
     vol = TSDFVolume(cfg.tsdf)
     intr = reader.intrinsics

@@ -585,10 +585,10 @@ def candidate_config(config, effect: str, params: dict):
 def diagnosis_figure_data(measured, config, diag, *, top: int = 3, n_frames: int = 3, seed: int = 0) -> dict:
     """Observations for the diagnosis figures: the base model and each of the ``top``
     candidates (fitted parameters) on ``n_frames`` evenly spread frames."""
-    import numpy as np
+    from data_tools.sequence import spread_indices
     n = len(measured)
     k = max(1, min(int(n_frames), n))
-    picks = sorted(set(np.linspace(0, n - 1, k).round().astype(int).tolist()))
+    picks = spread_indices(n, k)
     base_cfg = getattr(diag, "model_config", None) or config
     base = measured.observations(measured.simulate(base_cfg, seed=seed, frames=picks), frames=picks)
     cands = {}

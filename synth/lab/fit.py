@@ -80,6 +80,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from data_tools.errors import ConfigError, RealgapError
+from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
 from synth.lab.effect_extras import EXTRA_PARAMETERS, ExtraParameter, extra_parameters
 
@@ -412,13 +413,6 @@ def set_params(config, values: dict[str, float]):
 # ------------------------------------------------------------------------------------------
 # Objective and search
 # ------------------------------------------------------------------------------------------
-
-def spread(n_total: int, n: int | None) -> list[int]:
-    """``n`` positions evenly spread over range(n_total) (all when n is None or >= n_total)."""
-    if n is None or n >= n_total:
-        return list(range(n_total))
-    return sorted(set(np.linspace(0, n_total - 1, int(n)).round().astype(int).tolist()))
-
 
 class Objective:
     """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values)."""

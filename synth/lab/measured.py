@@ -34,6 +34,7 @@ import numpy as np
 from data_tools.camera import Camera, Intrinsics
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.scene_spec import SceneSpec
+from data_tools.sequence import spread_indices
 from synth.lab.compare import CompareCache
 from synth.lab.features import FrameObservation, material_table_from_scene
 
@@ -166,8 +167,7 @@ class MeasuredSequence:
             if int(max_frames) < 1:
                 raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
             if len(with_pose) > int(max_frames):
-                pick = np.unique(np.linspace(0, len(with_pose) - 1, int(max_frames)).round().astype(int))
-                with_pose = with_pose[pick]
+                with_pose = with_pose[spread_indices(len(with_pose), int(max_frames))]
         pre = preset_from_camera(reader.camera, preset, cam_file)
         prev = []
         period = 1.0 / pre.fps

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import RealgapError
+from data_tools.sequence import spread_indices
 from synth.lab.compare import (VALIDITY_LABELS, CompareConfig, CompareResult, Region, compare,
                                error_map, validity_map, worst_bins, worst_blocks)
 from synth.lab.features import FrameObservation
@@ -302,7 +303,7 @@ def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike
     result = compare(obs, config, effects=effects, label=label)
     entries = append_history(out_dir, list(effects), result.gap, label, compare_against=compare_against)
     k = max(0, min(int(report_frames), len(obs)))
-    picks = sorted(set(np.linspace(0, len(obs) - 1, k).round().astype(int).tolist())) if k else []
+    picks = spread_indices(len(obs), k)
     write_report(result, [obs[i] for i in picks], out_dir, entries)
     return result
 
