@@ -148,6 +148,27 @@ def test_fit_saves_model_reused_by_compare(measured, tmp_path):
     assert ax["params"] == fitted["params"]
 
 
+def test_fit_accepts_lab_side_parameters_and_model_keeps_motion_limits(measured, tmp_path):
+    """lens_distortion's k1/k2 are fitted by the lab (effect_extras), so `sensor fit` must accept
+    a model with only that effect; a --model file keeps its other fields (motion limits)."""
+    import dataclasses
+
+    from synth.lab.model import save_model
+    from synth.sensor.simulator import MotionLimits, SensorConfig
+    model = tmp_path / "lens.json"
+    assert main(["sensor", "fit", str(measured), "--effects", "lens_distortion", "--out", str(model),
+                 "--fit-option", "max_evaluations=4", "--fit-option", "max_frames=1",
+                 "--fit-option", "max_pixels_per_frame=1500"]) == 0
+    assert set(json.loads(model.read_text())["fit"]["params"]) == {"lens_distortion.k1", "lens_distortion.k2"}
+    motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
+    slow = save_model(dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise"]), motion=motion),
+                      tmp_path / "slow.json")
+    from app.commands.sensor import build_config
+    from synth.lab.measured import MeasuredSequence
+    cfg = build_config(MeasuredSequence.load(measured, max_frames=1), ["projector_shadow"], slow)
+    assert cfg.motion == motion and cfg.names() == ["axial_noise", "projector_shadow"]
+
+
 # ------------------------------------------------------------------------------------ diagnose
 
 def test_diagnose_ranks_the_missing_effect_first(measured, tmp_path):

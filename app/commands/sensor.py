@@ -23,6 +23,7 @@ output (``lab_config.json``, ``sensor_config.json``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -198,7 +199,6 @@ def build_config(measured, effects, model_path=None):
     measured sequence's preset, plus ``effects`` it lacks (preset defaults); without a model
     file, ``measured.default_config(effects)``."""
     from synth.sensor.registry import make_effect
-    from synth.sensor.simulator import SensorConfig
     if not model_path:
         return measured.default_config(list(effects) if isinstance(effects, list) else effects)
     from synth.lab.model import load_model
@@ -211,7 +211,7 @@ def build_config(measured, effects, model_path=None):
     for n in effects or []:
         if n not in have:
             effs.append(make_effect(n, pre.effect_params.get(n)))
-    return SensorConfig(pre, effs)
+    return dataclasses.replace(model, preset=pre, effects=effs)  # keeps the model's other fields (motion)
 
 
 def _options(cls, items, flag: str, base: dict | None = None):
@@ -281,12 +281,20 @@ def _lab_config(args, cmd: str, measured, config, extra: dict | None = None) -> 
     return d
 
 
+def _require_fittable(config, prefix: str = "") -> None:
+    """Raise when the fit would have nothing to search: the lab's parameter space
+    (:func:`synth.lab.fit.param_specs`: the effects' FITTABLE plus the lab-side extras such as
+    the lens distortion coefficients), not the effects' FITTABLE alone."""
+    from synth.lab.fit import param_specs
+    if not param_specs(config):
+        raise ConfigError(f"{prefix}the model has no fittable parameter (add effects with --effects)")
+
+
 def _maybe_fit(args, measured, config, out_dir: Path | None):
     """Fit the parameters when --fit was given; saves out_dir/model.json and returns (config, FitResult|None)."""
     if not getattr(args, "fit", False):
         return config, None
-    if not config.fittable():
-        raise ConfigError("--fit: the model has no fittable parameter (add effects with --effects)")
+    _require_fittable(config, "--fit: ")
     from synth.lab.fit import fit_model
     from synth.lab.model import save_model
     res = fit_model(measured, config, fit_config=_fit_config(args), progress=True)
@@ -562,26 +570,6 @@ def save_diagnosis_models(diag, out_dir: Path, top: int = 3) -> dict[str, Path]:
     return out
 
 
-def candidate_config(config, effect: str, params: dict):
-    """``config`` plus ``effect`` (preset defaults) with ``params`` applied; params keys may be
-    ``"effect.param"`` or plain ``"param"`` (taken as parameters of ``effect``)."""
-    from synth.sensor.registry import make_effect
-    from synth.sensor.simulator import SensorConfig
-    pre = config.preset
-    effs = list(config.effects)
-    if effect not in {e.name for e in effs}:
-        effs.append(make_effect(effect, pre.effect_params.get(effect)))
-    cfg = SensorConfig(pre, effs)
-    vals = {}
-    for k, v in (params or {}).items():
-        key = k if "." in k else f"{effect}.{k}"
-        try:
-            vals[key] = float(v)
-        except (TypeError, ValueError):
-            continue
-    return cfg.with_params(vals) if vals else cfg
-
-
 def diagnosis_figure_data(measured, config, diag, *, top: int = 3, n_frames: int = 3, seed: int = 0) -> dict:
     """Observations for the diagnosis figures: the base model and each of the ``top``
     candidates (fitted parameters) on ``n_frames`` evenly spread frames."""
@@ -589,11 +577,11 @@ def diagnosis_figure_data(measured, config, diag, *, top: int = 3, n_frames: int
     n = len(measured)
     k = max(1, min(int(n_frames), n))
     picks = spread_indices(n, k)
-    base_cfg = getattr(diag, "model_config", None) or config
+    base_cfg = diag.model_config or config
     base = measured.observations(measured.simulate(base_cfg, seed=seed, frames=picks), frames=picks)
     cands = {}
     for c in diag.ranking[:max(0, int(top))]:
-        cfg = getattr(c, "config", None) or candidate_config(base_cfg, c.effect, c.params)
+        cfg = c.config  # diagnose() sets every candidate's fitted config
         cands[c.effect] = measured.observations(measured.simulate(cfg, seed=seed, frames=picks), frames=picks)
     return {"base": base, "candidates": cands, "frames": picks}
 
@@ -606,8 +594,7 @@ def _cmd_fit(args) -> int:
     _check_model_args(args)
     out = Path(args.out)
     measured, config = _measured_and_model(args)
-    if not config.fittable():
-        raise ConfigError("the model has no fittable parameter (add effects with --effects)")
+    _require_fittable(config)
     names = None
     if args.only:
         names = _effect_names_option(args.only, "--only")
