@@ -39,7 +39,7 @@ from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh, check_mesh
 from data_tools.scene_spec import Material, SceneSpec, write_scene_json
-from data_tools.sequence import SequenceReader, link_or_copy, spread_indices
+from data_tools.sequence import SequenceReader, link_or_copy, read_index, spread_indices
 from slam.registration import config_from_dict, config_to_dict
 from slam.tsdf import TSDFConfig, TSDFVolume
 
@@ -241,12 +241,12 @@ def _copy_sequence(reader: SequenceReader, out: Path, camera: Camera) -> None:
     for name in ("depth.txt", "rgb.txt", "groundtruth.txt"):
         if (src / name).is_file():
             shutil.copyfile(src / name, out / name)
-    for rel in reader.depth_files:
-        link_or_copy(src / rel, out / rel)
-    if (src / "rgb.txt").is_file():
-        from data_tools.sequence import read_index
-        for rel in read_index(src / "rgb.txt")[1]:
-            link_or_copy(src / rel, out / rel)
+    # every image the copied index files list (reader.depth_files holds only the depth frames
+    # associated with a colour image, and the copied depth.txt lists all of them)
+    for name in ("depth.txt", "rgb.txt"):
+        if (src / name).is_file():
+            for rel in read_index(src / name)[1]:
+                link_or_copy(src / rel, out / rel)
     write_camera_json(out / "camera.json", camera)
 
 

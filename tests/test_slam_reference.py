@@ -114,3 +114,19 @@ def test_make_reference_errors_and_named_cameras(ideal_seq, tmp_path):
     assert p.returncode == 1 and "tum_fr1" in p.stderr and len(p.stderr.strip().splitlines()) == 1
     assert named_camera("tum_fr1").intrinsics.fx == 517.3
     assert NAMED_CAMERAS["sevenscenes"].depth_scale == 1000.0
+
+
+def test_make_reference_copy_opens_when_a_depth_frame_has_no_colour(ideal_seq, tmp_path):
+    """The copy lists the same depth frames as the source, so every one of them must be copied,
+    also a depth frame without a colour image within 0.02 s (it is not in reader.depth_files)."""
+    import shutil
+    src = tmp_path / "gap"
+    shutil.copytree(ideal_seq, src)
+    lines = (src / "rgb.txt").read_text().splitlines()
+    body = [ln for ln in lines if not ln.startswith("#")]
+    (src / "rgb.txt").write_text("\n".join([ln for ln in lines if ln.startswith("#")] + body[:3] + body[4:]) + "\n")
+    assert len(SequenceReader(src).depth_files) == 7
+    out = tmp_path / "gap_ref"
+    make_reference(src, out, ReferenceConfig(tsdf=TSDFConfig(voxel_size_m=0.05, integrate_color=False)))
+    assert sorted(p.name for p in (out / "depth").iterdir()) == sorted(p.name for p in (src / "depth").iterdir())
+    assert len(SequenceReader(out).depth_files) == 7
