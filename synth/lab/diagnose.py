@@ -242,10 +242,9 @@ def _applicability(config, name: str) -> str | None:
     return None
 
 
-def _changes_depth(measured, base_cfg, cand_cfg, name: str, frame: int, seed: int) -> bool:
-    """Does the candidate change the simulated depth of ``frame`` at its defaults or at any
-    parameter bound?"""
-    base = measured.simulate(base_cfg, seed, [frame])[0]
+def _changes_depth(measured, base_depth: np.ndarray, cand_cfg, name: str, frame: int, seed: int) -> bool:
+    """Does the candidate change the simulated depth of ``frame`` (``base_depth``: the base
+    model's simulation of it with the same seed) at its defaults or at any parameter bound?"""
     trials = [{}]
     for s in param_specs(cand_cfg, [name]):
         trials += [{s.key: s.low}, {s.key: s.high}]
@@ -255,7 +254,7 @@ def _changes_depth(measured, base_cfg, cand_cfg, name: str, frame: int, seed: in
             d = measured.simulate(cfg, seed, [frame])[0]
         except ConfigError:
             continue
-        if not np.array_equal(d, base):
+        if not np.array_equal(d, base_depth):
             return True
     return False
 
@@ -326,7 +325,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
                 cand_cfg = _with_effect(base_cfg, name)
             except ConfigError as e:
                 why = f"cannot be added to this model ({e})"
-        if why is None and dc.probe and not _changes_depth(measured, base_cfg, cand_cfg, name,
+        if why is None and dc.probe and not _changes_depth(measured, base_sims[len(frames) // 2], cand_cfg, name,
                                                            frames[len(frames) // 2], fc.seed):
             why = "leaves the simulated depth unchanged here (tried its defaults and every parameter at its bounds)"
         if why is not None:

@@ -621,7 +621,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     try:
         start_cfg = config
         g_start = obj(config)
-        data_start = start_values(measured, config, [k.split(".")[0] for k in {s.key for s in specs}], frames)
+        data_start = start_values(measured, config, list(dict.fromkeys(s.key.split(".", 1)[0] for s in specs)), frames)
         if data_start:
             cand = set_params(config, data_start)
             g = obj(cand)
