@@ -47,7 +47,6 @@ The budget knobs are in :class:`DiagnoseConfig` and :class:`FitConfig`.
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
 from collections.abc import Sequence
@@ -57,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import ConfigError
+from synth.lab.compare import _clean
 from synth.lab.effect_extras import SENSOR_TYPES, effect_sensor_types
 from synth.lab.evidence import EvidenceContext, evidence_for
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
@@ -208,19 +208,6 @@ class Diagnosis:
         p = out / DIAGNOSIS_FILE
         p.write_text(json.dumps(self.to_json(), indent=2) + "\n")
         return p
-
-
-def _clean(x):
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
 
 
 def _with_effect(config, name: str):

@@ -339,7 +339,7 @@ def _quant(ctx: EvidenceContext, params: dict, gain: float | None = None) -> str
 
     Signature present: R >= 0.3 and R exceeds the current model's by >= 0.2."""
     pre = ctx.preset
-    fb = float(pre.fx * pre.baseline_m)
+    fb = float(pre.fb)
     if fb <= 0:
         return "the sensor does not triangulate: no disparity levels."
     step = params.get("disparity_quantization.step_px") or float(pre.subpixel_step_px)
