@@ -108,3 +108,17 @@ def test_views_cli_bad_input_one_line(box_ply, tmp_path, capsys):
     assert "too small" in msg and "0.175 mm" in msg and "already in metres" in msg
     msg = one_line_error("--model", str(box_ply), "--distance", "0.3", "--out", str(tmp_path / "s"))
     assert "minimum depth" in msg
+
+
+def test_views_sensor_crop_keeps_the_json_motion_limits(tmp_path):
+    """A sensor_config.json with --width/--height is cropped, every other field kept."""
+    import argparse
+    import dataclasses
+
+    from app.commands.synth import _views_sensor
+    from synth.sensor.simulator import MotionLimits, SensorConfig
+    motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
+    path = tmp_path / "sensor_config.json"
+    dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise"]), motion=motion).save(path)
+    cfg = _views_sensor(argparse.Namespace(sensor=str(path), effects=None, width=320, height=240))
+    assert cfg.motion == motion and cfg.preset.width == 320 and cfg.names() == ["axial_noise"]

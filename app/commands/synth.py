@@ -253,7 +253,7 @@ def _views_sensor(args: argparse.Namespace):
         cfg = SensorConfig.build(args.sensor, args.effects)
     if args.width is not None or args.height is not None:
         pre = cfg.preset
-        cfg = SensorConfig(pre.cropped(args.width or pre.width, args.height or pre.height), cfg.effects)
+        cfg = replace(cfg, preset=pre.cropped(args.width or pre.width, args.height or pre.height))  # keeps motion
     return cfg
 
 

@@ -16,7 +16,7 @@ import json
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -207,7 +207,7 @@ class SensorConfig:
                     break
             else:
                 raise ConfigError(f"{key}: effect {en!r} is not in this sensor model")
-        return SensorConfig(self.preset, effects, self.motion)
+        return replace(self, effects=effects)
 
 
 # ------------------------------------------------------------------------------------------
@@ -549,7 +549,8 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
         from tqdm import tqdm
         idx = tqdm(idx, desc=f"simulating {sim.preset.name}", initial=start, total=len(poses))
     prevs = [poses[i - 1] if (motion and i > 0) else None for i in range(len(poses))]
-    pool = SimulationPool(sim, workers=int(workers)) if int(workers) > 1 and start < len(poses) else None
+    n_workers = min(int(workers), len(poses) - start)   # no more processes than frames left
+    pool = SimulationPool(sim, workers=n_workers) if n_workers > 1 else None
     if pool is None:
         results = (sim.simulate(poses[i], seed=seed + i, prev_pose=prevs[i], with_rgb=with_rgb)
                    for i in range(start, len(poses)))

@@ -288,8 +288,6 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     written = 0
     views = []
     for idx, d, roll in it:
-        if idx in done:
-            continue
         T_c2w = _look_at_with_roll(centre + d * dist, centre, roll)
         res = sim.simulate(T_c2w, seed=cfg.seed + idx)
         name = f"{idx:06d}.png"
