@@ -132,13 +132,12 @@ class ModelView:
 
     ``levels[k]`` holds the normals scaled by the square root of the residual weight of each
     model point (see ``ICPConfig.disparity_noise_px``; unit normals without weighting), used by
-    the Gauss-Newton steps; ``unit_levels[k]`` the same level with unit normals, used for the
+    the Gauss-Newton steps; :meth:`unit_level` the same level with unit normals, used for the
     statistics of the failure check (fitness, RMS residual in metres)."""
 
     def __init__(self, volume, intr: Intrinsics, pose_c2w: np.ndarray, n_levels: int, max_diff_m: float,
                  normals: str = "depth", refine: bool = False, repair: bool = False,
                  noise_depth_m: float = 0.0):
-        o3d = o3d_quiet()
         r = volume.raycast(intr, pose_c2w, with_color=False, with_normal=normals == "tsdf",
                            block_coords=volume.last_block_coords, refine=refine, repair=repair)
         depth = r.depth.copy()
@@ -152,16 +151,27 @@ class ModelView:
             nrm = smooth_normal_map(depth, intr.K, max_diff_m)
         lvl = Level(depth, intr)
         self.valid = int(np.count_nonzero(~miss))
-        obs = r.weight
-        self.unit_levels = [(lvl.vertex(), o3d.core.Tensor(nrm), lvl.K())]
+        weighted = noise_depth_m > 0
+        obs = r.weight if weighted else None
+        self._unit_normals = [nrm]     # (H, W, 3) float32 unit normals per level (for unit_level)
+        self._weighted_levels = weighted
         self.levels = [(lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K())]
         for _ in range(1, n_levels):
             lvl = Level(downsample_depth(lvl.depth, max_diff_m), lvl.intr.scaled(0.5))
             nrm = normal_map(lvl.vertex_np(), max_diff_m)
             if obs is not None:
                 obs = downsample_image(obs)
-            self.unit_levels.append((lvl.vertex(), o3d.core.Tensor(nrm), lvl.K()))
+            self._unit_normals.append(nrm)
             self.levels.append((lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K()))
+
+    def unit_level(self, k: int):
+        """Level k with unit normals (the failure-check statistics read one level per frame; without
+        weighting it is ``levels[k]`` itself)."""
+        if not self._weighted_levels:
+            return self.levels[k]
+        o3d = o3d_quiet()
+        vertex, _, K = self.levels[k]
+        return vertex, o3d.core.Tensor(self._unit_normals[k]), K
 
     @staticmethod
     def _weighted(nrm: np.ndarray, vertex: np.ndarray, noise_depth_m: float, obs: np.ndarray | None = None):
@@ -245,7 +255,7 @@ class ICPBackend(RegistrationBackend):
         tgt = [view.levels[max(0, l - self._ray_down)] for l in c.source_levels]
         return icp_point_to_plane(src, tgt, init_rel, list(c.iterations), list(c.max_correspondence_m),
                                   c.huber_delta_m,
-                                  stats_target=view.unit_levels[max(0, c.source_levels[-1] - self._ray_down)])
+                                  stats_target=view.unit_level(max(0, c.source_levels[-1] - self._ray_down)))
 
     def _check(self, sol: SolveResult, pose: np.ndarray, t: float) -> str:
         c = self.config
