@@ -69,20 +69,12 @@ def _datasets(work: Path, names: list[str]):
 
 
 def _simulated_room(folder: Path, seed: int, frames: int = 60) -> Path:
-    """The demo's simulated Kinect v1 room sequence (generated once; returns its folder)."""
-    from data_tools.sequence import SequenceReader, SequenceWriter
-    from synth.sensor import SensorSimulator, simulate_trajectory
-    from synth.sequence import SequenceConfig, generate_sequence
+    """The demo's simulated Kinect v1 room sequence (generated once, resumed if cut short;
+    returns its folder)."""
+    from synth.sequence import SequenceConfig, generate_sensor_sequence
     sim_dir = folder / "kinect_v1"
-    if (sim_dir / "depth.txt").is_file() and len((sim_dir / "depth.txt").read_text().splitlines()) >= frames:
-        return sim_dir
-    generate_sequence(SequenceConfig(scene="room", frames=frames, seed=seed), folder / "ideal",
-                      overwrite=True, progress=False)
-    ideal = SequenceReader(folder / "ideal")
-    sim = SensorSimulator("kinect_v1", None, ideal.scene)
-    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, overwrite=True) as w:
-        simulate_trajectory(sim, ideal.trajectory.poses, ideal.trajectory.timestamps, w, seed=seed,
-                            progress=False)
+    generate_sensor_sequence(SequenceConfig(scene="room", frames=frames, seed=seed), folder / "ideal", sim_dir,
+                             "kinect_v1", resume=True, progress=False)
     return sim_dir
 
 

@@ -226,3 +226,30 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
     return GenerateResult(out_dir, len(writer), n_written, start, empty,
                           render_s / n_written * 1e3 if n_written else float("nan"),
                           time.perf_counter() - t_start, config)
+
+
+def generate_sensor_sequence(config: SequenceConfig, ideal_dir: str | Path, sim_dir: str | Path,
+                             sensor="kinect_v1", effects=None, *, resume: bool = False,
+                             overwrite: bool = False, progress: bool = True,
+                             workers: int = 1) -> tuple[GenerateResult, int]:
+    """Render ``config`` into ``ideal_dir`` (:func:`generate_sequence`: ground truth and ideal
+    depth) and simulate the depth sensor on the same poses into ``sim_dir`` (TUM layout with
+    ``sensor_config.json``; frame i uses seed ``config.seed + i``, see
+    :func:`synth.sensor.simulate_trajectory`). ``sensor`` and ``effects`` are those of
+    :class:`synth.sensor.SensorSimulator` (a preset name or a SensorConfig, 'physical',
+    'direct' or effect names); ``resume`` / ``overwrite`` apply to both folders; ``workers`` > 1
+    simulates frames in parallel processes (same frames). Returns (the ideal sequence's
+    :class:`GenerateResult`, frames simulated now)."""
+    from data_tools.sequence import SequenceReader
+    from synth.sensor import SensorSimulator, simulate_trajectory
+    ideal_dir, sim_dir = Path(ideal_dir), Path(sim_dir)
+    ideal_res = generate_sequence(config, ideal_dir, resume=resume and (ideal_dir / "depth.txt").exists(),
+                                  overwrite=overwrite, progress=progress)
+    ideal = SequenceReader(ideal_dir)
+    traj = ideal.trajectory
+    sim = SensorSimulator(sensor, effects, ideal.scene)
+    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, resume=resume, overwrite=overwrite) as w:
+        sim.config.save(sim_dir / "sensor_config.json")
+        n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=config.seed, progress=progress,
+                                workers=workers)
+    return ideal_res, n

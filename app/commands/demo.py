@@ -25,11 +25,10 @@ def register(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    from data_tools.sequence import SequenceReader, SequenceWriter
+    from data_tools.sequence import SequenceReader
     from slam.metrics import ate
     from slam.pipeline import make_config, run_slam
-    from synth.sensor import SensorSimulator, simulate_trajectory
-    from synth.sequence import SequenceConfig, generate_sequence
+    from synth.sequence import SequenceConfig, generate_sensor_sequence
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -37,16 +36,11 @@ def run(args) -> int:
     ideal_dir, sim_dir, run_dir = out / "room_ideal", out / f"room_{args.sensor}", out / "slam_icp"
 
     print(f"[1/4] rendering the built-in room ({args.frames} frames, ideal depth) -> {ideal_dir}")
+    print(f"[2/4] simulating a {args.sensor} on the same poses (physical pipeline) -> {sim_dir}")
     cfg = SequenceConfig(scene="room", frames=args.frames, seed=args.seed)
-    generate_sequence(cfg, ideal_dir, resume=(ideal_dir / "depth.txt").exists())
+    generate_sensor_sequence(cfg, ideal_dir, sim_dir, args.sensor, resume=True)
     ideal = SequenceReader(ideal_dir)
     traj = ideal.trajectory
-
-    print(f"[2/4] simulating a {args.sensor} on the same poses (physical pipeline) -> {sim_dir}")
-    sim = SensorSimulator(args.sensor, None, ideal.scene)
-    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, resume=(sim_dir / "depth.txt").exists()) as w:
-        sim.config.save(sim_dir / "sensor_config.json")
-        simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=args.seed)
 
     print(f"[3/4] registering the simulated sequence with frame-to-model ICP + TSDF -> {run_dir}")
     res = run_slam(sim_dir, run_dir, make_config("icp"), resume=True)

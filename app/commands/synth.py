@@ -127,22 +127,15 @@ def _cmd_sensor_sequence(args: argparse.Namespace, cfg) -> int:
     import shutil
     from pathlib import Path
 
-    from data_tools.sequence import SequenceReader, SequenceWriter
-    from synth.sensor import SensorSimulator, simulate_trajectory
-    from synth.sequence import generate_sequence
+    from synth.sequence import generate_sensor_sequence
 
     out = Path(args.out)
     if args.overwrite and out.exists():
         shutil.rmtree(out)
     ideal_dir = out / "ideal"
-    generate_sequence(cfg, ideal_dir, resume=args.resume and (ideal_dir / "depth.txt").exists(), progress=True)
-    ideal = SequenceReader(ideal_dir)
-    traj = ideal.trajectory
-    sim = SensorSimulator(args.sensor, args.effects, ideal.scene)
-    with SequenceWriter(out, sim.camera(), ideal.scene, resume=args.resume) as w:
-        sim.config.save(out / "sensor_config.json")
-        done = len(w)
-        n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=cfg.seed, workers=args.workers)
+    ideal, n = generate_sensor_sequence(cfg, ideal_dir, out, args.sensor, args.effects, resume=args.resume,
+                                        workers=args.workers)
+    done = ideal.frames_total - n
     print(f"{out}: simulated {n} {args.sensor} frames (kept {done}); ideal depth and ground truth in {ideal_dir}")
     return 0
 
