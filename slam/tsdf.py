@@ -115,7 +115,7 @@ class RaycastResult:
     """(H, W, 3) float32 unit surface normals in the camera frame (zeros where nothing was hit)."""
     weight: np.ndarray | None = None
     """(H, W) float32 integration weight (observations) at the hit, the mean over the 8 voxels
-    of its cell (0 where nothing was hit); only with ``refine`` (else None)."""
+    of its cell (0 where nothing was hit); only with ``refine`` and ``with_weight`` (else None)."""
 
     @property
     def mask(self) -> np.ndarray:
@@ -310,7 +310,7 @@ class TSDFVolume:
 
     def raycast(self, intr: Intrinsics, pose_c2w: np.ndarray, with_color: bool = True,
                 with_normal: bool = True, depth_max_m: float | None = None, block_coords=None,
-                refine: bool = True, repair: bool = True) -> RaycastResult:
+                refine: bool = True, repair: bool = True, with_weight: bool = False) -> RaycastResult:
         """Render the fused surface from ``pose_c2w`` (camera-to-world) with ``intr``.
 
         Open3D's ray marcher reads the TSDF of the voxel *below* each sample point (no
@@ -330,8 +330,8 @@ class TSDFVolume:
         dropped (depth 0) when no crossing is found (see :meth:`_repair_hits`). With ``repair =
         False`` the hits that fail the check are dropped without the search (about 10 % of the
         pixels of a real Kinect model view, half of them false; the search costs more than the
-        rest of the refinement: frame-to-model tracking uses this, renders do not). With
-        ``refine`` the result also holds the integration weight at each hit (``weight``).
+        rest of the refinement). With ``refine`` and ``with_weight`` the result also holds the
+        integration weight at each hit (``weight``).
         """
         attrs = ["depth"] + (["color"] if with_color and self.config.integrate_color else [])
         if with_normal:
@@ -344,7 +344,7 @@ class TSDFVolume:
         color = r["color"].cpu().numpy().astype(np.float32) if "color" in attrs else None
         normal = r["normal"].cpu().numpy().astype(np.float32) if with_normal else None
         if refine:
-            depth, verified = self._refine_depth(depth, r, intr, pose_c2w)
+            depth, verified, weight = self._refine_depth(depth, r, intr, pose_c2w, with_weight)
             suspect = (depth > 0) & ~verified
             if repair:
                 depth = self._repair_hits(depth, suspect, intr, pose_c2w, color, normal)
@@ -355,19 +355,21 @@ class TSDFVolume:
             color[miss] = 0.0
         if normal is not None:
             normal[miss] = 0.0
-        weight = None
-        if refine:
-            weight = self._hit_weight
+        if not refine:
+            weight = None
+        elif weight is not None:
             weight[miss] = 0.0
         return RaycastResult(depth, color, normal, weight)
 
-    def _refine_depth(self, depth: np.ndarray, r, intr: Intrinsics, pose_c2w: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
+    def _refine_depth(self, depth: np.ndarray, r, intr: Intrinsics, pose_c2w: np.ndarray,
+                      with_weight: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Newton refinement of ray-cast depths on the trilinear TSDF (see :meth:`raycast`).
 
-        Returns ``(depth, verified)``: ``verified`` (H, W) is True where all 8 corners of the
-        cell Open3D reported are observed and the refined depth is within a voxel of a zero of
-        their trilinear TSDF; other hits are left for :meth:`_repair_hits`.
+        Returns ``(depth, verified, weight)``: ``verified`` (H, W) is True where all 8 corners of
+        the cell Open3D reported are observed and the refined depth is within a voxel of a zero
+        of their trilinear TSDF; other hits are left for :meth:`_repair_hits`. ``weight`` (H, W):
+        the mean integration weight of those 8 corners at the refined hits (0 elsewhere), only
+        ``with_weight`` (else None).
 
         Along a ray the trilinear TSDF of one cell is a cubic in the depth offset ``s``
         (metres): its coefficients are computed once per hit, then two Newton steps run on the
@@ -380,8 +382,7 @@ class TSDFVolume:
             else mask.all(axis=-1)
         sel = np.flatnonzero(hit & full)
         if len(sel) == 0:
-            self._hit_weight = np.zeros(depth.shape, np.float32)
-            return depth, verified
+            return depth, verified, np.zeros(depth.shape, np.float32) if with_weight else None
         idx = r["index"].cpu().numpy().reshape(-1, 8)[sel]              # (N, 8) linear voxel indices
         w = r["interp_ratio"].cpu().numpy().reshape(-1, 8)[sel]         # (N, 8) trilinear weights
         tsdf = self.vbg.attribute("tsdf").cpu().numpy().reshape(-1)
@@ -427,10 +428,12 @@ class TSDFVolume:
         verified.reshape(-1)[sel] = good & (np.abs(f) <= 1.0 / self.config.trunc_voxel_multiplier)
         out = depth.copy()
         out.reshape(-1)[sel] += s.astype(np.float32)
-        wts = self.vbg.attribute("weight").cpu().numpy().reshape(-1)
-        self._hit_weight = np.zeros(depth.shape, np.float32)
-        self._hit_weight.reshape(-1)[sel] = wts[idx].mean(axis=1)
-        return out, verified
+        weight = None
+        if with_weight:
+            wts = self.vbg.attribute("weight").cpu().numpy().reshape(-1)
+            weight = np.zeros(depth.shape, np.float32)
+            weight.reshape(-1)[sel] = wts[idx].mean(axis=1)
+        return out, verified, weight
 
     # ---------------------------------------------------------------- TSDF sampling
     def _block_lookup(self):

@@ -139,7 +139,8 @@ class ModelView:
                  normals: str = "depth", refine: bool = False, repair: bool = False,
                  noise_depth_m: float = 0.0):
         r = volume.raycast(intr, pose_c2w, with_color=False, with_normal=normals == "tsdf",
-                           block_coords=volume.last_block_coords, refine=refine, repair=repair)
+                           block_coords=volume.last_block_coords, refine=refine, repair=repair,
+                           with_weight=noise_depth_m > 0)
         depth = r.depth.copy()
         miss = ~(depth > 0)
         depth[miss] = np.nan
@@ -152,7 +153,7 @@ class ModelView:
         lvl = Level(depth, intr)
         self.valid = int(np.count_nonzero(~miss))
         weighted = noise_depth_m > 0
-        obs = r.weight if weighted else None
+        obs = r.weight
         self._unit_normals = [nrm]     # (H, W, 3) float32 unit normals per level (for unit_level)
         self._weighted_levels = weighted
         self.levels = [(lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K())]
