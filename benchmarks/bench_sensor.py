@@ -4,7 +4,10 @@ built-in furnished room, with the ideal-depth ray cast measured in the same run 
     .venv/bin/python benchmarks/bench_sensor.py [--frames 30] [--preset kinect_v1] [--effects physical]
 
 Prints, per frame (medians over a walkthrough, best of the repeats):
-  raycast   : IdealRenderer.render(with_rgb=False) alone (the ideal depth)
+  raycast   : the ideal depth by Open3D's RaycastingScene (IdealRenderer backend "raycast"),
+              the baseline of the ratios
+  raster    : the same ideal depth by the renderer the simulator uses (backend "raster",
+              synth.raster; identical hits)
   full      : SensorSimulator.simulate (ray cast + projector shadows + pattern projection +
               IR capture + block matching with 1/8 px sub-pixel refinement + post-processing)
   sensor    : full minus the ideal ray cast (the cost the sensor model adds)
@@ -54,6 +57,7 @@ def main(argv=None) -> int:
     scene = build_scene("room", seed=0)
     traj = make_trajectory("walkthrough", scene, args.frames, seed=0)
     renderer = IdealRenderer(scene)
+    baseline = IdealRenderer(scene, backend="raycast")
     sim = SensorSimulator(args.preset, args.effects, scene, renderer=renderer)
     if "pattern_projection" in sim.config.names():
         if args.shadow:
@@ -63,18 +67,26 @@ def main(argv=None) -> int:
     poses = traj.poses
     sim.simulate(poses[0], seed=0)  # warm-up: pattern, reference image, matcher objects
     renderer.render(poses[0], intr, with_rgb=False)
+    baseline.render(poses[0], intr, with_rgb=False)
 
-    ray_runs, full_runs, stage_acc, stage_cpu, valid = [], [], {}, {}, []
+    ray_runs, ras_runs, full_runs, stage_acc, stage_cpu, valid = [], [], [], {}, {}, []
     cuts = 0
-    cpu_ray, cpu_full = [], []
+    cpu_ray, cpu_ras, cpu_full = [], [], []
     for rep in range(args.repeats):
-        t_ray = []
+        t_ray, t_ras = [], []
+        c0 = time.process_time()
+        for T in poses:
+            t0 = time.perf_counter()
+            baseline.render(T, intr, with_rgb=False)
+            t_ray.append(time.perf_counter() - t0)
+        cpu_ray.append((time.process_time() - c0) / len(poses))
         c0 = time.process_time()
         for T in poses:
             t0 = time.perf_counter()
             renderer.render(T, intr, with_rgb=False)
-            t_ray.append(time.perf_counter() - t0)
-        cpu_ray.append((time.process_time() - c0) / len(poses))
+            t_ras.append(time.perf_counter() - t0)
+        cpu_ras.append((time.process_time() - c0) / len(poses))
+        ras_runs.append(np.median(t_ras))
         t_full = []
         prev = None
         c0 = time.process_time()
@@ -96,13 +108,17 @@ def main(argv=None) -> int:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"preset={args.preset} effects={args.effects} {intr.width}x{intr.height} frames={args.frames} "
           f"repeats={args.repeats} motion={args.motion} shadow={args.shadow} load1={load:.2f} cpus={os.cpu_count()}")
-    print(f"raycast (ideal depth) : {ray * 1e3:7.1f} ms/frame  {1 / ray:6.1f} frames/s")
+    ras = min(ras_runs)
+    print(f"raycast (ideal depth) : {ray * 1e3:7.1f} ms/frame  {1 / ray:6.1f} frames/s  (Open3D, the baseline)")
+    print(f"raster (ideal depth)  : {ras * 1e3:7.1f} ms/frame  {1 / ras:6.1f} frames/s  "
+          f"(renderer backend {renderer.backend!r}, used by the simulator; ratio raster/raycast {ras / ray:.2f})")
     print(f"full sensor pipeline  : {full * 1e3:7.1f} ms/frame  {1 / full:6.1f} frames/s  "
           f"(median over repeats: {np.median(full_runs) * 1e3:.1f} ms)")
     print(f"sensor model only     : {(full - ray) * 1e3:7.1f} ms/frame  {1 / max(full - ray, 1e-9):6.1f} frames/s")
     print(f"ratio full / raycast  : {full / ray:7.2f}")
     cr, cf = min(cpu_ray), min(cpu_full)
-    print(f"CPU time (all threads): raycast {cr * 1e3:.1f} ms/frame, full {cf * 1e3:.1f} ms/frame, "
+    print(f"CPU time (all threads): raycast {cr * 1e3:.1f} ms/frame, raster {min(cpu_ras) * 1e3:.1f} ms/frame, "
+          f"full {cf * 1e3:.1f} ms/frame, "
           f"ratio {cf / cr:.2f} (load-independent work; on an idle 2-core machine the wall time lies between "
           f"cpu/2 and cpu)")
     print(f"mean valid fraction   : {np.mean(valid):.3f}")

@@ -9,6 +9,12 @@ y down, z forward) and pinhole :class:`Intrinsics`:
 * instance ids (``k + 1`` for ``scene.meshes[k]``, 0 = no hit),
 * a simple shaded RGB (:func:`shade_rgb`).
 
+Two interchangeable back-ends compute the per-pixel first hits of :meth:`IdealRenderer.render`:
+``"raster"`` (default; :mod:`synth.raster`, an exact numba rasteriser: the same hits as a
+ray cast, ~6x less CPU for a furnished room) and ``"raycast"`` (Open3D's Embree ray cast, the
+reference the tests compare the rasteriser with). Both give the same depth to float32
+rounding and the same triangles except at edges passing within ~1e-7 px of a pixel centre.
+
 It is also the geometry service of the sensor simulators built on top of it (synth/sensor):
 :meth:`IdealRenderer.cast_rays` for arbitrary rays, :meth:`IdealRenderer.occluded` for
 shadow rays (projector visibility), :meth:`IdealRenderer.albedo_specular` for material
@@ -159,10 +165,20 @@ class IdealRenderer:
     read-only, by every :class:`RenderResult` of those intrinsics (``ray_dirs_cam``).
     """
 
-    def __init__(self, scene: SceneSpec):
+    def __init__(self, scene: SceneSpec, backend: str = "auto"):
         self.scene = scene
         """The scene being rendered (meshes must not be modified afterwards)."""
+        if backend not in ("auto", "raster", "raycast"):
+            raise RealgapError(f"renderer backend must be 'auto', 'raster' or 'raycast', got {backend!r}")
+        from synth import raster
+        if backend == "auto":
+            backend = "raster" if raster.available() else "raycast"
+        self.backend = backend
+        """How :meth:`render` finds the first hits: ``"raster"`` (synth.raster) or
+        ``"raycast"`` (Open3D); every other query uses the Open3D scene."""
         rs, gid_to_mesh = build_raycasting_scene(scene)
+        self._raster = raster.Rasterizer([(m.vertices, m.triangles) for m in scene.meshes]) \
+            if backend == "raster" else None
         self.raycasting_scene = rs
         """The ``open3d.t.geometry.RaycastingScene`` of all meshes (geometry id g ->
         ``scene.meshes[geometry_to_mesh[g]]``)."""
@@ -234,6 +250,8 @@ class IdealRenderer:
             raise RealgapError(f"render: pose must be a finite 4x4 matrix, got shape {T.shape}")
         H, W = intr.shape
         dirs_img, d = self._rays(intr)
+        if self._raster is not None:
+            return self._render_raster(T, intr, dirs_img, d, with_rgb)
         R = [[np.float32(x) for x in row] for row in T[:3, :3]]
         o = [np.float32(x) for x in T[:3, 3]]
         N = H * W
@@ -267,26 +285,8 @@ class IdealRenderer:
         if with_rgb:
             tri = self._tri_offset[gi] + np.where(hit, out["primitive_ids"], 0)
             uv = out["primitive_uvs"]
-            u, v = np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1])
-            # Lambert factor (0..255 scale) per pixel, then per channel:
-            # colour = c0 + u (c1 - c0) + v (c2 - c0) (barycentric vertex-colour interpolation)
-            f = np.minimum(np.abs(facing), np.float32(1.0))
-            f *= np.float32(255.0 * (1.0 - AMBIENT))
-            f += np.float32(255.0 * AMBIENT)
-            f[~hit] = 0.0
-            rgb = np.empty((N, 3), dtype=np.uint8)
-            for ch in range(3):
-                x = self._col_d1[ch][tri]
-                x *= u
-                y = self._col_d2[ch][tri]
-                y *= v
-                x += y
-                x += self._col_c0[ch][tri]
-                x *= f
-                x += 0.5
-                np.clip(x, 0.0, 255.0, out=x)
-                rgb[:, ch] = x
-            rgb = rgb.reshape(H, W, 3)
+            rgb = self._vertex_colour_rgb(tri, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]),
+                                          facing, hit).reshape(H, W, 3)
         return RenderResult(
             depth=depth.reshape(H, W),
             hit=hit.reshape(H, W),
@@ -297,6 +297,50 @@ class IdealRenderer:
             t_hit=t.reshape(H, W),
             rgb=rgb,
         )
+
+    def _render_raster(self, T: np.ndarray, intr: Intrinsics, dirs_img: np.ndarray, d: list[np.ndarray],
+                       with_rgb: bool) -> RenderResult:
+        """:meth:`render` through :class:`synth.raster.Rasterizer` (same outputs)."""
+        H, W = intr.shape
+        o = self._raster.render(T, intr.fx, intr.fy, intr.cx, intr.cy, W, H, d[2].reshape(H, W),
+                                with_uv=with_rgb, n_threads=_n_threads())
+        rgb = None
+        if with_rgb:
+            hit = o["hit"].reshape(-1)
+            tri = np.where(hit, o["triangle"].reshape(-1), 0)
+            uv = o["uv"].reshape(-1, 2)
+            nc = o["normals_cam"].reshape(-1, 3)
+            cos = -(nc[:, 0] * d[0] + nc[:, 1] * d[1] + nc[:, 2] * d[2])  # normals face the camera
+            rgb = self._vertex_colour_rgb(tri, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]),
+                                          cos, hit).reshape(H, W, 3)
+        return RenderResult(depth=o["depth"], hit=o["hit"], points_world=o["points_world"],
+                            normals_cam=o["normals_cam"], instance_ids=o["instance_ids"], ray_dirs_cam=dirs_img,
+                            t_hit=o["t_hit"], rgb=rgb)
+
+    def _vertex_colour_rgb(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, cos: np.ndarray,
+                           hit: np.ndarray) -> np.ndarray:
+        """(N, 3) uint8 head-light shaded vertex colours (see :func:`shade_rgb`) of triangles
+        ``tri`` (global index, all meshes concatenated) at barycentric weights (u, v) of corners
+        1 and 2; ``cos`` the cosine between normal and reversed ray; black where not ``hit``."""
+        # Lambert factor (0..255 scale) per pixel, then per channel:
+        # colour = c0 + u (c1 - c0) + v (c2 - c0) (barycentric vertex-colour interpolation)
+        f = np.minimum(np.abs(cos), np.float32(1.0))
+        f *= np.float32(255.0 * (1.0 - AMBIENT))
+        f += np.float32(255.0 * AMBIENT)
+        f[~hit] = 0.0
+        rgb = np.empty((len(tri), 3), dtype=np.uint8)
+        for ch in range(3):
+            x = self._col_d1[ch][tri]
+            x *= u
+            y = self._col_d2[ch][tri]
+            y *= v
+            x += y
+            x += self._col_c0[ch][tri]
+            x *= f
+            x += 0.5
+            np.clip(x, 0.0, 255.0, out=x)
+            rgb[:, ch] = x
+        return rgb
 
     # ------------------------------------------------------------------ geometry queries
     def cast_rays(self, origins_world: np.ndarray, dirs_world: np.ndarray) -> dict[str, np.ndarray]:
