@@ -31,6 +31,8 @@ GIL); each band writes its own rows only.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 try:  # numba is a declared dependency; the import guard only gives a clear message
@@ -336,6 +338,16 @@ class Rasterizer:
 
 
 _POOL = None
+
+
+def _forget_pool() -> None:
+    """After a fork the pool's threads do not exist in the child: start a new pool there."""
+    global _POOL
+    _POOL = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
 
 
 def _run_bands(fn, H: int, n: int) -> None:
