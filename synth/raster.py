@@ -31,29 +31,15 @@ GIL); each band writes its own rows only.
 """
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-try:  # numba is a declared dependency; the import guard only gives a clear message
-    import numba as _nb
-except ImportError:  # pragma: no cover - exercised only on a broken install
-    _nb = None
+from synth.jit import available, kernel, run_row_bands
 
 _NEAR_M = 1e-9
 """Near plane (metres) of the bounding-box clip only (see the module docstring)."""
 
 
-def available() -> bool:
-    """True when numba is importable (the rasteriser can run)."""
-    return _nb is not None
-
-
-def _jit(fn):
-    return _nb.njit(cache=True, nogil=True, fastmath=False)(fn) if _nb is not None else fn
-
-
-@_jit
+@kernel
 def _setup(verts_cam, tris, fx, fy, cx, cy, W, H, coef, bbox):
     """Per triangle: the edge coefficients and the pixel bounding box.
 
@@ -146,7 +132,7 @@ def _setup(verts_cam, tris, fx, fy, cx, cy, W, H, coef, bbox):
         bbox[f, 3] = int(min(H - 1.0, np.ceil(vmax) + 1.0))
 
 
-@_jit
+@kernel
 def _raster_rows(coef, bbox, row0, row1, zbuf, prim):
     """Nearest-hit z-buffer over rows [row0, row1): zbuf (H, W) float64 z-depth (inf = none),
     prim (H, W) int32 triangle index (-1 = none)."""
@@ -195,7 +181,7 @@ def _raster_rows(coef, bbox, row0, row1, zbuf, prim):
                     prim[v, u] = f
 
 
-@_jit
+@kernel
 def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t, fx, fy, cx, cy, dir_z,
                   with_uv, depth, t_hit, hit, points_w, normals_c, inst, uv):
     """Per-pixel outputs over rows [row0, row1) from the z-buffer and triangle ids.
@@ -261,7 +247,7 @@ class Rasterizer:
     """
 
     def __init__(self, meshes):
-        if _nb is None:
+        if not available():
             raise ImportError("synth.raster needs numba (pip install numba)")
         verts, tris, inst = [], [], []
         off = 0
@@ -326,44 +312,11 @@ class Rasterizer:
                           float(fx), float(fy), float(cx), float(cy), dz, with_uv, out["depth"], out["t_hit"],
                           out["hit"], out["points_world"], out["normals_cam"], out["instance_ids"], out["uv"])
 
-        n = max(1, min(int(n_threads), H))
-        if n == 1:
-            band(0, H)
-        else:
-            _run_bands(band, H, n)
+        run_row_bands(band, H, n_threads)
         out["triangle"] = prim
         if not with_uv:
             del out["uv"]
         return out
 
 
-_POOL = None
-
-
-def _forget_pool() -> None:
-    """After a fork the pool's threads do not exist in the child: start a new pool there."""
-    global _POOL
-    _POOL = None
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool)
-
-
-def _run_bands(fn, H: int, n: int) -> None:
-    """Run ``fn(r0, r1)`` over ``n`` row bands concurrently (a shared thread pool; the numba
-    kernels release the GIL). Bands are interleaved in blocks of 16 rows so that the work of
-    a view whose geometry sits in one part of the image is still shared evenly."""
-    global _POOL
-    from concurrent.futures import ThreadPoolExecutor
-    if _POOL is None or _POOL._max_workers < n:
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-raster")
-    blk = 16
-    edges = list(range(0, H, blk)) + [H]
-    chunks = [(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
-
-    def run(j: int) -> None:
-        for a, b in chunks[j::n]:
-            fn(a, b)
-
-    list(_POOL.map(run, range(n)))
+__all__ = ["Rasterizer", "available"]

@@ -1,0 +1,62 @@
+"""numba plumbing shared by realgap's compiled kernels (synth.raster, synth.sensor).
+
+:func:`kernel` compiles a function on first use and caches the machine code on disk
+(``cache=True``: later processes load it in ~0.1 s), releases the GIL (``nogil=True``) so that
+:func:`run_row_bands` can run image row bands in threads, and keeps strict IEEE float
+semantics (no ``fastmath``). numba is a declared dependency; without it :func:`available` is
+False and callers take their numpy/Open3D path.
+"""
+from __future__ import annotations
+
+import os
+
+try:
+    import numba as _nb
+except ImportError:  # pragma: no cover - exercised only on a broken install
+    _nb = None
+
+
+def available() -> bool:
+    """True when numba is importable (the compiled kernels can run)."""
+    return _nb is not None
+
+
+def kernel(fn):
+    """Decorator: ``numba.njit(cache=True, nogil=True)`` (plain Python without numba)."""
+    return _nb.njit(cache=True, nogil=True, fastmath=False)(fn) if _nb is not None else fn
+
+
+def run_row_bands(fn, H: int, n_threads: int) -> None:
+    """Call ``fn(r0, r1)`` over the rows [0, H) in bands, on ``n_threads`` threads when > 1
+    (``fn`` must write only its own rows). Bands are interleaved in blocks of 16 rows so that
+    the work of a view whose content sits in one part of the image is still shared evenly."""
+    n = max(1, min(int(n_threads), H))
+    if n == 1:
+        fn(0, H)
+        return
+    global _POOL
+    from concurrent.futures import ThreadPoolExecutor
+    if _POOL is None or _POOL._max_workers < n:
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-bands")
+    blk = 16
+    edges = list(range(0, H, blk)) + [H]
+    chunks = [(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
+
+    def run(j: int) -> None:
+        for a, b in chunks[j::n]:
+            fn(a, b)
+
+    list(_POOL.map(run, range(n)))
+
+
+_POOL = None
+
+
+def _forget_pool() -> None:
+    """After a fork the pool's threads do not exist in the child: start a new pool there."""
+    global _POOL
+    _POOL = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
