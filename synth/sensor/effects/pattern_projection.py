@@ -1,11 +1,11 @@
 """Physical stage 1: the virtual projector casts its dot pattern onto the scene."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from synth.jit import kernel, run_row_bands
 from synth.sensor.registry import STAGE_PROJECTION, Effect, register_effect
 
 
@@ -152,25 +152,10 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
         sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, mask, eps_m)
         return sh, int(np.count_nonzero(mask))
     side = 1.0 if src_cam[0] > 0 else -1.0
-    marked = scanline_shadow(up, ok, side) & mask
-    Z = Lz + src_cam[2]
-    W = mask.shape[1]
-    iz = np.float32(1.0) / np.where(ok, Z, np.float32(np.inf))
-    if side < 0:  # mirror so that the source is at +x and occluders lie at larger u
-        iz, mk, okm = iz[:, ::-1], marked[:, ::-1], ok[:, ::-1]
-    else:
-        mk, okm = marked, ok
-    slope = np.zeros_like(iz)
-    slope[:, 1:] = iz[:, 1:] - iz[:, :-1]
-    slope[:, 1:][~okm[:, :-1]] = 0.0
-    tol = iz * np.float32(1.002)
-    near = mk.copy()
-    for k in (1, 2):
-        a, b = np.s_[:, :W - k], np.s_[:, k:]
-        near[a] |= mk[b] | (okm[b] & (iz[b] > tol[a] + np.float32(k) * slope[a]))
-    if side < 0:
-        near = near[:, ::-1]
-    exact = mask & near
+    H, W = mask.shape
+    exact = np.empty((H, W), np.bool_)
+    run_row_bands(lambda r0, r1: _hybrid_marks_rows(r0, r1, up, ok, Lz, float(src_cam[2]), mask, side, exact),
+                  H, _nthreads())
     n_exact = int(np.count_nonzero(exact))
     sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, exact, eps_m) if n_exact else np.zeros(mask.shape, bool)
     rest = mask & ~exact
@@ -262,97 +247,163 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
     shiny surface therefore sends the pattern away (dark, no match) except where the mirror
     direction hits the camera (saturation). Irradiance = pattern cos_i / r^2 (point source).
     """
-    import cv2
     H, W = view.shape
     if ray_dirs_cam is None:
         raise ValueError("compute_radiance needs the camera's ray directions")
     xn, yn = normalized_coords(ray_dirs_cam)
-    proj = np.asarray(preset.projector_offset_m, np.float32) - np.asarray(camera_offset_m, np.float32)
-    hit = view.hit
-    Z = np.where(hit, view.points_cam[..., 2], np.float32(0.0)).astype(np.float32)
-    Lx = xn * Z - proj[0]
-    Ly = yn * Z - proj[1]
-    Lz = Z - proj[2]
-    r2 = Lx * Lx + Ly * Ly + Lz * Lz
-    r = np.sqrt(r2)
+    proj = np.asarray(preset.projector_offset_m, np.float64) - np.asarray(camera_offset_m, np.float64)
+    hit = np.ascontiguousarray(view.hit)
+    Z = np.ascontiguousarray(view.points_cam[..., 2])
+    nrm = np.ascontiguousarray(view.normals_cam, np.float32)
     hp, wp = pattern_blurred.shape
-    fp = np.float32(preset.projector_focal_px)
-    ok = hit & (Lz > 1e-4)
-    invz = np.float32(1.0) / np.where(ok, Lz, np.float32(1.0))
-    invz *= fp
-    up = Lx * invz + np.float32((wp - 1) / 2.0)
-    vp = Ly * invz + np.float32((hp - 1) / 2.0)
-    up[~ok] = -10.0
-    pat = cv2.remap(pattern_blurred, up, vp, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    n = view.normals_cam
-    nx, ny, nz = n[..., 0], n[..., 1], n[..., 2]
-    mndl = -(nx * Lx + ny * Ly + nz * Lz)                       # = r cos_i
-    lit = ok & (mndl > 0) & (pat > 0)
+    fp = float(preset.projector_focal_px)
+    Lx, Ly, Lz, r, up = (np.empty((H, W), np.float32) for _ in range(5))
+    pat, mndl = np.empty((H, W), np.float32), np.empty((H, W), np.float32)
+    ok, lit = np.empty((H, W), np.bool_), np.empty((H, W), np.bool_)
+    nthreads = _nthreads()
+    run_row_bands(lambda r0, r1: _projection_rows(
+        r0, r1, Z, hit, xn, yn, nrm, pattern_blurred, proj[0], proj[1], proj[2], fp, (wp - 1) / 2.0,
+        (hp - 1) / 2.0, Lx, Ly, Lz, r, up, ok, pat, mndl, lit), H, nthreads)
     stats = {"lit_px": int(np.count_nonzero(lit))}
-    if params.shadow_rays and params.shadow_method == "scanline" and stats["lit_px"]:
-        sh = scanline_shadow(up, ok, 1.0 if proj[0] >= 0 else -1.0) & lit
-        lit &= ~sh
-        stats["shadowed_px"] = int(np.count_nonzero(sh))
-    elif params.shadow_rays and params.shadow_method == "hybrid" and renderer is not None and stats["lit_px"]:
-        sh, stats["shadow_rays"] = hybrid_shadow(renderer, view, proj, up, ok, xn, yn, Lx, Ly, Lz, r, lit,
-                                                 params.shadow_eps_m)
-        lit &= ~sh
-        stats["shadowed_px"] = int(np.count_nonzero(sh))
-    elif params.shadow_rays and renderer is not None and stats["lit_px"]:
-        sh = shadow_test(renderer, view, proj, Lx, Ly, Lz, r, lit, params.shadow_eps_m)
-        lit &= ~sh
-        stats["shadowed_px"] = int(np.count_nonzero(sh))
-    rcube = np.maximum(r2 * r, np.float32(1e-12))
-    E = pat * mndl
-    E /= rcube
-    E[~lit] = 0.0
-    if params.power != 1.0:
-        E *= np.float32(params.power)
-    spec = view.specular
-    refl = view.albedo * (np.float32(1.0) - spec)
-    cand = lit & (spec > 0)                      # the lobe only matters where light arrives
-    k = np.float32(params.specular_exponent)
-    thr = np.float32(1e-4) ** (np.float32(1.0) / k)
-    if cand.any():
-        # ... and near the mirror direction (cos^k >= 1e-4, i.e. within alpha = acos(thr) of
-        # it). Exact pre-selection: with theta the angle between the normal and the direction
-        # to the camera and beta the angle between the directions from the camera and from
-        # the projector to the point (sin beta <= b / |X - P| <= b / (z - b)), the mirror is at
-        # least 2 theta - beta away from the camera, so pixels with theta > (alpha + beta) / 2
-        # (plus a 1 degree margin) cannot contribute.
-        zmin = float(Z[cand].min())
-        bproj = float(np.linalg.norm(proj))
-        beta = math.asin(min(1.0, bproj / max(zmin - bproj, 1e-9)))
-        alpha = math.acos(min(1.0, float(thr)))
-        theta_max = (alpha + beta) / 2 + math.radians(1.0)
-        if theta_max < math.pi / 2:
-            rd = ray_dirs_cam
-            cosv = -(nx * rd[..., 0] + ny * rd[..., 1] + nz * rd[..., 2])
-            cand &= cosv > np.float32(math.cos(theta_max))
-    idx = np.flatnonzero(cand)
-    if len(idx):
-        # Phong lobe: mirror direction of the projector ray m = l - 2 (l.n) n (l = L / r, unit)
-        # against the unit direction to the camera v = -X / |X|; cos(alpha) = m.v
-        # (element-wise float32 on the gathered pixels only)
-        g = lambda a: a.reshape(-1)[idx]
-        nf = n.reshape(-1, 3)[idx]
-        gnx, gny, gnz = nf[:, 0], nf[:, 1], nf[:, 2]
-        gZ = g(Z)
-        inv_r = np.float32(1.0) / np.maximum(g(r), np.float32(1e-9))
-        lx, ly, lz = g(Lx) * inv_r, g(Ly) * inv_r, g(Lz) * inv_r
-        ln2 = np.float32(2.0) * (lx * gnx + ly * gny + lz * gnz)
-        Xx, Xy = g(xn) * gZ, g(yn) * gZ
-        inv_d = np.float32(-1.0) / np.maximum(np.sqrt(Xx * Xx + Xy * Xy + gZ * gZ), np.float32(1e-9))
-        c = ((lx - ln2 * gnx) * Xx + (ly - ln2 * gny) * Xy + (lz - ln2 * gnz) * gZ) * inv_d
-        # the lobe matters only near the mirror direction: cos^k < 1e-4 elsewhere is skipped
-        near = c > thr
-        if near.any():
-            sel = idx[near]
-            refl = refl.copy()
-            refl.reshape(-1)[sel] += (g(spec)[near] * ((k + np.float32(2.0)) / np.float32(2.0))
-                                      * np.power(c[near], k))
-    E *= refl
-    return E.astype(np.float32, copy=False), stats
+    if params.shadow_rays and stats["lit_px"]:
+        sh = None
+        if params.shadow_method == "scanline":
+            sh = scanline_shadow(up, ok, 1.0 if proj[0] >= 0 else -1.0) & lit
+        elif params.shadow_method == "hybrid" and renderer is not None:
+            sh, stats["shadow_rays"] = hybrid_shadow(renderer, view, proj.astype(np.float32), up, ok, xn, yn, Lx,
+                                                     Ly, Lz, r, lit, params.shadow_eps_m)
+        elif renderer is not None:
+            sh = shadow_test(renderer, view, proj.astype(np.float32), Lx, Ly, Lz, r, lit, params.shadow_eps_m)
+        if sh is not None:
+            lit &= ~sh
+            stats["shadowed_px"] = int(np.count_nonzero(sh))
+    E = np.empty((H, W), np.float32)
+    k = float(params.specular_exponent)
+    run_row_bands(lambda r0, r1: _radiance_rows(
+        r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, np.ascontiguousarray(view.albedo, np.float32),
+        np.ascontiguousarray(view.specular, np.float32), float(params.power), k, 1e-4 ** (1.0 / k), E),
+        H, nthreads)
+    return E, stats
+
+
+@kernel
+def _projection_rows(r0, r1, Z, hit, xn, yn, nrm, pattern, px, py, pz, fp, cxp, cyp,
+                     Lx, Ly, Lz, r, up, ok, pat, mndl, lit):
+    """Rows [r0, r1) of the projector geometry of every pixel (see :func:`compute_radiance`):
+    L = X - p and |L| (camera frame, metres), the projector column u_p (-10 where the point is
+    not in front of the projector), the bilinearly sampled pattern (0 outside it), n.L sign
+    flipped (= r cos_i) and the lit mask before shadows."""
+    hp, wp = pattern.shape
+    W = Z.shape[1]
+    for v in range(r0, r1):
+        for u in range(W):
+            z = Z[v, u] if hit[v, u] else 0.0
+            lx = xn[v, u] * z - px
+            ly = yn[v, u] * z - py
+            lz = z - pz
+            rr = np.sqrt(lx * lx + ly * ly + lz * lz)
+            Lx[v, u] = lx
+            Ly[v, u] = ly
+            Lz[v, u] = lz
+            r[v, u] = rr
+            o = hit[v, u] and lz > 1e-4
+            ok[v, u] = o
+            p = 0.0
+            if o:
+                uu = lx * (fp / lz) + cxp
+                vv = ly * (fp / lz) + cyp
+                up[v, u] = uu
+                x0 = np.floor(uu)
+                y0 = np.floor(vv)
+                i = int(x0)
+                j = int(y0)
+                fx = uu - x0
+                fy = vv - y0
+                if -1 <= i < wp and -1 <= j < hp:  # bilinear, zero outside the pattern
+                    p00 = pattern[j, i] if (i >= 0 and j >= 0) else 0.0
+                    p01 = pattern[j, i + 1] if (i + 1 < wp and j >= 0) else 0.0
+                    p10 = pattern[j + 1, i] if (i >= 0 and j + 1 < hp) else 0.0
+                    p11 = pattern[j + 1, i + 1] if (i + 1 < wp and j + 1 < hp) else 0.0
+                    p = (p00 * (1.0 - fx) + p01 * fx) * (1.0 - fy) + (p10 * (1.0 - fx) + p11 * fx) * fy
+            else:
+                up[v, u] = -10.0
+            pat[v, u] = p
+            m = -(nrm[v, u, 0] * lx + nrm[v, u, 1] * ly + nrm[v, u, 2] * lz)
+            mndl[v, u] = m
+            lit[v, u] = o and m > 0.0 and p > 0.0
+
+
+@kernel
+def _radiance_rows(r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, albedo, spec, power, k, thr, E):
+    """Rows [r0, r1) of the reflected radiance (see :func:`compute_radiance`): irradiance
+    pattern cos_i / r^2 times (Lambertian albedo (1 - s) + Phong lobe s (k + 2) / 2 cos^k alpha,
+    the lobe only where cos^k alpha >= 1e-4, i.e. cos alpha > ``thr``)."""
+    W = lit.shape[1]
+    for v in range(r0, r1):
+        for u in range(W):
+            if not lit[v, u]:
+                E[v, u] = 0.0
+                continue
+            rr = r[v, u]
+            e = pat[v, u] * mndl[v, u] / max(rr * rr * rr, 1e-12) * power
+            s = spec[v, u]
+            refl = albedo[v, u] * (1.0 - s)
+            if s > 0.0:
+                # mirror direction of the unit projector ray l: m = l - 2 (l.n) n, against the
+                # unit direction from the point to the camera -X / |X|
+                inv_r = 1.0 / max(rr, 1e-9)
+                lx = Lx[v, u] * inv_r
+                ly = Ly[v, u] * inv_r
+                lz = Lz[v, u] * inv_r
+                nx = nrm[v, u, 0]
+                ny = nrm[v, u, 1]
+                nz = nrm[v, u, 2]
+                ln2 = 2.0 * (lx * nx + ly * ny + lz * nz)
+                z = Z[v, u]
+                X = xn[v, u] * z
+                Y = yn[v, u] * z
+                inv_d = -1.0 / max(np.sqrt(X * X + Y * Y + z * z), 1e-9)
+                c = ((lx - ln2 * nx) * X + (ly - ln2 * ny) * Y + (lz - ln2 * nz) * z) * inv_d
+                if c > thr:
+                    refl += s * (k + 2.0) / 2.0 * c ** k
+            E[v, u] = e * refl
+
+
+@kernel
+def _hybrid_marks_rows(r0, r1, up, ok, Lz, src_z, mask, side, exact):
+    """Rows [r0, r1) of the pixels :func:`hybrid_shadow` must settle with an exact ray: the
+    ``mask`` pixels that the ordering test (:func:`scanline_shadow`, tolerance 0.05 px) marks,
+    or that lie within two columns (away from the source) of a marked pixel or of a nearer
+    surface (inverse depth above the linear extrapolation of the pixel's own surface, with a
+    0.2 % margin). Columns are walked in the mirrored order when the source is at -x."""
+    W = up.shape[1]
+    inf = np.inf
+    mk = np.empty(W, np.bool_)
+    iz = np.empty(W)
+    okm = np.empty(W, np.bool_)
+    for v in range(r0, r1):
+        # j: column index with the source at +x (mirrored when it is at -x)
+        run = inf
+        for j in range(W - 1, -1, -1):
+            u = j if side > 0 else W - 1 - j
+            P = (up[v, u] if side > 0 else -up[v, u]) if ok[v, u] else inf
+            mk[j] = ok[v, u] and mask[v, u] and P > run + 0.05
+            run = min(run, P)
+            okm[j] = ok[v, u]
+            iz[j] = 1.0 / (Lz[v, u] + src_z) if ok[v, u] else 0.0
+        for j in range(W):
+            u = j if side > 0 else W - 1 - j
+            if not mask[v, u]:
+                exact[v, u] = False
+                continue
+            near = mk[j]
+            slope = iz[j] - iz[j - 1] if (j > 0 and okm[j - 1]) else 0.0
+            tol = iz[j] * 1.002
+            for kk in range(1, 3):
+                if near or j + kk >= W:
+                    break
+                near = mk[j + kk] or (okm[j + kk] and iz[j + kk] > tol + kk * slope)
+            exact[v, u] = near
 
 
 @register_effect
