@@ -168,7 +168,6 @@ def match(left8: np.ndarray, right8: np.ndarray, setup: MatchSetup, method: str 
     stereo: the second camera's image (H, W). Returns the raw matcher output (1/16 px steps,
     not yet quantised to the device step) with NaN where the matcher found no valid match.
     """
-    import cv2
     H, W = left8.shape
     Wt = W + setup.pad_before + setup.pad_after
     if right8.shape != (H, Wt):
@@ -195,17 +194,49 @@ def match(left8: np.ndarray, right8: np.ndarray, setup: MatchSetup, method: str 
     if params.subpixel_iterations > 0:
         # refine only the image's columns plus the margin its windows reach: each of the
         # iterations and the normalisation widen the dependency by half a window, so the
-        # result there is the same as refining the whole padded width
+        # result there is the same as refining the whole padded width. The same holds for
+        # rows, so row bands (with that margin) refine concurrently on several cores.
         M = (int(params.subpixel_iterations) + 1) * (setup.block // 2) + 2
         a, b = max(c0 - M, 0), min(c1 + M, Wt)
-        sub = refine_subpixel(L[:, a:b], R, d[:, a:b], setup.block, params.subpixel_iterations,
-                              params.max_refine_px, col_offset=a)
-        d = sub[:, c0 - a:c1 - a]
+        d = _refine_in_bands(L[:, a:b], R, d[:, a:b], setup.block, params, a, M)[:, c0 - a:c1 - a]
     else:
         d = d[:, c0:c1]
     if setup.side < 0:
         d = d[:, ::-1]
     return np.ascontiguousarray(d)
+
+
+def _refine_in_bands(left, right, d, block, params, col_offset, margin):
+    """:func:`refine_subpixel` of (H, w) ``left``/``d`` (a column band of ``right`` starting at
+    ``col_offset``), split into row bands refined concurrently (one per usable CPU, threads:
+    OpenCV and numpy release the GIL), each with ``margin`` extra rows that are refined and
+    dropped, so the result equals refining the whole image."""
+    from synth.render import _n_threads
+    H = left.shape[0]
+    n = min(_n_threads(), max(1, H // (4 * margin)))
+    Rn, Rx = _normalized_with_gradient(right, block)
+    if n <= 1:
+        return _refine(_normalized(left, block), Rn, Rx, d, block, params.subpixel_iterations,
+                       params.max_refine_px, col_offset)
+    from concurrent.futures import ThreadPoolExecutor
+    edges = [round(i * H / n) for i in range(n + 1)]
+    out = np.empty(d.shape, np.float32)
+
+    def band(i: int) -> None:
+        r0, r1 = edges[i], edges[i + 1]
+        a, b = max(r0 - margin, 0), min(r1 + margin, H)
+        sub = _refine(_normalized(left[a:b], block), Rn[a:b], Rx[a:b], d[a:b], block,
+                      params.subpixel_iterations, params.max_refine_px, col_offset)
+        out[r0:r1] = sub[r0 - a:r1 - a]
+
+    global _BAND_POOL
+    if _BAND_POOL is None or _BAND_POOL._max_workers < n:
+        _BAND_POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-refine")
+    list(_BAND_POOL.map(band, range(n)))
+    return out
+
+
+_BAND_POOL = None
 
 
 _FLIP_CACHE: list = []
@@ -265,10 +296,15 @@ def refine_subpixel(left: np.ndarray, right: np.ndarray, d: np.ndarray, block: i
     ``col_offset`` of ``right`` (results within (iterations + 1) half-windows of the band's
     ends are affected by its borders).
     """
-    import cv2
-    H, W = left.shape
-    Ln = _normalized(left, block)
     Rn, Rx = _normalized_with_gradient(right, block)
+    return _refine(_normalized(left, block), Rn, Rx, d, block, iterations, max_shift_px, col_offset)
+
+
+def _refine(Ln, Rn, Rx, d, block, iterations, max_shift_px, col_offset):
+    """:func:`refine_subpixel` given the normalised left image ``Ln`` and the normalised
+    right image ``Rn`` with its x gradient ``Rx`` (the same rows as ``Ln``)."""
+    import cv2
+    H, W = Ln.shape
     u = np.arange(col_offset, col_offset + W, dtype=np.float32)[None, :]
     v = _row_map(H, W)
     ok = np.isfinite(d)
@@ -309,7 +345,8 @@ def _row_map(H: int, W: int) -> np.ndarray:
     if m is None:
         m = np.ascontiguousarray(np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W)))
         m.setflags(write=False)
-        _ROW_MAPS.clear()
+        if len(_ROW_MAPS) >= 8:  # a few shapes (row bands, presets), not one per call
+            _ROW_MAPS.clear()
         _ROW_MAPS[(H, W)] = m
     return m
 
