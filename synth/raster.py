@@ -162,15 +162,26 @@ def _raster_rows(coef, bbox, row0, row1, zbuf, prim):
             r0 = B0 * v + C0
             r1 = B1 * v + C1
             r2 = B2 * v + C2
-            for u in range(u0, u1 + 1):
+            # the row's span: E_i(u) = A_i u + r_i >= 0 bounds u from one side per edge. The
+            # bounds are widened by one pixel and every pixel is still tested exactly below, so
+            # rounding in the bounds cannot drop a pixel, only add one test.
+            lo = float(u0)
+            hi = float(u1)
+            empty = False
+            for A, rr in ((A0, r0), (A1, r1), (A2, r2)):
+                if A > 0.0:
+                    lo = max(lo, -rr / A - 1.0)
+                elif A < 0.0:
+                    hi = min(hi, -rr / A + 1.0)
+                elif rr < 0.0:
+                    empty = True
+            if empty or lo > hi:
+                continue
+            for u in range(int(np.ceil(lo)), int(np.floor(hi)) + 1):
                 e0 = A0 * u + r0
-                if e0 < 0.0:
-                    continue
                 e1 = A1 * u + r1
-                if e1 < 0.0:
-                    continue
                 e2 = A2 * u + r2
-                if e2 < 0.0:
+                if e0 < 0.0 or e1 < 0.0 or e2 < 0.0:
                     continue
                 s = e0 + e1 + e2
                 if s <= 0.0:
