@@ -342,6 +342,27 @@ class IdealRenderer:
             rgb[:, ch] = x
         return rgb
 
+    def intrinsics_of(self, ray_dirs_cam: np.ndarray) -> Intrinsics | None:
+        """The :class:`Intrinsics` whose cached ray grid is ``ray_dirs_cam`` (the same array
+        object, as returned by :meth:`ray_dirs_cam`), else None."""
+        for intr, (d, _) in self._ray_cache.items():
+            if d is ray_dirs_cam:
+                return intr
+        return None
+
+    def render_rows(self, row_c2w: np.ndarray, intr: Intrinsics) -> dict | None:
+        """Per-pixel first hits of a view whose row v has pose ``row_c2w[v]`` ((H, 4, 4)
+        camera-to-world: rolling shutter, sub-exposures) through
+        :meth:`synth.raster.Rasterizer.render_rows` (visibility per band of rows whose image
+        motion stays below 0.1 px, exact depth per row); None with the ``raycast`` back-end
+        (callers then cast one ray per pixel). Returns that method's dict of arrays."""
+        if self._raster is None:
+            return None
+        H, W = intr.shape
+        _, d = self._rays(intr)
+        return self._raster.render_rows(row_c2w, intr.fx, intr.fy, intr.cx, intr.cy, W, H, d[2].reshape(H, W),
+                                        n_threads=_n_threads())
+
     # ------------------------------------------------------------------ geometry queries
     def cast_rays(self, origins_world: np.ndarray, dirs_world: np.ndarray) -> dict[str, np.ndarray]:
         """First hits of N arbitrary rays (world frame).

@@ -108,6 +108,10 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
               origin_offset_cam=(0.0, 0.0, 0.0)) -> ViewGeometry:
     """Ray-cast the view of a camera whose row v has pose ``row_c2w[v]`` (H, 4, 4) or (4, 4).
 
+    With a rasterising renderer (:meth:`synth.render.IdealRenderer.render_rows`, when
+    ``ray_dirs_cam`` is its cached ray grid) the view is rasterised per band of rows with
+    exact per-row depth; otherwise one Open3D ray per pixel is cast.
+
     ``origin_offset_cam`` puts the camera centre at that point of the rig frame (the second
     camera of a stereo rig); the returned geometry is in the frame of that camera (same
     orientation as the rig). ``ray_dirs_cam`` (H, W, 3) unit directions of its pixels.
@@ -119,6 +123,16 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
         row_c2w = np.broadcast_to(row_c2w, (H, 4, 4))
     R64 = row_c2w[:, :3, :3]
     off = np.asarray(origin_offset_cam, dtype=np.float64)
+    intr = renderer.intrinsics_of(ray_dirs_cam) if hasattr(renderer, "intrinsics_of") else None
+    if intr is not None:
+        rows = row_c2w.copy()
+        rows[:, :3, 3] = R64 @ off + row_c2w[:, :3, 3]
+        out = renderer.render_rows(rows, intr)
+        if out is not None:  # the rasteriser (synth.raster): same surfaces, exact depth per row
+            albedo, spec = renderer.albedo_specular(out["instance_ids"])
+            return ViewGeometry(out["points_cam"], out["normals_cam"], out["hit"], out["instance_ids"],
+                                np.asarray(albedo, np.float32), np.asarray(spec, np.float32), out["points_world"],
+                                rows)
     origin_rows = (R64 @ off + row_c2w[:, :3, 3]).astype(np.float32)           # (H, 3)
     R = R64.astype(np.float32)
     d = [ray_dirs_cam[..., k] for k in range(3)]
