@@ -69,54 +69,51 @@ def _nthreads() -> int:
     return _n_threads()
 
 
-def shadow_test(renderer, view, src_cam: np.ndarray, Lx, Ly, Lz, r, mask: np.ndarray, eps_m: float) -> np.ndarray:
+def shadow_test(renderer, view, src_cam: np.ndarray, r, mask: np.ndarray, eps_m: float) -> np.ndarray:
     """(H, W) bool: True where the segment from the light source at ``src_cam`` (camera frame
-    of ``view``) to the surface point is blocked. ``L = X - src`` per pixel (camera frame),
-    ``r = |L|``; only ``mask`` pixels are tested. Rays start at the source and stop ``eps_m``
-    before the surface (no self-shadowing); one Open3D occlusion query per pixel. The per-pixel
-    work is element-wise float32 on the gathered ``mask`` pixels only (no (N, 3) matmuls)."""
+    of ``view``, per row) to the surface point is blocked. ``r`` (H, W): distance from the
+    source to the point, metres; only ``mask`` pixels are tested. Rays start at the source and
+    stop ``eps_m`` before the surface (no self-shadowing); one Open3D occlusion query per
+    pixel."""
     out = np.zeros(mask.shape, bool)
     idx = np.flatnonzero(mask)
     if len(idx) == 0:
         return out
     rf = r.reshape(-1)[idx]
-    scale = np.float32(1.0) - np.float32(eps_m) / np.maximum(rf, np.float32(2 * eps_m))
-    Dx, Dy, Dz = (a.reshape(-1)[idx] * scale for a in (Lx, Ly, Lz))
-    out.reshape(-1)[idx] = _segment_occluded(renderer, view, src_cam, Dx, Dy, Dz, idx, eps_m)
+    frac = np.float32(1.0) - np.float32(eps_m) / np.maximum(rf, np.float32(2 * eps_m))
+    out.reshape(-1)[idx] = _segment_occluded(renderer, view, src_cam, frac, idx, eps_m)
     return out
 
 
-def _segment_occluded(renderer, view, src_cam, Dx, Dy, Dz, idx: np.ndarray, eps_m: float) -> np.ndarray:
-    """(n,) bool: segments from the source ``src_cam`` to source + D (camera frame of the row of
-    flat pixel index ``idx``; D given as (n,) float32 components) that hit geometry (ray
-    parameter in [eps_m / 10, 1] of D), by Open3D occlusion queries."""
+def _segment_occluded(renderer, view, src_cam, frac: np.ndarray, idx: np.ndarray, eps_m: float) -> np.ndarray:
+    """(n,) bool: whether geometry lies on the segments from the source ``src_cam`` (camera
+    frame, placed in the world by the pose of each pixel's row) towards the surface points of
+    the flat pixel indices ``idx``, over the fraction ``frac`` (n,) of the way (ray parameter
+    in [eps_m / 10, 1] of that part), by Open3D occlusion queries. Built from the view's world
+    points, so a rolling-shutter view (one pose per row) costs the same as a global one."""
     import open3d as o3d
-    src_cam = np.asarray(src_cam, np.float32)
+    rows = view.row_c2w
+    src = np.asarray(src_cam, np.float64)
     n = len(idx)
     rays = np.empty((n, 6), np.float32)
-    rows = view.row_c2w
+    X = view.points_world.reshape(-1, 3)[idx]
     if np.all(rows == rows[0]):
-        R = rows[0, :3, :3].astype(np.float32)
-        o = R @ src_cam + rows[0, :3, 3].astype(np.float32)
+        S = (rows[0, :3, :3] @ src + rows[0, :3, 3]).astype(np.float32)
         for i in range(3):
-            rays[:, i] = o[i]
-            rays[:, 3 + i] = Dx * R[i, 0] + Dy * R[i, 1] + Dz * R[i, 2]
-    else:  # one pose per row (rolling shutter)
-        W = view.hit.shape[1]
-        row = idx // W
-        R = rows[:, :3, :3].astype(np.float32)                     # (H, 3, 3)
-        o = np.einsum("hij,j->hi", R, src_cam) + rows[:, :3, 3].astype(np.float32)
-        Rr = R[row]
-        for i in range(3):
-            rays[:, i] = o[row, i]
-            rays[:, 3 + i] = Dx * Rr[:, i, 0] + Dy * Rr[:, i, 1] + Dz * Rr[:, i, 2]
+            rays[:, i] = S[i]
+            rays[:, 3 + i] = (X[:, i] - S[i]) * frac
+    else:  # one pose per row (rolling shutter, sub-exposures)
+        S = (rows[:, :3, :3] @ src + rows[:, :3, 3]).astype(np.float32)[idx // view.hit.shape[1]]
+        rays[:, :3] = S
+        np.subtract(X, S, out=rays[:, 3:])
+        rays[:, 3:] *= frac[:, None]
     occ = renderer.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=np.float32(eps_m) / 10,
                                                     tfar=1.0, nthreads=_nthreads()).numpy()
     return occ.astype(bool)
 
 
 def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.ndarray, xn: np.ndarray,
-                  yn: np.ndarray, Lx, Ly, Lz, r, mask: np.ndarray, eps_m: float) -> tuple[np.ndarray, int]:
+                  yn: np.ndarray, Lx, Lz, r, mask: np.ndarray, eps_m: float) -> tuple[np.ndarray, int]:
     """(H, W) bool projector shadow of the ``mask`` pixels and the number of shadow rays cast.
 
     The same shadows as :func:`shadow_test` (one exact ray per pixel) with far fewer rays, by
@@ -149,7 +146,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
     import open3d as o3d
     src_cam = np.asarray(src_cam, np.float32)
     if abs(float(src_cam[1])) > 1e-9 or abs(float(src_cam[2])) > 1e-9 or float(src_cam[0]) == 0.0:
-        sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, mask, eps_m)
+        sh = shadow_test(renderer, view, src_cam, r, mask, eps_m)
         return sh, int(np.count_nonzero(mask))
     side = 1.0 if src_cam[0] > 0 else -1.0
     H, W = mask.shape
@@ -157,7 +154,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
     run_row_bands(lambda r0, r1: _hybrid_marks_rows(r0, r1, up, ok, Lz, float(src_cam[2]), mask, side, exact),
                   H, _nthreads())
     n_exact = int(np.count_nonzero(exact))
-    sh = shadow_test(renderer, view, src_cam, Lx, Ly, Lz, r, exact, eps_m) if n_exact else np.zeros(mask.shape, bool)
+    sh = shadow_test(renderer, view, src_cam, r, exact, eps_m) if n_exact else np.zeros(mask.shape, bool)
     rest = mask & ~exact
     if not rest.any():
         return sh, n_exact
@@ -191,7 +188,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
         if len(idx2):
             wsub = c1 - c0
             idx = (idx2 // wsub) * W + c0 + idx2 % wsub                # flat indices in the full image
-            Lxf, Lyf, Lzf, rf = (a.reshape(-1)[idx] for a in (Lx, Ly, Lz, r))
+            Lxf, Lzf, rf = (a.reshape(-1)[idx] for a in (Lx, Lz, r))
             Zf = Lzf + src_cam[2]
             Xf = Lxf + src_cam[0]
             g = (np.float32(x_edge) * Zf - Xf) if side > 0 else (Xf - np.float32(x_edge) * Zf)
@@ -205,8 +202,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
                 # the out-of-view part only: scale the segment to s* (and keep the eps gap at X)
                 seg = np.minimum(s_star[sel], np.float32(1.0) - np.float32(eps_m)
                                  / np.maximum(rf[sel], np.float32(2 * eps_m)))
-                occ = _segment_occluded(renderer, view, src_cam, Lxf[sel] * seg, Lyf[sel] * seg, Lzf[sel] * seg,
-                                        idx[sel], eps_m)
+                occ = _segment_occluded(renderer, view, src_cam, seg, idx[sel], eps_m)
                 sh.reshape(-1)[idx[sel][occ]] = True
     return sh, n + n_exact
 
@@ -271,9 +267,9 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
             sh = scanline_shadow(up, ok, 1.0 if proj[0] >= 0 else -1.0) & lit
         elif params.shadow_method == "hybrid" and renderer is not None:
             sh, stats["shadow_rays"] = hybrid_shadow(renderer, view, proj.astype(np.float32), up, ok, xn, yn, Lx,
-                                                     Ly, Lz, r, lit, params.shadow_eps_m)
+                                                     Lz, r, lit, params.shadow_eps_m)
         elif renderer is not None:
-            sh = shadow_test(renderer, view, proj.astype(np.float32), Lx, Ly, Lz, r, lit, params.shadow_eps_m)
+            sh = shadow_test(renderer, view, proj, r, lit, params.shadow_eps_m)
         if sh is not None:
             lit &= ~sh
             stats["shadowed_px"] = int(np.count_nonzero(sh))

@@ -72,9 +72,9 @@ class ProjectorShadow(Effect):
             # same way; the camera's focal length sets the scale of the 0.05 px tolerance)
             up = np.where(ok, np.float32(state.intr.fx) * Lx / np.where(ok, Lz, np.float32(1.0)),
                           np.float32(-10.0)).astype(np.float32)
-            sh, n_rays = hybrid_shadow(renderer, v, src, up, ok, xn, yn, Lx, Ly, Lz, r, cand, self.params.eps_m)
+            sh, n_rays = hybrid_shadow(renderer, v, src, up, ok, xn, yn, Lx, Lz, r, cand, self.params.eps_m)
         else:
-            sh, n_rays = shadow_test(renderer, v, src, Lx, Ly, Lz, r, cand, self.params.eps_m), int(cand.sum())
+            sh, n_rays = shadow_test(renderer, v, src, r, cand, self.params.eps_m), int(cand.sum())
         shadow = (back & v.hit) | sh
         state.invalidate(shadow, self.name)
         state.log[self.name]["shadow_rays"] = n_rays
