@@ -675,8 +675,10 @@ def _pool_init(config_json: dict, scene, pattern) -> None:
     synth.render.RAY_THREADS = 1
     sim = SensorSimulator(SensorConfig.from_json(config_json), scene=scene if scene is not None and
                           getattr(scene, "meshes", None) else None, pattern=pattern)
-    if sim.renderer is not None:  # build the BVH now (Open3D commits the scene on the first query)
+    if sim.renderer is not None:  # compile/load the raster kernels and build Open3D's BVH (shadow
+        # rays; Open3D commits the scene on its first query) now, not in the first frame
         sim.renderer.render(np.eye(4), sim.preset.intrinsics, with_rgb=False)
+        sim.renderer.cast_rays(np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
     if sim.config.physical:
         sim.pattern()
         sim.reference_image()
