@@ -150,7 +150,7 @@ class _Clearance:
 def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEFAULT_FPS,
                 height_range_m: tuple[float, float] = (1.2, 1.6), speed_mps: float = 0.35,
                 clearance_m: float = 0.35, segment_s: float = 2.0, min_view_dist_m: float = 0.8,
-                t0: float = 0.0, max_attempts: int = 30) -> Trajectory:
+                t0: float = 0.0, max_attempts: int = 30, max_turn_deg_s: float = 45.0) -> Trajectory:
     """A smooth walk through ``scene`` at eye height, looking at its content.
 
     The camera centre follows a natural cubic spline through control points ``segment_s``
@@ -161,7 +161,10 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
     target follows a second spline through points on non-flat content meshes
     (:func:`content_meshes`) that are visible from the matching control point and at least
     ``min_view_dist_m`` away. A path that fails the clearance test is redrawn (up to
-    ``max_attempts`` times, then RealgapError).
+    ``max_attempts`` times, then RealgapError). Consecutive look-at directions (one segment
+    apart) differ by at most 60 deg and by at most ``max_turn_deg_s`` times the segment's
+    duration, so a short walk (a few frames: segments much shorter than ``segment_s``) turns
+    no faster than a long one.
     """
     ts = _timestamps(n_frames, fps, t0)
     rng = np.random.default_rng(seed)
@@ -231,7 +234,13 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
                 prev = (tg[-1] - e) / max(np.linalg.norm(tg[-1] - e), 1e-9)
                 dirs = targets_pool[pool] - e
                 cosang = dirs @ prev / np.maximum(np.linalg.norm(dirs, axis=1), 1e-9)
-                good = pool[cosang > math.cos(math.radians(60))]
+                max_turn = math.radians(min(60.0, max_turn_deg_s * duration / max(n_ctrl - 1, 1)))
+                good = pool[cosang > math.cos(max_turn)]
+                if len(good) == 0 and max_turn < math.radians(60.0):
+                    # nothing within a short walk's turn: turn towards a target by the limit only
+                    t = targets_pool[rng.choice(pool)]
+                    tg.append(e + _turn_towards(prev, t - e, max_turn) * np.linalg.norm(tg[-1] - e))
+                    continue
                 pool = good if len(good) else pool
             tg.append(targets_pool[rng.choice(pool)])
         tg = np.asarray(tg)
@@ -244,6 +253,21 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
         return Trajectory(ts, poses)
     raise RealgapError(f"walkthrough: no collision-free path found in {max_attempts} attempts "
                        f"(try another seed or a smaller clearance)")
+
+
+def _turn_towards(a: np.ndarray, b: np.ndarray, max_angle_rad: float) -> np.ndarray:
+    """Unit vector from unit ``a`` towards direction ``b``, turned by at most ``max_angle_rad``
+    (in the plane of the two; ``b`` itself, normalised, when it is within the limit)."""
+    b = b / max(np.linalg.norm(b), 1e-12)
+    ang = math.acos(float(np.clip(a @ b, -1.0, 1.0)))
+    if ang <= max_angle_rad:
+        return b
+    perp = b - (a @ b) * a
+    n = np.linalg.norm(perp)
+    if n < 1e-12:  # opposite directions: any perpendicular
+        perp = np.cross(a, [0.0, 0.0, 1.0] if abs(a[2]) < 0.9 else [1.0, 0.0, 0.0])
+        n = np.linalg.norm(perp)
+    return math.cos(max_angle_rad) * a + math.sin(max_angle_rad) * perp / n
 
 
 def _spline(ctrl: np.ndarray, ts: np.ndarray) -> np.ndarray:

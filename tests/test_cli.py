@@ -44,3 +44,11 @@ def test_corrupt_sequence_is_one_line(tmp_path):
     (seq / "depth.txt").write_text("1.0 depth/a.png\n0.5 depth/b.png\n")
     r = _run("data", "info", str(seq))
     assert r.returncode == 1 and "not sorted" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_demo_refuses_too_few_frames_before_writing(tmp_path, capsys):
+    from app.cli import main
+    assert main(["demo", "--frames", "2", "--out", str(tmp_path / "d")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--frames must be at least 3" in err[0]
+    assert not (tmp_path / "d").exists()

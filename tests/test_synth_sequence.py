@@ -96,6 +96,21 @@ def test_walkthrough_is_replayable_from_its_seed():
     assert len(one) == 1 and is_rigid(one.poses[0])
 
 
+def test_short_walkthrough_turns_no_faster_than_a_long_one():
+    """A walk of a few frames has one short segment: its look-at target may not jump the 60 deg
+    a 2 s segment allows (that made `realgap demo --frames 12` lose track in 11 of 12 frames)."""
+    scene = build_scene("room")
+    rates = []
+    for seed in range(5):
+        for n in (6, 12):
+            R = walkthrough(scene, n, seed=seed).poses[:, :3, :3]
+            total = math.degrees(math.acos(np.clip((np.trace(R[0].T @ R[-1]) - 1) / 2, -1, 1)))
+            rates.append(total / ((n - 1) / 30.0))
+    assert max(rates) < 90.0, rates  # deg/s; 45 deg/s per segment plus the eye's own motion
+    assert traj_mod._turn_towards(np.array([1.0, 0, 0]), np.array([-1.0, 0, 0]), math.radians(30)) @ \
+        np.array([1.0, 0, 0]) == pytest.approx(math.cos(math.radians(30)))
+
+
 def test_handheld_jitter_statistics():
     n = 3000
     base = Trajectory(np.arange(n) / 30.0, np.tile(np.eye(4), (n, 1, 1)))

@@ -30,6 +30,9 @@ def run(args) -> int:
     from slam.pipeline import make_config, run_slam
     from synth.sequence import SequenceConfig, generate_sensor_sequence
 
+    if args.frames < 3:
+        from data_tools.errors import ConfigError
+        raise ConfigError(f"demo: --frames must be at least 3 (the ATE alignment needs 3 poses), got {args.frames}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
