@@ -197,6 +197,10 @@ def test_simulation_pool_gives_the_serial_results_in_order(box_scene):
             list(pool.map(poses[:2], seeds[:1]))
     with SimulationPool(sim, workers=1, slot_bytes=0) as pool:  # results too big for a slot: pickled
         pickled = list(pool.map(poses, seeds, prevs))
+        lean = list(pool.map(poses, seeds, prevs, keep_draws=False))  # frames only (synth sequence)
+    for a, b in zip(lean, pickled):
+        assert a.draws == {} and b.draws
+        np.testing.assert_array_equal(a.depth, b.depth)
     assert len(got) == 3
     for P, s, prev, g, p in zip(poses, seeds, prevs, got, pickled):
         ref = sim.simulate(P, seed=s, prev_pose=prev)

@@ -556,7 +556,7 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
                    for i in range(start, len(poses)))
     else:
         results = pool.map(poses[start:], [seed + i for i in range(start, len(poses))], prevs[start:],
-                           with_rgb=with_rgb)
+                           with_rgb=with_rgb, keep_draws=False)  # frames are written, draws not kept
     n = cuts = 0
     try:
         for i, res in zip(idx, results):
@@ -613,9 +613,11 @@ class SimulationPool:
         list(self._ex.map(_pool_ready, range(self.workers)))
 
     def map(self, poses_c2w, seeds, prev_poses=None, max_in_flight: int | None = None,
-            with_rgb: bool = False):
+            with_rgb: bool = False, keep_draws: bool = True):
         """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i], with_rgb=with_rgb)``
-        in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead."""
+        in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead.
+        ``keep_draws=False`` returns results with empty ``draws`` (a caller that only writes the
+        frames saves shipping them: ~20 % of each VGA result)."""
         from collections import deque
         poses = list(poses_c2w)
         seeds = list(seeds)
@@ -640,7 +642,7 @@ class SimulationPool:
         for i in range(len(poses)):
             slot = free.popleft()
             pending.append((self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i], slot.name,
-                                            self.slot_bytes, with_rgb), slot))
+                                            self.slot_bytes, with_rgb, keep_draws), slot))
             if len(pending) >= ahead:
                 yield collect()
         while pending:
@@ -715,10 +717,14 @@ def _set_result_array(res: SimResult, key: tuple, value) -> None:
         res.draws[key[1]][key[2]] = value
 
 
-def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: bool = False):
-    """Simulate one frame; its arrays go into the shared-memory slot when they fit:
-    ("shm", result without them, [(key, dtype, shape, offset)]), else ("pickle", result)."""
+def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: bool = False,
+                   keep_draws: bool = True):
+    """Simulate one frame (its draws dropped unless ``keep_draws``); its arrays go into the
+    shared-memory slot when they fit: ("shm", result without them, [(key, dtype, shape,
+    offset)]), else ("pickle", result)."""
     res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev, with_rgb=with_rgb)
+    if not keep_draws:
+        res.draws = {}
     arrays = _result_arrays(res)
     need = sum(-(-a.nbytes // 64) * 64 for _, a in arrays)
     if need > slot_size:
