@@ -249,6 +249,14 @@ def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     return d.astype(np.uint16)
 
 
+def write_depth_png(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float) -> None:
+    """Write depth (metres) as a 16-bit PNG (:func:`encode_depth`; the inverse of
+    :func:`read_depth_png`); RealgapError naming the file when it cannot be written."""
+    import cv2
+    if not cv2.imwrite(str(path), encode_depth(depth_m, depth_scale)):
+        raise RealgapError(f"{path}: cannot write image")
+
+
 class SequenceWriter:
     """Write a TUM-layout sequence frame by frame.
 
@@ -320,8 +328,7 @@ class SequenceWriter:
             raise RealgapError(f"{self.path}: frame depth is {frame.depth.shape}, camera is {(h, w)}")
         name = f"{t:.6f}"
         depth_rel = f"depth/{name}.png"
-        if not cv2.imwrite(str(self.path / depth_rel), encode_depth(frame.depth, self.camera.depth_scale)):
-            raise RealgapError(f"{self.path / depth_rel}: cannot write image")
+        write_depth_png(self.path / depth_rel, frame.depth, self.camera.depth_scale)
         rgb_rel = None
         if frame.rgb is not None:
             rgb_rel = f"rgb/{name}.{self.rgb_ext}"

@@ -158,7 +158,7 @@ def save_view(view: RenderedView, png: str | os.PathLike, depth_scale: float = 1
     """Write PNG (colour), PNG stem + '_depth.png' (16-bit, metres x depth_scale, 0 = unobserved)
     and stem + '.json' (pose, intrinsics, coverage). Returns the paths."""
     import cv2
-    from data_tools.sequence import encode_depth
+    from data_tools.sequence import write_depth_png
     png = Path(png)
     if png.suffix.lower() != ".png":
         raise RealgapError(f"{png}: output must be a .png file")
@@ -167,8 +167,7 @@ def save_view(view: RenderedView, png: str | os.PathLike, depth_scale: float = 1
     meta_path = png.with_suffix(".json")
     if not cv2.imwrite(str(png), np.ascontiguousarray(view.rgb[:, :, ::-1])):
         raise RealgapError(f"{png}: cannot write image")
-    if not cv2.imwrite(str(depth_path), encode_depth(view.depth, depth_scale)):
-        raise RealgapError(f"{depth_path}: cannot write image")
+    write_depth_png(depth_path, view.depth, depth_scale)
     i = view.intrinsics
     meta = {"pose_c2w": view.pose.tolist(), "coverage": view.coverage, "depth_scale": depth_scale,
             "unobserved_rgb": list(UNOBSERVED_RGB), "colour": png.name, "depth": depth_path.name,

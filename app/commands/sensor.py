@@ -390,11 +390,9 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     """
     import shutil
 
-    import cv2
-
     from data_tools.camera import write_camera_json
     from data_tools.scene_spec import write_scene_json
-    from data_tools.sequence import SequenceReader, encode_depth, link_or_copy
+    from data_tools.sequence import SequenceReader, link_or_copy, write_depth_png
 
     out = Path(out_dir)
     src = Path(measured.seq_dir)
@@ -453,8 +451,7 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
         res = sim.simulate(measured.poses[k], seed=int(seed) + i, prev_pose=measured.prev_poses[k])
         dst = out / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(dst), encode_depth(res.depth, scale)):
-            raise RealgapError(f"{dst}: cannot write image")
+        write_depth_png(dst, res.depth, scale)
         rgb_rel = reader.rgb_files[i]
         if rgb_rel is not None and rgb_rel not in done_rgb:
             link_or_copy(src / rgb_rel, out / rgb_rel)

@@ -199,7 +199,6 @@ def build_views_scene(model: TriMesh, config: ViewsConfig, material: Material | 
         meshes.append(m)
     if config.background:
         w = max(8 * radius, 2.5)
-        h = 2 * w
         for k, (c, a) in enumerate([((w, 0, w), (0, w, 0)), ((-w, 0, w), (0, w, 0)),
                                     ((0, w, w), (w, 0, 0)), ((0, -w, w), (w, 0, 0))]):
             meshes.append(quad_mesh(c, a, [0, 0, w], f"wall_{k}", "wall", 2))
@@ -217,7 +216,7 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     """
     import cv2
     from data_tools.camera import write_camera_json
-    from data_tools.sequence import encode_depth
+    from data_tools.sequence import write_depth_png
     from synth.sensor.simulator import SensorSimulator
     cfg = config or ViewsConfig()
     if overrides:
@@ -292,8 +291,7 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
         res = sim.simulate(T_c2w, seed=cfg.seed + idx)
         name = f"{idx:06d}.png"
         for sub, arr in (("depth", res.depth),) + ((("ideal", res.ideal_depth),) if cfg.write_ideal else ()):
-            if not cv2.imwrite(str(out / sub / name), encode_depth(arr, scale)):
-                raise RealgapError(f"{out / sub / name}: cannot write image")
+            write_depth_png(out / sub / name, arr, scale)
         mask = (res.instance_ids == 1).astype(np.uint8) * 255
         cv2.imwrite(str(out / "mask" / name), mask)
         from data_tools.geometry import invert_pose
