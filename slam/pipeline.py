@@ -302,8 +302,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     if cfg.max_frames:
         indices = indices[: cfg.max_frames]
     backend_cls = get_backend(cfg.backend)
-    backend = backend_cls(cfg.backend_config, intr, cfg.tsdf)
-    backend.sensor = cam.sensor
+    backend = backend_cls(cfg.backend_config, intr, cfg.tsdf, sensor=cam.sensor)
     volume = TSDFVolume(cfg.tsdf)
 
     records: list[dict] = []

@@ -90,14 +90,13 @@ class RegistrationBackend(ABC):
     uses_color: ClassVar[bool] = False
     """True when the backend needs the colour images to register (not only to colour the mesh)."""
 
-    sensor: Any = None
-    """The camera's :class:`data_tools.camera.SensorSpec` (how the depth was measured), or None;
-    set by the pipeline after construction from the sequence's camera.json."""
-
-    def __init__(self, config: Any, intrinsics: Intrinsics, tsdf_config: Any):
+    def __init__(self, config: Any, intrinsics: Intrinsics, tsdf_config: Any, sensor: Any = None):
         self.config = config
         self.intrinsics = intrinsics
         self.tsdf_config = tsdf_config
+        self.sensor = sensor
+        """The camera's :class:`data_tools.camera.SensorSpec` (how the depth was measured, from
+        the sequence's camera.json), or None."""
 
     def track(self, frame, volume) -> TrackResult:  # pragma: no cover - offline backends
         """Register ``frame`` (a :class:`data_tools.sequence.Frame`) and return its result.

@@ -103,8 +103,8 @@ class ColmapBackend(RegistrationBackend):
     online = False
     uses_color = True
 
-    def __init__(self, config: ColmapConfig, intrinsics, tsdf_config):
-        super().__init__(config.validate(), intrinsics, tsdf_config)
+    def __init__(self, config: ColmapConfig, intrinsics, tsdf_config, sensor=None):
+        super().__init__(config.validate(), intrinsics, tsdf_config, sensor)
         self.scale: float | None = None
         self.model_info: dict = {}
 

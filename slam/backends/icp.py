@@ -204,8 +204,8 @@ class ICPBackend(RegistrationBackend):
     name = "icp"
     Config = ICPConfig
 
-    def __init__(self, config: ICPConfig, intrinsics: Intrinsics, tsdf_config):
-        super().__init__(config.validate(), intrinsics, tsdf_config)
+    def __init__(self, config: ICPConfig, intrinsics: Intrinsics, tsdf_config, sensor=None):
+        super().__init__(config.validate(), intrinsics, tsdf_config, sensor)
         c = self.config
         self._ray_down = int(round(math.log2(1.0 / c.raycast_scale)))
         self._ray_intr = intrinsics

@@ -70,8 +70,8 @@ class RGBDOdometryBackend(RegistrationBackend):
     Config = RGBDOdometryConfig
     uses_color = True
 
-    def __init__(self, config: RGBDOdometryConfig, intrinsics: Intrinsics, tsdf_config):
-        super().__init__(config.validate(), intrinsics, tsdf_config)
+    def __init__(self, config: RGBDOdometryConfig, intrinsics: Intrinsics, tsdf_config, sensor=None):
+        super().__init__(config.validate(), intrinsics, tsdf_config, sensor)
         self._n_levels = max(self.config.levels) + 1
         self.last_pose: np.ndarray | None = None
         self.prev_pose: np.ndarray | None = None
