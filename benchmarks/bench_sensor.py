@@ -72,21 +72,24 @@ def main(argv=None) -> int:
     ray_runs, ras_runs, full_runs, stage_acc, stage_cpu, valid = [], [], [], {}, {}, []
     cuts = 0
     cpu_ray, cpu_ras, cpu_full = [], [], []
+
+    def time_renders(r) -> tuple[float, float]:
+        """(median wall s, mean CPU s) per ideal render of the walkthrough by renderer r."""
+        walls = []
+        c0 = time.process_time()
+        for T in poses:
+            t0 = time.perf_counter()
+            r.render(T, intr, with_rgb=False)
+            walls.append(time.perf_counter() - t0)
+        return float(np.median(walls)), (time.process_time() - c0) / len(poses)
+
     for rep in range(args.repeats):
-        t_ray, t_ras = [], []
-        c0 = time.process_time()
-        for T in poses:
-            t0 = time.perf_counter()
-            baseline.render(T, intr, with_rgb=False)
-            t_ray.append(time.perf_counter() - t0)
-        cpu_ray.append((time.process_time() - c0) / len(poses))
-        c0 = time.process_time()
-        for T in poses:
-            t0 = time.perf_counter()
-            renderer.render(T, intr, with_rgb=False)
-            t_ras.append(time.perf_counter() - t0)
-        cpu_ras.append((time.process_time() - c0) / len(poses))
-        ras_runs.append(np.median(t_ras))
+        w, c = time_renders(baseline)
+        ray_runs.append(w)
+        cpu_ray.append(c)
+        w, c = time_renders(renderer)
+        ras_runs.append(w)
+        cpu_ras.append(c)
         t_full = []
         prev = None
         c0 = time.process_time()
@@ -102,7 +105,6 @@ def main(argv=None) -> int:
             valid.append(res.valid_fraction)
             cuts += bool(res.log.get("motion", {}).get("cut"))
         cpu_full.append((time.process_time() - c0) / len(poses))
-        ray_runs.append(np.median(t_ray))
         full_runs.append(np.median(t_full))
     ray, full = min(ray_runs), min(full_runs)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")

@@ -224,6 +224,18 @@ def _raster_posed(r0, r1, band, rows_R, rows_o, verts_w, tris, row_lo, row_hi, f
 
 
 @kernel
+def _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c):
+    """Pixel (u, v) of the resolved outputs: no surface (0 depth and vectors, inf ray length)."""
+    depth[v, u] = 0.0
+    t_hit[v, u] = np.inf
+    hit[v, u] = False
+    inst[v, u] = 0
+    for k in range(3):
+        points_w[v, u, k] = 0.0
+        normals_c[v, u, k] = 0.0
+
+
+@kernel
 def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t, fx, fy, cx, cy, dir_z,
                   with_uv, depth, t_hit, hit, points_w, normals_c, inst, uv):
     """Per-pixel outputs over rows [row0, row1) from the z-buffer and triangle ids.
@@ -233,18 +245,11 @@ def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t
     dir_z (H, W) z component of the unit pixel rays.
     """
     W = zbuf.shape[1]
-    inf = np.inf
     for v in range(row0, row1):
         for u in range(W):
             f = prim[v, u]
             if f < 0:
-                depth[v, u] = 0.0
-                t_hit[v, u] = inf
-                hit[v, u] = False
-                inst[v, u] = 0
-                for k in range(3):
-                    points_w[v, u, k] = 0.0
-                    normals_c[v, u, k] = 0.0
+                _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c)
                 if with_uv:
                     uv[v, u, 0] = 0.0
                     uv[v, u, 1] = 0.0
@@ -288,7 +293,6 @@ def _resolve_posed_rows(row0, row1, prim, verts_w, tris, tri_normal_w, tri_insta
     :func:`_raster_rows` with the pose of the pixel's band). Outputs as :func:`_resolve_rows`
     plus ``points_c``, the point in the frame of the row's own pose."""
     W = prim.shape[1]
-    inf = np.inf
     for v in range(row0, row1):
         yn = (v - cy) / fy
         for u in range(W):
@@ -310,14 +314,9 @@ def _resolve_posed_rows(row0, row1, prim, verts_w, tris, tri_normal_w, tri_insta
                 if den != 0.0:
                     s = num / den
             if s <= 0.0 or not np.isfinite(s):
-                depth[v, u] = 0.0
-                t_hit[v, u] = inf
-                hit[v, u] = False
-                inst[v, u] = 0
+                _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c)
                 for k in range(3):
-                    points_w[v, u, k] = 0.0
                     points_c[v, u, k] = 0.0
-                    normals_c[v, u, k] = 0.0
                 continue
             depth[v, u] = s
             t_hit[v, u] = s / dir_z[v, u]
