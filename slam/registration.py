@@ -220,6 +220,40 @@ class TrackingCheckConfig:
     pnp_min_inliers: int = 25
     """Fewest PnP RANSAC inliers for a re-localisation guess to be tried."""
 
+    def valid_depth_fraction(self, depth_m: np.ndarray, depth_min_m: float, depth_max_m: float) -> float:
+        """Fraction of the pixels of ``depth_m`` (metres) in [depth_min_m, depth_max_m]."""
+        ok = np.isfinite(depth_m) & (depth_m >= depth_min_m) & (depth_m <= depth_max_m)
+        return float(np.count_nonzero(ok)) / max(depth_m.size, 1)
+
+    def predict(self, last_pose: np.ndarray, prev_pose: np.ndarray | None, after_failure: bool) -> np.ndarray:
+        """Initial guess of the next camera-to-world pose by ``motion_model``: the last
+        inter-frame motion repeated (``constant_velocity``, when there is one and the last
+        frame did not fail) or the last pose (``static``)."""
+        if self.motion_model == "constant_velocity" and prev_pose is not None and not after_failure:
+            return last_pose @ (np.linalg.inv(prev_pose) @ last_pose)
+        return last_pose.copy()
+
+    def check_solution(self, sol, last_pose: np.ndarray, pose: np.ndarray, dt_s: float,
+                       fitness_history=(), fitness_drop_ratio: float = 0.0) -> str:
+        """'' when the registration ``sol`` (a :class:`SolveResult`-like object with ok,
+        message, inliers, fitness and inlier_rmse) giving ``pose`` ``dt_s`` seconds after
+        ``last_pose`` passes the checks above, else a short reason. With ``fitness_history``
+        (fitness of recent accepted frames, at least 3) a fitness below ``fitness_drop_ratio``
+        times their median fails too."""
+        if not sol.ok:
+            return sol.message
+        if sol.inliers < self.min_correspondences:
+            return f"too few correspondences ({sol.inliers} < {self.min_correspondences})"
+        if sol.fitness < self.min_fitness:
+            return f"low fitness {sol.fitness:.3f} < {self.min_fitness:g}"
+        if fitness_drop_ratio > 0 and len(fitness_history) >= 3:
+            med = float(np.median(fitness_history))
+            if sol.fitness < fitness_drop_ratio * med:
+                return f"fitness dropped to {sol.fitness:.3f} (recent median {med:.3f})"
+        if not (sol.inlier_rmse <= self.max_rmse_m):
+            return f"residual {sol.inlier_rmse * 1000:.1f} mm > {self.max_rmse_m * 1000:g} mm"
+        return implausible_motion(last_pose, pose, dt_s, self.max_speed_m_s, self.max_angular_speed_deg_s)
+
     def validate_checks(self) -> None:
         """ConfigError for a bad value of the fields above (called by the subclasses' validate)."""
         name = type(self).__name__

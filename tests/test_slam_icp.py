@@ -198,3 +198,29 @@ def test_backend_configs_share_the_failure_check_fields():
     assert (ICPConfig().min_fitness, RGBDOdometryConfig().min_fitness) == (0.2, 0.3)
     assert (ICPConfig().min_correspondences, RGBDOdometryConfig().min_correspondences) == (1000, 500)
     assert config_from_dict(ICPConfig, {"relocalise": False, "fitness_drop_ratio": 0.4}).fitness_drop_ratio == 0.4
+
+
+def test_tracking_checks_shared_by_the_online_backends():
+    """TrackingCheckConfig.check_solution / predict: each check on a hand-made solution."""
+    from types import SimpleNamespace
+
+    from slam.registration import TrackingCheckConfig
+    c = TrackingCheckConfig(min_correspondences=100, min_fitness=0.3, max_rmse_m=0.01, max_speed_m_s=1.0)
+    I = np.eye(4)
+    good = SimpleNamespace(ok=True, message="", inliers=500, fitness=0.8, inlier_rmse=0.004)
+    assert c.check_solution(good, I, I, 1 / 30) == ""
+    assert "diverged" in c.check_solution(SimpleNamespace(**{**vars(good), "ok": False, "message": "diverged"}),
+                                          I, I, 1 / 30)
+    assert "too few correspondences" in c.check_solution(SimpleNamespace(**{**vars(good), "inliers": 50}), I, I, 0.03)
+    assert "low fitness" in c.check_solution(SimpleNamespace(**{**vars(good), "fitness": 0.2}), I, I, 0.03)
+    assert "residual" in c.check_solution(SimpleNamespace(**{**vars(good), "inlier_rmse": 0.02}), I, I, 0.03)
+    moved = np.eye(4)
+    moved[0, 3] = 0.1  # 10 cm in one frame period = 3 m/s
+    assert c.check_solution(good, I, moved, 1 / 30) != ""
+    assert "fitness dropped" in c.check_solution(good, I, I, 1 / 30, [0.9, 0.95, 1.0, 1.0], 0.9)
+    assert c.check_solution(good, I, I, 1 / 30, [0.9, 0.95], 0.9) == ""  # fewer than 3: no drop check
+    # constant velocity repeats the last motion unless the last frame failed
+    assert np.allclose(c.predict(moved, I, after_failure=False)[0, 3], 0.2)
+    assert np.allclose(c.predict(moved, I, after_failure=True), moved)
+    assert np.allclose(TrackingCheckConfig(motion_model="static").predict(moved, I, False), moved)
+    assert c.valid_depth_fraction(np.array([[0.0, 1.0], [np.nan, 9.0]]), 0.3, 5.0) == 0.25

@@ -28,7 +28,7 @@ from slam.backends._features import orb_features, pnp_guess
 from slam.backends._pyramid import (Level, Pyramid, SolveResult, downsample_depth, downsample_image,
                                     icp_point_to_plane, normal_map, smooth_normal_map)
 from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
-                               implausible_motion, register_backend)
+                               register_backend)
 from slam.tsdf import o3d_quiet
 
 
@@ -259,27 +259,11 @@ class ICPBackend(RegistrationBackend):
                                   stats_target=view.unit_level(max(0, c.source_levels[-1] - self._ray_down)))
 
     def _check(self, sol: SolveResult, pose: np.ndarray, t: float) -> str:
-        c = self.config
-        if not sol.ok:
-            return sol.message
-        if sol.inliers < c.min_correspondences:
-            return f"too few correspondences ({sol.inliers} < {c.min_correspondences})"
-        if sol.fitness < c.min_fitness:
-            return f"low fitness {sol.fitness:.3f} < {c.min_fitness:g}"
-        if len(self.fitness_history) >= 3:
-            med = float(np.median(self.fitness_history))
-            if sol.fitness < c.fitness_drop_ratio * med:
-                return f"fitness dropped to {sol.fitness:.3f} (recent median {med:.3f})"
-        if not (sol.inlier_rmse <= c.max_rmse_m):
-            return f"residual {sol.inlier_rmse * 1000:.1f} mm > {c.max_rmse_m * 1000:g} mm"
-        return implausible_motion(self.last_pose, pose, t - self.last_t, c.max_speed_m_s,
-                                  c.max_angular_speed_deg_s)
+        return self.config.check_solution(sol, self.last_pose, pose, t - self.last_t, self.fitness_history,
+                                          self.config.fitness_drop_ratio)
 
     def _predict(self) -> np.ndarray:
-        if (self.config.motion_model == "constant_velocity" and self.prev_pose is not None
-                and self.consecutive_failures == 0):
-            return self.last_pose @ (np.linalg.inv(self.prev_pose) @ self.last_pose)
-        return self.last_pose.copy()
+        return self.config.predict(self.last_pose, self.prev_pose, self.consecutive_failures > 0)
 
     def _accept(self, frame, pose: np.ndarray, fitness: float | None) -> None:
         self.prev_pose = self.last_pose if self.consecutive_failures == 0 else None
@@ -298,8 +282,7 @@ class ICPBackend(RegistrationBackend):
     def track(self, frame, volume) -> TrackResult:
         c = self.config
         depth = frame.depth
-        in_range = np.isfinite(depth) & (depth >= self.tsdf_config.depth_min_m) & (depth <= self.tsdf_config.depth_max_m)
-        frac = float(np.count_nonzero(in_range)) / depth.size
+        frac = c.valid_depth_fraction(depth, self.tsdf_config.depth_min_m, self.tsdf_config.depth_max_m)
         if frac < c.min_valid_fraction:
             return self._fail(f"too few valid depth pixels ({frac:.1%})")
         if self.last_pose is None:

@@ -22,7 +22,7 @@ from data_tools.errors import ConfigError
 from slam.backends._features import orb_features, pnp_guess
 from slam.backends._pyramid import Pyramid, SolveResult, rgbd_hybrid
 from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
-                               implausible_motion, register_backend)
+                               register_backend)
 
 METHODS = ("hybrid", "point_to_plane", "intensity")
 
@@ -96,17 +96,7 @@ class RGBDOdometryBackend(RegistrationBackend):
                            c.depth_diff_m, c.depth_huber_m, c.intensity_huber, c.method)
 
     def _check(self, sol: SolveResult, pose: np.ndarray, t: float) -> str:
-        c = self.config
-        if not sol.ok:
-            return sol.message
-        if sol.inliers < c.min_correspondences:
-            return f"too few correspondences ({sol.inliers} < {c.min_correspondences})"
-        if sol.fitness < c.min_fitness:
-            return f"low overlap: fitness {sol.fitness:.3f} < {c.min_fitness:g}"
-        if not (sol.inlier_rmse <= c.max_rmse_m):
-            return f"residual {sol.inlier_rmse * 1000:.1f} mm > {c.max_rmse_m * 1000:g} mm"
-        return implausible_motion(self.last_pose, pose, t - self.last_t, c.max_speed_m_s,
-                                  c.max_angular_speed_deg_s)
+        return self.config.check_solution(sol, self.last_pose, pose, t - self.last_t)
 
     def _accept(self, frame, pyr: Pyramid, pose: np.ndarray, fitness: float | None) -> None:
         self.prev_pose = self.last_pose if self.consecutive_failures == 0 else None
@@ -122,10 +112,7 @@ class RGBDOdometryBackend(RegistrationBackend):
 
     def _guesses(self, frame):
         c = self.config
-        if c.motion_model == "constant_velocity" and self.prev_pose is not None and self.consecutive_failures == 0:
-            yield "motion model", self.last_pose @ (np.linalg.inv(self.prev_pose) @ self.last_pose)
-        else:
-            yield "motion model", self.last_pose.copy()
+        yield "motion model", c.predict(self.last_pose, self.prev_pose, self.consecutive_failures > 0)
         if not c.relocalise:
             return
         yield "static", self.last_pose.copy()
@@ -140,8 +127,7 @@ class RGBDOdometryBackend(RegistrationBackend):
     def track(self, frame, volume) -> TrackResult:
         c = self.config
         depth = frame.depth
-        in_range = np.isfinite(depth) & (depth >= self.tsdf_config.depth_min_m) & (depth <= self.tsdf_config.depth_max_m)
-        frac = float(np.count_nonzero(in_range)) / depth.size
+        frac = c.valid_depth_fraction(depth, self.tsdf_config.depth_min_m, self.tsdf_config.depth_max_m)
         if frac < c.min_valid_fraction:
             self.consecutive_failures += 1
             return TrackResult(None, None, None, True, f"too few valid depth pixels ({frac:.1%})")
