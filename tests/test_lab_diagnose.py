@@ -15,9 +15,9 @@ import pytest
 from data_tools.errors import ConfigError
 from synth.lab import DiagnoseConfig, FitConfig, MeasuredSequence, diagnose, fit_model
 from synth.lab.diagnose import _applicability
-from synth.lab.effect_extras import SENSOR_TYPES, effect_sensor_types
+from synth.lab.effect_extras import effect_sensor_types
 from synth.lab.evidence import EVIDENCE, EvidenceContext, evidence_for
-from synth.sensor.registry import effect_names
+from synth.sensor.registry import effect_class, effect_names
 from synth.sensor.simulator import MotionLimits, SensorConfig
 
 from tests import hidden_effects as he
@@ -249,14 +249,9 @@ def test_fit_and_diagnose_keep_every_config_field(seqs):
     assert res.config.motion == motion
 
 
-def test_sensor_types_prefer_the_effect_class_declaration():
-    class Declared:
-        name = "projector_shadow"
-        sensor_types = ("tof",)
-
-    class Undeclared:
-        name = "projector_shadow"
-
-    assert effect_sensor_types(Declared) == ("tof",)
-    assert effect_sensor_types(Undeclared) == SENSOR_TYPES["projector_shadow"]
-    assert set(SENSOR_TYPES) <= set(effect_names())          # no stale names in the lab table
+def test_effects_declare_the_sensor_types_they_model():
+    assert effect_sensor_types(effect_class("multipath")) == ("tof",)
+    assert effect_sensor_types(effect_class("projector_shadow")) == ("structured_light", "active_stereo")
+    assert effect_sensor_types(effect_class("axial_noise")) is None          # every type
+    declared = {n: effect_sensor_types(effect_class(n)) for n in effect_names()}
+    assert {n for n, t in declared.items() if t == ("tof",)} == {"multipath", "wiggling", "flying_pixels"}

@@ -14,8 +14,7 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
 2. **Candidates**: every registered effect not in the model (or ``candidates``), minus those
    that cannot apply, each with the reason in ``Diagnosis.skipped``: effects of the physical
    pipeline (``Effect.physical``) when the model is direct; effects whose physics needs another
-   sensor type (``Effect.sensor_types`` when the class declares it, else the lab-side table
-   :data:`synth.lab.effect_extras.SENSOR_TYPES`); effects that leave the simulated depth unchanged on a
+   sensor type (``Effect.sensor_types``); effects that leave the simulated depth unchanged on a
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
@@ -57,12 +56,12 @@ import numpy as np
 
 from data_tools.errors import ConfigError
 from synth.lab.compare import _clean
-from synth.lab.effect_extras import SENSOR_TYPES, effect_sensor_types
+from synth.lab.effect_extras import effect_sensor_types
 from synth.lab.evidence import EvidenceContext, evidence_for
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
 
-__all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "SENSOR_TYPES", "DIAGNOSIS_FILE"]
+__all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE"]
 
 DIAGNOSIS_FILE = "diagnosis.json"
 

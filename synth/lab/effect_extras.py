@@ -4,17 +4,18 @@ This is the ONE place where the lab treats effects by name (besides the evidence
 :mod:`synth.lab.evidence` and the data-driven starting values of :data:`synth.lab.fit.STARTERS`).
 Each entry says why it exists and which sensor-side declaration would replace it; once
 ``synth/sensor`` declares it, the lab entry is ignored automatically (an extra parameter steps
-aside when the effect's ``FITTABLE`` declares its ``replaced_by`` name, an ``Effect.sensor_types``
-class attribute wins over :data:`SENSOR_TYPES`), and the entry can be deleted.
+aside when the effect's ``FITTABLE`` declares its ``replaced_by`` name), and the entry can be
+deleted.
 
 :data:`EXTRA_PARAMETERS`
     Fittable numbers of an effect that are not plain numeric ``Params`` fields listed in
     ``Effect.FITTABLE`` (the lens distortion coefficients are one tuple; the level phase of
     the disparity quantisation is a preset field). The fit (:mod:`synth.lab.fit`) searches them
     like FITTABLE parameters under the key ``"effect.name"``.
-:data:`SENSOR_TYPES`
-    Sensor types whose physics an effect models; :func:`synth.lab.diagnose.diagnose` does not
-    try an effect on a sensor of another type.
+:func:`effect_sensor_types`
+    Sensor types whose physics an effect models (declared by the effects themselves, as
+    ``Effect.sensor_types``); :func:`synth.lab.diagnose.diagnose` does not try an effect on a
+    sensor of another type.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-__all__ = ["ExtraParameter", "EXTRA_PARAMETERS", "extra_parameters", "SENSOR_TYPES", "effect_sensor_types"]
+__all__ = ["ExtraParameter", "EXTRA_PARAMETERS", "extra_parameters", "effect_sensor_types"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -167,27 +168,8 @@ def extra_parameters(config, effect) -> dict[str, ExtraParameter]:
 # Sensor types
 # ------------------------------------------------------------------------------------------
 
-SENSOR_TYPES: dict[str, tuple[str, ...]] = {
-    "multipath": ("tof",),
-    "wiggling": ("tof",),
-    "flying_pixels": ("tof",),
-    "projector_shadow": ("structured_light", "active_stereo"),
-    "disparity_quantization": ("structured_light", "active_stereo"),
-    "edge_fattening": ("structured_light", "active_stereo"),
-}
-"""Sensor types (``SensorPreset.type``) whose physics an effect models; effects not listed apply
-to every type. Multipath, wiggling and flying pixels come from the phase measurement of
-continuous-wave ToF; shadows, disparity steps and window fattening from triangulation.
-
-Used only for effect classes without a ``sensor_types`` attribute. Sensor-side declaration
-that replaces it: ``Effect.sensor_types: ClassVar[tuple[str, ...] | None] = None`` in
-``synth/sensor/registry.py`` (None = every type), set on the six classes above."""
-
-
 def effect_sensor_types(effect_class) -> tuple[str, ...] | None:
     """Sensor types an effect class applies to (None = all): its ``sensor_types`` class
-    attribute when it declares one, else :data:`SENSOR_TYPES`."""
+    attribute (:attr:`synth.sensor.registry.Effect.sensor_types`)."""
     declared = getattr(effect_class, "sensor_types", None)
-    if declared is not None:
-        return tuple(declared)
-    return SENSOR_TYPES.get(getattr(effect_class, "name", ""))
+    return None if declared is None else tuple(declared)

@@ -69,6 +69,9 @@ class Effect(ABC):
     """True for the stages of the physical pipeline (projection, capture, matching)."""
     in_reference: ClassVar[bool] = False
     """True when the effect also shapes the stored reference image (noise-free draw)."""
+    sensor_types: ClassVar[tuple[str, ...] | None] = None
+    """Sensor types (``SensorPreset.type``) whose physics the effect models; None = every type.
+    The sensor lab does not try an effect on a sensor of another type."""
     DRAW_FROM_SHAPE: ClassVar[bool] = False
     """True when ``sample`` reads nothing of the state but ``shape``, ``preset``, ``intr``,
     ``physical`` and ``is_reference``: the simulator may then draw it in a background thread

@@ -26,6 +26,7 @@ class DisparityQuantization(Effect):
     """
 
     name = "disparity_quantization"
+    sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = DisparityQuantizationParams
     FITTABLE = {"step_px": (0.0, 1.0)}
     stage = STAGE_QUANTIZE

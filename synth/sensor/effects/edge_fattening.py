@@ -62,6 +62,7 @@ class EdgeFattening(Effect):
     """
 
     name = "edge_fattening"
+    sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = EdgeFatteningParams
     FITTABLE = {"radius_px": (0, 20), "min_jump_rel": (0.0, 1.0)}
     stage = STAGE_DROPOUT + 5

@@ -30,6 +30,7 @@ class FlyingPixels(Effect):
     """
 
     name = "flying_pixels"
+    sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     DRAW_FROM_SHAPE = True
     Params = FlyingPixelsParams
     FITTABLE = {"jump_m": (0.005, 2.0), "probability": (0.0, 1.0)}

@@ -27,7 +27,6 @@ def undistort_pixels(pts: np.ndarray, K: np.ndarray, coeffs) -> np.ndarray:
 
 def distortion_maps(intr, coeffs) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel of the distorted image, where it looks in the ideal (pinhole) image."""
-    import cv2
     H, W = intr.height, intr.width
     uu, vv = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
     pts = np.stack([uu.ravel(), vv.ravel()], -1).reshape(-1, 1, 2)

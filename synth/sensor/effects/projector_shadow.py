@@ -35,6 +35,7 @@ class ProjectorShadow(Effect):
     """
 
     name = "projector_shadow"
+    sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = ProjectorShadowParams
     FITTABLE = {"eps_m": (0.0, 0.05)}
     stage = STAGE_DROPOUT
