@@ -26,7 +26,6 @@ import importlib
 import inspect
 import pkgutil
 import textwrap
-import types
 import typing
 from abc import ABC
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from data_tools.camera import Intrinsics
+from data_tools.config import config_from_dict, config_replace, config_to_dict  # noqa: F401 (re-exported)
 from data_tools.errors import ConfigError
 
 # --------------------------------------------------------------------------------------------
@@ -287,123 +287,6 @@ def field_docs(cls: type) -> dict[str, str]:
                     and isinstance(b.value.value, str)):
                 docs[a.target.id] = " ".join(b.value.value.split())
     return docs
-
-
-def config_to_dict(cfg: Any) -> Any:
-    """Dataclass (possibly nested) -> plain JSON data (tuples become lists)."""
-    if dataclasses.is_dataclass(cfg) and not isinstance(cfg, type):
-        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
-    if isinstance(cfg, (list, tuple)):
-        return [config_to_dict(v) for v in cfg]
-    if isinstance(cfg, dict):
-        return {k: config_to_dict(v) for k, v in cfg.items()}
-    if isinstance(cfg, np.generic):
-        return cfg.item()
-    return cfg
-
-
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check/convert a JSON value to the annotated type ``tp``."""
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        last = None
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(value, a, where)
-            except ConfigError as e:
-                last = e
-        raise last or ConfigError(f"{where}: invalid value {value!r}")
-    if dataclasses.is_dataclass(tp):
-        if isinstance(value, tp):
-            return value
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected an object, got {value!r}")
-        return config_from_dict(tp, value, where)
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], where) for v in value)
-        if len(args) != len(value):
-            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, where) for v, a in zip(value, args))
-    if origin is list:
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        return [_coerce(v, args[0], where) for v in value] if args else list(value)
-    if origin is dict or tp is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected an object, got {value!r}")
-        return dict(value)
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "false", "1", "0", "yes", "no"):
-            return value.lower() in ("true", "1", "yes")
-        raise ConfigError(f"{where}: expected true/false, got {value!r}")
-    if tp is int:
-        if isinstance(value, bool) or not (isinstance(value, (int, np.integer)) or
-                                           (isinstance(value, float) and value.is_integer()) or
-                                           (isinstance(value, str) and value.strip().lstrip("-").isdigit())):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return int(value)
-    if tp is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        try:
-            v = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
-        if not np.isfinite(v):
-            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-        return v
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    return value
-
-
-def config_from_dict(cls: type, data: dict, where: str = "config") -> Any:
-    """Build dataclass ``cls`` from JSON data; missing keys keep their defaults, unknown keys
-    and values of the wrong type raise :class:`ConfigError` naming the key."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected an object, got {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls) if f.init}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ConfigError(f"{where}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
-    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
-    obj = cls(**kwargs)
-    validate = getattr(obj, "validate", None)
-    if callable(validate):
-        validate()
-    return obj
-
-
-def config_replace(cfg: Any, dotted: dict[str, Any], where: str = "config") -> Any:
-    """A copy of dataclass ``cfg`` with ``{"a.b": value}`` overrides applied (values as JSON
-    data or strings, converted to the field types)."""
-    data = config_to_dict(cfg)
-    for key, value in dotted.items():
-        parts = key.split(".")
-        node = data
-        for p in parts[:-1]:
-            if not isinstance(node, dict) or p not in node or not isinstance(node[p], dict):
-                raise ConfigError(f"{where}: unknown option {key!r}")
-            node = node[p]
-        if parts[-1] not in node:
-            raise ConfigError(f"{where}: unknown option {key!r}")
-        node[parts[-1]] = value
-    return config_from_dict(type(cfg), data, where)
 
 
 def parse_value(text: str, tp: Any) -> Any:

@@ -190,7 +190,7 @@ def test_fit_config_validation_and_round_trip():
     with pytest.raises(ConfigError, match="max_seconds"):
         FitConfig(max_seconds=0).validate()
     assert FitConfig().max_seconds is None      # the wall-clock guard is off by default
-    with pytest.raises(ConfigError, match="unknown fit config"):
+    with pytest.raises(ConfigError, match="fit config: unknown option"):
         FitConfig.from_dict({"nope": 1})
     fc = FitConfig(max_frames=3, seed=7)
     assert FitConfig.from_dict(fc.to_dict()).to_dict() == fc.to_dict()

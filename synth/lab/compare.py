@@ -91,11 +91,12 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from synth.lab.features import (FEATURES, CategoricalValues, FeatureConfig,
                                 FrameFeatures, FrameObservation, make_feature,
@@ -178,23 +179,11 @@ class CompareConfig:
         return [n for n in FEATURES if n in wanted]
 
     def to_dict(self) -> dict:
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "features"}
-        d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-        d["features"] = self.features.to_dict()
-        return d
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "CompareConfig":
-        if not isinstance(d, dict):
-            raise ConfigError("compare config must be a JSON object")
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ConfigError(f"unknown compare config key(s): {', '.join(sorted(unknown))}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k != "features"}
-        if "features" in d:
-            kw["features"] = FeatureConfig.from_dict(d["features"])
-        return cls(**kw).validate()
+        return config_from_dict(cls, d, "compare config")
 
 
 PRESETS: dict[str, CompareConfig] = {

@@ -49,11 +49,12 @@ import json
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from data_tools.config import config_to_dict
 from data_tools.errors import ConfigError
 from synth.lab.compare import _clean
 from synth.lab.effect_extras import effect_sensor_types
@@ -103,7 +104,7 @@ class DiagnoseConfig:
         return self
 
     def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return config_to_dict(self)
 
 
 @dataclass

@@ -70,11 +70,12 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
 
+from data_tools.config import config_from_dict, config_to_dict
 from data_tools.camera import Intrinsics
 from data_tools.errors import ConfigError, RealgapError
 
@@ -470,17 +471,11 @@ class FeatureConfig:
         return self
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureConfig":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ConfigError(f"unknown feature config key(s): {', '.join(sorted(unknown))}")
-        kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**kw).validate()
+        return config_from_dict(cls, d, "feature config")
 
 
 @dataclass(frozen=True)

@@ -75,10 +75,11 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
@@ -150,22 +151,11 @@ class FitConfig:
         return self
 
     def to_dict(self) -> dict:
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "compare"}
-        d["compare"] = self.compare.to_dict()
-        return d
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "FitConfig":
-        if not isinstance(d, dict):
-            raise ConfigError("fit config must be a JSON object")
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ConfigError(f"unknown fit config key(s): {', '.join(sorted(unknown))}")
-        kw = {k: v for k, v in d.items() if k != "compare"}
-        if "compare" in d:
-            kw["compare"] = CompareConfig.from_dict(d["compare"])
-        return cls(**kw).validate()
+        return config_from_dict(cls, d, "fit config")
 
     def compare_config(self, pixels: int | None) -> CompareConfig:
         d = self.compare.to_dict()
