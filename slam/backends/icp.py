@@ -13,6 +13,31 @@ residual too large, or a motion faster than a hand-held camera. A failed frame i
 the trajectory and not fused. Re-localisation then tries other initial guesses against the
 model at the last good pose: the static guess and an ORB/PnP guess from the last good frame
 (keyframe); a guess is accepted only if the dense ICP started from it passes the same checks.
+
+Why the defaults (measurements behind the ICPConfig fields):
+
+* ``refine_model``: the raw Open3D cast of a one-frame 1 cm volume lies 5.9 mm (median) in
+  front of the surface and 16 % of its pixels are more than 1 cm off, so in a weakly
+  constrained view (floor + round table, start of the demo sequence) the next pose is 1.0 cm
+  off even on exact depth (0.08 cm refined), and on the simulated Kinect ICP drifted 36 cm in
+  9 frames. ATE refined vs raw against metric ground truth: simulated kinect_v1 room (the demo,
+  60 frames, seeds 0/1/2) 0.17/0.14/0.28 cm vs 7.25/0.46/0.49 cm; TUM fr1/xyz 0.23 vs 0.60 cm.
+  On 7-Scenes chess (1000 frames; the reference is KinectFusion's own trajectory) the raw cast
+  agreed better while the residuals were unweighted (2.96 vs 4.48 cm): the unweighted fit was
+  dominated by far, coarsely quantised depth (25 mm steps at 3 m) and its sideways motion ran
+  6 % short of the reference. With the noise weights and ``repair_model`` the refined default
+  gives 2.86 cm there.
+* ``repair_model``: in a real Kinect model view about 10 % of the hits fail the check, mostly
+  on slanted surfaces (a quarter of the hits at 60-75 deg incidence); dropped, they leave the
+  surfaces that pin sideways motion under-represented. Chess 1000 frames: 2.86 cm repaired vs
+  3.03 cm dropped, for about 40 ms more CPU per frame.
+* ``disparity_noise_px``: on chess (half the pixels beyond 1.9 m) ATE over 1000 frames was
+  4.48 cm unweighted, 3.11 cm with the depth term alone, 3.05 cm with the incidence angle,
+  3.03 cm with the observation count; the simulated kinect_v1 room (seeds 0/1/2) stays at
+  0.18/0.15/0.28 cm. Open3D's kernel has no per-point weight, so the model normals are scaled
+  by sqrt(w): the rejection distance then applies to sqrt(w) x r (a far point is kept up to a
+  proportionally larger distance, as a test on r / sigma would); fitness and RMS residual of
+  the failure check stay unweighted.
 """
 from __future__ import annotations
 
@@ -52,30 +77,12 @@ class ICPConfig(TrackingCheckConfig):
     when pixels are smaller than voxels, since each voxel samples one pixel)."""
     refine_model: bool = True
     """Track against a verified, sub-voxel model view: every ray-cast hit is moved to the zero
-    of the trilinear TSDF, and false hits of Open3D's ray marcher are searched again or dropped
-    (see :meth:`slam.tsdf.TSDFVolume.raycast`); ``false`` tracks against the raw cast like
-    Open3D's dense SLAM. Why on by default: the raw cast of a one-frame 1 cm volume lies 5.9 mm
-    (median) in front of the surface and 16 % of its pixels are more than 1 cm off, so in a
-    weakly constrained view (floor + round table, start of the demo sequence) the next pose is
-    1.0 cm off even on exact depth (0.08 cm refined), and on the simulated Kinect ICP drifted
-    36 cm in 9 frames. ATE refined vs raw against metric ground truth: simulated kinect_v1 room
-    (the demo, 60 frames, seeds 0/1/2) 0.17/0.14/0.28 cm vs 7.25/0.46/0.49 cm (1.46 cm on seed
-    0 with the false hits removed but no sub-voxel refinement); TUM fr1/xyz (motion capture)
-    0.23 vs 0.60 cm. On 7-Scenes chess (1000 frames; the reference is KinectFusion's own
-    trajectory, not a metric ground truth) the raw cast agreed better while the residuals were
-    unweighted (2.96 vs 4.48 cm): not because the refined surface is worse (it lies closer to
-    the frame just fused: median offset -0.4 to -3 mm by incidence angle vs +3 to +12 mm raw)
-    but because the unweighted fit was dominated by far, coarsely quantised depth (25 mm steps
-    at 3 m) and its sideways motion ran 6 % short of the reference over 30-frame windows (raw:
-    1 %). With the sensor noise weights (``disparity_noise_px``) and the failed hits repaired
-    (``repair_model``) the refined default gives 2.86 cm there (3.03 cm with them dropped)."""
+    of the trilinear TSDF and false hits of Open3D's ray marcher are searched again or dropped
+    (:meth:`slam.tsdf.TSDFVolume.raycast`); ``false`` tracks against the raw cast like
+    Open3D's dense SLAM (measurements: module docstring)."""
     repair_model: bool = True
     """With ``refine_model``: search the crossing again along the rays whose hit fails the
-    check (:meth:`slam.tsdf.TSDFVolume.raycast` with ``repair``) instead of dropping them. In a
-    real Kinect model view about 10 % of the hits fail, mostly on slanted surfaces (a quarter
-    of the hits at 60-75 deg incidence): dropped, they leave the surfaces that pin sideways
-    motion under-represented. Chess, 1000 frames, with the noise weights: 2.86 cm ATE
-    repaired vs 3.03 cm dropped, for about 40 ms more CPU per frame."""
+    check instead of dropping them (measurements: module docstring)."""
     raycast_scale: float = 0.5
     """Resolution of the model ray cast relative to the frame (1, 0.5 or 0.25): the model view is
     the target of projective association; half resolution costs a quarter of the ray casting."""
@@ -88,27 +95,13 @@ class ICPConfig(TrackingCheckConfig):
     max_rmse_m: float = 0.02
     """Fail when the RMS point-to-plane residual of the inliers is larger, metres."""
     disparity_noise_px: float = 0.07
-    """Disparity noise of a triangulating depth sensor (structured light, active stereo), pixels:
-    its depth noise grows with the square of the depth, sigma_z = disparity_noise_px x z^2 /
-    (fx x baseline), where fx and the baseline come from the camera (``sensor`` block of
-    camera.json). 0.07 px gives Kinect v1's measured 4 cm at 5 m (Khoshelham and Elberink
-    2012; it includes the 1/8 px disparity quantisation). Each point-to-plane residual gets the
-    inverse-variance weight w = sigma_0^2 / (sigma_0^2 + (sigma_z cos)^2), where cos = |n . ray|
-    (the depth noise lies along the viewing ray; the residual along the normal sees cos of it)
-    and sigma_0 = voxel size / sqrt(12) is the noise of the model itself (2.9 mm for 1 cm
-    voxels): for Kinect v1 and a surface facing the camera w = 1/2 at 1.34 m and 1/17 at 3 m.
-    A model point fused from n observations adds 1/n of a frame's noise: sigma_z^2 counts
-    (1 + 1/n) times (n from :attr:`slam.tsdf.RaycastResult.weight`). Open3D's kernel has no
-    per-point weight, so the model normals are scaled by sqrt(w) (the rejection distance then
-    applies to sqrt(w) x r: a far point is kept up to a proportionally larger distance, as a
-    test on r / sigma would); fitness and RMS residual of the failure check stay unweighted.
-    Without a sensor block (rendered depth, or a camera given without one) and with 0 the
-    residuals are unweighted. Why: on 7-Scenes chess (Kinect v1: 25 mm depth steps at 3 m,
-    half the pixels beyond 1.9 m) the unweighted fit is dominated by the far, coarsely
-    quantised points and drifts sideways against the reference: ATE over 1000 frames 4.48 cm
-    unweighted, 3.11 cm with the depth term alone, 3.05 cm with the incidence angle, 3.03 cm
-    with the observation count; the simulated kinect_v1 room (seeds 0/1/2) stays at
-    0.18/0.15/0.28 cm."""
+    """Disparity noise of a triangulating depth sensor, pixels: sigma_z = disparity_noise_px x
+    z^2 / (fx x baseline), fx and the baseline from the ``sensor`` block of camera.json (0.07 px
+    gives Kinect v1's 4 cm at 5 m, Khoshelham and Elberink 2012). Each point-to-plane residual
+    gets the inverse-variance weight w = sigma_0^2 / (sigma_0^2 + (sigma_z cos)^2), cos = |n .
+    ray|, sigma_0 = voxel size / sqrt(12) the model's own noise; a model point fused from n
+    observations counts sigma_z^2 (1 + 1/n) times. 0, or no sensor block: unweighted
+    (measurements: module docstring)."""
 
     def validate(self) -> "ICPConfig":
         n = len(self.source_levels)
