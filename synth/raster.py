@@ -237,7 +237,7 @@ def _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c):
 
 @kernel
 def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t, fx, fy, cx, cy, dir_z,
-                  with_uv, depth, t_hit, hit, points_w, normals_c, inst, uv):
+                  with_uv, depth, t_hit, hit, points_w, points_c, normals_c, inst, uv):
     """Per-pixel outputs over rows [row0, row1) from the z-buffer and triangle ids.
 
     R (3, 3), t (3,): camera-to-world rotation and centre; tri_normal_w (F, 3) unit world
@@ -250,6 +250,8 @@ def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t
             f = prim[v, u]
             if f < 0:
                 _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c)
+                for k in range(3):
+                    points_c[v, u, k] = 0.0
                 if with_uv:
                     uv[v, u, 0] = 0.0
                     uv[v, u, 1] = 0.0
@@ -262,6 +264,9 @@ def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t
             # camera-frame point (x z, y z, z) -> world
             xc = z * ((u - cx) / fx)
             yc = z * ((v - cy) / fy)
+            points_c[v, u, 0] = xc
+            points_c[v, u, 1] = yc
+            points_c[v, u, 2] = z
             for k in range(3):
                 points_w[v, u, k] = R[k, 0] * xc + R[k, 1] * yc + R[k, 2] * z + t[k]
             # world normal -> camera frame (R^T n), flipped to face the camera
@@ -381,7 +386,8 @@ class Rasterizer:
         ``dir_z`` (H, W): z component of each pixel's unit ray (converts z-depth to ray length).
         Returns a dict of (H, W[, k]) arrays: ``depth`` float32 z (0 = no hit), ``t_hit``
         float32 ray length (inf = no hit), ``hit`` bool, ``points_world`` float32 (H, W, 3),
-        ``normals_cam`` float32 (H, W, 3) unit, facing the camera (0 = no hit),
+        ``points_cam`` float32 (H, W, 3) in the camera frame, ``normals_cam`` float32
+        (H, W, 3) unit, facing the camera (0 = no hit),
         ``instance_ids`` int32 (0 = no hit), ``triangle`` int32 index into ``triangles``
         (-1 = no hit) and, with ``with_uv``, ``uv`` float32 (H, W, 2) barycentric weights of
         corners 1 and 2.
@@ -400,8 +406,8 @@ class Rasterizer:
         out = {
             "depth": np.empty((H, W), np.float32), "t_hit": np.empty((H, W), np.float32),
             "hit": np.empty((H, W), np.bool_), "points_world": np.empty((H, W, 3), np.float32),
-            "normals_cam": np.empty((H, W, 3), np.float32), "instance_ids": np.empty((H, W), np.int32),
-            "uv": np.empty((H, W, 2) if with_uv else (1, 1, 2), np.float32),
+            "points_cam": np.empty((H, W, 3), np.float32), "normals_cam": np.empty((H, W, 3), np.float32),
+            "instance_ids": np.empty((H, W), np.int32), "uv": np.empty((H, W, 2) if with_uv else (1, 1, 2), np.float32),
         }
         dz = np.ascontiguousarray(dir_z, np.float32)
 
@@ -409,7 +415,8 @@ class Rasterizer:
             _raster_rows(coef, bbox, r0, r1, zbuf, prim)
             _resolve_rows(r0, r1, zbuf, prim, coef, self.tri_normal_world, self.tri_instance, R, t,
                           float(fx), float(fy), float(cx), float(cy), dz, with_uv, out["depth"], out["t_hit"],
-                          out["hit"], out["points_world"], out["normals_cam"], out["instance_ids"], out["uv"])
+                          out["hit"], out["points_world"], out["points_cam"], out["normals_cam"], out["instance_ids"],
+                          out["uv"])
 
         run_row_bands(band, H, n_threads)
         out["triangle"] = prim

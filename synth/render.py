@@ -107,10 +107,15 @@ class RenderResult:
     rgb: np.ndarray | None
     """(H, W, 3) uint8 shaded colour (:func:`shade_rgb`); black where no hit; None when
     rendered with ``with_rgb=False``."""
+    points_cam_data: np.ndarray | None = None
+    """(H, W, 3) float32 camera-frame hit points when the back-end computed them (raster);
+    None: :attr:`points_cam` derives them from the rays."""
 
     @property
     def points_cam(self) -> np.ndarray:
         """(H, W, 3) float32 hit points in the camera frame, metres; 0 where no hit."""
+        if self.points_cam_data is not None:
+            return self.points_cam_data
         t = np.where(self.hit, self.t_hit, 0.0).astype(np.float32)
         return self.ray_dirs_cam * t[..., None]
 
@@ -315,7 +320,7 @@ class IdealRenderer:
                                           cos, hit).reshape(H, W, 3)
         return RenderResult(depth=o["depth"], hit=o["hit"], points_world=o["points_world"],
                             normals_cam=o["normals_cam"], instance_ids=o["instance_ids"], ray_dirs_cam=dirs_img,
-                            t_hit=o["t_hit"], rgb=rgb)
+                            t_hit=o["t_hit"], rgb=rgb, points_cam_data=o["points_cam"])
 
     def _vertex_colour_rgb(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, cos: np.ndarray,
                            hit: np.ndarray) -> np.ndarray:
@@ -425,10 +430,11 @@ class IdealRenderer:
                                                     nthreads=_n_threads())
         return occ.numpy().astype(bool) & ok
 
-    def albedo_specular(self, instance_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def albedo_specular(self, instance_ids: np.ndarray, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Per-element (albedo, specular) float32 arrays of the materials of ``instance_ids``
-        (any shape; 0 = background gives 0, 0)."""
+        (any shape; 0 = background gives 0, 0). ``check=False`` skips the range check (ids
+        this renderer produced)."""
         ids = np.asarray(instance_ids)
-        if ids.size and (ids.min() < 0 or ids.max() > self.n_meshes):
+        if check and ids.size and (ids.min() < 0 or ids.max() > self.n_meshes):
             raise RealgapError(f"albedo_specular: instance ids must be in [0, {self.n_meshes}]")
         return self._albedo[ids], self._specular[ids]

@@ -63,11 +63,10 @@ def geometry_from_render(render, renderer, pose_c2w: np.ndarray) -> ViewGeometry
     """ViewGeometry of an ideal :class:`synth.render.RenderResult` (global shutter)."""
     hit = np.asarray(render.hit, dtype=bool)
     H, W = hit.shape
-    t = np.where(hit, render.t_hit, 0.0).astype(np.float32, copy=False)
-    pts = render.ray_dirs_cam * t[..., None]
+    pts = render.points_cam
     ids = np.asarray(render.instance_ids, dtype=np.int32)
     if renderer is not None:
-        albedo, spec = renderer.albedo_specular(ids)
+        albedo, spec = renderer.albedo_specular(ids, check=False)
     else:
         albedo = np.where(hit, np.float32(0.5), np.float32(0.0))
         spec = np.zeros((H, W), np.float32)
@@ -129,7 +128,7 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
         rows[:, :3, 3] = R64 @ off + row_c2w[:, :3, 3]
         out = renderer.render_rows(rows, intr)
         if out is not None:  # the rasteriser (synth.raster): same surfaces, exact depth per row
-            albedo, spec = renderer.albedo_specular(out["instance_ids"])
+            albedo, spec = renderer.albedo_specular(out["instance_ids"], check=False)
             return ViewGeometry(out["points_cam"], out["normals_cam"], out["hit"], out["instance_ids"],
                                 np.asarray(albedo, np.float32), np.asarray(spec, np.float32), out["points_world"],
                                 rows)
