@@ -454,14 +454,14 @@ class SensorSimulator:
         if draws is None and seed is None:
             raise ConfigError("simulate needs a seed or the draws of a previous frame")
         t0, c0 = time.perf_counter(), time.process_time()
+        # draws that depend only on the image shape are made in a background thread while the
+        # first stages run (the same generators, so the same values as drawing them in turn);
+        # started first, so that they fill the core the single-threaded parts of the set-up
+        # leave free (a frame without geometry simply does not use them)
+        early = self._start_draws(seed) if draws is None else None
         state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb)
         timings = {"render": (time.perf_counter() - t0) * 1e3}
         cpu = {"render": (time.process_time() - c0) * 1e3}
-        # draws that depend only on the image shape are made in a background thread while the
-        # first stages run (the same generators, so the same values as drawing them in turn).
-        # Started after the ray cast, which already keeps both cores of a 2-core machine busy,
-        # so that they overlap the single-threaded numpy work of the projection stage instead
-        early = self._start_draws(seed) if draws is None and state.ideal.hit.any() else None
         ideal = state.ideal
         used_draws: dict = {}
         if not ideal.hit.any():
