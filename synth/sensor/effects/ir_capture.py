@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from synth.jit import kernel, run_row_bands
 from synth.sensor.effects._common import check_draw
 from synth.sensor.registry import STAGE_CAPTURE, Effect, register_effect
 
@@ -76,36 +77,36 @@ class IRCapture(Effect):
 
     def _capture(self, radiance, ambient, speckle, noise, reference: bool):
         import cv2
+
+        from synth.render import _n_threads
         p = self.params
-        rad = radiance
-        if speckle is not None and p.speckle_contrast > 0:
-            m = np.float32(p.speckle_contrast) * speckle
-            m += np.float32(1.0)
-            np.maximum(m, np.float32(0.0), out=m)
-            m *= rad
-            rad = m
-        if ambient is not None:
-            rad = rad + ambient
+        H, W = radiance.shape
+        nthreads = _n_threads()
+        f32 = np.float32
+        none = np.zeros((1, 1), np.float32)
+        use_speckle = speckle is not None and p.speckle_contrast > 0
+        rad = np.empty((H, W), np.float32)
+        run_row_bands(lambda r0, r1: _expose_rows(
+            r0, r1, np.ascontiguousarray(radiance, np.float32), speckle if use_speckle else none,
+            f32(p.speckle_contrast), use_speckle, ambient if ambient is not None else none, ambient is not None, rad),
+            H, nthreads)
         if p.psf_sigma_px > 0:
             rad = cv2.GaussianBlur(rad, (0, 0), p.psf_sigma_px)
         top = float(2 ** int(p.adc_bits) - 1)
         if reference:  # the stored reference: noise-free, normalised to 90 % of the range
             hi = float(np.percentile(rad[rad > 0], 99.9)) if np.any(rad > 0) else 1.0
-            S = rad * np.float32(0.9 * p.full_well_e / max(hi, 1e-12))
+            scale = f32(0.9 * p.full_well_e / max(hi, 1e-12))
         else:
-            S = rad * np.float32(p.gain_e)
-        if noise is not None:
-            sd = S + np.float32(p.read_noise_e) ** 2
-            np.sqrt(sd, out=sd)
-            sd *= noise
-            S = S + sd
-        sat = S >= p.full_well_e
-        dn = S * np.float32(top / p.full_well_e)
-        np.rint(dn, out=dn)
-        np.clip(dn, 0, top, out=dn)
-        dn16 = dn.astype(np.uint16)
-        # 8-bit companding through a look-up table of the same float32 formula (dn is integral)
-        return dn16, self._lut(int(p.adc_bits), p.companding)[dn16], sat
+            scale = f32(p.gain_e)
+        dn16 = np.empty((H, W), np.uint16)
+        ir8 = np.empty((H, W), np.uint8)
+        sat = np.empty((H, W), np.bool_)
+        lut = self._lut(int(p.adc_bits), p.companding)
+        run_row_bands(lambda r0, r1: _adc_rows(
+            r0, r1, np.ascontiguousarray(rad, np.float32), scale, noise if noise is not None else none,
+            noise is not None, f32(p.read_noise_e) ** 2, f32(p.full_well_e), f32(top / p.full_well_e), f32(top),
+            lut, dn16, ir8, sat), H, nthreads)
+        return dn16, ir8, sat
 
     @staticmethod
     def _lut(bits: int, companding: str) -> np.ndarray:
@@ -140,3 +141,37 @@ class IRCapture(Effect):
                                                                  state.scratch.get("ambient_second"), sp2, nz2, ref)
         state.log[self.name] = {"saturated_px": int(state.saturated.sum()),
                                 "mean_counts": float(state.ir.mean())}
+
+
+@kernel
+def _expose_rows(r0, r1, radiance, speckle, contrast, use_speckle, ambient, use_ambient, out):
+    """Rows [r0, r1): radiance x max(0, 1 + contrast x speckle) + ambient (float32)."""
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for v in range(r0, r1):
+        for u in range(radiance.shape[1]):
+            x = radiance[v, u]
+            if use_speckle:
+                x = max(contrast * speckle[v, u] + one, zero) * x
+            if use_ambient:
+                x = x + ambient[v, u]
+            out[v, u] = x
+
+
+@kernel
+def _adc_rows(r0, r1, rad, scale, noise, use_noise, read2, full_well, dn_per_e, top, lut, dn16, ir8, sat):
+    """Rows [r0, r1) of the exposure: electrons S = rad x scale plus sqrt(S + read^2) x noise
+    (shot + read noise), saturation at the full well, ADC counts rint(S x top / full well)
+    clipped to [0, top], and the companded 8-bit value ``lut[counts]`` (float32 throughout)."""
+    zero = np.float32(0.0)
+    for v in range(r0, r1):
+        for u in range(rad.shape[1]):
+            S = rad[v, u] * scale
+            if use_noise:
+                S = S + np.sqrt(S + read2) * noise[v, u]
+            sat[v, u] = S >= full_well
+            dn = np.rint(S * dn_per_e)
+            dn = min(max(dn, zero), top)
+            c = np.uint16(dn)
+            dn16[v, u] = c
+            ir8[v, u] = lut[c]
