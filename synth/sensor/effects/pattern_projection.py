@@ -94,22 +94,28 @@ def _segment_occluded(renderer, view, src_cam, frac: np.ndarray, idx: np.ndarray
     import open3d as o3d
     rows = view.row_c2w
     src = np.asarray(src_cam, np.float64)
-    n = len(idx)
-    rays = np.empty((n, 6), np.float32)
-    X = view.points_world.reshape(-1, 3)[idx]
-    if np.all(rows == rows[0]):
-        S = (rows[0, :3, :3] @ src + rows[0, :3, 3]).astype(np.float32)
-        for i in range(3):
-            rays[:, i] = S[i]
-            rays[:, 3 + i] = (X[:, i] - S[i]) * frac
-    else:  # one pose per row (rolling shutter, sub-exposures)
-        S = (rows[:, :3, :3] @ src + rows[:, :3, 3]).astype(np.float32)[idx // view.hit.shape[1]]
-        rays[:, :3] = S
-        np.subtract(X, S, out=rays[:, 3:])
-        rays[:, 3:] *= frac[:, None]
+    per_row = not np.all(rows == rows[0])
+    S = (rows[:, :3, :3] @ src + rows[:, :3, 3]) if per_row else (rows[0, :3, :3] @ src + rows[0, :3, 3])[None]
+    rays = np.empty((len(idx), 6), np.float32)
+    _segment_rays(np.ascontiguousarray(idx, np.int64), view.points_world.reshape(-1, 3),
+                  np.ascontiguousarray(S, np.float32), np.ascontiguousarray(frac, np.float32),
+                  view.hit.shape[1], per_row, rays)
     occ = renderer.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=np.float32(eps_m) / 10,
                                                     tfar=1.0, nthreads=_nthreads()).numpy()
     return occ.astype(bool)
+
+
+@kernel
+def _segment_rays(idx, points_world, S, frac, W, per_row, rays):
+    """Open3D rays (n, 6) of :func:`_segment_occluded`: origin the source ``S`` (its row's, or
+    the one of a global view), direction ``frac`` x (surface point - source)."""
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        r = i // W if per_row else 0
+        for j in range(3):
+            o = S[r, j]
+            rays[k, j] = o
+            rays[k, 3 + j] = (points_world[i, j] - o) * frac[k]
 
 
 def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.ndarray, xn: np.ndarray,
