@@ -3,8 +3,9 @@
 
 Every pixel gets the first surface hit by its ray, exactly as a ray cast would report it; only
 the loop order differs (per triangle over the pixels it may cover, instead of per pixel
-through a BVH), which for the few thousand triangles of a furnished room is ~10x cheaper on
-the CPU than ``open3d.t.geometry.RaycastingScene.cast_rays``.
+through a BVH). For the 2630 triangles of the built-in room at 640x480 that is 4 ms (two
+threads, 7.7 CPU-ms) against 33 ms (57 CPU-ms) for ``open3d.t.geometry.RaycastingScene
+.cast_rays`` (benchmarks/bench_sensor.py).
 
 Method (homogeneous rasterisation, no near-plane clipping of the coverage test): with the
 camera centre at the origin and camera-frame vertices p0, p1, p2, write the pixel's ray
@@ -25,6 +26,12 @@ two triangles the one listed first keeps the pixel).
 Differences from a float32 ray cast: depths agree to float32 rounding (~1e-7 relative; ours
 are computed in float64); at a silhouette or a shared edge passing within ~1e-7 px of a
 pixel centre the two can pick different triangles.
+
+Moving cameras (:meth:`Rasterizer.render_rows`, rolling shutter and motion-blur
+sub-exposures): every image row has its own pose. Visibility is rasterised per band of rows
+with the pose of the band's middle row, the band kept short enough that the image moves less
+than 0.1 px between its first and last row; depth, points and normals are then exact for each
+row's pose (its pixel rays intersected with the plane of the visible triangle).
 
 Threads: the image rows are split into bands that run concurrently (the kernels release the
 GIL); each band writes its own rows only.
