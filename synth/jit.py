@@ -34,10 +34,6 @@ def run_row_bands(fn, H: int, n_threads: int) -> None:
     if n == 1:
         fn(0, H)
         return
-    global _POOL
-    from concurrent.futures import ThreadPoolExecutor
-    if _POOL is None or _POOL._max_workers < n:
-        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-bands")
     blk = 16
     edges = list(range(0, H, blk)) + [H]
     chunks = [(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
@@ -46,7 +42,18 @@ def run_row_bands(fn, H: int, n_threads: int) -> None:
         for a, b in chunks[j::n]:
             fn(a, b)
 
-    list(_POOL.map(run, range(n)))
+    list(thread_pool(n).map(run, range(n)))
+
+
+def thread_pool(n: int):
+    """The process's shared ThreadPoolExecutor with at least ``n`` threads (a new one after a
+    fork: a forked child has none of its parent's threads). Tasks run on it must not wait for
+    other tasks of it (no nesting: that could deadlock)."""
+    global _POOL
+    from concurrent.futures import ThreadPoolExecutor
+    if _POOL is None or _POOL._max_workers < n:
+        _POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-bands")
+    return _POOL
 
 
 _POOL = None

@@ -139,3 +139,35 @@ def test_rows_with_their_own_poses_match_a_per_row_ray_cast():
     r = ras.render(T, intr, with_rgb=False)
     np.testing.assert_array_equal(a.hit, r.hit)
     np.testing.assert_allclose(a.depth, r.depth, rtol=1e-6)
+
+
+def _render_in_child(q) -> None:
+    import synth.render as R
+    R.RAY_THREADS = 2
+    scene = build_scene("room", seed=0)
+    res = IdealRenderer(scene).render(make_trajectory("walkthrough", scene, 2, seed=0).poses[0], INTR)
+    q.put(int(res.hit.sum()))
+
+
+def test_thread_bands_work_in_a_forked_child():
+    """The shared band thread pool is rebuilt after a fork (a forked child has no threads)."""
+    import multiprocessing as mp
+
+    import synth.render as R
+    scene = build_scene("room", seed=0)
+    R_old, R.RAY_THREADS = R.RAY_THREADS, 2
+    try:
+        want = int(IdealRenderer(scene).render(make_trajectory("walkthrough", scene, 2, seed=0).poses[0], INTR)
+                   .hit.sum())  # the parent's pool now exists
+    finally:
+        R.RAY_THREADS = R_old
+    ctx = mp.get_context("fork")
+    q = ctx.Queue()
+    p = ctx.Process(target=_render_in_child, args=(q,))
+    p.start()
+    p.join(60)
+    alive = p.is_alive()
+    if alive:
+        p.kill()
+    assert not alive, "render in a forked child hung"
+    assert p.exitcode == 0 and q.get(timeout=5) == want

@@ -218,7 +218,7 @@ def _refine_in_bands(left, right, d, block, params, col_offset, margin):
     if n <= 1:
         return _refine(_normalized(left, block), Rn, Rx, d, block, params.subpixel_iterations,
                        params.max_refine_px, col_offset)
-    from concurrent.futures import ThreadPoolExecutor
+    from synth.jit import thread_pool
     edges = [round(i * H / n) for i in range(n + 1)]
     out = np.empty(d.shape, np.float32)
 
@@ -229,14 +229,8 @@ def _refine_in_bands(left, right, d, block, params, col_offset, margin):
                       params.subpixel_iterations, params.max_refine_px, col_offset)
         out[r0:r1] = sub[r0 - a:r1 - a]
 
-    global _BAND_POOL
-    if _BAND_POOL is None or _BAND_POOL._max_workers < n:
-        _BAND_POOL = ThreadPoolExecutor(max_workers=n, thread_name_prefix="realgap-refine")
-    list(_BAND_POOL.map(band, range(n)))
+    list(thread_pool(n).map(band, range(n)))
     return out
-
-
-_BAND_POOL = None
 
 
 _FLIP_CACHE: list = []
