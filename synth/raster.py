@@ -205,13 +205,16 @@ def _raster_rows(coef, bbox, row0, row1, zbuf, prim):
 @kernel
 def _raster_posed(r0, r1, band, rows_R, rows_o, verts_w, tris, row_lo, row_hi, fx, fy, cx, cy, W, H, coef, bbox,
                   zbuf, prim):
-    """Rows [r0, r1) of a view whose row v has its own pose, in bands of ``band`` rows, each
-    rasterised with the pose of its middle row; only triangles whose row range
-    [row_lo, row_hi] meets the band are set up."""
+    """Rows [r0, r1) of a view whose row v has its own pose. Visibility bands are a fixed grid
+    of ``band`` rows over the whole image (so the result does not depend on how the rows are
+    split between threads), each rasterised with the pose of its middle row; only triangles
+    whose row range [row_lo, row_hi] meets the band are set up."""
     q = np.empty(9)
-    for a in range(r0, r1, band):
-        b = min(a + band, r1)
-        m = min((a + b) // 2, H - 1)
+    for ga in range((r0 // band) * band, r1, band):
+        gb = min(ga + band, H)
+        m = (ga + gb - 1) // 2
+        a = max(ga, r0)
+        b = min(gb, r1)
         for f in range(tris.shape[0]):
             if row_hi[f] < a or row_lo[f] >= b:
                 continue
@@ -403,6 +406,8 @@ class Rasterizer:
         R = np.ascontiguousarray(T[:3, :3])
         t = np.ascontiguousarray(T[:3, 3])
         H, W = int(height), int(width)
+        if np.shape(dir_z) != (H, W):
+            raise ValueError(f"render: dir_z must be ({H}, {W}), got {np.shape(dir_z)}")
         vc = np.ascontiguousarray((self.vertices_world - t) @ R)  # R^T (p - t)
         nf = self.n_triangles
         coef = np.zeros((nf, 10), np.float64)
@@ -453,7 +458,13 @@ class Rasterizer:
             raise ValueError(f"render_rows: row_c2w must be ({H}, 4, 4), got {rows.shape}")
         rows_R = np.ascontiguousarray(rows[:, :3, :3])
         rows_o = np.ascontiguousarray(rows[:, :3, 3])
-        per_row = _motion_px_per_row(rows_R, rows_o, max(fx, fy))
+        if np.shape(dir_z) != (H, W):
+            raise ValueError(f"render_rows: dir_z must be ({H}, {W}), got {np.shape(dir_z)}")
+        # image motion bound: rotation moves a pixel at normalised (x, y) by f (1 + x^2 + y^2)
+        # per radian at most; translation by f / z for a surface at depth z
+        r2max = max(((0 - cx) / fx) ** 2, ((W - 1 - cx) / fx) ** 2) + max(((0 - cy) / fy) ** 2,
+                                                                          ((H - 1 - cy) / fy) ** 2)
+        per_row = _motion_px_per_row(rows_R, rows_o, max(fx, fy), 1.0 + r2max)
         band = int(max(1, min(16, np.floor(max_band_px / per_row) + 1))) if per_row > 0 else 16
         out = {
             "depth": np.empty((H, W), np.float32), "t_hit": np.empty((H, W), np.float32),
@@ -476,9 +487,14 @@ class Rasterizer:
                2.0 + per_row * H / 2.0, coef0, box0)
         row_lo = np.where(box0[:, 0] <= box0[:, 1], box0[:, 2], H)
         row_hi = np.where(box0[:, 0] <= box0[:, 1], box0[:, 3], -1)
-        # triangles within 1 cm of the camera plane at that pose: every row
-        near = (vc[self.triangles, 2] < 0.01).any(axis=1)
-        row_lo[near], row_hi[near] = 0, H - 1
+        # every row for triangles the bound does not cover: nearer than the surface distance it
+        # assumes (their image moves faster), and edge-on at that pose (no box; det = 0) but
+        # not wholly behind the camera - other rows' poses may see them
+        z = vc[self.triangles, 2]
+        near = (z < _MIN_SURFACE_M).any(axis=1) & (z > -_MIN_SURFACE_M).any(axis=1)
+        edge_on = (coef0[:, 9] == 0.0) & (z > 0.0).any(axis=1)
+        every = near | edge_on
+        row_lo[every], row_hi[every] = 0, H - 1
 
         def job(r0: int, r1: int) -> None:
             coef = np.zeros((nf, 10), np.float64)
@@ -496,19 +512,21 @@ class Rasterizer:
 
 
 _MIN_SURFACE_M = 0.3
-"""Nearest surface distance (metres) assumed when bounding the image motion of a translating
-camera in :func:`_motion_px_per_row` (depth sensors see nothing nearer than ~0.3-0.5 m)."""
+"""Surface distance (metres) assumed when bounding the image motion of a translating camera in
+:func:`_motion_px_per_row`; triangles nearer than this at the middle row's pose are tested in
+every band instead."""
 
 
-def _motion_px_per_row(rows_R: np.ndarray, rows_o: np.ndarray, f_px: float) -> float:
-    """Bound on the image motion (pixels) between consecutive rows' poses: f (rotation angle +
-    translation / 0.3 m), the largest over the rows."""
+def _motion_px_per_row(rows_R: np.ndarray, rows_o: np.ndarray, f_px: float, rot_gain: float = 1.0) -> float:
+    """Bound on the image motion (pixels) between consecutive rows' poses: f (rotation angle x
+    ``rot_gain`` + translation / 0.3 m), the largest over the rows; ``rot_gain`` = 1 + the
+    largest x^2 + y^2 of the image (normalised coordinates) covers off-axis pixels."""
     if len(rows_R) < 2:
         return 0.0
     rel = np.einsum("nji,njk->nik", rows_R[:-1], rows_R[1:])          # R_v^T R_{v+1}
     c = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
     ang = float(np.max(np.arccos(c)))
     trans = float(np.max(np.linalg.norm(np.diff(rows_o, axis=0), axis=1)))
-    return f_px * (ang + trans / _MIN_SURFACE_M)
+    return f_px * (ang * rot_gain + trans / _MIN_SURFACE_M)
 
 __all__ = ["Rasterizer", "available"]
