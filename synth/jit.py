@@ -26,15 +26,15 @@ def kernel(fn):
     return _nb.njit(cache=True, nogil=True, fastmath=False)(fn) if _nb is not None else fn
 
 
-def run_row_bands(fn, H: int, n_threads: int) -> None:
+def run_row_bands(fn, H: int, n_threads: int, block: int = 16) -> None:
     """Call ``fn(r0, r1)`` over the rows [0, H) in bands, on ``n_threads`` threads when > 1
-    (``fn`` must write only its own rows). Bands are interleaved in blocks of 16 rows so that
-    the work of a view whose content sits in one part of the image is still shared evenly."""
+    (``fn`` must write only its own rows). Bands are interleaved in blocks of ``block`` rows so
+    that the work of a view whose content sits in one part of the image is still shared evenly."""
     n = max(1, min(int(n_threads), H))
     if n == 1:
         fn(0, H)
         return
-    blk = 16
+    blk = max(1, int(block))
     edges = list(range(0, H, blk)) + [H]
     chunks = [(edges[i], edges[i + 1]) for i in range(len(edges) - 1)]
 

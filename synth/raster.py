@@ -487,13 +487,17 @@ class Rasterizer:
                2.0 + per_row * H / 2.0, coef0, box0)
         row_lo = np.where(box0[:, 0] <= box0[:, 1], box0[:, 2], H)
         row_hi = np.where(box0[:, 0] <= box0[:, 1], box0[:, 3], -1)
-        # every row for triangles the bound does not cover: nearer than the surface distance it
-        # assumes (their image moves faster), and edge-on at that pose (no box; det = 0) but
-        # not wholly behind the camera - other rows' poses may see them
+        # every row for triangles the bound does not cover: those that may show a point nearer
+        # than the depth it assumes (a visible point at distance d from the camera centre has
+        # z >= d / sqrt(1 + r2max); the centre moves by at most the frame's translation), and
+        # those edge-on at the middle pose (no box) that are not wholly behind the camera
+        from trimesh.triangles import closest_point
+        tri_w = self.vertices_world[self.triangles]
+        dist = np.linalg.norm(closest_point(tri_w, np.broadcast_to(rows_o[mid], (nf, 3))) - rows_o[mid], axis=1)
+        reach = _MIN_SURFACE_M * np.sqrt(1.0 + r2max) + float(np.linalg.norm(rows_o[-1] - rows_o[0]))
         z = vc[self.triangles, 2]
-        near = (z < _MIN_SURFACE_M).any(axis=1) & (z > -_MIN_SURFACE_M).any(axis=1)
         edge_on = (coef0[:, 9] == 0.0) & (z > 0.0).any(axis=1)
-        every = near | edge_on
+        every = (dist < reach) | edge_on
         row_lo[every], row_hi[every] = 0, H - 1
 
         def job(r0: int, r1: int) -> None:
@@ -506,7 +510,7 @@ class Rasterizer:
                                 out["depth"], out["t_hit"], out["hit"], out["points_world"], out["points_cam"],
                                 out["normals_cam"], out["instance_ids"])
 
-        run_row_bands(job, H, n_threads)
+        run_row_bands(job, H, n_threads, block=band * max(1, round(16 / band)))  # whole bands per block
         out["triangle"] = prim
         return out
 
