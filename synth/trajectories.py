@@ -161,11 +161,14 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
     target follows a second spline through points on non-flat content meshes
     (:func:`content_meshes`) that are visible from the matching control point and at least
     ``min_view_dist_m`` away. A path that fails the clearance test is redrawn (up to
-    ``max_attempts`` times, then RealgapError). Consecutive look-at directions (one segment
-    apart) differ by at most 60 deg and by at most ``max_turn_deg_s`` times the segment's
-    duration, so a short walk (a few frames: segments much shorter than ``segment_s``) turns
-    no faster than a long one.
+    ``max_attempts`` times, then RealgapError). Consecutive look-at targets are preferably
+    within 60 deg of each other as seen from the control point; a walk shorter than one
+    ``segment_s`` (a few frames) limits that turn to ``max_turn_deg_s`` times its duration
+    (turning towards a target by that much when none is within it), so it turns no faster
+    than a long walk does. Longer walks are not affected by ``max_turn_deg_s``.
     """
+    if not max_turn_deg_s > 0:
+        raise ConfigError(f"walkthrough: max_turn_deg_s must be > 0, got {max_turn_deg_s}")
     ts = _timestamps(n_frames, fps, t0)
     rng = np.random.default_rng(seed)
     clear = _Clearance(scene)
@@ -234,12 +237,14 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
                 prev = (tg[-1] - e) / max(np.linalg.norm(tg[-1] - e), 1e-9)
                 dirs = targets_pool[pool] - e
                 cosang = dirs @ prev / np.maximum(np.linalg.norm(dirs, axis=1), 1e-9)
-                max_turn = math.radians(min(60.0, max_turn_deg_s * duration / max(n_ctrl - 1, 1)))
+                short = duration < segment_s
+                max_turn = math.radians(min(60.0, max_turn_deg_s * duration) if short else 60.0)
                 good = pool[cosang > math.cos(max_turn)]
                 if len(good) == 0 and max_turn < math.radians(60.0):
                     # nothing within a short walk's turn: turn towards a target by the limit only
                     t = targets_pool[rng.choice(pool)]
-                    tg.append(e + _turn_towards(prev, t - e, max_turn) * np.linalg.norm(tg[-1] - e))
+                    dist = max(float(np.linalg.norm(tg[-1] - e)), min_view_dist_m)
+                    tg.append(e + _turn_towards(prev, t - e, max_turn) * dist)
                     continue
                 pool = good if len(good) else pool
             tg.append(targets_pool[rng.choice(pool)])
