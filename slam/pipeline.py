@@ -273,6 +273,18 @@ def _flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _make_backend(backend_cls, config, intr, tsdf_config, sensor):
+    """``backend_cls(config, intr, tsdf_config, sensor=sensor)``; a backend written before the
+    ``sensor`` argument existed (three-argument ``__init__``) gets it as an attribute."""
+    import inspect
+    params = inspect.signature(backend_cls.__init__).parameters
+    if "sensor" in params or any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        return backend_cls(config, intr, tsdf_config, sensor=sensor)
+    backend = backend_cls(config, intr, tsdf_config)
+    backend.sensor = sensor
+    return backend
+
+
 def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLike,
              config: SlamConfig | None = None, camera: Camera | None = None, resume: bool = True,
              overwrite: bool = False, progress: bool = True, stop_after: int | None = None,
@@ -302,7 +314,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     if cfg.max_frames:
         indices = indices[: cfg.max_frames]
     backend_cls = get_backend(cfg.backend)
-    backend = backend_cls(cfg.backend_config, intr, cfg.tsdf, sensor=cam.sensor)
+    backend = _make_backend(backend_cls, cfg.backend_config, intr, cfg.tsdf, cam.sensor)
     volume = TSDFVolume(cfg.tsdf)
 
     records: list[dict] = []

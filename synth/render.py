@@ -178,6 +178,8 @@ class IdealRenderer:
         from synth import raster
         if backend == "auto":
             backend = "raster" if raster.available() else "raycast"
+        elif backend == "raster" and not raster.available():
+            raise RealgapError("renderer backend 'raster' needs numba, which is not installed (use 'raycast')")
         self.backend = backend
         """How :meth:`render` finds the first hits: ``"raster"`` (synth.raster) or
         ``"raycast"`` (Open3D); every other query uses the Open3D scene."""

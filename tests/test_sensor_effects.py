@@ -382,3 +382,19 @@ def test_flying_pixels_lie_between_surfaces(box_scene):
     k = np.ones((3, 3), np.uint8)
     span = cv2.dilate(st.ideal.depth, k) - cv2.erode(st.ideal.depth, k)
     assert np.all(span[changed] > 0.1), "only pixels on a depth edge fly"
+
+
+def test_scanline_shadow_mirrors_for_a_projector_on_the_left():
+    """A pixel without a surface blocks nothing, on either side (it used to become -inf after
+    the mirror's sign flip and shadow every pixel before it with the projector at -x)."""
+    from synth.sensor.effects.pattern_projection import scanline_shadow
+    up = np.array([[0.0, 1.0, 2.0, 3.0, 4.0, 5.0]], np.float32)   # a flat row: nothing occludes
+    valid = np.array([[False, True, True, True, True, True]])
+    for side in (1.0, -1.0):
+        assert not scanline_shadow(up, valid, side).any()
+    # an occluder: with the projector on the left, a pixel left of a point that maps to a
+    # projector column >= its own is blocked (mirror of the right-hand case)
+    up2 = np.array([[0.0, 3.0, 1.0, 2.0]], np.float32)
+    ok = np.ones((1, 4), bool)
+    assert scanline_shadow(up2, ok, 1.0).tolist() == [[False, True, False, False]]
+    assert scanline_shadow(-up2[:, ::-1], ok, -1.0).tolist() == [[False, False, True, False]]

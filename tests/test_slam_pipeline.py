@@ -186,3 +186,19 @@ def test_cli_errors_are_one_line(tmp_path, seq, capsys):
     rc = main(["slam", "run", str(tmp_path / "missing"), "--out", str(tmp_path / "r2")])
     assert rc == 1
     assert "sequence folder not found" in capsys.readouterr().err
+
+
+def test_backend_with_the_old_three_argument_init_still_gets_the_sensor():
+    from slam.pipeline import _make_backend
+    from slam.registration import RegistrationBackend
+
+    class Old(RegistrationBackend):
+        def __init__(self, config, intrinsics, tsdf_config):  # written before `sensor` existed
+            super().__init__(config, intrinsics, tsdf_config)
+
+    class New(RegistrationBackend):
+        pass
+
+    for cls in (Old, New):
+        b = _make_backend(cls, None, "intr", "tsdf", sensor="S")
+        assert b.sensor == "S" and b.intrinsics == "intr" and b.tsdf_config == "tsdf"

@@ -339,7 +339,7 @@ def _row_map(H: int, W: int) -> np.ndarray:
     if m is None:
         m = np.ascontiguousarray(np.broadcast_to(np.arange(H, dtype=np.float32)[:, None], (H, W)))
         m.setflags(write=False)
-        if len(_ROW_MAPS) >= 8:  # a few shapes (row bands, presets), not one per call
+        if len(_ROW_MAPS) >= 64:  # a few shapes (row bands, presets), not one per call
             _ROW_MAPS.clear()
         _ROW_MAPS[(H, W)] = m
     return m

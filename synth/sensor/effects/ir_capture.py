@@ -81,6 +81,9 @@ class IRCapture(Effect):
         from synth.render import _n_threads
         p = self.params
         H, W = radiance.shape
+        for name, a in (("speckle", speckle), ("noise", noise), ("ambient", ambient)):
+            if a is not None and a.shape != (H, W):  # the kernels below do not check bounds
+                raise ValueError(f"ir_capture: {name} is {a.shape}, the radiance {(H, W)}")
         nthreads = _n_threads()
         f32 = np.float32
         none = np.zeros((1, 1), np.float32)
@@ -133,7 +136,10 @@ class IRCapture(Effect):
         else:
             sp = check_draw(draw, "speckle", sh, self.name)
             nz = check_draw(draw, "noise", sh, self.name)
-            sp2, nz2 = draw.get("speckle_second"), draw.get("noise_second")
+            sp2 = nz2 = None
+            if state.radiance_second is not None:  # active stereo: the second camera's draws
+                sp2 = check_draw(draw, "speckle_second", sh, self.name)
+                nz2 = check_draw(draw, "noise_second", sh, self.name)
         ref = state.is_reference
         state.ir, state.ir8, state.saturated = self._capture(state.radiance, state.scratch.get("ambient"), sp, nz, ref)
         if state.radiance_second is not None:

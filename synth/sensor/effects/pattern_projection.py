@@ -222,9 +222,11 @@ def scanline_shadow(up: np.ndarray, valid: np.ndarray, side: float, tol_px: floa
     projector and the surface. The running minimum of u_p from the right gives the test for
     all pixels at once. Pixels without a surface (``valid`` False) block nothing.
     """
-    P = np.where(valid, up, np.float32(np.inf)).astype(np.float32)
+    # mirrored when the projector is on the left (columns run the other way); pixels without a
+    # surface get +inf after the sign flip (before it, they became -inf and shadowed the row)
+    P = np.where(valid, up if side > 0 else -up, np.float32(np.inf)).astype(np.float32)
     if side < 0:
-        P = -P[:, ::-1]  # mirror: the projector is on the left, columns run the other way
+        P = P[:, ::-1]
     suffix = np.minimum.accumulate(P[:, ::-1], axis=1)[:, ::-1]
     nxt = np.full_like(P, np.inf)
     nxt[:, :-1] = suffix[:, 1:]
@@ -252,6 +254,8 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
     H, W = view.shape
     if ray_dirs_cam is None:
         raise ValueError("compute_radiance needs the camera's ray directions")
+    if ray_dirs_cam.shape != (H, W, 3):
+        raise ValueError(f"compute_radiance: ray directions {ray_dirs_cam.shape} do not match the view {(H, W)}")
     xn, yn = normalized_coords(ray_dirs_cam)
     proj = np.asarray(preset.projector_offset_m, np.float64) - np.asarray(camera_offset_m, np.float64)
     hit = np.ascontiguousarray(view.hit)
