@@ -487,8 +487,13 @@ def plot_binned_signature(path, base, candidate, panels: Sequence[tuple[str, str
     (statistic: ``bias``, ``std`` or ``invalid_fraction`` per bin of the feature)."""
     fig = _figure(5.2 * len(panels), 4.2)
     axs = np.atleast_1d(fig.subplots(1, len(panels)))
+    by_feature: dict[str, tuple[list, list]] = {}  # the pixel features of one feature computed once
     for ax, (feature, stat) in zip(axs, panels):
-        _binned_axes(fig, [ax], base, candidate, feature, (stat,))
+        axes, stats = by_feature.setdefault(feature, ([], []))
+        axes.append(ax)
+        stats.append(stat)
+    for feature, (axes, stats) in by_feature.items():
+        _binned_axes(fig, axes, base, candidate, feature, tuple(stats))
     return _save(fig, path)
 
 
