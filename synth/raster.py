@@ -246,6 +246,22 @@ def _no_hit(v, u, depth, t_hit, hit, inst, points_w, normals_c):
 
 
 @kernel
+def _cam_normal(R, tri_normal_w, f, x, y, z, normals_c, v, u):
+    """normals_c[v, u] = the world normal of triangle f in the camera frame (R^T n, R the
+    camera-to-world rotation), flipped to face the camera (against the view direction (x, y, z))."""
+    nw0 = tri_normal_w[f, 0]
+    nw1 = tri_normal_w[f, 1]
+    nw2 = tri_normal_w[f, 2]
+    n0 = R[0, 0] * nw0 + R[1, 0] * nw1 + R[2, 0] * nw2
+    n1 = R[0, 1] * nw0 + R[1, 1] * nw1 + R[2, 1] * nw2
+    n2 = R[0, 2] * nw0 + R[1, 2] * nw1 + R[2, 2] * nw2
+    sgn = -1.0 if (n0 * x + n1 * y + n2 * z) > 0 else 1.0
+    normals_c[v, u, 0] = n0 * sgn
+    normals_c[v, u, 1] = n1 * sgn
+    normals_c[v, u, 2] = n2 * sgn
+
+
+@kernel
 def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t, fx, fy, cx, cy, dir_z,
                   with_uv, depth, t_hit, hit, points_w, points_c, normals_c, inst, uv):
     """Per-pixel outputs over rows [row0, row1) from the z-buffer and triangle ids.
@@ -279,18 +295,7 @@ def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t
             points_c[v, u, 2] = z
             for k in range(3):
                 points_w[v, u, k] = R[k, 0] * xc + R[k, 1] * yc + R[k, 2] * z + t[k]
-            # world normal -> camera frame (R^T n), flipped to face the camera
-            nw0 = tri_normal_w[f, 0]
-            nw1 = tri_normal_w[f, 1]
-            nw2 = tri_normal_w[f, 2]
-            n0 = R[0, 0] * nw0 + R[1, 0] * nw1 + R[2, 0] * nw2
-            n1 = R[0, 1] * nw0 + R[1, 1] * nw1 + R[2, 1] * nw2
-            n2 = R[0, 2] * nw0 + R[1, 2] * nw1 + R[2, 2] * nw2
-            facing = n0 * xc + n1 * yc + n2 * z
-            sgn = -1.0 if facing > 0 else 1.0
-            normals_c[v, u, 0] = n0 * sgn
-            normals_c[v, u, 1] = n1 * sgn
-            normals_c[v, u, 2] = n2 * sgn
+            _cam_normal(R, tri_normal_w, f, xc, yc, z, normals_c, v, u)
             if with_uv:
                 e0 = coef[f, 0] * u + coef[f, 1] * v + coef[f, 2]
                 e1 = coef[f, 3] * u + coef[f, 4] * v + coef[f, 5]
@@ -303,10 +308,10 @@ def _resolve_rows(row0, row1, zbuf, prim, coef, tri_normal_w, tri_instance, R, t
 @kernel
 def _resolve_posed_rows(row0, row1, prim, verts_w, tris, tri_normal_w, tri_instance, rows_R, rows_o, fx, fy, cx, cy,
                         dir_z, depth, t_hit, hit, points_w, points_c, normals_c, inst):
-    """Rows [r0, r1) of a view whose row v has its own pose (rows_R[v], rows_o[v]): the exact
+    """Rows [row0, row1) of a view whose row v has its own pose (rows_R[v], rows_o[v]): the exact
     intersection of each pixel's ray with the plane of its visible triangle ``prim`` (found by
-    :func:`_raster_rows` with the pose of the pixel's band). Outputs as :func:`_resolve_rows`
-    plus ``points_c``, the point in the frame of the row's own pose."""
+    :func:`_raster_posed` with the pose of the pixel's band). Outputs as :func:`_resolve_rows`
+    (no uv); ``points_c`` in the frame of the row's own pose."""
     W = prim.shape[1]
     for v in range(row0, row1):
         yn = (v - cy) / fy
@@ -343,13 +348,7 @@ def _resolve_posed_rows(row0, row1, prim, verts_w, tris, tri_normal_w, tri_insta
             points_c[v, u, 0] = xn * s
             points_c[v, u, 1] = yn * s
             points_c[v, u, 2] = s
-            c0 = rows_R[v, 0, 0] * n0 + rows_R[v, 1, 0] * n1 + rows_R[v, 2, 0] * n2
-            c1 = rows_R[v, 0, 1] * n0 + rows_R[v, 1, 1] * n1 + rows_R[v, 2, 1] * n2
-            c2 = rows_R[v, 0, 2] * n0 + rows_R[v, 1, 2] * n1 + rows_R[v, 2, 2] * n2
-            sgn = -1.0 if (c0 * xn + c1 * yn + c2) > 0 else 1.0
-            normals_c[v, u, 0] = c0 * sgn
-            normals_c[v, u, 1] = c1 * sgn
-            normals_c[v, u, 2] = c2 * sgn
+            _cam_normal(rows_R[v], tri_normal_w, f, xn, yn, 1.0, normals_c, v, u)
 
 
 class Rasterizer:
@@ -379,6 +378,8 @@ class Rasterizer:
         self.tri_instance = np.ascontiguousarray(np.concatenate(inst))
         """(F,) int32 instance id (k + 1 for mesh k) of each triangle."""
         p = self.vertices_world[self.triangles]
+        self._corners_world = p
+        """(F, 3, 3) float64 world corners of every triangle."""
         n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
         ln = np.linalg.norm(n, axis=1, keepdims=True)
         self.tri_normal_world = np.ascontiguousarray(n / np.where(ln > 0, ln, 1.0))
@@ -415,12 +416,8 @@ class Rasterizer:
         _setup(vc, self.triangles, float(fx), float(fy), float(cx), float(cy), W, H, 1.0, coef, bbox)
         zbuf = np.full((H, W), np.inf, np.float64)
         prim = np.full((H, W), -1, np.int32)
-        out = {
-            "depth": np.empty((H, W), np.float32), "t_hit": np.empty((H, W), np.float32),
-            "hit": np.empty((H, W), np.bool_), "points_world": np.empty((H, W, 3), np.float32),
-            "points_cam": np.empty((H, W, 3), np.float32), "normals_cam": np.empty((H, W, 3), np.float32),
-            "instance_ids": np.empty((H, W), np.int32), "uv": np.empty((H, W, 2) if with_uv else (1, 1, 2), np.float32),
-        }
+        out = _output_arrays(H, W)
+        out["uv"] = np.empty((H, W, 2) if with_uv else (1, 1, 2), np.float32)
         dz = np.ascontiguousarray(dir_z, np.float32)
 
         def band(r0: int, r1: int) -> None:
@@ -436,7 +433,6 @@ class Rasterizer:
             del out["uv"]
         return out
 
-
     def render_rows(self, row_c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int,
                     height: int, dir_z: np.ndarray, max_band_px: float = 0.1, n_threads: int = 1) -> dict:
         """First hits of a view whose image row v is exposed from its own pose ``row_c2w[v]``
@@ -445,12 +441,12 @@ class Rasterizer:
         Visibility (which triangle a pixel sees) is rasterised per band of consecutive rows
         with the pose of the band's middle row; the band is as tall as keeps the image motion
         between its first and last row below ``max_band_px`` pixels (bounded from the pose
-        change, for surfaces >= 0.3 m away; at most 16 rows, one row for fast motion). Depth,
-        points and normals are then exact for each row's own pose: the pixel's ray
-        intersected with the plane of that triangle. So only which surface a pixel sees at a
-        silhouette can differ from a per-row ray cast, by less than ``max_band_px``.
-        Returns the dict of :meth:`render` (no ``uv``) plus ``points_cam`` (H, W, 3) float32,
-        the points in the frame of their row's pose.
+        change for surfaces >= 0.3 m away - nearer triangles are tested in every band; at most
+        16 rows, one row for fast motion). Depth, points and normals are then exact for each
+        row's own pose: the pixel's ray intersected with the plane of that triangle. So only
+        which surface a pixel sees at a silhouette can differ from a per-row ray cast, by less
+        than ``max_band_px``. Returns the dict of :meth:`render` without ``uv``; ``points_cam``
+        are in the frame of each row's own pose.
         """
         rows = np.asarray(row_c2w, np.float64)
         H, W = int(height), int(width)
@@ -466,12 +462,7 @@ class Rasterizer:
                                                                           ((H - 1 - cy) / fy) ** 2)
         per_row = _motion_px_per_row(rows_R, rows_o, max(fx, fy), 1.0 + r2max)
         band = int(max(1, min(16, np.floor(max_band_px / per_row) + 1))) if per_row > 0 else 16
-        out = {
-            "depth": np.empty((H, W), np.float32), "t_hit": np.empty((H, W), np.float32),
-            "hit": np.empty((H, W), np.bool_), "points_world": np.empty((H, W, 3), np.float32),
-            "points_cam": np.empty((H, W, 3), np.float32), "normals_cam": np.empty((H, W, 3), np.float32),
-            "instance_ids": np.empty((H, W), np.int32),
-        }
+        out = _output_arrays(H, W)
         prim = np.full((H, W), -1, np.int32)
         zbuf = np.full((H, W), np.inf, np.float64)
         dz = np.ascontiguousarray(dir_z, np.float32)
@@ -492,8 +483,8 @@ class Rasterizer:
         # z >= d / sqrt(1 + r2max); the centre moves by at most the frame's translation), and
         # those edge-on at the middle pose (no box) that are not wholly behind the camera
         from trimesh.triangles import closest_point
-        tri_w = self.vertices_world[self.triangles]
-        dist = np.linalg.norm(closest_point(tri_w, np.broadcast_to(rows_o[mid], (nf, 3))) - rows_o[mid], axis=1)
+        dist = np.linalg.norm(closest_point(self._corners_world, np.broadcast_to(rows_o[mid], (nf, 3)))
+                              - rows_o[mid], axis=1)
         reach = _MIN_SURFACE_M * np.sqrt(1.0 + r2max) + float(np.linalg.norm(rows_o[-1] - rows_o[0]))
         z = vc[self.triangles, 2]
         edge_on = (coef0[:, 9] == 0.0) & (z > 0.0).any(axis=1)
@@ -515,6 +506,16 @@ class Rasterizer:
         return out
 
 
+def _output_arrays(H: int, W: int) -> dict:
+    """Empty per-pixel outputs of :meth:`Rasterizer.render` / :meth:`Rasterizer.render_rows`."""
+    return {
+        "depth": np.empty((H, W), np.float32), "t_hit": np.empty((H, W), np.float32),
+        "hit": np.empty((H, W), np.bool_), "points_world": np.empty((H, W, 3), np.float32),
+        "points_cam": np.empty((H, W, 3), np.float32), "normals_cam": np.empty((H, W, 3), np.float32),
+        "instance_ids": np.empty((H, W), np.int32),
+    }
+
+
 _MIN_SURFACE_M = 0.3
 """Surface distance (metres) assumed when bounding the image motion of a translating camera in
 :func:`_motion_px_per_row`; triangles nearer than this at the middle row's pose are tested in
@@ -532,5 +533,6 @@ def _motion_px_per_row(rows_R: np.ndarray, rows_o: np.ndarray, f_px: float, rot_
     ang = float(np.max(np.arccos(c)))
     trans = float(np.max(np.linalg.norm(np.diff(rows_o, axis=0), axis=1)))
     return f_px * (ang * rot_gain + trans / _MIN_SURFACE_M)
+
 
 __all__ = ["Rasterizer", "available"]

@@ -214,11 +214,10 @@ def _refine_in_bands(left, right, d, block, params, col_offset, margin):
     from synth.render import _n_threads
     H = left.shape[0]
     n = min(_n_threads(), max(1, H // (4 * margin)))
-    Rn, Rx = _normalized_with_gradient(right, block)
     if n <= 1:
-        return _refine(_normalized(left, block), Rn, Rx, d, block, params.subpixel_iterations,
-                       params.max_refine_px, col_offset)
+        return refine_subpixel(left, right, d, block, params.subpixel_iterations, params.max_refine_px, col_offset)
     from synth.jit import thread_pool
+    Rn, Rx = _normalized_with_gradient(right, block)
     edges = [round(i * H / n) for i in range(n + 1)]
     out = np.empty(d.shape, np.float32)
 

@@ -51,12 +51,16 @@ class ViewGeometry:
     def shape(self) -> tuple[int, int]:
         return self.hit.shape
 
-    def world_of_cam_offset(self, offset_cam) -> np.ndarray:
-        """(H, W, 3) float32 world position of a point fixed in the camera frame (e.g. the
-        projector), per row (per pixel broadcast)."""
+    @property
+    def global_shutter(self) -> bool:
+        """True when every row has the same pose."""
+        return bool(np.all(self.row_c2w == self.row_c2w[0]))
+
+    def cam_point_rows(self, offset_cam) -> np.ndarray:
+        """(H, 3) float64 world position, at each row's pose, of a point fixed in the camera
+        frame (e.g. the projector), metres."""
         off = np.asarray(offset_cam, dtype=np.float64)
-        per_row = self.row_c2w[:, :3, :3] @ off + self.row_c2w[:, :3, 3]  # (H, 3)
-        return np.broadcast_to(per_row[:, None, :].astype(np.float32), self.points_cam.shape)
+        return self.row_c2w[:, :3, :3] @ off + self.row_c2w[:, :3, 3]
 
 
 def geometry_from_render(render, renderer, pose_c2w: np.ndarray) -> ViewGeometry:
@@ -122,17 +126,17 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
         row_c2w = np.broadcast_to(row_c2w, (H, 4, 4))
     R64 = row_c2w[:, :3, :3]
     off = np.asarray(origin_offset_cam, dtype=np.float64)
+    rows = row_c2w.copy()
+    rows[:, :3, 3] = R64 @ off + row_c2w[:, :3, 3]                           # the camera centre per row
     intr = renderer.intrinsics_of(ray_dirs_cam) if hasattr(renderer, "intrinsics_of") else None
     if intr is not None:
-        rows = row_c2w.copy()
-        rows[:, :3, 3] = R64 @ off + row_c2w[:, :3, 3]
         out = renderer.render_rows(rows, intr)
         if out is not None:  # the rasteriser (synth.raster): same surfaces, exact depth per row
             albedo, spec = renderer.albedo_specular(out["instance_ids"], check=False)
             return ViewGeometry(out["points_cam"], out["normals_cam"], out["hit"], out["instance_ids"],
                                 np.asarray(albedo, np.float32), np.asarray(spec, np.float32), out["points_world"],
                                 rows)
-    origin_rows = (R64 @ off + row_c2w[:, :3, 3]).astype(np.float32)           # (H, 3)
+    origin_rows = rows[:, :3, 3].astype(np.float32)                           # (H, 3)
     R = R64.astype(np.float32)
     d = [ray_dirs_cam[..., k] for k in range(3)]
     N = H * W
@@ -157,8 +161,7 @@ def cast_view(renderer, ray_dirs_cam: np.ndarray, row_c2w: np.ndarray,
     else:
         pw = (origins + dirs_w * t0.reshape(-1, 1)).reshape(H, W, 3)
     pw = np.where(hit[..., None], pw, np.float32(0.0))
-    rows = row_c2w.copy()
-    rows[:, :3, 3] = origin_rows
+    rows[:, :3, 3] = origin_rows  # the float32 origins the rays were cast from
     return ViewGeometry(pts_cam.astype(np.float32, copy=False), n_cam, hit, ids, np.asarray(albedo, np.float32),
                         np.asarray(spec, np.float32), pw, rows)
 

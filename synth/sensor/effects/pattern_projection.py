@@ -92,26 +92,22 @@ def _segment_occluded(renderer, view, src_cam, frac: np.ndarray, idx: np.ndarray
     in [eps_m / 10, 1] of that part), by Open3D occlusion queries. Built from the view's world
     points, so a rolling-shutter view (one pose per row) costs the same as a global one."""
     import open3d as o3d
-    rows = view.row_c2w
-    src = np.asarray(src_cam, np.float64)
-    per_row = not np.all(rows == rows[0])
-    S = (rows[:, :3, :3] @ src + rows[:, :3, 3]) if per_row else (rows[0, :3, :3] @ src + rows[0, :3, 3])[None]
     rays = np.empty((len(idx), 6), np.float32)
     _segment_rays(np.ascontiguousarray(idx, np.int64), view.points_world.reshape(-1, 3),
-                  np.ascontiguousarray(S, np.float32), np.ascontiguousarray(frac, np.float32),
-                  view.hit.shape[1], per_row, rays)
+                  view.cam_point_rows(src_cam).astype(np.float32), np.ascontiguousarray(frac, np.float32),
+                  view.hit.shape[1], rays)
     occ = renderer.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=np.float32(eps_m) / 10,
                                                     tfar=1.0, nthreads=_nthreads()).numpy()
     return occ.astype(bool)
 
 
 @kernel
-def _segment_rays(idx, points_world, S, frac, W, per_row, rays):
-    """Open3D rays (n, 6) of :func:`_segment_occluded`: origin the source ``S`` (its row's, or
-    the one of a global view), direction ``frac`` x (surface point - source)."""
+def _segment_rays(idx, points_world, S, frac, W, rays):
+    """Open3D rays (n, 6) of :func:`_segment_occluded`: origin the source ``S[row]`` (its
+    pixel's row), direction ``frac`` x (surface point - source)."""
     for k in range(idx.shape[0]):
         i = idx[k]
-        r = i // W if per_row else 0
+        r = i // W
         for j in range(3):
             o = S[r, j]
             rays[k, j] = o
@@ -164,12 +160,10 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
     rest = mask & ~exact
     if not rest.any():
         return sh, n_exact
-    # distance from the source (per row pose) to the nearest scene surface
-    rows = view.row_c2w
-    if np.all(rows == rows[0]):
-        pw = (rows[0, :3, :3] @ src_cam + rows[0, :3, 3]).astype(np.float32)[None]
-    else:
-        pw = (np.einsum("hij,j->hi", rows[:, :3, :3], src_cam) + rows[:, :3, 3]).astype(np.float32)
+    # distance from the source (per row pose; one pose for a global shutter) to the nearest surface
+    pw = view.cam_point_rows(src_cam).astype(np.float32)
+    if view.global_shutter:
+        pw = pw[:1]
     dmin_rows = renderer.raycasting_scene.compute_distance(
         o3d.core.Tensor.from_numpy(np.ascontiguousarray(pw)), nthreads=_nthreads()).numpy().astype(np.float64)
     # the out-of-view part of a shadow ray from S: from S to the plane x = x_edge z, a fraction
