@@ -4,7 +4,8 @@ Each module in :mod:`app.commands` is a command group: it defines ``NAME`` (the 
 ``HELP`` (one line) and ``register(parser)`` which adds its own sub-subcommands and sets
 ``func`` on them. Groups are discovered by name, so adding a group is one new file.
 
-Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1;
+Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1, every
+Python warning one ``realgap: warning:`` line;
 Ctrl-C exits with 130 and leaves finished outputs in place.
 """
 from __future__ import annotations
@@ -13,6 +14,7 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import warnings
 
 from data_tools.errors import RealgapError
 
@@ -50,6 +52,11 @@ def _version() -> str:
         return "unknown"
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Library warnings (a reader dropped duplicates, an alignment is ill-conditioned) as one line."""
+    print(f"realgap: warning: {message}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -59,7 +66,10 @@ def main(argv: list[str] | None = None) -> int:
         (getattr(args, "_group_parser", None) or parser).print_help()
         return 1 if args.command else 0
     try:
-        rc = func(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            warnings.showwarning = _one_line_warning
+            rc = func(args)
     except RealgapError as e:
         print(f"realgap: error: {e}", file=sys.stderr)
         return 1

@@ -4,11 +4,12 @@
 builds one back, converting each value to its field's annotated type and raising
 :class:`~data_tools.errors.ConfigError` that names the key for unknown keys and wrong types
 (then it calls the object's ``validate()`` when it has one); :func:`config_replace` applies
-``{"a.b": value}`` overrides.
+``{"a.b": value}`` overrides; :func:`config_from_options` applies ``KEY=VALUE`` command-line options.
 """
 from __future__ import annotations
 
 import dataclasses
+import json
 import types
 import typing
 from typing import Any
@@ -17,7 +18,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError
 
-__all__ = ["config_to_dict", "config_from_dict", "config_replace"]
+__all__ = ["config_to_dict", "config_from_dict", "config_replace", "config_from_options"]
 
 
 def config_to_dict(cfg: Any) -> Any:
@@ -135,3 +136,30 @@ def config_replace(cfg: Any, dotted: dict[str, Any], where: str = "config") -> A
             raise ConfigError(f"{where}: unknown option {key!r}")
         node[parts[-1]] = value
     return config_from_dict(type(cfg), data, where)
+
+
+def config_from_options(cls: type, items, flag: str, base: dict | None = None) -> Any:
+    """Dataclass ``cls`` (defaults) with ``KEY=VALUE`` overrides from a command line option such
+    as ``--fit-option`` (values parsed as JSON when they are JSON, else kept as strings), then
+    ``validate()``d. ``base`` holds overrides applied first. Errors name ``flag``."""
+    known = {f.name for f in dataclasses.fields(cls) if f.init}
+    over = dict(base or {})
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"{flag} expects KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        k = k.strip()
+        if k not in known:
+            raise ConfigError(f"{flag}: unknown option {k!r}; known: {', '.join(sorted(known))}")
+        try:
+            over[k] = json.loads(v)
+        except json.JSONDecodeError:
+            over[k] = v
+    try:
+        obj = dataclasses.replace(cls(), **{k: v for k, v in over.items() if k in known})
+        validate = getattr(obj, "validate", None)
+        if callable(validate):
+            validate()
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{flag}: bad value ({e})") from None
+    return obj

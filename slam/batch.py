@@ -317,7 +317,14 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
                         "rpe_trans_rmse_m": "RPE translation RMS, consecutive registered frames, metres",
                         "rpe_rot_rmse_deg": "RPE rotation RMS, consecutive registered frames, degrees",
                         "frames_per_second": "frames processed per second (read + register + fuse)"}}
-    (out / "results.json").write_text(json.dumps({"meta": meta, "results": results}, indent=2) + "\n")
+    from data_tools.results import make_header, write_result
+    metrics = {f"{r['name']}/{r['backend']}.{k}": r.get(k) for r in results
+               for k in ("ate_rmse_m", "frames_per_second", "frames_failed") if r.get("ok")}
+    header = make_header("batch", inputs={f"sequence {n}": s for s, n in zip(seqs, _names(seqs))},
+                         parameters={"backends": list(backends), "executor": ex.name, "workers": ex.workers,
+                                     "config": config.to_dict() if hasattr(config, "to_dict") else config},
+                         timings_s={"total": meta["seconds"]}, metrics=metrics)
+    write_result(out / "results.json", header, {"meta": meta, "results": results})
     report = BatchReport(out, results)
     if write_html:
         write_html_report(report, meta)

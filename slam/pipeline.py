@@ -452,7 +452,12 @@ def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> Slam
         "complete": True,
         "per_frame": records,
     }
-    _atomic_write(out / "stats.json", json.dumps(stats, indent=1) + "\n")
+    from data_tools.results import make_header, write_result
+    header = make_header("slam.run", inputs={"sequence": meta["sequence"]}, parameters=cfg.to_dict(),
+                         timings_s={k: v for k, v in timing.items()},
+                         metrics={k: stats[k] for k in ("frames", "frames_tracked", "frames_failed",
+                                                        "frames_relocalised", "frames_per_second")})
+    write_result(out / "stats.json", header, stats, indent=1)
     (out / "checkpoint.json").unlink(missing_ok=True)
     if traj is None:
         raise RealgapError(f"{reader.path}: no frame could be registered ({len(failed)} failed; "

@@ -77,6 +77,17 @@ def scene_parameters(name: str) -> dict[str, object]:
             if p.name != "seed" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
 
+def describe_scenes() -> list[tuple[str, str, list[str]]]:
+    """(name, first docstring line, ["key=default" or "key=<required>", ...]) of every registered scene."""
+    _ensure_loaders_registered()
+    out = []
+    for name in scene_names():
+        params = [f"{k}=<required>" if v is inspect.Parameter.empty else f"{k}={v!r}"
+                  for k, v in scene_parameters(name).items()]
+        out.append((name, (inspect.getdoc(SCENES[name]) or "").split("\n")[0], params))
+    return out
+
+
 def build_scene(name: str, seed: int = 0, **params) -> SceneSpec:
     """Build the registered scene ``name`` (deterministic given ``seed`` and ``params``).
 

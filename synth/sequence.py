@@ -253,3 +253,17 @@ def generate_sensor_sequence(config: SequenceConfig, ideal_dir: str | Path, sim_
         n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=config.seed, progress=progress,
                                 workers=workers)
     return ideal_res, n
+
+
+def generate_simulated_sequence(config: SequenceConfig, out_dir: str | Path, sensor="kinect_v1", effects=None, *,
+                                resume: bool = False, overwrite: bool = False, progress: bool = True,
+                                workers: int = 1) -> tuple[GenerateResult, int]:
+    """``synth sequence --sensor``: the simulated sequence in ``out_dir`` and the ideal one (ground
+    truth, ideal depth) in ``out_dir/ideal`` (:func:`generate_sensor_sequence`). ``overwrite``
+    removes ``out_dir`` first. Returns (the ideal sequence's result, frames simulated now)."""
+    import shutil
+    out = Path(out_dir)
+    if overwrite and out.exists():
+        shutil.rmtree(out)
+    return generate_sensor_sequence(config, out / "ideal", out, sensor, effects, resume=resume, workers=workers,
+                                    progress=progress)

@@ -163,7 +163,7 @@ def test_fit_accepts_lab_side_parameters_and_model_keeps_motion_limits(measured,
     motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
     slow = save_model(dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise"]), motion=motion),
                       tmp_path / "slow.json")
-    from app.commands.sensor import build_config
+    from synth.lab.runs import build_config
     from synth.lab.measured import MeasuredSequence
     cfg = build_config(MeasuredSequence.load(measured, max_frames=1), ["projector_shadow"], slow)
     assert cfg.motion == motion and cfg.names() == ["axial_noise", "projector_shadow"]

@@ -14,7 +14,6 @@ options (e.g. a depth-sensor model) can be added to ``synth sequence`` without t
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import sys
 from dataclasses import replace
@@ -124,19 +123,11 @@ def _cmd_sequence(args: argparse.Namespace) -> int:
 
 def _cmd_sensor_sequence(args: argparse.Namespace, cfg) -> int:
     """Ideal sequence in SEQ/ideal (ground truth, ideal depth), simulated sensor frames in SEQ."""
-    import shutil
-    from pathlib import Path
-
-    from synth.sequence import generate_sensor_sequence
-
-    out = Path(args.out)
-    if args.overwrite and out.exists():
-        shutil.rmtree(out)
-    ideal_dir = out / "ideal"
-    ideal, n = generate_sensor_sequence(cfg, ideal_dir, out, args.sensor, args.effects, resume=args.resume,
-                                        workers=args.workers)
-    done = ideal.frames_total - n
-    print(f"{out}: simulated {n} {args.sensor} frames (kept {done}); ideal depth and ground truth in {ideal_dir}")
+    from synth.sequence import generate_simulated_sequence
+    ideal, n = generate_simulated_sequence(cfg, args.out, args.sensor, args.effects, resume=args.resume,
+                                           overwrite=args.overwrite, workers=args.workers)
+    print(f"{args.out}: simulated {n} {args.sensor} frames (kept {ideal.frames_total - n}); "
+          f"ideal depth and ground truth in {ideal.out_dir}")
     return 0
 
 
@@ -149,12 +140,8 @@ def _add_scenes(sub) -> argparse.ArgumentParser:
 
 
 def _cmd_scenes(args: argparse.Namespace) -> int:
-    from synth.scenes import SCENES, scene_names, scene_parameters
-    for name in scene_names():
-        params = []
-        for k, v in scene_parameters(name).items():
-            params.append(f"{k}=<required>" if v is inspect.Parameter.empty else f"{k}={v!r}")
-        doc = (inspect.getdoc(SCENES[name]) or "").split("\n")[0]
+    from synth.scenes import describe_scenes
+    for name, doc, params in describe_scenes():
         print(f"{name:15s} {doc}")
         if params:
             print(f"{'':15s} parameters: {', '.join(params)}")
@@ -238,28 +225,14 @@ def views_config_from_args(args: argparse.Namespace):
 def _views_sensor(args: argparse.Namespace):
     """The sensor config of ``synth views`` (preset or JSON file, effects, optional crop)."""
     from synth.sensor import SensorConfig
-    if args.sensor.endswith(".json"):
-        if args.effects:
-            raise ConfigError("--effects cannot be combined with a sensor_config.json (edit the file instead)")
-        cfg = SensorConfig.load(args.sensor)
-    else:
-        cfg = SensorConfig.build(args.sensor, args.effects)
-    if args.width is not None or args.height is not None:
-        pre = cfg.preset
-        cfg = replace(cfg, preset=pre.cropped(args.width or pre.width, args.height or pre.height))  # keeps motion
-    return cfg
+    return SensorConfig.from_spec(args.sensor, args.effects, args.width, args.height)
 
 
 def _cmd_views(args: argparse.Namespace) -> int:
-    from data_tools.mesh import load_mesh
-    from synth.sensor.views import check_model_size, render_views
-    if not args.scale > 0:
-        raise ConfigError(f"--scale must be positive, got {args.scale}")
+    from synth.sensor.views import render_views_of_file
     cfg = views_config_from_args(args)
-    sensor = _views_sensor(args)
-    model = load_mesh(args.model, scale=args.scale)
-    check_model_size(model, args.model, args.scale)
-    res = render_views(model, sensor, args.out, cfg, resume=args.resume, overwrite=args.overwrite, progress=True)
+    res = render_views_of_file(args.model, args.scale, _views_sensor(args), args.out, cfg, resume=args.resume,
+                               overwrite=args.overwrite, progress=True)
     kept = res.n_views - res.n_written
     part = f" (first {res.n_views} of {res.n_views_all}; --resume without --limit adds the rest)" \
         if res.n_views < res.n_views_all else ""

@@ -675,14 +675,15 @@ class CompareResult:
         except (TypeError, ValueError, KeyError, AttributeError) as e:
             raise FormatError(path, f"malformed sensor-lab metrics ({e})") from None
 
-    def save(self, out_dir: str | os.PathLike) -> Path:
-        """Write ``out_dir/metrics.json`` (and the effective config as ``compare_config.json``)."""
+    def save(self, out_dir: str | os.PathLike, header: dict | None = None) -> Path:
+        """Write ``out_dir/metrics.json`` (and the effective config as ``compare_config.json``),
+        atomically; ``header``: the result header (:mod:`data_tools.results`) written with it."""
+        from data_tools.results import atomic_write_json, write_result
         out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / CONFIG_FILE).write_text(json.dumps(_clean(self.config), indent=2) + "\n")
-        p = out / METRICS_FILE
-        p.write_text(json.dumps(self.to_json(), indent=1, allow_nan=False) + "\n")
-        return p
+        atomic_write_json(out / CONFIG_FILE, _clean(self.config))
+        if header is None:
+            return atomic_write_json(out / METRICS_FILE, self.to_json(), indent=1, allow_nan=False)
+        return write_result(out / METRICS_FILE, header, self.to_json(), indent=1, allow_nan=False)
 
 
 def load_result(path: str | os.PathLike) -> CompareResult:

@@ -202,12 +202,11 @@ class Diagnosis:
             return None
         return float((self.eval_gap - b.eval_gap_after) / self.eval_gap)
 
-    def save(self, out_dir: str | os.PathLike) -> Path:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        p = out / DIAGNOSIS_FILE
-        p.write_text(json.dumps(self.to_json(), indent=2) + "\n")
-        return p
+    def save(self, out_dir: str | os.PathLike, header: dict | None = None) -> Path:
+        """Write ``out_dir/diagnosis.json`` atomically, with the result ``header`` when given."""
+        from data_tools.results import atomic_write_json, write_result
+        p = Path(out_dir) / DIAGNOSIS_FILE
+        return atomic_write_json(p, self.to_json()) if header is None else write_result(p, header, self.to_json())
 
 
 def _with_effect(config, name: str):

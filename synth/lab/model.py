@@ -1,9 +1,10 @@
 """Sensor-model files of the lab: a :class:`~synth.sensor.simulator.SensorConfig` JSON plus fit info.
 
-A model file is exactly ``SensorConfig.to_json()`` (``{"preset": {...}, "effects": [...]}``),
-so ``synth sequence --sensor model.json`` and :class:`SensorSimulator` read it directly; the lab
-adds an optional ``"fit"`` object (gaps, fitted parameters, sequence, timings) that the
-simulator ignores.
+A model file is ``SensorConfig.to_json()`` (``{"preset": {...}, "effects": [...]}``), so
+``synth sequence --sensor model.json`` and :class:`SensorSimulator` read it directly; the lab
+adds an optional ``"fit"`` object (gaps, fitted parameters, sequence, timings) and, for
+``sensor fit``, the result ``"header"`` of :mod:`data_tools.results`; both are ignored when the
+model is loaded.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def load_model(path: str | os.PathLike):
     from synth.sensor.simulator import SensorConfig
     path = Path(path)
     d = _read(path)
-    d = {k: v for k, v in d.items() if k != "fit"}
+    d = {k: v for k, v in d.items() if k not in ("fit", "header")}
     try:
         return SensorConfig.from_json(d)
     except ConfigError as e:
@@ -49,15 +50,16 @@ def load_fit_info(path: str | os.PathLike) -> dict | None:
     return _read(Path(path)).get("fit")
 
 
-def save_model(config, path: str | os.PathLike, fit_info: dict | None = None) -> Path:
-    """Write ``config`` (+ ``fit_info`` under ``"fit"``) to ``path`` (folders created); returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+def save_model(config, path: str | os.PathLike, fit_info: dict | None = None, header: dict | None = None) -> Path:
+    """Write ``config`` (+ ``fit_info`` under ``"fit"``, + the result ``header`` of
+    :mod:`data_tools.results` when given) to ``path`` atomically (folders created); returns the path."""
+    from data_tools.results import atomic_write_text
     d = config.to_json()
     if fit_info is not None:
         d["fit"] = fit_info
-    path.write_text(json.dumps(d, indent=2, default=_jsonable) + "\n")
-    return path
+    if header is not None:
+        d = {"header": header, **d}
+    return atomic_write_text(path, json.dumps(d, indent=2, default=_jsonable) + "\n")
 
 
 def _jsonable(x):

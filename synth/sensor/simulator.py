@@ -12,6 +12,8 @@ A model is just the preset plus a list of ``{"name", "enabled", "params"}`` entr
 """
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import math
 import os
@@ -142,10 +144,25 @@ class SensorConfig:
                               f"known: max_speed_m_s, max_angular_speed_rad_s")
         return cls(pre, [make_effect(e) for e in d["effects"]], MotionLimits(**motion))
 
+    @classmethod
+    def from_spec(cls, sensor: str, effects=None, width: int | None = None, height: int | None = None) -> "SensorConfig":
+        """The config a user names: a preset name with ``effects`` (see :meth:`build`), or a
+        sensor_config.json path (then ``effects`` must be None); ``width``/``height``: a centred
+        crop of the sensor image (same per-pixel physics)."""
+        if str(sensor).endswith(".json"):
+            if effects:
+                raise ConfigError("--effects cannot be combined with a sensor_config.json (edit the file instead)")
+            cfg = cls.load(sensor)
+        else:
+            cfg = cls.build(sensor, effects)
+        if width is not None or height is not None:
+            pre = cfg.preset
+            cfg = dataclasses.replace(cfg, preset=pre.cropped(width or pre.width, height or pre.height))  # keeps motion
+        return cfg
+
     def save(self, path: str | os.PathLike) -> Path:
-        path = Path(path)
-        path.write_text(json.dumps(self.to_json(), indent=2) + "\n")
-        return path
+        from data_tools.results import atomic_write_json
+        return atomic_write_json(path, self.to_json())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "SensorConfig":

@@ -348,3 +348,17 @@ def read_views(out_dir: str | os.PathLike) -> list[dict]:
         raise RealgapError(f"{p}: not found (not a render_views output?)")
     recs = [json.loads(l) for l in p.read_text().splitlines() if l.strip()]
     return sorted(recs, key=lambda r: r["index"])
+
+
+def render_views_of_file(model_path: str | os.PathLike, scale: float, sensor, out_dir: str | os.PathLike,
+                         config: ViewsConfig | None = None, *, resume: bool = False, overwrite: bool = False,
+                         progress: bool = True):
+    """:func:`render_views` of the mesh file ``model_path`` in units of ``scale`` metres (its
+    size checked first: a model in millimetres without ``scale`` gets a one-line error)."""
+    from data_tools.errors import ConfigError
+    from data_tools.mesh import load_mesh
+    if not scale > 0:
+        raise ConfigError(f"--scale must be positive, got {scale}")
+    model = load_mesh(model_path, scale=scale)
+    check_model_size(model, model_path, scale)
+    return render_views(model, sensor, out_dir, config, resume=resume, overwrite=overwrite, progress=progress)

@@ -1,0 +1,32 @@
+"""``realgap show RESULT...``: result files side by side (like evo_res).
+
+RESULT is any result JSON of realgap (``metrics.json``, ``diagnosis.json``, a fitted model,
+``stats.json`` of a SLAM run, the JSON of ``eval ate|rpe|run``, ``results.json`` of ``batch``) or
+the folder holding one. The table has one column per result and one row per metric of their
+common header (:mod:`data_tools.results`).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "show"
+HELP = "print one or several result files side by side (metrics of their common header)"
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("results", nargs="+", metavar="RESULT",
+                        help="result JSON files or folders holding one (sensor compare/diagnose/fit, slam run, "
+                             "eval ate/rpe/run, batch)")
+    parser.add_argument("--json", action="store_true", help="print the headers as JSON instead of a table")
+    parser.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from data_tools.results import format_table, read_result, results_table
+    results = [read_result(p) for p in args.results]
+    if args.json:
+        print(json.dumps([{"path": str(r.path), "header": r.header, "metrics": r.metrics} for r in results], indent=2))
+        return 0
+    print(format_table(*results_table(results)))
+    return 0

@@ -1,0 +1,280 @@
+"""One result format for every command that produces numbers (in the spirit of evo's result files).
+
+Every result JSON (``metrics.json`` of ``sensor compare``, ``diagnosis.json``, a fitted
+``model.json``, ``stats.json`` of ``slam run``, the JSON of ``eval ate|rpe|run``, ``results.json``
+of ``batch``) carries the same ``header`` object beside its own keys::
+
+    {"header": {"format": "realgap-result", "format_version": 1,
+                "kind": "lab.compare",                 # what the body holds (see KINDS)
+                "command": "realgap sensor compare SEQ --effects axial_noise ...",
+                "realgap_version": "0.1.0", "created": "2026-11-24T18:40:00Z",
+                "inputs": [{"role": "sequence", "path": "/abs/SEQ", "sha256": "...", "hashed": [...]}],
+                "parameters": {...}, "seed": 0, "timings_s": {...},
+                "metrics": {"gap": 1.59, ...}},         # flat {name: number}: what `realgap show` tabulates
+     ...the command's own keys, unchanged...}
+
+Content hashes: a file is hashed whole (SHA-256); a folder (a sequence) is hashed over its index
+and calibration files (``*.txt``, ``*.json`` at its top level, names included), not over
+thousands of images: the hash changes when frames are added, removed, renamed or re-timed, or
+the calibration changes, which is what tells two runs on "the same data" apart in practice.
+``hashed`` lists what went into it.
+
+Everything here writes atomically (a temporary file in the same folder, then ``os.replace``),
+so an interrupted write never leaves a truncated file. :func:`read_result` reads a result file
+(or finds it in a folder) and returns a :class:`Result`; a JSON written before the header
+existed is read too, with an empty header and the metrics :func:`legacy_metrics` finds.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+import shlex
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from data_tools.errors import FormatError
+
+FORMAT = "realgap-result"
+FORMAT_VERSION = 1
+
+KINDS = {
+    "lab.compare": "metrics.json",
+    "lab.diagnose": "diagnosis.json",
+    "lab.fit": "model.json",
+    "slam.run": "stats.json",
+    "eval.ate": "ate.json",
+    "eval.rpe": "rpe.json",
+    "eval.run": "ate.json",
+    "batch": "results.json",
+}
+"""Result kind -> the file name it is written to by default (a folder given to
+:func:`find_result` is searched for these names, in this order)."""
+
+_FOLDER_HASH_SUFFIXES = (".txt", ".json")
+
+
+# ------------------------------------------------------------------------------------------
+# atomic writes
+# ------------------------------------------------------------------------------------------
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``
+    (readers see the old file or the new one, never a truncated one). Creates the parent folder.
+    The new file gets the permissions the umask gives an ordinary new file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _default(x):
+    """JSON fallback: objects with to_json/to_dict, dataclasses, numpy scalars and arrays."""
+    for attr in ("to_json", "to_dict"):
+        fn = getattr(x, attr, None)
+        if callable(fn):
+            return fn()
+    import dataclasses
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return dataclasses.asdict(x)
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    if isinstance(x, (Path, os.PathLike)):
+        return str(x)
+    return repr(x)
+
+
+def atomic_write_json(path: str | os.PathLike, data: Any, indent: int | None = 2, allow_nan: bool = True) -> Path:
+    """``json.dumps(data)`` written with :func:`atomic_write_text` (numpy values and objects with
+    ``to_json`` are converted)."""
+    return atomic_write_text(path, json.dumps(data, indent=indent, allow_nan=allow_nan, default=_default) + "\n")
+
+
+# ------------------------------------------------------------------------------------------
+# the header
+# ------------------------------------------------------------------------------------------
+
+def realgap_version() -> str:
+    try:
+        from importlib.metadata import version
+        return version("realgap")
+    except Exception:  # pragma: no cover - not installed
+        return "unknown"
+
+
+def content_hash(path: str | os.PathLike) -> tuple[str, list[str]]:
+    """(SHA-256 hex, names hashed) of a file, or of a folder's top-level index and calibration
+    files (see the module docstring). A missing path hashes to ''."""
+    p = Path(path)
+    h = hashlib.sha256()
+    if p.is_file():
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+        return h.hexdigest(), [p.name]
+    if p.is_dir():
+        names = sorted(c.name for c in p.iterdir() if c.is_file() and c.suffix in _FOLDER_HASH_SUFFIXES
+                       and not c.name.startswith("."))
+        for n in names:
+            h.update(n.encode() + b"\0")
+            h.update((p / n).read_bytes())
+            h.update(b"\0")
+        return h.hexdigest(), names
+    return "", []
+
+
+def input_record(role: str, path: str | os.PathLike) -> dict:
+    """``{"role", "path", "sha256", "hashed"}`` of one input of a command."""
+    digest, names = content_hash(path)
+    return {"role": role, "path": str(Path(path).resolve()), "sha256": digest, "hashed": names}
+
+
+def _flat_numbers(d: dict | None) -> dict[str, float]:
+    out = {}
+    for k, v in (d or {}).items():
+        if isinstance(v, bool):
+            out[str(k)] = int(v)
+        elif isinstance(v, (int, float)) and (not isinstance(v, float) or math.isfinite(v)):
+            out[str(k)] = v
+        elif hasattr(v, "item") and getattr(v, "ndim", 1) == 0:
+            out[str(k)] = v.item()
+    return out
+
+
+def make_header(kind: str, *, inputs: dict[str, str | os.PathLike] | None = None, parameters: dict | None = None,
+                seed: int | None = None, timings_s: dict | None = None, metrics: dict | None = None,
+                command: str | None = None) -> dict:
+    """The ``header`` object of a result (see the module docstring). ``inputs``: role -> path;
+    ``metrics``: numbers only (non-numbers and non-finite values are left out); ``command``
+    defaults to this process's command line."""
+    if kind not in KINDS:
+        raise ValueError(f"unknown result kind {kind!r}; known: {', '.join(KINDS)}")
+    if command is None:
+        command = " ".join(["realgap"] + [shlex.quote(a) for a in sys.argv[1:]])
+    return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "command": command,
+            "realgap_version": realgap_version(),
+            "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "inputs": [input_record(r, p) for r, p in (inputs or {}).items() if p is not None],
+            "parameters": json.loads(json.dumps(parameters or {}, default=_default)),
+            "seed": None if seed is None else int(seed),
+            "timings_s": {k: round(float(v), 3) for k, v in (timings_s or {}).items()},
+            "metrics": _flat_numbers(metrics)}
+
+
+def write_result(path: str | os.PathLike, header: dict, body: dict, indent: int | None = 2,
+                 allow_nan: bool = True) -> Path:
+    """Write ``{"header": header, **body}`` atomically to ``path``."""
+    if "header" in body:
+        body = {k: v for k, v in body.items() if k != "header"}
+    return atomic_write_json(path, {"header": header, **body}, indent=indent, allow_nan=allow_nan)
+
+
+# ------------------------------------------------------------------------------------------
+# reading
+# ------------------------------------------------------------------------------------------
+
+@dataclass
+class Result:
+    """A result file read back: its header and the rest of its keys."""
+
+    path: Path
+    """The JSON file."""
+    header: dict
+    """The header (empty for files written before the header existed)."""
+    body: dict = field(default_factory=dict)
+    """Every other key of the file."""
+
+    @property
+    def kind(self) -> str:
+        return str(self.header.get("kind", "unknown"))
+
+    @property
+    def metrics(self) -> dict[str, float]:
+        m = self.header.get("metrics")
+        return dict(m) if isinstance(m, dict) and m else legacy_metrics(self.body)
+
+
+def legacy_metrics(body: dict) -> dict[str, float]:
+    """Numbers of a result JSON without a header: its top-level numbers (and ``stats``)."""
+    out = _flat_numbers(body)
+    if isinstance(body.get("stats"), dict):
+        out.update(_flat_numbers(body["stats"]))
+    return out
+
+
+def find_result(path: str | os.PathLike) -> Path:
+    """The result JSON at ``path``: the file itself, or in a folder the first of the
+    :data:`KINDS` file names present (FormatError naming the folder otherwise)."""
+    p = Path(path)
+    if p.is_file():
+        return p
+    if p.is_dir():
+        for name in dict.fromkeys(KINDS.values()):
+            if (p / name).is_file():
+                return p / name
+        raise FormatError(p, f"no result file in this folder (looked for {', '.join(dict.fromkeys(KINDS.values()))})")
+    raise FormatError(p, "result not found")
+
+
+def read_result(path: str | os.PathLike) -> Result:
+    """Read a result file (or the result in a folder, :func:`find_result`)."""
+    p = find_result(path)
+    try:
+        d = json.loads(p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise FormatError(p, f"not a JSON result file ({e})") from None
+    if not isinstance(d, dict):
+        raise FormatError(p, "a result file holds a JSON object")
+    header = d.pop("header", {}) or {}
+    if not isinstance(header, dict) or (header and header.get("format") != FORMAT):
+        raise FormatError(p, f"'header' is not a {FORMAT} header")
+    if header.get("format_version", FORMAT_VERSION) > FORMAT_VERSION:
+        raise FormatError(p, f"result format version {header['format_version']} is newer than this realgap "
+                             f"reads ({FORMAT_VERSION})")
+    return Result(p, header, d)
+
+
+def results_table(results: list[Result], names: list[str] | None = None) -> tuple[list[str], list[list[str]]]:
+    """(column header, rows) lining results up side by side: one row per metric (the union of
+    the results' metrics, in first-seen order), plus kind, seed and created rows."""
+    cols = ["", *(names or [str(r.path) for r in results])]
+    keys: dict[str, None] = {}
+    for r in results:
+        keys.update(dict.fromkeys(r.metrics))
+    rows = [["kind", *(r.kind for r in results)],
+            ["seed", *("" if r.header.get("seed") is None else str(r.header["seed"]) for r in results)],
+            ["created", *(str(r.header.get("created", "")) for r in results)]]
+    for k in keys:
+        rows.append([k, *(_fmt(r.metrics.get(k)) for r in results)])
+    return cols, rows
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, int):
+        return str(v)
+    return f"{v:.6g}"
+
+
+def format_table(cols: list[str], rows: list[list[str]]) -> str:
+    """Rows as an aligned text table (first column left-aligned, the others right-aligned)."""
+    widths = [max(len(str(c)) for c in col) for col in zip(cols, *rows)]
+    def line(cells):
+        return "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+    return "\n".join([line(cols), "  ".join("-" * w for w in widths), *(line(r) for r in rows)])

@@ -1,0 +1,224 @@
+"""Trajectory evaluation runs (``realgap eval ate|rpe|run``) as library functions.
+
+Each reads the trajectories, computes the metrics of :mod:`slam.metrics` (evo's definitions),
+and writes its outputs: a result JSON with the common header of :mod:`data_tools.results`, the
+aligned estimate in TUM format and PNG plots. Messages that a reader dropped or repaired
+something come as Python warnings (the CLI prints each as one line).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import FormatError
+from data_tools.results import atomic_write_json, make_header, write_result
+from data_tools.trajectory import Trajectory, read_tum, write_tum
+from slam.metrics import STAT_KEYS, EvalConfig, MetricResult, ape, ate, rpe
+
+__all__ = ["read_for_eval", "evaluate_ate", "evaluate_rpe", "evaluate_run", "Evaluation", "stats_line"]
+
+
+@dataclass
+class Evaluation:
+    """The metrics of an evaluation, by name, and the files written."""
+
+    results: dict[str, MetricResult]
+    """E.g. ``{"ate": ...}``, ``{"rpe_translation": ..., "rpe_rotation": ...}``."""
+    files: list[Path]
+    """Every file or folder written, the result JSON first."""
+    info: dict
+    """Counts of the inputs (poses, failed frames)."""
+
+
+def read_for_eval(path, cfg: EvalConfig) -> Trajectory:
+    """``read_tum`` with the evaluation's duplicate-timestamp policy; the error for duplicates
+    names the flag that keeps the first."""
+    try:
+        return read_tum(path, drop_duplicate_timestamps=cfg.drop_duplicate_timestamps)
+    except FormatError as e:
+        if "duplicated timestamp" in e.problem:
+            raise FormatError(e.path, f"{e.problem}; --drop-duplicate-timestamps keeps the first") from None
+        raise
+
+
+def stats_line(res: MetricResult) -> str:
+    """One line of a metric's statistics (rmse, mean, median, std, min, max, counts)."""
+    u = f" {res.unit}" if res.unit else ""
+    s = res.stats
+    return (f"rmse {s['rmse']:.6g}{u}, mean {s['mean']:.6g}, median {s['median']:.6g}, std {s['std']:.6g}, "
+            f"min {s['min']:.6g}, max {s['max']:.6g} ({len(res.errors)} values, {res.pairs} associated pairs)")
+
+
+def _stats_dict(res: MetricResult) -> dict:
+    d = {k: float(res.stats[k]) for k in STAT_KEYS}
+    d.update(unit=res.unit, relation=res.relation, n_errors=int(len(res.errors)))
+    return d
+
+
+def _metrics(res: MetricResult, prefix: str = "") -> dict:
+    d = {f"{prefix}{k}": float(res.stats[k]) for k in STAT_KEYS}
+    d[f"{prefix}pairs"] = int(res.pairs)
+    return d
+
+
+def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict) -> dict:
+    return make_header(kind, inputs=inputs, parameters=cfg.to_dict(), metrics=metrics)
+
+
+def evaluate_ate(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
+    """ATE of ``est_path`` against ``ref_path``: ``json_path`` (statistics + header), and in
+    ``out_dir`` (default: beside the JSON) ``<stem>_aligned.txt`` and ``<stem>_top.png``."""
+    from slam.plots import plot_top_view
+    ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
+    res = ate(ref, est, cfg.align, cfg.max_dt, ref_name=str(ref_path), est_name=str(est_path))
+    out = Path(json_path)
+    outdir = Path(out_dir) if out_dir else out.parent
+    aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_top.png"
+    d = res.to_dict()
+    d["config"] = cfg.to_dict()
+    d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
+    write_result(out, _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res)), d,
+                 allow_nan=False)
+    outdir.mkdir(parents=True, exist_ok=True)
+    write_tum(aligned_path, res.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
+    plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate ({cfg.align}-aligned)"),
+                  title=f"ATE ({cfg.align}): rmse {res.rmse:.4f} m over {res.pairs} poses")
+    return Evaluation({"ate": res}, [out, aligned_path, png], {"reference_poses": len(ref), "estimate_poses": len(est)})
+
+
+def rpe_pair(ref, est, cfg: EvalConfig, ref_name: str, est_name: str) -> tuple[MetricResult, MetricResult]:
+    """(translation RPE in metres, rotation RPE in degrees) with the configuration's delta."""
+    kw = dict(delta=cfg.delta, delta_unit=cfg.delta_unit, all_pairs=cfg.all_pairs, align=cfg.align,
+              max_dt=cfg.max_dt, rel_delta_tol=cfg.rel_delta_tol, ref_name=ref_name, est_name=est_name)
+    return rpe(ref, est, relation="translation", **kw), rpe(ref, est, relation="rotation_angle_deg", **kw)
+
+
+def _rpe_dict(tr: MetricResult, rot: MetricResult, cfg: EvalConfig) -> dict:
+    d = tr.to_dict()
+    d["rotation"] = _stats_dict(rot)
+    d["config"] = cfg.to_dict()
+    return d
+
+
+def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
+    """RPE (translation and rotation) of ``est_path`` against ``ref_path``: ``json_path`` and,
+    in ``out_dir``, ``<stem>_aligned.txt`` and ``<stem>_errors.png``."""
+    from slam.plots import plot_errors_over_time
+    ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
+    tr, rot = rpe_pair(ref, est, cfg, str(ref_path), str(est_path))
+    out = Path(json_path)
+    outdir = Path(out_dir) if out_dir else out.parent
+    aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_errors.png"
+    d = _rpe_dict(tr, rot, cfg)
+    d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
+    metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
+    write_result(out, _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics), d)
+    outdir.mkdir(parents=True, exist_ok=True)
+    write_tum(aligned_path, tr.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
+    delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
+    plot_errors_over_time(png, [("RPE translation", tr.timestamps, tr.errors, "m"),
+                                ("RPE rotation", rot.timestamps, rot.errors, "deg")],
+                          title=f"RPE ({delta}, align: {cfg.align})")
+    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png],
+                      {"reference_poses": len(ref), "estimate_poses": len(est)})
+
+
+def read_failed_timestamps(stats_path: Path) -> np.ndarray:
+    """The ``failed_timestamps`` of a run's stats.json (empty when the file is absent)."""
+    if not stats_path.is_file():
+        return np.zeros(0)
+    try:
+        stats = json.loads(stats_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise FormatError(stats_path, f"invalid JSON ({e})") from None
+    if not isinstance(stats, dict):
+        raise FormatError(stats_path, "expected a JSON object")
+    failed = stats.get("failed_timestamps", [])
+    if not isinstance(failed, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                               and math.isfinite(x) for x in failed):
+        raise FormatError(stats_path, "failed_timestamps must be a list of finite numbers (seconds)")
+    return np.asarray(failed, dtype=np.float64)
+
+
+def ground_truth_path(gt) -> Path:
+    """A ground-truth TUM file, or a sequence folder's groundtruth.txt."""
+    p = Path(gt)
+    if p.is_dir():
+        g = p / "groundtruth.txt"
+        if not g.is_file():
+            raise FormatError(p, "sequence folder has no groundtruth.txt")
+        return g
+    if not p.exists():
+        raise FormatError(p, "ground truth not found (expected a sequence folder or a TUM file)")
+    return p
+
+
+def nearest_positions(traj: Trajectory, ts: np.ndarray, max_dt: float) -> np.ndarray:
+    """(K, 3) positions of ``traj`` nearest in time to ``ts`` (only those within max_dt)."""
+    if not len(ts) or not len(traj):
+        return np.zeros((0, 3))
+    k = np.clip(np.searchsorted(traj.timestamps, ts), 1, len(traj) - 1) if len(traj) > 1 else np.zeros(len(ts), int)
+    if len(traj) > 1:
+        k = np.where(np.abs(traj.timestamps[k - 1] - ts) <= np.abs(traj.timestamps[k] - ts), k - 1, k)
+    ok = np.abs(traj.timestamps[k] - ts) <= max_dt
+    return traj.positions[k[ok]]
+
+
+def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None) -> Evaluation:
+    """ATE, rotation APE and RPE of ``run_dir/trajectory.txt`` against ``gt`` (a sequence folder
+    or a TUM file), written to ``out_dir`` (default ``run_dir/eval``): ate.json, ape_rotation.json,
+    rpe.json, config.json, estimate_aligned.txt, the metric folders, top_view.png (failed frames
+    marked) and errors_over_time.png."""
+    from slam.plots import plot_errors_over_time, plot_top_view
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise FormatError(run, "run folder not found")
+    traj_path = run / "trajectory.txt"
+    if not traj_path.is_file():
+        raise FormatError(run, "run folder has no trajectory.txt (written by 'realgap slam run')")
+    failed = read_failed_timestamps(run / "stats.json")
+    gt_path = ground_truth_path(gt)
+    gt_traj = read_for_eval(gt_path, cfg)
+    est = read_for_eval(traj_path, cfg)
+    names = dict(ref_name=str(gt_path), est_name=str(traj_path))
+
+    res_t = ate(gt_traj, est, cfg.align, cfg.max_dt, **names)
+    res_r = ape(gt_traj, est, "rotation_angle_deg", cfg.align, cfg.max_dt, **names)
+    rpe_t, rpe_r = rpe_pair(gt_traj, est, cfg, **names)
+
+    out = Path(out_dir) if out_dir else run / "eval"
+    out.mkdir(parents=True, exist_ok=True)
+    run_info = {"failed_frames": int(len(failed)), "estimate_poses": len(est), "reference_poses": len(gt_traj)}
+    inputs = {"run": run, "trajectory": traj_path, "ground_truth": gt_path}
+    metrics = {**_metrics(res_t, "ate_"), **_metrics(res_r, "ape_rotation_"), **_metrics(rpe_t, "rpe_"),
+               **_metrics(rpe_r, "rpe_rotation_"), "failed_frames": int(len(failed))}
+    d = res_t.to_dict()
+    d["run"] = run_info
+    d["config"] = cfg.to_dict()
+    write_result(out / "ate.json", _header("eval.run", cfg, inputs, metrics), d, allow_nan=False)
+    d = res_r.to_dict()
+    d["config"] = cfg.to_dict()
+    atomic_write_json(out / "ape_rotation.json", d, allow_nan=False)
+    atomic_write_json(out / "rpe.json", _rpe_dict(rpe_t, rpe_r, cfg), allow_nan=False)
+    atomic_write_json(out / "config.json", cfg.to_dict(), allow_nan=False)
+    write_tum(out / "estimate_aligned.txt", res_t.aligned, header=f"{traj_path} after {cfg.align} alignment onto {gt_path}")
+    res_t.save(out / "ate")
+    res_r.save(out / "ape_rotation")
+    rpe_t.save(out / "rpe")
+
+    plot_top_view(out / "top_view.png", res_t.reference, res_t.aligned,
+                  labels=("ground truth", f"estimate ({cfg.align}-aligned)"),
+                  markers=nearest_positions(gt_traj, failed, cfg.max_dt),
+                  title=f"{run.name}: ATE rmse {res_t.rmse:.4f} m ({cfg.align}, {res_t.pairs} poses)")
+    delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
+    plot_errors_over_time(out / "errors_over_time.png",
+                          [("ATE", res_t.timestamps, res_t.errors, "m"),
+                           ("APE rotation", res_r.timestamps, res_r.errors, "deg"),
+                           (f"RPE ({delta})", rpe_t.timestamps, rpe_t.errors, "m")],
+                          failed_timestamps=failed, title=f"{run.name} vs {gt_path.name} (align: {cfg.align})")
+    return Evaluation({"ate": res_t, "ape_rotation": res_r, "rpe_translation": rpe_t, "rpe_rotation": rpe_r},
+                      [out / "ate.json", out], {**run_info, "ground_truth": str(gt_path)})
