@@ -218,6 +218,28 @@ class SequenceReader:
             yield self[i]
 
 
+def sequence_info(path: str | os.PathLike) -> dict:
+    """What ``data info`` prints: frame count, duration, intrinsics, depth scale, sensor block,
+    frames with a pose and the scene's size (reading the index and calibration files)."""
+    seq = SequenceReader(path)
+    i = seq.intrinsics
+    info = {
+        "path": str(seq.path), "frames": len(seq),
+        "duration_s": float(seq.timestamps[-1] - seq.timestamps[0]),
+        "camera_json": seq.has_camera_json,
+        "intrinsics": {"width": i.width, "height": i.height, "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
+        "depth_scale": seq.camera.depth_scale,
+        "sensor": None if seq.camera.sensor is None else seq.camera.sensor.to_json(),
+        "frames_with_pose": int(sum(1 for p in seq.poses if p[0, 0] == p[0, 0])),
+        "scene_json": seq.has_scene,
+    }
+    if seq.has_scene:
+        sc = seq.scene
+        info["scene_meshes"] = len(sc.meshes)
+        info["scene_triangles"] = int(sum(len(m.triangles) for m in sc.meshes))
+    return info
+
+
 def link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
     """Hard-link ``src`` to ``dst`` (a copy across file systems); an existing ``dst`` is kept.
 

@@ -138,6 +138,18 @@ def make_config(backend: str = "icp", preset: str = "default", overrides: dict[s
     return cfg.validate()
 
 
+def read_config_file(path: str | os.PathLike) -> dict:
+    """The SlamConfig data of a JSON file: a saved config, or a run's config.json (its "config")."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except json.JSONDecodeError as e:
+        raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    return data.get("config", data) if isinstance(data, dict) else data
+
+
 def _apply(cfg: SlamConfig, dotted: dict[str, Any]) -> SlamConfig:
     d = cfg.to_dict()
     for key, value in dotted.items():

@@ -154,6 +154,29 @@ def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 
     return render_mesh(load_mesh(run / "mesh.ply", validate=False), intr, pose_c2w)
 
 
+def run_pose(run_dir: str | os.PathLike, pose: str | None = None, frame: int = 0) -> np.ndarray:
+    """The 4x4 camera-to-world pose to render a RUN from: ``pose`` parsed (:func:`parse_pose`), or
+    pose number ``frame`` of RUN/trajectory.txt (negative numbers count from the end)."""
+    from data_tools.trajectory import read_tum
+    if pose is not None:
+        return parse_pose(pose)
+    traj = read_tum(Path(run_dir) / "trajectory.txt")
+    if not -len(traj) <= frame < len(traj):
+        raise RealgapError(f"--frame {frame}: the trajectory has {len(traj)} poses")
+    return traj.poses[frame]
+
+
+def render_run_to_png(run_dir: str | os.PathLike, png: str | os.PathLike, pose: str | None = None, frame: int = 0,
+                      scale: float = 1.0, source: str = "auto") -> tuple[RenderedView, dict[str, str], float]:
+    """``slam render``: render RUN from ``pose`` or trajectory pose ``frame`` (:func:`run_pose`)
+    and save it (:func:`save_view`, depth in the run camera's depth scale). Returns (view,
+    written paths, depth scale)."""
+    from data_tools.camera import read_camera_json
+    view = render_run(run_dir, run_pose(run_dir, pose, frame), scale=scale, source=source)
+    depth_scale = read_camera_json(Path(run_dir) / "camera.json").depth_scale
+    return view, save_view(view, png, depth_scale), depth_scale
+
+
 def save_view(view: RenderedView, png: str | os.PathLike, depth_scale: float = 1000.0) -> dict[str, str]:
     """Write PNG (colour), PNG stem + '_depth.png' (16-bit, metres x depth_scale, 0 = unobserved)
     and stem + '.json' (pose, intrinsics, coverage). Returns the paths."""

@@ -9,7 +9,6 @@ Main entry points (importing them is cheap; Open3D is loaded on first render)::
 """
 from synth.render import IdealRenderer, RenderResult
 from synth.scenes import SCENES, build_scene, register_scene, scene_names
-import synth.loaders  # noqa: E402,F401  (registers the file-based scenes scenenet_room, tless_obj)
 from synth.sequence import GenerateResult, SequenceConfig, generate_sequence
 from synth.trajectories import TRAJECTORY_KINDS, handheld_jitter, orbit, walkthrough
 

@@ -1,4 +1,5 @@
-"""numba plumbing shared by realgap's compiled kernels (synth.raster, synth.sensor).
+"""numba plumbing and the thread count shared by realgap's compiled kernels and ray queries
+(synth.render, synth.sensor).
 
 :func:`kernel` compiles a function on first use and caches the machine code on disk
 (``cache=True``: later processes load it in ~0.1 s), releases the GIL (``nogil=True``) so that
@@ -19,6 +20,23 @@ except ImportError:  # pragma: no cover - exercised only on a broken install
     import warnings
     warnings.warn("realgap: numba is not installed: the sensor simulator's kernels run as plain Python "
                   "(about 100x slower); install the project's dependencies (make setup)", stacklevel=2)
+
+
+THREADS: int | None = None
+"""Threads for realgap's parallel work (Open3D ray queries, row bands of the compiled kernels);
+None = the CPUs this process may use. Set to 1 in worker processes that each simulate their own
+frame (:class:`synth.sensor.simulator.SimulationPool`)."""
+
+
+def n_threads() -> int:
+    """:data:`THREADS`, or the CPUs this process may use (Open3D's automatic choice counts the
+    host's CPUs and oversubscribes a restricted container)."""
+    if THREADS:
+        return int(THREADS)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
 
 
 def available() -> bool:

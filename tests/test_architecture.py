@@ -73,3 +73,146 @@ def test_importing_every_library_module_loads_no_plotting():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert r.stdout.strip() == "", f"plotting libraries loaded at import: {r.stdout.strip()}"
+
+
+# ------------------------------------------------------------------------------------------
+# app/commands is thin: parse -> call one library function -> print
+# ------------------------------------------------------------------------------------------
+
+COMMAND_MAX_LINES = 40
+"""Longest function allowed in app/commands (argparse declarations, ``register`` and ``_add_*``,
+are exempt: they only declare options)."""
+COMPUTATION_MODULES = {"numpy", "scipy", "cv2", "open3d", "trimesh", "torch", "numba", "PIL", "sklearn",
+                       "skimage", "kornia", "matplotlib", "pyvista", "tqdm"}
+
+
+def _command_files():
+    return sorted((REPO / "app" / "commands").glob("*.py"))
+
+
+def test_command_functions_are_short():
+    long_ = []
+    for f in _command_files():
+        tree = ast.parse(f.read_text(), str(f))
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            if node.name == "register" or node.name.startswith(("_add", "add_")):
+                continue
+            n = node.end_lineno - node.lineno + 1
+            if n > COMMAND_MAX_LINES:
+                long_.append(f"{f.relative_to(REPO)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long_, "command functions must parse, call one library function and print:\n" + "\n".join(long_)
+
+
+def test_commands_import_no_computation_library():
+    bad = [f"{f.relative_to(REPO)}:{node.lineno} imports {top}"
+           for f in _command_files() for node, top in _imports(f) if top in COMPUTATION_MODULES]
+    assert not bad, "app/commands may import only the library entry points:\n" + "\n".join(bad)
+
+
+def test_architecture_checks_catch_a_fat_command(tmp_path, monkeypatch):
+    """The two checks above fail on a command that computes (so they can fail)."""
+    fat = tmp_path / "app" / "commands"
+    fat.mkdir(parents=True)
+    (fat / "fat.py").write_text("import numpy as np\n\ndef _cmd(args):\n" + "    x = 1\n" * 45)
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    with pytest.raises(AssertionError, match="fat.py:3 _cmd"):
+        test_command_functions_are_short()
+    with pytest.raises(AssertionError, match="imports numpy"):
+        test_commands_import_no_computation_library()
+
+
+# ------------------------------------------------------------------------------------------
+# heavy optional libraries stay where they belong; no import cycles
+# ------------------------------------------------------------------------------------------
+
+RESTRICTED = {"torch": ("recog", "slam/neural"), "pyvista": ("app",)}
+"""Library -> the only folders that may import it."""
+
+
+def test_torch_and_pyvista_only_where_they_belong():
+    bad = []
+    for pkg in PACKAGES:
+        for f in sorted((REPO / pkg).rglob("*.py")):
+            rel = f.relative_to(REPO).as_posix()
+            for node, top in _imports(f):
+                allowed = RESTRICTED.get(top)
+                if allowed is not None and not any(rel.startswith(a + "/") for a in allowed):
+                    bad.append(f"{rel}:{node.lineno} imports {top} (allowed only under {', '.join(allowed)})")
+    assert not bad, "\n".join(bad)
+
+
+def _module_name(f: Path) -> str:
+    return ".".join(f.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Project module -> project modules it imports (anywhere in the file: a function-level
+    import is a dependency too)."""
+    mods = {_module_name(f): f for pkg in PACKAGES for f in (REPO / pkg).rglob("*.py")}
+    graph = {}
+    for m, f in mods.items():
+        deps = set()
+        tree = ast.parse(f.read_text(), str(f))
+        pkg_parts = m.split(".") if f.name == "__init__.py" else m.split(".")[:-1]
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(pkg_parts[:len(pkg_parts) - node.level + 1] + ([base] if base else []))
+                names = [base] + [f"{base}.{a.name}" for a in node.names]
+            for n in names:
+                while n and n not in mods:
+                    n = n.rpartition(".")[0]
+                if n and n != m and not m.startswith(n + "."):  # a package's own __init__ is not a cycle
+                    deps.add(n)
+        graph[m] = deps
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    counter = [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles_between_modules():
+    cycles = _cycles(_module_graph())
+    assert not cycles, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in cycles)
+
+
+def test_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []

@@ -11,7 +11,7 @@ from data_tools.errors import RealgapError
 from data_tools.geometry import look_at
 from data_tools.mesh import TriMesh
 from data_tools.scene_spec import Material, SceneSpec
-from synth.raster import Rasterizer
+from synth.render.raster import Rasterizer
 from synth.render import IdealRenderer
 from synth.scenes import build_scene
 from synth.trajectories import make_trajectory
@@ -142,8 +142,8 @@ def test_rows_with_their_own_poses_match_a_per_row_ray_cast():
 
 
 def _render_in_child(q) -> None:
-    import synth.render as R
-    R.RAY_THREADS = 2
+    import synth.jit as R
+    R.THREADS = 2
     scene = build_scene("room", seed=0)
     res = IdealRenderer(scene).render(make_trajectory("walkthrough", scene, 2, seed=0).poses[0], INTR)
     q.put(int(res.hit.sum()))
@@ -153,14 +153,14 @@ def test_thread_bands_work_in_a_forked_child():
     """The shared band thread pool is rebuilt after a fork (a forked child has no threads)."""
     import multiprocessing as mp
 
-    import synth.render as R
+    import synth.jit as R
     scene = build_scene("room", seed=0)
-    R_old, R.RAY_THREADS = R.RAY_THREADS, 2
+    R_old, R.THREADS = R.THREADS, 2
     try:
         want = int(IdealRenderer(scene).render(make_trajectory("walkthrough", scene, 2, seed=0).poses[0], INTR)
                    .hit.sum())  # the parent's pool now exists
     finally:
-        R.RAY_THREADS = R_old
+        R.THREADS = R_old
     ctx = mp.get_context("fork")
     q = ctx.Queue()
     p = ctx.Process(target=_render_in_child, args=(q,))

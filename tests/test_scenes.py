@@ -7,10 +7,10 @@ import pytest
 from data_tools.errors import ConfigError, FormatError
 from data_tools.geometry import is_rigid
 from data_tools.mesh import TriMesh, check_mesh
-from synth.loaders import (SCENENET_TO_WORLD, load_scenenet_room, load_scenenet_trajectory,
-                           load_tless_model, repair_nonmanifold)
-from synth.scenes import (CHAIR_VARIANTS, _lattice_box, build_scene, chair_meshes,
-                          curved_slab, cylinder, object_instance_ids, scene_names)
+from synth.scenes import build_scene, object_instance_ids, scene_names
+from synth.scenes.builtin import CHAIR_VARIANTS, _lattice_box, chair_meshes, curved_slab, cylinder
+from synth.scenes.loaders import (SCENENET_TO_WORLD, load_scenenet_room, load_scenenet_trajectory,
+                                  load_tless_model, repair_nonmanifold)
 from tests.conftest import shared_path
 
 BUILTIN = ["room", "chair_a", "chair_b", "chair_c"]

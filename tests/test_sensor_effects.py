@@ -75,7 +75,7 @@ def _shadow_masks(scene, preset=SMALL):
     sim = SensorSimulator(preset, None, scene)
     st = sim.make_state(T)[0]
     pp = sim.effect("pattern_projection")
-    pb = blurred_pattern(st.scratch["pattern"], pp.params.dot_sigma_px, {})
+    pb = blurred_pattern(st.pattern, pp.params.dot_sigma_px, {})
     out = {}
     for m in ("raycast", "hybrid", "scanline"):
         prm = dataclasses.replace(pp.params, shadow_method=m)

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from synth.validation import (FlatWallConfig, flat_wall_experiment, khoshelham_sigma_m, nguyen_sigma_m,
+from synth.sensor.validation import (FlatWallConfig, flat_wall_experiment, khoshelham_sigma_m, nguyen_sigma_m,
                               projector_shadow_side, quantization_step_m)
 
 

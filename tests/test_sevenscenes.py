@@ -5,7 +5,6 @@ import cv2
 import numpy as np
 import pytest
 
-from app.cli import main
 from data_tools.errors import FormatError
 from data_tools.geometry import quat_to_matrix
 from data_tools.sequence import SequenceReader

@@ -14,7 +14,8 @@ from data_tools.mesh import TriMesh
 from data_tools.scene_spec import Material, SceneSpec
 from data_tools.sequence import SequenceReader
 from data_tools.trajectory import Trajectory
-from synth import scenes as scenes_mod
+from synth.scenes import builtin as scenes_mod
+from synth.scenes import registry as scene_registry
 from synth import trajectories as traj_mod
 from synth.render import IdealRenderer, build_raycasting_scene
 from synth.scenes import build_scene
@@ -210,7 +211,7 @@ def test_empty_views_are_written_and_counted(tmp_path, monkeypatch):
         poses = [look_at([0, 0, 1.5], [0.1, 0, 0] if i % 2 == 0 else [0.1, 0, 3.0]) for i in range(n)]
         return Trajectory(np.arange(n) / fps, np.stack(poses))
 
-    monkeypatch.setitem(scenes_mod.SCENES, "test_plane", one_plane)
+    monkeypatch.setitem(scene_registry.SCENES, "test_plane", one_plane)
     monkeypatch.setitem(traj_mod.TRAJECTORY_KINDS, "test_half_sky", half_sky)
     cfg = SequenceConfig(scene="test_plane", trajectory="test_half_sky", frames=4, jitter_trans_m=0,
                          jitter_rot_rad=0).with_resolution(40, 30)

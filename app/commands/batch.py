@@ -14,6 +14,23 @@ DESCRIPTION = ("Run every --backends entry on every sequence (jobs in a local pr
                "REPORT/runs/<sequence>/<backend>; re-running resumes unfinished runs.")
 
 
+def _cm(x) -> str:
+    return "-" if x is None else f"{100 * x:.2f}"
+
+
+def _table(results) -> tuple[list[str], list[list[str]]]:
+    """The sequence x backend table printed after a batch (ATE and APE in cm)."""
+    rows = []
+    for r in results:
+        if r["ok"]:
+            fps = f"{r['frames_per_second']:.1f}" if r["frames_per_second"] else "-"
+            rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), fps,
+                         f"{r['frames_failed']}/{r['frames']}"])
+        else:
+            rows.append([r["name"], r["backend"], "error: " + (r["error"] or "").splitlines()[0], "", "", ""])
+    return ["sequence", "backend", "ATE cm", "APE med cm", "fps", "failed"], rows
+
+
 def _run(args) -> int:
     from app.commands.slam import _camera, config_from_args
     from slam.batch import run_batch
@@ -23,16 +40,8 @@ def _run(args) -> int:
     configs = {b: config_from_args(args, b) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
                     executor=args.executor, workers=args.workers, progress=not args.no_progress)
-    width = max(len(r["name"]) for r in rep.results)
-    print(f"{'sequence':<{width}}  {'backend':<14} {'ATE cm':>7} {'APE med cm':>10} {'fps':>6}  failed")
-    for r in rep.results:
-        if r["ok"]:
-            ate = f"{r['ate_rmse_m'] * 100:7.2f}" if r["ate_rmse_m"] is not None else f"{'-':>7}"
-            ape = f"{r['ape_median_m'] * 100:10.2f}" if r["ape_median_m"] is not None else f"{'-':>10}"
-            fps = f"{r['frames_per_second']:6.1f}" if r["frames_per_second"] else f"{'-':>6}"
-            print(f"{r['name']:<{width}}  {r['backend']:<14} {ate} {ape} {fps}  {r['frames_failed']}/{r['frames']}")
-        else:
-            print(f"{r['name']:<{width}}  {r['backend']:<14} error: {(r['error'] or '').splitlines()[0]}")
+    from data_tools.results import format_table
+    print(format_table(*_table(rep.results)))
     print(f"report: {rep.out / 'index.html'}")
     return 0 if all(r["ok"] for r in rep.results) else 1
 

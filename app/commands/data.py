@@ -59,24 +59,8 @@ def _convert_7scenes(args) -> int:
 
 def _info(args) -> int:
     import json
-    from data_tools.sequence import SequenceReader
-    seq = SequenceReader(args.seq)
-    i = seq.intrinsics
-    info = {
-        "path": str(seq.path), "frames": len(seq),
-        "duration_s": float(seq.timestamps[-1] - seq.timestamps[0]),
-        "camera_json": seq.has_camera_json,
-        "intrinsics": {"width": i.width, "height": i.height, "fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
-        "depth_scale": seq.camera.depth_scale,
-        "sensor": None if seq.camera.sensor is None else seq.camera.sensor.to_json(),
-        "frames_with_pose": int(sum(1 for p in seq.poses if p[0, 0] == p[0, 0])),
-        "scene_json": seq.has_scene,
-    }
-    if seq.has_scene:
-        sc = seq.scene
-        info["scene_meshes"] = len(sc.meshes)
-        info["scene_triangles"] = int(sum(len(m.triangles) for m in sc.meshes))
-    print(json.dumps(info, indent=2))
+    from data_tools.sequence import sequence_info
+    print(json.dumps(sequence_info(args.seq), indent=2))
     return 0
 
 

@@ -2,13 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import typing
-from pathlib import Path
 
 from data_tools.camera import read_camera_json
-from data_tools.errors import ConfigError, RealgapError
+from data_tools.errors import ConfigError
 
 NAME = "slam"
 HELP = "RGB-D registration + TSDF fusion (run) and novel-view rendering (render)"
@@ -82,16 +80,8 @@ def config_from_args(args, backend: str):
     from slam.pipeline import SlamConfig, make_config
     from slam.registration import backend_names, get_backend, parse_value
     from slam.tsdf import TSDFConfig
-    base = None
-    if getattr(args, "config", None):
-        path = Path(args.config)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise RealgapError(f"{path}: file not found") from None
-        except json.JSONDecodeError as e:
-            raise RealgapError(f"{path}: not valid JSON ({e.msg} at line {e.lineno})") from None
-        base = data.get("config", data) if isinstance(data, dict) else data
+    from slam.pipeline import read_config_file
+    base = read_config_file(args.config) if getattr(args, "config", None) else None
     overrides = {}
     backends = set(backend_names())
     for key, raw in vars(args).items():
@@ -141,19 +131,9 @@ def _run(args) -> int:
 
 
 def _render(args) -> int:
-    from data_tools.trajectory import read_tum
-    from slam.render import parse_pose, render_run, save_view
-    run = Path(args.run)
-    if args.pose is not None:
-        pose = parse_pose(args.pose)
-    else:
-        traj = read_tum(run / "trajectory.txt")
-        if not -len(traj) <= args.frame < len(traj):
-            raise RealgapError(f"--frame {args.frame}: the trajectory has {len(traj)} poses")
-        pose = traj.poses[args.frame]
-    view = render_run(run, pose, scale=args.scale, source=args.source)
-    depth_scale = read_camera_json(run / "camera.json").depth_scale
-    paths = save_view(view, args.out, depth_scale)
+    from slam.render import render_run_to_png
+    view, paths, depth_scale = render_run_to_png(args.run, args.out, pose=args.pose, frame=args.frame,
+                                                 scale=args.scale, source=args.source)
     print(f"{paths['colour']}: colour; {paths['depth']}: depth (x{depth_scale:g} per metre); "
           f"{view.coverage:.1%} of the pixels see the model (unobserved = magenta)")
     return 0

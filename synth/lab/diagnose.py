@@ -45,7 +45,6 @@ The budget knobs are in :class:`DiagnoseConfig` and :class:`FitConfig`.
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Sequence

@@ -245,7 +245,8 @@ class MeasuredSequence:
         out = []
         for k in self._frames(frames):
             res = sim.simulate(self.poses[k], seed=int(seed) + self.frame_indices[k],
-                               prev_pose=self.prev_poses[k], render=self.render(k))
+                               prev_pose=self.prev_poses[k], render=self.render(k),
+                               frame_index=self.frame_indices[k], timestamp_s=float(self.timestamps[k]))
             out.append(res.depth)
         return out
 

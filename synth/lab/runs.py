@@ -29,7 +29,7 @@ from pathlib import Path
 
 from data_tools.config import config_from_options
 from data_tools.errors import ConfigError, FormatError, RealgapError
-from data_tools.results import atomic_write_json, make_header, write_result
+from data_tools.results import atomic_write_json, make_header
 
 __all__ = ["LabRequest", "parse_effects", "build_config", "simulate_sequence", "write_simulated_sequence",
            "compare_sequence", "diagnose_sequence", "fit_sequence", "save_diagnosis_models",
@@ -338,7 +338,8 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     for k in todo:
         i = measured.frame_indices[k]
         rel = reader.depth_files[i]
-        res = sim.simulate(measured.poses[k], seed=int(seed) + i, prev_pose=measured.prev_poses[k])
+        res = sim.simulate(measured.poses[k], seed=int(seed) + i, prev_pose=measured.prev_poses[k], frame_index=i,
+                           timestamp_s=float(measured.timestamps[k]))
         dst = out / rel
         dst.parent.mkdir(parents=True, exist_ok=True)
         write_depth_png(dst, res.depth, scale)

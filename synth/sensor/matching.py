@@ -211,9 +211,9 @@ def _refine_in_bands(left, right, d, block, params, col_offset, margin):
     ``col_offset``), split into row bands refined concurrently (one per usable CPU, threads:
     OpenCV and numpy release the GIL), each with ``margin`` extra rows that are refined and
     dropped, so the result equals refining the whole image."""
-    from synth.render import _n_threads
+    from synth.jit import n_threads
     H = left.shape[0]
-    n = min(_n_threads(), max(1, H // (4 * margin)))
+    n = min(n_threads(), max(1, H // (4 * margin)))
     if n <= 1:
         return refine_subpixel(left, right, d, block, params.subpixel_iterations, params.max_refine_px, col_offset)
     from synth.jit import thread_pool

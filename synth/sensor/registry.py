@@ -72,6 +72,19 @@ class Effect(ABC):
     sensor_types: ClassVar[tuple[str, ...] | None] = None
     """Sensor types (``SensorPreset.type``) whose physics the effect models; None = every type.
     The sensor lab does not try an effect on a sensor of another type."""
+    IDENTITY_PARAMS: ClassVar[dict | None] = None
+    """Parameter values at which the effect does nothing (zero strength), or None when there are
+    none (a stage of the physical pipeline). The contract tests check it."""
+    KEEPS_INVALID: ClassVar[bool] = True
+    """False when the effect's purpose is to produce values where there were none (hole filling,
+    depth recomputed from images, a re-rendered or warped view); True = pixels invalid before
+    the effect stay invalid (checked by the contract tests)."""
+    REQUIRED_IN_PIPELINE: ClassVar[bool] = False
+    """True for the stages the physical pipeline cannot run without (projection, capture,
+    matching): disabling one is not an identity."""
+    FRAME_EXPOSURE_PARAM: ClassVar[str | None] = None
+    """Name of the parameter that is the frame's exposure time in seconds, for the one effect that
+    models the exposure (``motion_blur``); the simulator copies it into ``state.frame.exposure_s``."""
     DRAW_FROM_SHAPE: ClassVar[bool] = False
     """True when ``sample`` reads nothing of the state but ``shape``, ``preset``, ``intr``,
     ``physical`` and ``is_reference``: the simulator may then draw it in a background thread

@@ -402,13 +402,13 @@ class SensorSimulator:
         if key == self._reference_key:
             return self._reference
         from synth.render import pinhole_ray_dirs
-        from synth.sensor.state import SensorState, plane_view
+        from synth.sensor.state import FrameContext, SensorState, plane_view
         rintr = setup.reference_intrinsics(p.intrinsics)
         rays = pinhole_ray_dirs(rintr)
         view = plane_view(rays, float(p.reference_depth_m))
-        st = SensorState(p, rintr, np.eye(4), None, 1.0 / p.fps, None, rays, view, view,
-                         view.depth, view.hit.copy(), {e.name: e for e in ref_effects}, True, True)
-        st.scratch["pattern"] = self.pattern().image
+        st = SensorState(p, rintr, FrameContext(np.eye(4), None, 1.0 / p.fps), None, rays, view, view,
+                         view.depth, view.hit.copy(), {e.name: e for e in ref_effects}, True, True,
+                         pattern=self.pattern().image)
         for e in ref_effects:
             e.apply(st, e.null_draw(st))
         if st.ir8 is None:
@@ -418,11 +418,12 @@ class SensorSimulator:
 
     # -- simulation -------------------------------------------------------------------------
     def make_state(self, pose_c2w: np.ndarray, prev_pose: np.ndarray | None = None, render=None,
-                   with_rgb: bool = False):
+                   with_rgb: bool = False, frame_index: int | None = None, timestamp_s: float | None = None):
         """The :class:`SensorState` of a frame before any effect ran (ideal depth, all hit pixels
         valid), with the pattern and reference image attached for physical models. Returns
-        (state, warnings, rgb). Useful to apply single effects by hand (tests, sensor lab)."""
-        from synth.sensor.state import SensorState, empty_view, geometry_from_render
+        (state, warnings, rgb). ``frame_index`` / ``timestamp_s`` go to ``state.frame``. Useful to
+        apply single effects by hand (tests, sensor lab)."""
+        from synth.sensor.state import FrameContext, SensorState, empty_view, geometry_from_render
         T = _check_pose(pose_c2w, "pose_c2w")
         Tp = None if prev_pose is None else _check_pose(prev_pose, "prev_pose")
         p = self.preset
@@ -446,7 +447,10 @@ class SensorSimulator:
             ideal = geometry_from_render(render, self.renderer, T)
         phys = self.config.physical
         ordered = self.config.ordered()
-        state = SensorState(p, intr, T, Tp, 1.0 / p.fps, self.renderer, self.ray_dirs(), ideal, ideal,
+        exposure = next((float(getattr(e.params, e.FRAME_EXPOSURE_PARAM)) for e in ordered
+                         if e.FRAME_EXPOSURE_PARAM), 0.0)
+        frame = FrameContext(T, Tp, 1.0 / p.fps, frame_index, timestamp_s, exposure)
+        state = SensorState(p, intr, frame, self.renderer, self.ray_dirs(), ideal, ideal,
                             ideal.depth, ideal.hit.copy(), {e.name: e for e in ordered}, phys)
         if cut:
             state.log["motion"] = {"cut": True, "reason": cut}
@@ -454,19 +458,22 @@ class SensorSimulator:
             if not no_scene:
                 warnings.append("no geometry in view: all pixels invalid")
         elif phys:
-            state.scratch["pattern"] = self.pattern().image
+            state.pattern = self.pattern().image
             state.reference_ir8 = self.reference_image()
         return state, warnings, rgb
 
     def simulate(self, pose_c2w: np.ndarray, seed: int | None = 0, prev_pose: np.ndarray | None = None,
-                 draws: dict | None = None, render=None, with_rgb: bool = False) -> SimResult:
+                 draws: dict | None = None, render=None, with_rgb: bool = False, frame_index: int | None = None,
+                 timestamp_s: float | None = None) -> SimResult:
         """Simulate the frame seen from ``pose_c2w`` (4x4 camera-to-world, OpenCV axes).
 
         ``seed`` fixes every random draw (per effect: the effect's draw depends only on the
         seed and its name). ``prev_pose`` (pose one frame period earlier) switches on the
         motion effects, unless the motion it implies exceeds ``config.motion`` (then it is
         treated as a cut: static frame, a warning in ``SimResult.warnings``). ``draws`` replays a previous result's draws exactly. ``render`` reuses
-        an ideal :class:`RenderResult` of this pose. Deterministic given (seed or draws).
+        an ideal :class:`RenderResult` of this pose. ``frame_index`` and ``timestamp_s`` describe
+        the frame in its sequence (:class:`~synth.sensor.state.FrameContext`). Deterministic given
+        (seed or draws).
         """
         if draws is None and seed is None:
             raise ConfigError("simulate needs a seed or the draws of a previous frame")
@@ -476,7 +483,7 @@ class SensorSimulator:
         # started first, so that they fill the core the single-threaded parts of the set-up
         # leave free (a frame without geometry simply does not use them)
         early = self._start_draws(seed) if draws is None else None
-        state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb)
+        state, warnings, rgb = self.make_state(pose_c2w, prev_pose, render, with_rgb, frame_index, timestamp_s)
         timings = {"render": (time.perf_counter() - t0) * 1e3}
         cpu = {"render": (time.process_time() - c0) * 1e3}
         ideal = state.ideal
@@ -534,7 +541,7 @@ class SensorSimulator:
         the previous pose for rolling shutter / motion blur."""
         prev = None
         for i, T in enumerate(np.asarray(poses_c2w)):
-            yield self.simulate(T, seed=seed + i, prev_pose=prev if motion else None)
+            yield self.simulate(T, seed=seed + i, prev_pose=prev if motion else None, frame_index=i)
             prev = T
 
 
@@ -569,11 +576,12 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     n_workers = min(int(workers), len(poses) - start)   # no more processes than frames left
     pool = SimulationPool(sim, workers=n_workers) if n_workers > 1 else None
     if pool is None:
-        results = (sim.simulate(poses[i], seed=seed + i, prev_pose=prevs[i], with_rgb=with_rgb)
-                   for i in range(start, len(poses)))
+        results = (sim.simulate(poses[i], seed=seed + i, prev_pose=prevs[i], with_rgb=with_rgb, frame_index=i,
+                                timestamp_s=float(ts[i])) for i in range(start, len(poses)))
     else:
         results = pool.map(poses[start:], [seed + i for i in range(start, len(poses))], prevs[start:],
-                           with_rgb=with_rgb, keep_draws=False)  # frames are written, draws not kept
+                           with_rgb=with_rgb, keep_draws=False,  # frames are written, draws not kept
+                           frame_indices=range(start, len(poses)), timestamps=ts[start:])
     n = cuts = 0
     try:
         for i, res in zip(idx, results):
@@ -630,16 +638,18 @@ class SimulationPool:
         list(self._ex.map(_pool_ready, range(self.workers)))
 
     def map(self, poses_c2w, seeds, prev_poses=None, max_in_flight: int | None = None,
-            with_rgb: bool = False, keep_draws: bool = True):
-        """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i], with_rgb=with_rgb)``
-        in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead.
+            with_rgb: bool = False, keep_draws: bool = True, frame_indices=None, timestamps=None):
+        """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i], with_rgb=with_rgb,
+        frame_index=frame_indices[i], timestamp_s=timestamps[i])`` in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead.
         ``keep_draws=False`` returns results with empty ``draws`` (a caller that only writes the
         frames saves shipping them: ~20 % of each VGA result)."""
         from collections import deque
         poses = list(poses_c2w)
         seeds = list(seeds)
         prevs = list(prev_poses) if prev_poses is not None else [None] * len(poses)
-        if not (len(poses) == len(seeds) == len(prevs)):
+        idx = list(frame_indices) if frame_indices is not None else [None] * len(poses)
+        ts = [float(t) for t in timestamps] if timestamps is not None else [None] * len(poses)
+        if not (len(poses) == len(seeds) == len(prevs) == len(idx) == len(ts)):
             raise RealgapError(f"SimulationPool.map: {len(poses)} poses, {len(seeds)} seeds, "
                                f"{len(prevs)} previous poses")
         from multiprocessing.shared_memory import SharedMemory
@@ -659,7 +669,7 @@ class SimulationPool:
         for i in range(len(poses)):
             slot = free.popleft()
             pending.append((self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i], slot.name,
-                                            self.slot_bytes, with_rgb, keep_draws), slot))
+                                            self.slot_bytes, with_rgb, keep_draws, idx[i], ts[i]), slot))
             if len(pending) >= ahead:
                 yield collect()
         while pending:
@@ -689,9 +699,9 @@ def _pool_init(config_json: dict, scene, pattern) -> None:
     per frame of a serial run; the outputs do not depend on the thread counts)."""
     global _POOL_SIM
     import cv2
-    import synth.render
+    import synth.jit
     cv2.setNumThreads(1)
-    synth.render.RAY_THREADS = 1
+    synth.jit.THREADS = 1
     sim = SensorSimulator(SensorConfig.from_json(config_json), scene=scene if scene is not None and
                           getattr(scene, "meshes", None) else None, pattern=pattern)
     if sim.renderer is not None:  # compile/load the raster kernels and build Open3D's BVH (shadow
@@ -735,11 +745,12 @@ def _set_result_array(res: SimResult, key: tuple, value) -> None:
 
 
 def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: bool = False,
-                   keep_draws: bool = True):
+                   keep_draws: bool = True, frame_index: int | None = None, timestamp_s: float | None = None):
     """Simulate one frame (its draws dropped unless ``keep_draws``); its arrays go into the
     shared-memory slot when they fit: ("shm", result without them, [(key, dtype, shape,
     offset)]), else ("pickle", result)."""
-    res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev, with_rgb=with_rgb)
+    res = _POOL_SIM.simulate(pose, seed=seed, prev_pose=prev, with_rgb=with_rgb, frame_index=frame_index,
+                             timestamp_s=timestamp_s)
     if not keep_draws:
         res.draws = {}
     arrays = _result_arrays(res)

@@ -90,11 +90,11 @@ def _cast(renderer, origins: np.ndarray, dirs: np.ndarray) -> dict:
     if rs is None or g2m is None:
         return renderer.cast_rays(origins, dirs)
     import open3d as o3d
-    from synth.sensor.effects.pattern_projection import _nthreads
+    from synth.jit import n_threads
     rays = np.empty((len(origins), 6), np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = dirs
-    out = rs.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=_nthreads())
+    out = rs.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=n_threads())
     t = out["t_hit"].numpy()
     hit = np.isfinite(t)
     gid = out["geometry_ids"].numpy()
@@ -246,6 +246,74 @@ class DrawContext:
         return self.intr.shape
 
 
+@dataclass(frozen=True)
+class FrameContext:
+    """When a frame is taken and how the camera moves during it (read by the motion effects)."""
+
+    pose_c2w: np.ndarray
+    """(4, 4) camera-to-world pose of the frame (the row at the image centre), metres."""
+    prev_pose_c2w: np.ndarray | None = None
+    """(4, 4) pose one frame period earlier (None = a static camera)."""
+    frame_dt_s: float = 1.0 / 30.0
+    """Frame period, seconds."""
+    index: int | None = None
+    """Number of the frame in its sequence (None = a single frame)."""
+    timestamp_s: float | None = None
+    """Timestamp of the frame, seconds (None = not known)."""
+    exposure_s: float = 0.0
+    """Exposure time, seconds: the value of the model's effect that declares
+    ``FRAME_EXPOSURE_PARAM`` (motion_blur's ``exposure_s``), else 0 (instantaneous)."""
+
+    @property
+    def moving(self) -> bool:
+        """True when the camera moved since the previous frame."""
+        return self.prev_pose_c2w is not None and not np.array_equal(self.prev_pose_c2w, self.pose_c2w)
+
+    def pose_at(self, s) -> np.ndarray:
+        """Pose(s) at time ``s`` frame periods after the frame's (scalar or (N,) array; s = -1 is
+        the previous frame) on the constant-velocity path (:func:`interpolate_pose`)."""
+        prev = self.pose_c2w if self.prev_pose_c2w is None else self.prev_pose_c2w
+        return interpolate_pose(self.pose_c2w, prev, s)
+
+    @property
+    def linear_velocity_m_s(self) -> np.ndarray:
+        """(3,) velocity of the camera centre in the world frame, metres per second (0 when static)."""
+        if self.prev_pose_c2w is None:
+            return np.zeros(3)
+        return (np.asarray(self.pose_c2w, np.float64)[:3, 3] - np.asarray(self.prev_pose_c2w, np.float64)[:3, 3]) \
+            / self.frame_dt_s
+
+    @property
+    def angular_velocity_rad_s(self) -> np.ndarray:
+        """(3,) angular velocity of the camera in the world frame, radians per second (0 when static)."""
+        if self.prev_pose_c2w is None:
+            return np.zeros(3)
+        R1 = np.asarray(self.pose_c2w, np.float64)[:3, :3]
+        R0 = np.asarray(self.prev_pose_c2w, np.float64)[:3, :3]
+        return _so3_log(R1 @ R0.T) / self.frame_dt_s
+
+
+PRODUCTS = {
+    "row_time_frames": "(H,) float64 time of each image row relative to the frame, in frame periods "
+                       "(rolling_shutter); absent = every row at 0",
+    "projector": "ProjectorProduct: the blurred pattern and the projection parameters (pattern_projection), "
+                 "for effects that re-compute the radiance at other poses (motion_blur)",
+    "ambient": "(H, W) float32 ambient radiance reaching the IR camera (ambient_light); optics warp it",
+    "ambient_second": "(H, W) float32 ambient radiance reaching the second camera (ambient_light)",
+}
+"""The products one effect publishes for later effects (:meth:`SensorState.publish`), by name."""
+
+
+@dataclass(frozen=True)
+class ProjectorProduct:
+    """What ``pattern_projection`` publishes as ``"projector"``."""
+
+    pattern_blurred: np.ndarray
+    """The projector pattern image with the dot blur applied (pattern pixels)."""
+    params: Any
+    """The effect's parameters (power, fall-off, shadow method, ...)."""
+
+
 @dataclass
 class SensorState:
     """Everything one simulated frame reads and writes (see the module docstring)."""
@@ -254,12 +322,8 @@ class SensorState:
     """The :class:`~synth.sensor.presets.SensorPreset`."""
     intr: Intrinsics
     """Intrinsics of the arrays below (the padded reference grid when ``is_reference``)."""
-    pose_c2w: np.ndarray
-    """(4, 4) camera-to-world pose of the frame (the row at the image centre)."""
-    prev_pose_c2w: np.ndarray | None
-    """(4, 4) pose one frame period earlier, for motion effects (None = static camera)."""
-    frame_dt_s: float
-    """Frame period, seconds."""
+    frame: FrameContext
+    """Pose, timing and motion of the frame."""
     renderer: Any
     """The :class:`synth.render.IdealRenderer` (None for analytic states such as the reference)."""
     ray_dirs_cam: np.ndarray
@@ -278,6 +342,8 @@ class SensorState:
     """True when the model runs the physical pipeline (pattern_projection is on)."""
     is_reference: bool = False
     """True while the stored reference image is being made (noise-free draws)."""
+    pattern: np.ndarray | None = None
+    """Physical pipeline: the projector's dot pattern image (pattern pixels, values in [0, 1])."""
     second_view: ViewGeometry | None = None
     """Active stereo: what the second IR camera sees."""
     radiance: np.ndarray | None = None
@@ -300,8 +366,26 @@ class SensorState:
     """Structured light: (H, W + pads) uint8 stored reference image."""
     log: dict = field(default_factory=dict)
     """Per-effect notes and statistics (JSON-able)."""
-    scratch: dict = field(default_factory=dict)
-    """Arrays effects leave for later effects (e.g. ``radiance_ambient``)."""
+    products: dict = field(default_factory=dict)
+    """What effects publish for later effects, by name (:data:`PRODUCTS`); use
+    :meth:`publish` and :meth:`product`, never another effect's attributes."""
+
+    @property
+    def pose_c2w(self) -> np.ndarray:
+        """(4, 4) camera-to-world pose of the frame (``frame.pose_c2w``)."""
+        return self.frame.pose_c2w
+
+    def publish(self, name: str, value) -> None:
+        """Make ``value`` available to later effects as product ``name`` (one of :data:`PRODUCTS`)."""
+        if name not in PRODUCTS:
+            raise RealgapError(f"unknown sensor-state product {name!r}; known: {', '.join(PRODUCTS)}")
+        self.products[name] = value
+
+    def product(self, name: str, default=None):
+        """Product ``name`` published by an earlier effect, or ``default``."""
+        if name not in PRODUCTS:
+            raise RealgapError(f"unknown sensor-state product {name!r}; known: {', '.join(PRODUCTS)}")
+        return self.products.get(name, default)
 
     @property
     def shape(self) -> tuple[int, int]:

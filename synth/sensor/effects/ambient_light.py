@@ -34,6 +34,7 @@ class AmbientLight(Effect):
     """
 
     name = "ambient_light"
+    IDENTITY_PARAMS = {"level": 0.0}
     DRAW_FROM_SHAPE = True
     Params = AmbientLightParams
     FITTABLE = {"level": (0.0, 100.0), "contrast50": (0.0, 1.0), "contrast_width": (0.005, 1.0)}
@@ -47,10 +48,10 @@ class AmbientLight(Effect):
     def apply(self, state, draw) -> None:
         lvl = np.float32(self.params.level)
         if state.physical:
-            state.scratch["ambient"] = np.where(state.view.hit, lvl * state.view.albedo, 0).astype(np.float32)
+            state.publish("ambient", np.where(state.view.hit, lvl * state.view.albedo, 0).astype(np.float32))
             if state.second_view is not None:
                 sv = state.second_view
-                state.scratch["ambient_second"] = np.where(sv.hit, lvl * sv.albedo, 0).astype(np.float32)
+                state.publish("ambient_second", np.where(sv.hit, lvl * sv.albedo, 0).astype(np.float32))
             state.log[self.name] = {"level": float(lvl)}
             return
         u = check_draw(draw, "u", state.shape, self.name)

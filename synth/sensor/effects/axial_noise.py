@@ -37,6 +37,7 @@ class AxialNoise(Effect):
     """
 
     name = "axial_noise"
+    IDENTITY_PARAMS = {"sigma0_m": 0.0, "sigma1": 0.0, "sigma2_per_m": 0.0}
     DRAW_FROM_SHAPE = True
     Params = AxialNoiseParams
     FITTABLE = {"sigma0_m": (0.0, 0.1), "sigma1": (0.0, 0.1), "sigma2_per_m": (0.0, 0.05),

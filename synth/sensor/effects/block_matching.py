@@ -64,6 +64,8 @@ class BlockMatching(Effect):
     """
 
     name = "block_matching"
+    KEEPS_INVALID = False  # depth is recomputed from the IR images
+    REQUIRED_IN_PIPELINE = True
     Params = BlockMatchingParams
     FITTABLE = {"prefilter_cap": (1, 63), "uniqueness_ratio": (0, 100), "speckle_window_px": (0, 2000),
                 "speckle_range_steps": (0.0, 16.0), "sgbm_p1": (0.0, 64.0), "sgbm_p2": (0.0, 256.0)}

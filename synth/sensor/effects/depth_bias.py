@@ -34,6 +34,7 @@ class DepthBias(Effect):
     """
 
     name = "depth_bias"
+    IDENTITY_PARAMS = {"offset_m": 0.0, "scale": 0.0, "disparity_offset_px": 0.0, "radial_disparity_px": 0.0}
     Params = DepthBiasParams
     FITTABLE = {"offset_m": (-0.1, 0.1), "scale": (-0.1, 0.1), "disparity_offset_px": (-2.0, 2.0),
                 "radial_disparity_px": (-2.0, 2.0)}

@@ -62,6 +62,7 @@ class EdgeFattening(Effect):
     """
 
     name = "edge_fattening"
+    IDENTITY_PARAMS = {"radius_px": 0}
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = EdgeFatteningParams
     FITTABLE = {"radius_px": (0, 20), "min_jump_rel": (0.0, 1.0)}

@@ -30,6 +30,7 @@ class FlyingPixels(Effect):
     """
 
     name = "flying_pixels"
+    IDENTITY_PARAMS = {"probability": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     DRAW_FROM_SHAPE = True
     Params = FlyingPixelsParams

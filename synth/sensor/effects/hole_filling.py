@@ -29,6 +29,8 @@ class HoleFilling(Effect):
     """
 
     name = "hole_filling"
+    KEEPS_INVALID = False  # it fills holes
+    IDENTITY_PARAMS = {"max_hole_px": 0}
     Params = HoleFillingParams
     FITTABLE = {"max_hole_px": (0, 100000)}
     stage = STAGE_POST + 5

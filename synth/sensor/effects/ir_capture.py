@@ -48,6 +48,7 @@ class IRCapture(Effect):
     """
 
     name = "ir_capture"
+    REQUIRED_IN_PIPELINE = True
     DRAW_FROM_SHAPE = True
     Params = IRCaptureParams
     FITTABLE = {"gain_e": (100.0, 1e6), "full_well_e": (1000.0, 1e6), "read_noise_e": (0.0, 200.0),
@@ -78,13 +79,13 @@ class IRCapture(Effect):
     def _capture(self, radiance, ambient, speckle, noise, reference: bool):
         import cv2
 
-        from synth.render import _n_threads
+        from synth.jit import n_threads
         p = self.params
         H, W = radiance.shape
         for name, a in (("speckle", speckle), ("noise", noise), ("ambient", ambient)):
             if a is not None and a.shape != (H, W):  # the kernels below do not check bounds
                 raise ValueError(f"ir_capture: {name} is {a.shape}, the radiance {(H, W)}")
-        nthreads = _n_threads()
+        nthreads = n_threads()
         f32 = np.float32
         none = np.zeros((1, 1), np.float32)
         use_speckle = speckle is not None and p.speckle_contrast > 0
@@ -141,10 +142,10 @@ class IRCapture(Effect):
                 sp2 = check_draw(draw, "speckle_second", sh, self.name)
                 nz2 = check_draw(draw, "noise_second", sh, self.name)
         ref = state.is_reference
-        state.ir, state.ir8, state.saturated = self._capture(state.radiance, state.scratch.get("ambient"), sp, nz, ref)
+        state.ir, state.ir8, state.saturated = self._capture(state.radiance, state.product("ambient"), sp, nz, ref)
         if state.radiance_second is not None:
             state.ir_second, state.ir8_second, _ = self._capture(state.radiance_second,
-                                                                 state.scratch.get("ambient_second"), sp2, nz2, ref)
+                                                                 state.product("ambient_second"), sp2, nz2, ref)
         state.log[self.name] = {"saturated_px": int(state.saturated.sum()),
                                 "mean_counts": float(state.ir.mean())}
 

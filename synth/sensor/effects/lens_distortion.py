@@ -50,6 +50,7 @@ class LensDistortion(Effect):
     """
 
     name = "lens_distortion"
+    IDENTITY_PARAMS = {"coefficients": (0.0, 0.0, 0.0, 0.0, 0.0)}
     Params = LensDistortionParams
     in_reference = True
 
@@ -90,8 +91,8 @@ class LensDistortion(Effect):
             state.radiance = warp(state.radiance)
             if state.radiance_second is not None:
                 state.radiance_second = warp(state.radiance_second)
-            if "ambient" in state.scratch:
-                state.scratch["ambient"] = warp(state.scratch["ambient"])
+            if state.product("ambient") is not None:
+                state.publish("ambient", warp(state.product("ambient")))
         else:
             z = np.where(state.valid, state.depth, 0).astype(np.float32)
             z = cv2.remap(z, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -35,32 +35,33 @@ class MotionBlur(Effect):
     """
 
     name = "motion_blur"
+    IDENTITY_PARAMS = {"exposure_s": 0.0}
     Params = MotionBlurParams
     FITTABLE = {"exposure_s": (0.0, 0.1), "mix_jump_m": (0.001, 1.0)}
+    FRAME_EXPOSURE_PARAM = "exposure_s"
 
     def stage_for(self, physical_model: bool) -> int:
         return STAGE_OPTICS if physical_model else STAGE_DEPTH
 
     def _offsets(self, state) -> np.ndarray:
         k = max(int(self.params.taps), 1)
-        return ((np.arange(k) + 0.5) / k - 0.5) * self.params.exposure_s / state.frame_dt_s
+        return ((np.arange(k) + 0.5) / k - 0.5) * self.params.exposure_s / state.frame.frame_dt_s
 
     def apply(self, state, draw) -> None:
-        from synth.sensor.state import cast_view, interpolate_pose
-        if (state.prev_pose_c2w is None or self.params.exposure_s <= 0 or state.renderer is None
-                or state.is_reference or np.array_equal(state.prev_pose_c2w, state.pose_c2w)):
+        from synth.sensor.state import cast_view
+        if not state.frame.moving or self.params.exposure_s <= 0 or state.renderer is None or state.is_reference:
             state.log[self.name] = {"active": False}
             return
         H, W = state.shape
-        row_s = state.scratch.get("row_s", np.zeros(H))
+        row_s = state.product("row_time_frames", np.zeros(H))
         offs = self._offsets(state)
         if state.physical:
-            from synth.sensor.effects.pattern_projection import blurred_pattern, compute_radiance
-            proj = state.model.get("pattern_projection")
+            from synth.sensor.effects.pattern_projection import compute_radiance
+            proj = state.product("projector")
             if proj is None or state.radiance is None:
                 state.log[self.name] = {"active": False, "reason": "no pattern_projection"}
                 return
-            pb = blurred_pattern(state.scratch["pattern"], proj.params.dot_sigma_px, proj._cache)
+            pb = proj.pattern_blurred
             acc = np.zeros((H, W), np.float32)
             acc2 = np.zeros((H, W), np.float32) if state.radiance_second is not None else None
             off2 = (state.preset.projector_side * state.preset.baseline_m, 0.0, 0.0)
@@ -70,7 +71,7 @@ class MotionBlur(Effect):
                     if acc2 is not None:
                         acc2 += state.radiance_second
                     continue
-                rows = interpolate_pose(state.pose_c2w, state.prev_pose_c2w, row_s + o)
+                rows = state.frame.pose_at(row_s + o)
                 v = cast_view(state.renderer, state.ray_dirs_cam, rows)
                 acc += compute_radiance(v, (0, 0, 0), state.preset, pb, proj.params, state.renderer,
                                         state.ray_dirs_cam)[0]
@@ -91,7 +92,7 @@ class MotionBlur(Effect):
         zs = []
         intr = state.intr
         for o in offs:
-            Tk = interpolate_pose(T0, state.prev_pose_c2w, o)
+            Tk = state.frame.pose_at(o)
             M = invert_pose(Tk) @ T0                      # camera(0) -> camera(o)
             Y = X @ M[:3, :3].T + M[:3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):

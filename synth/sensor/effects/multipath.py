@@ -38,6 +38,7 @@ class Multipath(Effect):
     """
 
     name = "multipath"
+    IDENTITY_PARAMS = {"strength": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     Params = MultipathParams
     FITTABLE = {"strength": (0.0, 10.0), "max_error_m": (0.0, 1.0)}

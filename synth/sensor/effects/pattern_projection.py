@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.jit import kernel, run_row_bands
+from synth.jit import kernel, n_threads, run_row_bands
 from synth.sensor.registry import STAGE_PROJECTION, Effect, register_effect
 
 
@@ -63,12 +63,6 @@ def normalized_coords(ray_dirs_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return hit[1], hit[2]
 
 
-def _nthreads() -> int:
-    """Threads per Open3D query (synth.render's setting: RAY_THREADS or the usable CPUs)."""
-    from synth.render import _n_threads
-    return _n_threads()
-
-
 def shadow_test(renderer, view, src_cam: np.ndarray, r, mask: np.ndarray, eps_m: float) -> np.ndarray:
     """(H, W) bool: True where the segment from the light source at ``src_cam`` (camera frame
     of ``view``, per row) to the surface point is blocked. ``r`` (H, W): distance from the
@@ -97,7 +91,7 @@ def _segment_occluded(renderer, view, src_cam, frac: np.ndarray, idx: np.ndarray
                   view.cam_point_rows(src_cam).astype(np.float32), np.ascontiguousarray(frac, np.float32),
                   view.hit.shape[1], rays)
     occ = renderer.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=np.float32(eps_m) / 10,
-                                                    tfar=1.0, nthreads=_nthreads()).numpy()
+                                                    tfar=1.0, nthreads=n_threads()).numpy()
     return occ.astype(bool)
 
 
@@ -154,7 +148,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
     H, W = mask.shape
     exact = np.empty((H, W), np.bool_)
     run_row_bands(lambda r0, r1: _hybrid_marks_rows(r0, r1, up, ok, Lz, float(src_cam[2]), mask, side, exact),
-                  H, _nthreads())
+                  H, n_threads())
     n_exact = int(np.count_nonzero(exact))
     sh = shadow_test(renderer, view, src_cam, r, exact, eps_m) if n_exact else np.zeros(mask.shape, bool)
     rest = mask & ~exact
@@ -165,7 +159,7 @@ def hybrid_shadow(renderer, view, src_cam: np.ndarray, up: np.ndarray, ok: np.nd
     if view.global_shutter:
         pw = pw[:1]
     dmin_rows = renderer.raycasting_scene.compute_distance(
-        o3d.core.Tensor.from_numpy(np.ascontiguousarray(pw)), nthreads=_nthreads()).numpy().astype(np.float64)
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(pw)), nthreads=n_threads()).numpy().astype(np.float64)
     # the out-of-view part of a shadow ray from S: from S to the plane x = x_edge z, a fraction
     # s* = b / (b + g) of it, g = side (x_edge Z - X) >= 0. Columns where even the longest such
     # part is shorter than dmin are skipped: s* r <= b (Z m + b) / (b + Z d) with d = side
@@ -260,7 +254,7 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
     Lx, Ly, Lz, r, up = (np.empty((H, W), np.float32) for _ in range(5))
     pat, mndl = np.empty((H, W), np.float32), np.empty((H, W), np.float32)
     ok, lit = np.empty((H, W), np.bool_), np.empty((H, W), np.bool_)
-    nthreads = _nthreads()
+    nthreads = n_threads()
     run_row_bands(lambda r0, r1: _projection_rows(
         r0, r1, Z, hit, xn, yn, nrm, pattern_blurred, proj[0], proj[1], proj[2], fp, (wp - 1) / 2.0,
         (hp - 1) / 2.0, Lx, Ly, Lz, r, up, ok, pat, mndl, lit), H, nthreads)
@@ -425,6 +419,7 @@ class PatternProjection(Effect):
     """
 
     name = "pattern_projection"
+    REQUIRED_IN_PIPELINE = True
     Params = PatternProjectionParams
     FITTABLE = {"power": (0.05, 20.0), "dot_sigma_px": (0.0, 2.0), "specular_exponent": (1.0, 500.0)}
     stage = STAGE_PROJECTION
@@ -444,8 +439,9 @@ class PatternProjection(Effect):
 
     def apply(self, state, draw) -> None:
         from synth.sensor.state import cast_view
-        pattern = state.scratch["pattern"]
-        pb = blurred_pattern(pattern, self.params.dot_sigma_px, self._cache)
+        pb = blurred_pattern(state.pattern, self.params.dot_sigma_px, self._cache)
+        from synth.sensor.state import ProjectorProduct
+        state.publish("projector", ProjectorProduct(pb, self.params))
         rad, stats = compute_radiance(state.view, (0.0, 0.0, 0.0), state.preset, pb, self.params,
                                       state.renderer, state.ray_dirs_cam)
         state.radiance = rad

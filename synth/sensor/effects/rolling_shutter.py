@@ -35,22 +35,23 @@ class RollingShutter(Effect):
     """
 
     name = "rolling_shutter"
+    KEEPS_INVALID = False  # each row is re-rendered at its own pose
+    IDENTITY_PARAMS = {"readout_time_s": 0.0}
     Params = RollingShutterParams
     FITTABLE = {"readout_time_s": (0.0, 0.2)}
     stage = STAGE_GEOMETRY
 
     def apply(self, state, draw) -> None:
-        from synth.sensor.state import cast_view, interpolate_pose
+        from synth.sensor.state import cast_view
         rt = self.params.readout_time_s
-        if (state.prev_pose_c2w is None or rt <= 0 or state.renderer is None or state.is_reference
-                or np.array_equal(state.prev_pose_c2w, state.pose_c2w)):
+        if not state.frame.moving or rt <= 0 or state.renderer is None or state.is_reference:
             state.log[self.name] = {"active": False}
             return
         H = state.shape[0]
-        s = row_times_frames(H, rt, state.frame_dt_s)
-        rows = interpolate_pose(state.pose_c2w, state.prev_pose_c2w, s)
+        s = row_times_frames(H, rt, state.frame.frame_dt_s)
+        rows = state.frame.pose_at(s)
         state.view = cast_view(state.renderer, state.ray_dirs_cam, rows)
-        state.scratch["row_s"] = s
+        state.publish("row_time_frames", s)
         state.depth = state.view.depth
         state.valid = state.view.hit.copy()
         shift = np.linalg.norm(rows[-1, :3, 3] - rows[0, :3, 3])

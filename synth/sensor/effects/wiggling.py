@@ -29,6 +29,7 @@ class Wiggling(Effect):
     """
 
     name = "wiggling"
+    IDENTITY_PARAMS = {"amplitude_m": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     Params = WigglingParams
     FITTABLE = {"amplitude_m": (0.0, 0.05), "period_m": (0.05, 5.0), "phase_rad": (-np.pi, np.pi)}

@@ -42,7 +42,8 @@ from data_tools.errors import FormatError
 from data_tools.mesh import TriMesh, check_mesh, load_mesh
 from data_tools.scene_spec import DEFAULT_MATERIAL, Material, SceneSpec
 from data_tools.trajectory import Trajectory
-from synth.scenes import _ground, pose_matrix, register_scene
+from synth.scenes.builtin import _ground, pose_matrix
+from synth.scenes.registry import register_scene
 
 SCENENET_TO_WORLD = np.array([[1.0, 0.0, 0.0, 0.0],
                               [0.0, 0.0, -1.0, 0.0],
@@ -376,7 +377,7 @@ def build_tless_scene(seed: int = 0, *, path: str, ground_size_m: float = 1.0,
 
     The model's lowest point is at z = 0 over the origin, turned by ``yaw_rad`` about z;
     ``seed`` varies the ground shades."""
-    from synth.scenes import MATERIALS, _rot_z
+    from synth.scenes.builtin import MATERIALS, _rot_z
     mesh = load_tless_model(path)
     lo, hi = mesh.bounds
     T = pose_matrix(_rot_z(float(yaw_rad))) @ pose_matrix(None, (-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]))

@@ -32,10 +32,11 @@ Conventions, fixed for every caller:
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
+
+from synth.jit import n_threads
 
 from data_tools.camera import Intrinsics
 from data_tools.errors import RealgapError
@@ -146,22 +147,6 @@ def _shade(base_color: np.ndarray, cos: np.ndarray, hit: np.ndarray, ambient: fl
     return rgb.astype(np.uint8)
 
 
-RAY_THREADS: int | None = None
-"""Threads per Open3D query; None = the CPUs this process may use. Set to 1 in worker
-processes that each simulate their own frame (synth.sensor.simulator.SimulationPool)."""
-
-
-def _n_threads() -> int:
-    """Threads for Open3D ray casting: ``RAY_THREADS`` or the CPUs this process may use
-    (Open3D's automatic choice counts the host's CPUs and oversubscribes a restricted container)."""
-    if RAY_THREADS:
-        return int(RAY_THREADS)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
-
-
 class IdealRenderer:
     """Noise-free ray-cast renderer of one :class:`SceneSpec` (see the module docstring).
 
@@ -175,7 +160,7 @@ class IdealRenderer:
         """The scene being rendered (meshes must not be modified afterwards)."""
         if backend not in ("auto", "raster", "raycast"):
             raise RealgapError(f"renderer backend must be 'auto', 'raster' or 'raycast', got {backend!r}")
-        from synth import raster
+        from synth.render import raster
         if backend == "auto":
             backend = "raster" if raster.available() else "raycast"
         elif backend == "raster" and not raster.available():
@@ -240,7 +225,7 @@ class IdealRenderer:
 
     def _cast(self, rays: np.ndarray) -> dict:
         import open3d as o3d
-        out = self.raycasting_scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=_n_threads())
+        out = self.raycasting_scene.cast_rays(o3d.core.Tensor.from_numpy(rays), nthreads=n_threads())
         return {k: v.numpy() for k, v in out.items()}
 
     # ------------------------------------------------------------------ rendering
@@ -307,10 +292,10 @@ class IdealRenderer:
 
     def _render_raster(self, T: np.ndarray, intr: Intrinsics, dirs_img: np.ndarray, d: list[np.ndarray],
                        with_rgb: bool) -> RenderResult:
-        """:meth:`render` through :class:`synth.raster.Rasterizer` (same outputs)."""
+        """:meth:`render` through :class:`synth.render.raster.Rasterizer` (same outputs)."""
         H, W = intr.shape
         o = self._raster.render(T, intr.fx, intr.fy, intr.cx, intr.cy, W, H, d[2].reshape(H, W),
-                                with_uv=with_rgb, n_threads=_n_threads())
+                                with_uv=with_rgb, n_threads=n_threads())
         rgb = None
         if with_rgb:
             hit = o["hit"].reshape(-1)
@@ -360,7 +345,7 @@ class IdealRenderer:
     def render_rows(self, row_c2w: np.ndarray, intr: Intrinsics) -> dict | None:
         """Per-pixel first hits of a view whose row v has pose ``row_c2w[v]`` ((H, 4, 4)
         camera-to-world: rolling shutter, sub-exposures) through
-        :meth:`synth.raster.Rasterizer.render_rows` (visibility per band of rows whose image
+        :meth:`synth.render.raster.Rasterizer.render_rows` (visibility per band of rows whose image
         motion stays below 0.1 px, exact depth per row); None with the ``raycast`` back-end
         (callers then cast one ray per pixel). Returns that method's dict of arrays."""
         if self._raster is None:
@@ -368,7 +353,7 @@ class IdealRenderer:
         H, W = intr.shape
         _, d = self._rays(intr)
         return self._raster.render_rows(row_c2w, intr.fx, intr.fy, intr.cx, intr.cy, W, H, d[2].reshape(H, W),
-                                        n_threads=_n_threads())
+                                        n_threads=n_threads())
 
     # ------------------------------------------------------------------ geometry queries
     def cast_rays(self, origins_world: np.ndarray, dirs_world: np.ndarray) -> dict[str, np.ndarray]:
@@ -429,7 +414,7 @@ class IdealRenderer:
         rays = np.ascontiguousarray(np.concatenate([start, seg], axis=1), dtype=np.float32)
         rays[~ok, 3:] = (0.0, 0.0, 1.0)  # any valid ray; result masked below
         occ = self.raycasting_scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=0.0, tfar=1.0,
-                                                    nthreads=_n_threads())
+                                                    nthreads=n_threads())
         return occ.numpy().astype(bool) & ok
 
     def albedo_specular(self, instance_ids: np.ndarray, check: bool = True) -> tuple[np.ndarray, np.ndarray]:

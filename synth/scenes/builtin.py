@@ -1,4 +1,4 @@
-"""Embedded default scenes, built in code (no downloads), and the scene registry.
+"""Embedded default scenes, built in code (no downloads).
 
 Every builder returns a :class:`data_tools.scene_spec.SceneSpec` in the realgap world frame:
 metres, z up, the floor at z = 0 for the built-in scenes. Each mesh has a unique name, a
@@ -12,8 +12,7 @@ Objects made of several materials are split into one mesh per material, named
 name to its object and :func:`object_instance_ids` groups the instance ids (k + 1 for
 ``scene.meshes[k]``) of one object.
 
-Registry: ``@register_scene("name")`` adds a builder ``f(seed=0, **params) -> SceneSpec`` to
-:data:`SCENES`; :func:`build_scene` looks it up by name and checks the parameters. Built-in:
+Each is registered with :func:`synth.scenes.registry.register_scene`. Built-in:
 
 ``room``
     a furnished 5 x 4 x 2.6 m room (parquet floor, walls, ceiling, table, two office chairs,
@@ -22,89 +21,19 @@ Registry: ``@register_scene("name")`` adds a builder ``f(seed=0, **params) -> Sc
 ``chair_a``, ``chair_b``, ``chair_c``
     one parametric office chair (:data:`CHAIR_VARIANTS`) on a 4 x 4 m ground plane.
 ``scenenet_room``, ``tless_obj``
-    registered by :mod:`synth.loaders` (they need a ``path``).
+    registered by :mod:`synth.scenes.loaders` (they need a ``path``).
 """
 from __future__ import annotations
 
-import inspect
 import math
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from data_tools.errors import ConfigError
 from data_tools.mesh import TriMesh
 from data_tools.scene_spec import Material, SceneSpec
-
-# --------------------------------------------------------------------------- registry
-
-SceneBuilder = Callable[..., SceneSpec]
-
-SCENES: dict[str, SceneBuilder] = {}
-"""Scene builders by name; each is ``f(seed=0, **params) -> SceneSpec``."""
-
-
-def register_scene(name: str) -> Callable[[SceneBuilder], SceneBuilder]:
-    """Decorator adding a scene builder to :data:`SCENES` under ``name``."""
-    def deco(fn: SceneBuilder) -> SceneBuilder:
-        if name in SCENES and SCENES[name] is not fn:
-            raise ValueError(f"scene {name!r} is registered twice")
-        SCENES[name] = fn
-        return fn
-    return deco
-
-
-def _ensure_loaders_registered() -> None:
-    # synth.loaders registers the file-based scenes (scenenet_room, tless_obj) on import.
-    import synth.loaders  # noqa: F401
-
-
-def scene_names() -> list[str]:
-    """Names of all registered scenes, sorted."""
-    _ensure_loaders_registered()
-    return sorted(SCENES)
-
-
-def scene_parameters(name: str) -> dict[str, object]:
-    """Keyword parameters (besides ``seed``) a scene builder accepts, with their defaults
-    (``inspect.Parameter.empty`` for required ones)."""
-    _ensure_loaders_registered()
-    if name not in SCENES:
-        raise ConfigError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(SCENES))}")
-    sig = inspect.signature(SCENES[name])
-    return {p.name: p.default for p in sig.parameters.values()
-            if p.name != "seed" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
-
-
-def describe_scenes() -> list[tuple[str, str, list[str]]]:
-    """(name, first docstring line, ["key=default" or "key=<required>", ...]) of every registered scene."""
-    _ensure_loaders_registered()
-    out = []
-    for name in scene_names():
-        params = [f"{k}=<required>" if v is inspect.Parameter.empty else f"{k}={v!r}"
-                  for k, v in scene_parameters(name).items()]
-        out.append((name, (inspect.getdoc(SCENES[name]) or "").split("\n")[0], params))
-    return out
-
-
-def build_scene(name: str, seed: int = 0, **params) -> SceneSpec:
-    """Build the registered scene ``name`` (deterministic given ``seed`` and ``params``).
-
-    Unknown names and unknown or missing parameters raise :class:`ConfigError` listing what
-    is allowed.
-    """
-    accepted = scene_parameters(name)
-    unknown = sorted(set(params) - set(accepted))
-    if unknown:
-        allowed = ", ".join(accepted) or "none"
-        raise ConfigError(f"scene {name!r} has no parameter(s) {', '.join(unknown)} (accepted: {allowed})")
-    missing = [k for k, v in accepted.items() if v is inspect.Parameter.empty and k not in params]
-    if missing:
-        raise ConfigError(f"scene {name!r} needs parameter(s) {', '.join(missing)} "
-                          f"(e.g. --scene-param {missing[0]}=...)")
-    return SCENES[name](seed=int(seed), **params)
-
+from synth.scenes.registry import SceneBuilder, register_scene
 
 def object_name(mesh_name: str) -> str:
     """The object a mesh belongs to: the part of its name before the first ``.``."""
