@@ -15,8 +15,7 @@ import pytest
 from data_tools.errors import ConfigError
 from synth.lab import DiagnoseConfig, FitConfig, MeasuredSequence, diagnose, fit_model
 from synth.lab.diagnose import _applicability
-from synth.lab.effect_extras import effect_sensor_types
-from synth.lab.evidence import EVIDENCE, EvidenceContext, evidence_for
+from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.sensor.registry import effect_class, effect_names
 from synth.sensor.simulator import MotionLimits, SensorConfig
 
@@ -140,7 +139,7 @@ def test_evidence_states_the_signature_when_the_data_show_it(seqs, effect):
     assert s0.startswith(s[:-1]) and s0.endswith("; yet adding the fitted effect does not lower the gap."), s0
 
 
-@pytest.mark.parametrize("effect", sorted(EVIDENCE))
+@pytest.mark.parametrize("effect", [n for n in effect_names() if has_evidence(n)])
 def test_evidence_says_weak_when_the_data_lack_the_signature(seqs, effect):
     """Base-only data: every evidence function reports the numbers without claiming a signature,
     and the lead clause follows the sign of the gain."""
@@ -177,7 +176,8 @@ def test_shadow_evidence_is_weak_when_holes_are_everywhere(seqs):
 
 
 def test_percentages_never_round_a_nonzero_rate_to_zero():
-    from synth.lab.evidence import _pct
+    from synth.lab.evidence import EvidenceContext
+    _pct = EvidenceContext.pct
     assert _pct(0.004) == "<1 %" and _pct(0.0) == "0 %" and _pct(0.996) == ">99 %" and _pct(1.0) == "100 %"
 
 
@@ -250,8 +250,8 @@ def test_fit_and_diagnose_keep_every_config_field(seqs):
 
 
 def test_effects_declare_the_sensor_types_they_model():
-    assert effect_sensor_types(effect_class("multipath")) == ("tof",)
-    assert effect_sensor_types(effect_class("projector_shadow")) == ("structured_light", "active_stereo")
-    assert effect_sensor_types(effect_class("axial_noise")) is None          # every type
-    declared = {n: effect_sensor_types(effect_class(n)) for n in effect_names()}
+    assert effect_class("multipath").sensor_types == ("tof",)
+    assert effect_class("projector_shadow").sensor_types == ("structured_light", "active_stereo")
+    assert effect_class("axial_noise").sensor_types is None          # every type
+    declared = {n: effect_class(n).sensor_types for n in effect_names()}
     assert {n for n, t in declared.items() if t == ("tof",)} == {"multipath", "wiggling", "flying_pixels"}

@@ -47,7 +47,7 @@ def test_param_spec_scales_round_trip():
     assert intg.from_t(3.6) == 4.0 and intg.from_t(99) == 20.0
 
 
-def test_param_specs_and_set_params_cover_extra_parameters():
+def test_param_specs_and_set_params_cover_config_parameters():
     cfg = SensorConfig.build("kinect_v1", ["axial_noise", "edge_fattening", "lens_distortion"])
     specs = {s.key: s for s in param_specs(cfg)}
     assert specs["axial_noise.sigma2_per_m"].scale == "asinh"
@@ -55,7 +55,8 @@ def test_param_specs_and_set_params_cover_extra_parameters():
     assert "lens_distortion.k1" in specs and "lens_distortion.k2" in specs
     new = set_params(cfg, {"lens_distortion.k1": -0.2, "edge_fattening.radius_px": 5.4,
                            "axial_noise.sigma2_per_m": 0.003})
-    assert new.effect("lens_distortion").params.coefficients[:2] == (-0.2, 0.0)
+    assert new.effect("lens_distortion").coefficients(new.preset)[:2] == (-0.2, 0.0)
+    assert new.effect("lens_distortion").params.k1 == -0.2
     assert new.effect("edge_fattening").params.radius_px == 5
     assert get_params(new, param_specs(new))["axial_noise.sigma2_per_m"] == 0.003
     assert cfg.effect("lens_distortion").params.coefficients == ()  # original untouched
@@ -65,23 +66,18 @@ def test_param_specs_and_set_params_cover_extra_parameters():
         param_specs(cfg, ["depth_bias"])
 
 
-def test_extra_parameters_are_documented_and_yield_to_sensor_declarations(monkeypatch):
-    from synth.lab.effect_extras import EXTRA_PARAMETERS, extra_parameters
-    from synth.sensor.registry import effect_class, effect_names
-    for effect, table in EXTRA_PARAMETERS.items():
-        assert effect in effect_names()
-        for name, x in table.items():
-            assert x.low < x.high and len(x.reason) > 40 and "FITTABLE" in x.sensor_side, (effect, name)
-            assert f"'{x.replaced_by}'" in x.sensor_side, (effect, name)
+def test_config_parameters_are_declared_by_their_effects():
+    """Fittable numbers outside an effect's Params (the level phase = the preset's reference depth)
+    are declared in the effect's own file, documented, and fitted only where they apply."""
+    from synth.sensor.registry import ConfigParameter, effect_class, effect_names
+    declared = {n: effect_class(n).CONFIG_PARAMETERS for n in effect_names() if effect_class(n).CONFIG_PARAMETERS}
+    assert set(declared) == {"disparity_quantization"}
+    for table in declared.values():
+        for x in table.values():
+            assert isinstance(x, ConfigParameter) and x.low < x.high and len(x.doc) > 40
     cfg = SensorConfig.build("kinect_v1", ["lens_distortion", "disparity_quantization"])
     assert {s.key for s in param_specs(cfg)} == {"lens_distortion.k1", "lens_distortion.k2",
                                                  "disparity_quantization.step_px", "disparity_quantization.level_phase"}
-    # once the effect declares the proposed parameter itself, the lab entry steps aside
-    monkeypatch.setattr(effect_class("lens_distortion"), "FITTABLE", {"k1": (-0.5, 0.5)})
-    assert set(extra_parameters(cfg, cfg.effect("lens_distortion"))) == {"k2"}
-    monkeypatch.setattr(effect_class("disparity_quantization"), "FITTABLE", {"step_px": (0, 1), "phase": (0, 1)})
-    assert extra_parameters(cfg, cfg.effect("disparity_quantization")) == {}
-    monkeypatch.undo()
     # the level phase exists only where the device quantises relative to a reference plane
     stereo = SensorConfig.build("realsense_d435", ["disparity_quantization"])
     assert [s.key for s in param_specs(stereo)] == ["disparity_quantization.step_px"]

@@ -149,7 +149,7 @@ def test_fit_saves_model_reused_by_compare(measured, tmp_path):
 
 
 def test_fit_accepts_lab_side_parameters_and_model_keeps_motion_limits(measured, tmp_path):
-    """lens_distortion's k1/k2 are fitted by the lab (effect_extras), so `sensor fit` must accept
+    """lens_distortion's only fittable parameters are k1/k2 (added to its coefficients), so `sensor fit` must accept
     a model with only that effect; a --model file keeps its other fields (motion limits)."""
     import dataclasses
 
@@ -260,7 +260,8 @@ def test_radial_error_map_and_signature_figures(tmp_path):
     signature renders without error."""
     from data_tools.camera import Intrinsics
     from synth.lab.features import FrameObservation
-    from synth.lab.report import SIGNATURES, radial_error_map, write_diagnosis_report
+    from synth.lab.report import radial_error_map, signature_of, write_diagnosis_report
+    from synth.sensor.registry import effect_names
     intr = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
     v, u = np.mgrid[0:48, 0:64]
     r2 = ((u - 31.5) ** 2 + (v - 23.5) ** 2) / (31.5 ** 2 + 23.5 ** 2)
@@ -276,7 +277,7 @@ def test_radial_error_map_and_signature_figures(tmp_path):
     m = radial_error_map(obs, "measured", block_px=16)
     assert m.shape == (3, 4)
     assert m[1, 1] < m[0, 0] and m[1, 2] < m[2, 3]  # centre blocks below corner blocks
-    cands = {name: obs for name in SIGNATURES}
+    cands = {name: obs for name in effect_names() if signature_of(name) is not None}
     cands["warp_field"] = obs  # an effect without a signature gets the generic figure
     diag = {"gap": 1.0, "model": [], "ranking": [{"effect": n, "gap_after": 0.5, "gain": 0.5, "params": {},
                                                   "evidence": f"evidence for {n}"} for n in cands]}

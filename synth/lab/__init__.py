@@ -19,9 +19,11 @@ Modules: :mod:`~synth.lab.features` (per-pixel features, registry), :mod:`~synth
 (the gap, error maps, worst regions), :mod:`~synth.lab.report` (HTML + PNG),
 :mod:`~synth.lab.history` (gap per step), :mod:`~synth.lab.measured` (measured sequence + cached
 ideal renders), :mod:`~synth.lab.model` (model JSON), :mod:`~synth.lab.fit` (parameter fit),
-:mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (sentences),
-:mod:`~synth.lab.effect_extras` (what the lab knows about effects beyond their classes: extra
-fittable parameters, sensor types, each with the sensor-side declaration that would replace it).
+:mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (the context
+effects write their evidence sentences with), :mod:`~synth.lab.runs` (the simulate / compare /
+diagnose / fit runs of the ``realgap sensor`` commands). What the lab knows about each effect
+(signature, evidence, fittable parameters, starting values, sensor types) is declared in the
+effect's own file (:mod:`synth.sensor.registry`).
 Fits and diagnoses are deterministic (evaluation-count budgets): the same data, model, settings
 and seed give the same result on any machine.
 """

@@ -18,7 +18,7 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
-   the data-driven estimates of :data:`synth.lab.fit.STARTERS` when they score better, a coarser
+   the data-driven estimates of the effect's ``fit_start`` when they score better, a coarser
    grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
    parameter up to ``candidate_evaluations``; only parameters whose scan
    beats the model's gap are refined), then **refine the best**
@@ -33,9 +33,9 @@ settings and seed give the same ranking, parameters and gaps on any machine unde
 (only the ``seconds`` fields differ); ``FitConfig.max_seconds`` is an optional safety guard
 (off by default; ``Diagnosis.time_capped`` says when it cut a search short).
 
-Nothing is special-cased by effect name except :mod:`synth.lab.effect_extras` (sensor types,
-extra fittable parameters), the evidence sentences and the optional data-driven starting values
-(:data:`synth.lab.fit.STARTERS`).
+Nothing is special-cased by effect name: what the lab knows about an effect (sensor types,
+fittable parameters, evidence sentence, starting values, signature figure) is declared in the
+effect's own file.
 
 Cost (``benchmarks/bench_lab.py --diagnose``, shared 2-core machine, load average ~3): a
 24-frame 640x480 sequence of the hidden-effect generator with the default settings (4 search
@@ -56,8 +56,7 @@ import numpy as np
 from data_tools.config import config_to_dict
 from data_tools.errors import ConfigError
 from synth.lab.compare import _clean
-from synth.lab.effect_extras import effect_sensor_types
-from synth.lab.evidence import EvidenceContext, evidence_for
+from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
 
@@ -221,7 +220,7 @@ def _applicability(config, name: str) -> str | None:
     if getattr(cls, "physical", False) and not config.physical:
         return ("part of the physical pipeline (pattern_projection -> ir_capture -> block_matching); "
                 "diagnose a physical model to fit it")
-    types = effect_sensor_types(cls)
+    types = cls.sensor_types
     if types and config.preset.type not in types:
         return f"models {' / '.join(types)} physics, the sensor is {config.preset.type}"
     return None
@@ -382,7 +381,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
         c.params = {k: v for k, v in vals.items()
                     if k.split(".", 1)[0] == c.effect or abs(v - model_params.get(k, v)) > 1e-12}
         after = None
-        if c.effect not in _evidence_names():
+        if not has_evidence(c.effect):
             after = compare(measured.observations(measured.simulate(c.config, fc.seed, frames), frames),
                             obj.compare_config, cache=obj.cache)
         c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after, gain=c.gain)
@@ -393,7 +392,3 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
                      None if eval_gap is None else float(eval_gap), [measured.frame_indices[k] for k in eval_idx],
                      bool(stats.get("time_capped", False)))
 
-
-def _evidence_names():
-    from synth.lab.evidence import EVIDENCE
-    return set(EVIDENCE)

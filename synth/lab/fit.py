@@ -23,10 +23,8 @@ simulation of the same frames, with three savings that keep it cheap and smooth:
 Search
 ------
 Bounded coordinate descent over the fittable parameters (each effect's ``FITTABLE`` bounds, plus
-the lab-side extra parameters of :data:`synth.lab.effect_extras.EXTRA_PARAMETERS` for effects
-that do not declare them yet, e.g. the lens distortion coefficients k1, k2 and the phase of the
-disparity levels; that module lists each with its reason and the sensor-side declaration that
-would replace it):
+the ``CONFIG_PARAMETERS`` it declares for numbers that live outside its ``Params``, e.g. the
+phase of the disparity levels, which is the preset's reference depth):
 
 1. scan: per parameter, from the current point, a coarse grid of ``grid_points`` values over
    its bounds on the parameter's search scale (:class:`ParamSpec`: logarithmic for positive
@@ -52,9 +50,9 @@ loaded frame and the default compare sampling); if the fitted model is not bette
 over-fit to the search subset), the starting parameters are kept and ``FitResult.kept_start``
 says so.
 
-Starting point: the given parameter values, or the data-driven estimates of :data:`STARTERS`
-(e.g. the disparity step from a periodogram of the measured disparities) when those score
-better.
+Starting point: the given parameter values, or the data-driven estimates of the effects'
+``fit_start`` (e.g. the disparity step from a periodogram of the measured disparities) when
+those score better.
 
 Cost: one evaluation = simulate the search frames + :func:`compare`. The comparison reuses the
 measured sequence's :class:`~synth.lab.compare.CompareCache` (sampled pixels, the 4 edge distance
@@ -83,11 +81,9 @@ from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
-from synth.lab.effect_extras import EXTRA_PARAMETERS, ExtraParameter, extra_parameters
 
-__all__ = ["FitConfig", "FitResult", "ParamSpec", "ExtraParameter", "EXTRA_PARAMETERS", "fit_model",
-           "param_specs", "set_params", "get_params", "Objective", "search", "STARTERS",
-           "register_starter", "start_values"]
+__all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
+           "Objective", "search", "config_parameters", "start_values"]
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -217,71 +213,21 @@ class FitResult:
 # Starting values measured from the data
 # ------------------------------------------------------------------------------------------
 
-STARTERS: dict[str, Callable] = {}
-"""Effect name -> ``starter(measured, config, frames) -> {"effect.param": value}``: starting
-values estimated directly from the measured depth, for parameters whose gap landscape is too
-rugged for a coarse grid (periodic, multiplicative structures). Used by :func:`start_values`."""
-
-
-def register_starter(name: str):
-    def deco(fn):
-        STARTERS[name] = fn
-        return fn
-    return deco
-
-
-@register_starter("disparity_quantization")
-def _quantization_start(measured, config, frames) -> dict[str, float]:
-    """Step and phase of the disparity levels from a periodogram of the measured disparities.
-
-    For a step s the circular concentration R(s) = |mean exp(2 pi i d / s)| of the measured
-    disparities d = f b / z is ~1 when d takes values on a grid of spacing s (or a divisor of it)
-    and ~0 for continuous disparities; the largest s with R >= 0.5 max R is the step, the
-    argument of the mean gives the level phase (the peak of the last run of R >= 0.5 max R). Nothing is returned (defaults kept) when no step
-    in [0.02, 1] px reaches R = 0.3. The phase is the absolute one of the lab-side parameter
-    ``disparity_quantization.level_phase`` (:data:`synth.lab.effect_extras.EXTRA_PARAMETERS`); it is
-    dropped by :func:`start_values` where that parameter does not apply (active stereo).
-    """
-    pre = config.preset
-    if pre.fb <= 0:
-        return {}
-    rng = np.random.default_rng(0)
-    d = []
-    for k in frames:
-        m = measured.measured_depth(k)
-        v = m[m > 0].astype(np.float64)
-        if v.size:
-            d.append(pre.fb / rng.choice(v, size=min(v.size, 5000), replace=False))
-    if not d:
-        return {}
-    d = np.concatenate(d)
-    steps = np.geomspace(0.02, 1.0, 500)
-    R = np.empty(steps.size)
-    ph = np.empty(steps.size)
-    for i, st in enumerate(steps):
-        z = np.exp(2j * np.pi * d / st).mean()
-        R[i], ph[i] = abs(z), np.angle(z)
-    if R.max() < 0.3:
-        return {}
-    high = np.flatnonzero(R >= 0.5 * R.max())
-    run = high[-1:]                      # the last (largest-step) run of high concentration ...
-    for j in high[::-1][1:]:
-        if j != run[0] - 1:
-            break
-        run = np.concatenate([[j], run])
-    i = int(run[np.argmax(R[run])])     # ... and its peak
-    phase = (ph[i] / (2 * np.pi)) % 1.0
-    return {"disparity_quantization.step_px": float(steps[i]), "disparity_quantization.level_phase": float(phase)}
+def config_parameters(config, effect) -> dict:
+    """The ``CONFIG_PARAMETERS`` of ``effect`` that apply to ``config``
+    (:class:`synth.sensor.registry.ConfigParameter`)."""
+    return {k: x for k, x in effect.CONFIG_PARAMETERS.items() if x.applies is None or x.applies(config)}
 
 
 def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
-    """Data-driven starting values (:data:`STARTERS`) of the effects ``names`` in ``config``."""
+    """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
+    ``config``, restricted to the parameters that are fitted for this sensor."""
     out = {}
     for n in names:
-        fn = STARTERS.get(n)
-        if fn is not None:
+        start = _effect(config, n).fit_start(measured, config, frames)
+        if start:
             known = {s.key for s in param_specs(config, [n])}
-            out.update({k: v for k, v in fn(measured, config, frames).items() if k in known})
+            out.update({k: v for k, v in start.items() if k in known})
     return out
 
 
@@ -348,7 +294,7 @@ def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
         if not e.enabled:
             raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
         items = [(k, lo, hi, getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()]
-        items += [(k, x.low, x.high, x.get(config, e)) for k, x in extra_parameters(config, e).items()]
+        items += [(k, x.low, x.high, x.get(config, e)) for k, x in config_parameters(config, e).items()]
         for k, lo, hi, v in items:
             integer = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
             lo, hi = float(lo), float(hi)
@@ -370,15 +316,15 @@ def get_params(config, specs: Sequence[ParamSpec]) -> dict[str, float]:
     for s in specs:
         en, pn = s.key.split(".", 1)
         e = _effect(config, en)
-        extra = extra_parameters(config, e).get(pn)
+        extra = config_parameters(config, e).get(pn)
         out[s.key] = float(extra.get(config, e)) if extra else float(getattr(e.params, pn))
     return out
 
 
 def set_params(config, values: dict[str, float]):
-    """A copy of ``config`` with ``{"effect.param": value}`` set (FITTABLE or extra parameters).
+    """A copy of ``config`` with ``{"effect.param": value}`` set (FITTABLE or config parameters).
 
-    Only the effects (and, for the extra parameters that need it, the preset) change: every
+    Only the effects (and, for the config parameters that need it, the preset) change: every
     other field of ``config`` (e.g. ``motion``) is carried over with ``dataclasses.replace``."""
     plain, extra = {}, []
     for k, v in values.items():
@@ -386,7 +332,7 @@ def set_params(config, values: dict[str, float]):
             raise ConfigError(f"parameter key {k!r} must be 'effect.param'")
         en, pn = k.split(".", 1)
         e = _effect(config, en)
-        x = extra_parameters(config, e).get(pn)
+        x = config_parameters(config, e).get(pn)
         if x is not None:
             extra.append((en, x, v))
         else:
@@ -589,7 +535,7 @@ def _golden(f, x, s: ParamSpec, a: float, b: float, best: float, iters: int, bud
 
 def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_config: FitConfig | None = None,
               progress: bool = False) -> FitResult:
-    """Fit the FITTABLE (and extra) parameters of the effects ``names`` (default: every enabled
+    """Fit the FITTABLE (and config) parameters of the effects ``names`` (default: every enabled
     effect of ``config``) to ``measured`` (a :class:`~synth.lab.measured.MeasuredSequence`).
 
     Returns a :class:`FitResult` whose ``gap_before``/``gap`` are scored on the evaluation set

@@ -21,7 +21,6 @@ import json
 import math
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -317,38 +316,42 @@ def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike
 # A signature is what an effect does to the measured images that nothing else does; each
 # figure shows the measurement, the current model (``base``) and the model with the candidate
 # added (fitted parameters) side by side, so the page answers "is this effect what is missing?"
-# visually. Signatures are a registry by effect name (:data:`SIGNATURES`); effects without an
-# entry get the generic distance breakdown.
+# visually. Each effect declares its signature (``Effect.SIGNATURE``: title, explanation, figure
+# kind and panels) in its own file; the figure kinds are drawn here (:data:`PLOTS`); effects
+# without one get the generic distance breakdown.
 
 DIAGNOSIS_FILE = "diagnosis.html"
 _SERIES = (("measured", "#1f77b4", "o-"), ("current model", "#7f7f7f", "s--"), ("with candidate", "#d62728", "^-"))
 
 
-@dataclass(frozen=True)
-class Signature:
-    """How to recognise one effect in the data."""
-
-    effect: str
-    """Effect name (registry key)."""
-    title: str
-    """The pattern in a few words."""
-    explanation: str
-    """What to look for in the figure (one or two sentences)."""
-    plot: Callable[..., Path]
-    """``plot(path, base, candidate)`` -> path; ``base``/``candidate``: FrameObservation lists
-    (same frames; measured depth identical, simulated by the current model / with the candidate)."""
+PLOTS: dict[str, Callable[..., Path]] = {}
+"""Signature figure kinds (:attr:`synth.sensor.registry.Signature.plot`) -> ``plot(path, base,
+candidate, signature)``; ``base``/``candidate``: FrameObservation lists (same frames; measured
+depth identical, simulated by the current model / with the candidate)."""
 
 
-SIGNATURES: dict[str, Signature] = {}
-"""Signature figures by effect name."""
-
-
-def register_signature(effect: str, title: str, explanation: str):
-    """Decorator: register ``plot(path, base, candidate)`` as the signature of ``effect``."""
+def _plot_kind(kind: str):
     def deco(fn):
-        SIGNATURES[effect] = Signature(effect, title, explanation, fn)
+        PLOTS[kind] = fn
         return fn
     return deco
+
+
+def signature_of(effect: str):
+    """The :class:`~synth.sensor.registry.Signature` an effect declares (None: unknown effect or
+    none declared)."""
+    from synth.sensor.registry import effect_class, effect_names
+    return effect_class(effect).SIGNATURE if effect in effect_names() else None
+
+
+def plot_signature(path, effect: str, base, candidate) -> Path:
+    """The signature figure of ``effect`` (the generic distance breakdown when it declares none)."""
+    sig = signature_of(effect)
+    if sig is None:
+        return _generic_signature(path, base, candidate)
+    if sig.plot not in PLOTS:
+        raise ValueError(f"effect {effect!r}: unknown signature plot {sig.plot!r}; known: {', '.join(PLOTS)}")
+    return PLOTS[sig.plot](path, base, candidate, sig)
 
 
 def pixel_samples(observations: Sequence[FrameObservation], feature: str,
@@ -497,67 +500,13 @@ def plot_binned_signature(path, base, candidate, panels: Sequence[tuple[str, str
     return _save(fig, path)
 
 
-def _binned(panels: Sequence[tuple[str, str]]):
-    def plot(path, base, candidate):
-        return plot_binned_signature(path, base, candidate, panels)
-    return plot
+@_plot_kind("binned")
+def _binned_signature(path, base, candidate, sig) -> Path:
+    return plot_binned_signature(path, base, candidate, sig.panels)
 
 
-def _register_binned(effect, title, explanation, panels):
-    SIGNATURES[effect] = Signature(effect, title, explanation, _binned(tuple(panels)))
-
-
-_register_binned("axial_noise", "noise growing with z²",
-                 "The robust spread of the error grows roughly with the square of the distance; the "
-                 "ideal model has none.", [("distance", "std"), ("distance", "bias"), ("incidence", "std")])
-_register_binned("depth_bias", "systematic offset or scale error",
-                 "The median error moves away from zero steadily with distance (offset, scale, or a "
-                 "disparity offset that grows with z²).", [("distance", "bias"), ("radial", "bias")])
-_register_binned("wiggling", "periodic error over distance",
-                 "The median error oscillates with distance (ToF phase wiggling).", [("distance", "bias")])
-_register_binned("incidence_dropout", "holes on oblique surfaces",
-                 "The invalid fraction climbs steeply at grazing incidence angles.",
-                 [("incidence", "invalid_fraction"), ("incidence", "std")])
-_register_binned("range_limits", "holes beyond the working range",
-                 "Everything nearer than the minimum or farther than the maximum range is invalid.",
-                 [("distance", "invalid_fraction")])
-_register_binned("edge_fattening", "foreground bleeding over depth edges",
-                 "Just beyond depth edges (background side, + distances) the measured depth is too close: "
-                 "the median error turns negative over a few pixels.",
-                 [("edge_distance", "bias"), ("edge_distance", "invalid_fraction")])
-_register_binned("flying_pixels", "depths between foreground and background at edges",
-                 "Pixels within one or two pixels of a depth edge take intermediate depths: large "
-                 "spread right at the edge.", [("edge_distance", "std"), ("edge_distance", "bias")])
-_register_binned("multipath", "too-far depths in concave corners",
-                 "Surfaces that face other surfaces (oblique, near corners) read too far.",
-                 [("incidence", "bias"), ("incidence", "std")])
-_register_binned("low_reflectance", "holes where little light returns",
-                 "The invalid fraction differs by material (dark surfaces) and grows with distance and "
-                 "obliquity (the returned signal falls with z² and cos θ).",
-                 [("material", "invalid_fraction"), ("distance", "invalid_fraction"), ("incidence", "invalid_fraction")])
-_register_binned("specular_dropout", "holes on shiny materials",
-                 "The invalid fraction differs by material and peaks where the mirror reflection points "
-                 "back at the camera (near-normal incidence).",
-                 [("material", "invalid_fraction"), ("incidence", "invalid_fraction")])
-_register_binned("motion_blur", "errors at edges under motion",
-                 "Errors concentrate next to depth edges (mixed depths during the exposure).",
-                 [("edge_distance", "std"), ("edge_distance", "invalid_fraction")])
-_register_binned("rolling_shutter", "edge displacement under motion",
-                 "Depth edges appear shifted: biased errors on both sides of edges and a bias that "
-                 "changes across the image.", [("edge_distance", "bias"), ("radial", "bias")])
-_register_binned("hole_filling", "fewer holes than the physics predicts",
-                 "Small holes are filled in: the measured invalid fraction at edges is lower than the model's.",
-                 [("edge_distance", "invalid_fraction")])
-_register_binned("ambient_light", "holes growing with distance under ambient light",
-                 "Sunlight or lamps drown the projected pattern: the invalid fraction rises with distance "
-                 "(weaker pattern) over the whole image.", [("distance", "invalid_fraction"), ("radial", "invalid_fraction")])
-
-
-@register_signature("projector_shadow", "holes beside foreground objects on the projector side",
-                    "Holes on the background next to depth edges, only on the side where the projector "
-                    "is occluded (+ distances: shadow side), as wide as the disparity step; the lit side "
-                    "(- distances) stays valid.")
-def plot_shadow_signature(path, base, candidate) -> Path:
+@_plot_kind("shadow_sides")
+def plot_shadow_signature(path, base, candidate, sig=None) -> Path:
     """Invalid fraction vs ``edge_shadow`` (shadow side +, lit side -) and one frame's holes
     next to its depth edges, coloured by side."""
     from synth.lab.features import FeatureConfig, FrameFeatures, make_feature
@@ -619,11 +568,8 @@ def depth_level_steps(depth: np.ndarray, max_levels: int = 20000) -> tuple[np.nd
     return z, steps
 
 
-@register_signature("disparity_quantization", "discrete depth levels growing with z²",
-                    "Measured depths take only discrete values whose spacing grows with the square of "
-                    "the distance (one disparity step = z² · step / (f · b)); a continuous model has "
-                    "tiny, constant spacings.")
-def plot_quantization_signature(path, base, candidate) -> Path:
+@_plot_kind("disparity_levels")
+def plot_quantization_signature(path, base, candidate, sig=None) -> Path:
     """Spacing of consecutive distinct depth values vs depth (log-log, z² reference) and a
     histogram of depths in a 10 cm window (the comb of levels)."""
     fig = _figure(12, 4.6)
@@ -698,10 +644,8 @@ def radial_error_map(observations: Sequence[FrameObservation], which: str = "mea
     return out.reshape(by, bx)
 
 
-@register_signature("lens_distortion", "residual growing with image radius",
-                    "The error is small at the image centre and grows towards the corners (a ring or "
-                    "bowl in the block map), independent of distance.")
-def plot_distortion_signature(path, base, candidate) -> Path:
+@_plot_kind("radial_error_map")
+def plot_distortion_signature(path, base, candidate, sig=None) -> Path:
     """Median error vs normalised radius, and the block maps of the median error (measured,
     with candidate)."""
     fig = _figure(15, 4.4)
@@ -768,10 +712,9 @@ def write_diagnosis_report(diagnosis: dict, base: Sequence[FrameObservation],
     order += [e for e in candidates if e not in order]
     for k, eff in enumerate(order, 1):
         c = next((x for x in ranking if x.get("effect") == eff), {})
-        sig = SIGNATURES.get(eff)
+        sig = signature_of(eff)
         name = f"diag_{k:02d}_{eff}.png"
-        plot = sig.plot if sig is not None else _generic_signature
-        plot(figs / name, list(base), list(candidates[eff]))
+        plot_signature(figs / name, eff, list(base), list(candidates[eff]))
         head = f"{k}. {eff}" + (f": {sig.title}" if sig else "")
         parts.append(f"<h3>{html.escape(head)}</h3>")
         if c:
@@ -790,6 +733,6 @@ def write_diagnosis_report(diagnosis: dict, base: Sequence[FrameObservation],
 
 
 __all__ = ["write_report", "run_lab", "plot_frame", "plot_breakdown", "plot_history", "REPORT_FILE",
-           "write_diagnosis_report", "SIGNATURES", "Signature", "register_signature", "pixel_samples",
+           "write_diagnosis_report", "PLOTS", "signature_of", "plot_signature", "pixel_samples",
            "binned_statistics", "depth_level_steps", "radial_error_map", "plot_binned_signature",
            "DIAGNOSIS_FILE"]

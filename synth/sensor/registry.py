@@ -9,7 +9,17 @@ An effect has
   variates...), independent of the parameters wherever possible so that a fit sees common
   random numbers,
 * ``apply(state, draw)``: deterministic given the state and the draw; it reads and writes the
-  per-frame :class:`~synth.sensor.state.SensorState`.
+  per-frame :class:`~synth.sensor.state.SensorState` (effects pass arrays to later effects only
+  through its published products, never through each other's attributes);
+* what the sensor lab needs to know about it, in the same file: ``SIGNATURE`` (how to see it
+  in measured data), ``evidence(ctx, params, gain)`` (a sentence from the data),
+  ``fit_start(measured, config, frames)`` (data-driven starting values), ``CONFIG_PARAMETERS``
+  (fittable numbers that live outside ``Params``), ``sensor_types``;
+* what the contract tests need: ``IDENTITY_PARAMS`` (zero strength), ``KEEPS_INVALID``,
+  ``REQUIRED_IN_PIPELINE``.
+
+Adding an effect touches its file, its preset values (``synth/sensor/presets.py``, only when a
+preset uses it) and its tests; ``tests/test_effect_contract.py`` runs on it automatically.
 
 Effects are ordered by ``stage`` (geometry < projection < optics < capture < matching < depth
 < post-processing), so a model can list them in any order. Modules in
@@ -23,6 +33,8 @@ import importlib
 import pkgutil
 import zlib
 from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -54,6 +66,43 @@ STAGE_POST = 90
 """Device post-processing (range limits, hole filling)."""
 
 
+@dataclass(frozen=True)
+class Signature:
+    """How the sensor lab recognises an effect in measured data (its diagnosis figure)."""
+
+    title: str
+    """The pattern in a few words."""
+    explanation: str
+    """What to look for in the figure (one or two sentences)."""
+    panels: tuple[tuple[str, str], ...] = ()
+    """``plot == "binned"``: (lab feature, statistic) per panel, statistic one of ``bias``, ``std``,
+    ``invalid_fraction`` (measured, current model and model with the effect, binned by the feature)."""
+    plot: str = "binned"
+    """The lab's figure kind: ``binned``, ``shadow_sides`` (holes on either side of depth edges),
+    ``disparity_levels`` (depth-level spacing vs distance) or ``radial_error_map``."""
+
+
+@dataclass(frozen=True)
+class ConfigParameter:
+    """A fittable number of an effect that is not one of its numeric ``Params`` fields (it lives
+    elsewhere in the sensor config, e.g. the preset's reference depth). Declared by the effect in
+    ``CONFIG_PARAMETERS``; the sensor lab fits it like a FITTABLE parameter (key ``effect.name``)."""
+
+    low: float
+    """Lower bound (the parameter's units)."""
+    high: float
+    """Upper bound."""
+    get: Callable
+    """get(config, effect) -> current value (float)."""
+    set: Callable
+    """set(config, effect, value) -> a new SensorConfig with the value (every other field kept)."""
+    doc: str
+    """What the number is and why it lives outside the effect's Params."""
+    applies: Callable | None = None
+    """applies(config) -> False when the parameter has no effect for this sensor (then it is not
+    fitted); None = always."""
+
+
 class Effect(ABC):
     """Base class of all sensor effects. Subclasses set the class attributes and ``apply``."""
 
@@ -82,6 +131,10 @@ class Effect(ABC):
     REQUIRED_IN_PIPELINE: ClassVar[bool] = False
     """True for the stages the physical pipeline cannot run without (projection, capture,
     matching): disabling one is not an identity."""
+    SIGNATURE: ClassVar[Signature | None] = None
+    """How the sensor lab shows the effect in measured data (None: a generic distance breakdown)."""
+    CONFIG_PARAMETERS: ClassVar[dict[str, ConfigParameter]] = {}
+    """Fittable numbers of the effect that are not numeric Params fields (see ConfigParameter)."""
     FRAME_EXPOSURE_PARAM: ClassVar[str | None] = None
     """Name of the parameter that is the frame's exposure time in seconds, for the one effect that
     models the exposure (``motion_blur``); the simulator copies it into ``state.frame.exposure_s``."""
@@ -125,6 +178,24 @@ class Effect(ABC):
     @abstractmethod
     def apply(self, state, draw: Any) -> None:
         """Deterministically apply the effect to ``state`` given ``draw``."""
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None) -> str | None:
+        """One sentence of evidence for the effect in measured data, for the sensor lab's diagnosis:
+        ``ctx`` is a :class:`synth.lab.evidence.EvidenceContext` (measured and current-model depth,
+        pooled per-pixel features and the sentence helpers), ``params`` the fitted
+        ``{"effect.param": value}``, ``gain`` the fraction of the gap the effect removes. The
+        sentence claims the effect's signature only when its numbers show it. None (the default):
+        the lab names the comparison feature the effect improves most."""
+        return None
+
+    @classmethod
+    def fit_start(cls, measured, config, frames) -> dict[str, float]:
+        """Starting values of fitted parameters estimated directly from measured data
+        (``{"effect.param": value}``), for parameters whose gap landscape is too rugged for a
+        coarse grid; ``measured`` is a :class:`synth.lab.measured.MeasuredSequence`, ``frames``
+        the positions of the fit's frames. Default: none."""
+        return {}
 
     # -- helpers ---------------------------------------------------------------------------
     def to_json(self) -> dict:
@@ -204,6 +275,15 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k in cls.FITTABLE:
         if k not in {f.name for f in dataclasses.fields(cls.Params)}:
             raise TypeError(f"{cls.__name__}.FITTABLE names unknown parameter {k!r}")
+    fields = {f.name for f in dataclasses.fields(cls.Params)}
+    for k in (cls.IDENTITY_PARAMS or {}):
+        if k not in fields:
+            raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")
+    if cls.SIGNATURE is not None and not isinstance(cls.SIGNATURE, Signature):
+        raise TypeError(f"{cls.__name__}.SIGNATURE must be a Signature")
+    for k in cls.CONFIG_PARAMETERS:
+        if k in fields:
+            raise TypeError(f"{cls.__name__}.CONFIG_PARAMETERS: {k!r} is a Params field (declare it in FITTABLE)")
     other = _REGISTRY.get(cls.name)
     if other is not None and other.__qualname__ != cls.__qualname__:
         raise TypeError(f"effect name {cls.name!r} registered twice ({other.__qualname__}, {cls.__qualname__})")

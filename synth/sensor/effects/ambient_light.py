@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_incidence, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, STAGE_LIGHT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, STAGE_LIGHT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -34,6 +34,11 @@ class AmbientLight(Effect):
     """
 
     name = "ambient_light"
+    SIGNATURE = Signature(
+        "holes growing with distance under ambient light",
+        "Sunlight or lamps drown the projected pattern: the invalid fraction rises with distance "
+        "(weaker pattern) over the whole image.",
+        panels=(("distance", "invalid_fraction"), ("radial", "invalid_fraction")))
     IDENTITY_PARAMS = {"level": 0.0}
     DRAW_FROM_SHAPE = True
     Params = AmbientLightParams

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_incidence, normal_draw
-from synth.sensor.registry import STAGE_DEPTH, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
 
 
 @dataclass
@@ -37,6 +37,11 @@ class AxialNoise(Effect):
     """
 
     name = "axial_noise"
+    SIGNATURE = Signature(
+        "noise growing with z²",
+        "The robust spread of the error grows roughly with the square of the distance; the ideal "
+        "model has none.",
+        panels=(("distance", "std"), ("distance", "bias"), ("incidence", "std")))
     IDENTITY_PARAMS = {"sigma0_m": 0.0, "sigma1": 0.0, "sigma2_per_m": 0.0}
     DRAW_FROM_SHAPE = True
     Params = AxialNoiseParams

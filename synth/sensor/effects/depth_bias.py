@@ -1,11 +1,13 @@
 """Direct model: systematic depth errors (calibration residuals)."""
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
 
 
 @dataclass
@@ -34,6 +36,11 @@ class DepthBias(Effect):
     """
 
     name = "depth_bias"
+    SIGNATURE = Signature(
+        "systematic offset or scale error",
+        "The median error moves away from zero steadily with distance (offset, scale, or a "
+        "disparity offset that grows with z²).",
+        panels=(("distance", "bias"), ("radial", "bias")))
     IDENTITY_PARAMS = {"offset_m": 0.0, "scale": 0.0, "disparity_offset_px": 0.0, "radial_disparity_px": 0.0}
     Params = DepthBiasParams
     FITTABLE = {"offset_m": (-0.1, 0.1), "scale": (-0.1, 0.1), "disparity_offset_px": (-2.0, 2.0),
@@ -55,3 +62,43 @@ class DepthBias(Effect):
         z = (1.0 + p.scale) * z + p.offset_m
         state.depth = np.where(state.valid, z, 0).astype(np.float32)
         state.valid &= state.depth > 0
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Median error (measured - ideal) in the near, middle and far third of the measured pixels,
+        against the current model's.
+
+        Signature present: in some third the measured median differs from the model's by at least
+        max(2 mm, 0.25 x the robust noise level of that third)."""
+        z, m, sm = ctx.ideal, ctx.measured, ctx.simulated
+        v = m > 0
+        if v.sum() < 100:
+            return ctx.weak("bias signature", gain, "too few measured pixels to estimate a bias")
+        q = np.quantile(z[v], [0.0, 1 / 3, 2 / 3, 1.0])
+        zc, bm, bs, thr = [], [], [], []
+        for a, b in zip(q, q[1:]):
+            sel = v & (z >= a) & (z <= b)
+            e = m[sel] - z[sel]
+            zc.append(float(np.median(z[sel])))
+            bm.append(float(np.median(e)))
+            ss = sel & (sm > 0)
+            bs.append(float(np.median(sm[ss] - z[ss])) if ss.sum() >= 30 else float("nan"))
+            iqr = float(np.subtract(*np.quantile(e, [0.75, 0.25])))
+            thr.append(max(0.002, 0.25 * iqr / 1.349))
+        x = [a - (b if math.isfinite(b) else 0.0) for a, b in zip(bm, bs)]
+        big = [abs(xi) >= t for xi, t in zip(x, thr)]
+        model = " / ".join(ctx.mm(b) for b in bs)
+        numbers = (f"median error {ctx.mm(bm[0])} at {zc[0]:.1f} m, {ctx.mm(bm[1])} in the middle and {ctx.mm(bm[2])} at "
+                   f"{zc[2]:.1f} m (current model {model})")
+        if not any(big):
+            return ctx.weak("bias signature", gain, numbers)
+        x1, x3 = x[0], x[2]
+        if x1 * x3 < 0 and big[0] and big[2]:
+            shape = "changing sign with distance"
+        elif abs(x3 - x1) < 0.3 * max(abs(x1), abs(x3), 1e-4):
+            shape = "roughly constant"
+        else:
+            shape = "growing with distance" if abs(x3) > abs(x1) else "shrinking with distance"
+        return (f"the measured depth is systematically off: median error {ctx.mm(bm[0])} at {zc[0]:.1f} m, "
+                f"{ctx.mm(bm[1])} in the middle and {ctx.mm(bm[2])} at {zc[2]:.1f} m, against {model} in the current "
+                f"model (an offset {shape}).")

@@ -1,17 +1,62 @@
 """Direct model: the device reports disparity in sub-pixel steps."""
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_QUANTIZE, Effect, register_effect
+from synth.sensor.registry import STAGE_QUANTIZE, ConfigParameter, Effect, Signature, register_effect
 
 
 @dataclass
 class DisparityQuantizationParams:
     step_px: float = 0.0
     """Disparity step, pixels; 0 = the preset's (Kinect v1: 1/8)."""
+
+
+def _phase_applies(config) -> bool:
+    pre = config.preset
+    return pre.fb > 0 and pre.type == "structured_light"
+
+
+def _step(config, effect) -> float:
+    return float(effect.params.step_px or config.preset.subpixel_step_px)
+
+
+def _phase_get(config, effect) -> float:
+    pre = config.preset
+    if not _phase_applies(config):
+        return 0.0
+    r = pre.fb / pre.reference_depth_m / _step(config, effect)
+    return float(r - math.floor(r))
+
+
+def _phase_set(config, effect, value):
+    pre = config.preset
+    if not _phase_applies(config):
+        return config
+    step = _step(config, effect)
+    n = math.floor(pre.fb / pre.reference_depth_m / step)
+    z0 = pre.fb / ((n + min(max(float(value), 0.0), 0.999999)) * step)
+    return dataclasses.replace(config, preset=pre.replace(reference_depth_m=float(z0)), effects=list(config.effects))
+
+
+LEVEL_PHASE = ConfigParameter(
+    0.0, 1.0, _phase_get, _phase_set,
+    doc=("where the disparity levels sit, as a fraction of a step (absolute disparity f b / z = (k + phase) "
+         "step): a structured-light device quantises the disparity relative to its reference plane, so its "
+         "levels are f b / z0 + k step, and the preset's reference depth z0 is a nominal value; for flat "
+         "surfaces the error per distance depends on the phase. It is set by moving preset.reference_depth_m "
+         "by less than one step's worth of disparity (~2 % of z0 for Kinect v1 at VGA), which the direct "
+         "model uses only for this quantisation (a physical model's stored reference pattern is re-made with "
+         "it). Structured light only (active stereo quantises the absolute disparity)"),
+    applies=_phase_applies)
+
+
+def _concentration(d: np.ndarray, step: float) -> float:
+    return float(np.abs(np.mean(np.exp(2j * np.pi * d / step)))) if d.size else float("nan")
 
 
 @register_effect
@@ -26,13 +71,62 @@ class DisparityQuantization(Effect):
     """
 
     name = "disparity_quantization"
+    SIGNATURE = Signature(
+        "discrete depth levels growing with z²",
+        "Measured depths take only discrete values whose spacing grows with the square of the "
+        "distance (one disparity step = z² · step / (f · b)); a continuous model has tiny, "
+        "constant spacings.",
+        plot="disparity_levels")
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = DisparityQuantizationParams
     FITTABLE = {"step_px": (0.0, 1.0)}
+    CONFIG_PARAMETERS = {"level_phase": LEVEL_PHASE}
     stage = STAGE_QUANTIZE
 
+    @classmethod
+    def fit_start(cls, measured, config, frames) -> dict[str, float]:
+        """Step and phase of the disparity levels from a periodogram of the measured disparities.
+
+        For a step s the circular concentration R(s) = |mean exp(2 pi i d / s)| of the measured
+        disparities d = f b / z is ~1 when d takes values on a grid of spacing s (or a divisor of
+        it) and ~0 for continuous disparities; the largest s with R >= 0.5 max R is the step, the
+        argument of the mean gives the level phase (the peak of the last run of R >= 0.5 max R).
+        Nothing is returned (defaults kept) when no step in [0.02, 1] px reaches R = 0.3. The
+        phase is the absolute one of ``level_phase``; the lab drops it where that parameter does
+        not apply (active stereo).
+        """
+        pre = config.preset
+        if pre.fb <= 0:
+            return {}
+        rng = np.random.default_rng(0)
+        d = []
+        for k in frames:
+            m = measured.measured_depth(k)
+            v = m[m > 0].astype(np.float64)
+            if v.size:
+                d.append(pre.fb / rng.choice(v, size=min(v.size, 5000), replace=False))
+        if not d:
+            return {}
+        d = np.concatenate(d)
+        steps = np.geomspace(0.02, 1.0, 500)
+        R = np.empty(steps.size)
+        ph = np.empty(steps.size)
+        for i, st in enumerate(steps):
+            z = np.exp(2j * np.pi * d / st).mean()
+            R[i], ph[i] = abs(z), np.angle(z)
+        if R.max() < 0.3:
+            return {}
+        high = np.flatnonzero(R >= 0.5 * R.max())
+        run = high[-1:]                      # the last (largest-step) run of high concentration ...
+        for j in high[::-1][1:]:
+            if j != run[0] - 1:
+                break
+            run = np.concatenate([[j], run])
+        i = int(run[np.argmax(R[run])])     # ... and its peak
+        phase = (ph[i] / (2 * np.pi)) % 1.0
+        return {"disparity_quantization.step_px": float(steps[i]), "disparity_quantization.level_phase": float(phase)}
+
     def apply(self, state, draw) -> None:
-        import dataclasses
         from synth.sensor.matching import MatchSetup
         pre = state.preset
         if pre.type == "tof" or pre.fb <= 0:
@@ -47,3 +141,26 @@ class DisparityQuantization(Effect):
         state.valid &= state.depth > 0
         state.disparity = np.where(state.valid, d, np.nan).astype(np.float32)
         state.log[self.name] = {"step_px": setup.step}
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Circular concentration R = |mean exp(2 pi i d / step)| of the measured disparities
+        d = f b / z at the fitted (else the preset's) step: ~1 for disparities on a grid of that
+        step, ~0 for continuous ones.
+
+        Signature present: R >= 0.3 and R exceeds the current model's by >= 0.2."""
+        pre = ctx.preset
+        fb = float(pre.fb)
+        if fb <= 0:
+            return "the sensor does not triangulate: no disparity levels."
+        step = params.get("disparity_quantization.step_px") or float(pre.subpixel_step_px)
+        m, zs = ctx.measured, ctx.simulated
+        conc = _concentration(fb / m[m > 0], step)
+        conc_s = _concentration(fb / zs[zs > 0], step)
+        if not (ctx.ge(conc, 0.3) and ctx.ge(conc, conc_s + 0.2)):
+            return ctx.weak("disparity-grid signature", gain,
+                         f"the measured disparities f·b/z have a circular concentration of {conc:.2f} on a grid of "
+                         f"{step:.3f} px ({conc_s:.2f} for the current model)")
+        return (f"measured disparities f·b/z sit on a grid of {step:.3f} px (circular concentration {conc:.2f}; "
+                f"{conc_s:.2f} for the current model's depths), i.e. discrete depth levels spaced "
+                f"{1000 * step / fb:.1f} mm at 1 m and {4000 * step / fb:.1f} mm at 2 m, growing with z².")

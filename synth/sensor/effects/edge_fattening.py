@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -62,6 +62,11 @@ class EdgeFattening(Effect):
     """
 
     name = "edge_fattening"
+    SIGNATURE = Signature(
+        "foreground bleeding over depth edges",
+        "Just beyond depth edges (background side, + distances) the measured depth is too close: "
+        "the median error turns negative over a few pixels.",
+        panels=(("edge_distance", "bias"), ("edge_distance", "invalid_fraction")))
     IDENTITY_PARAMS = {"radius_px": 0}
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = EdgeFatteningParams
@@ -90,3 +95,27 @@ class EdgeFattening(Effect):
         state.depth = np.where(fat, near, state.depth).astype(np.float32)
         state.valid = state.valid | fat
         state.log[self.name] = {"fattened_px": int(fat.sum()), "radius_px": r}
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Share of measured depths within 6 px on the background side of depth edges that are > 5 %
+        nearer than the background.
+
+        Signature present: that share exceeds the current model's by :data:`ctx.MIN_RATE_EXCESS` and is
+        at least twice the share that is > 5 % farther (plain noise makes both alike)."""
+        ed = ctx.edge_distance()
+        z, m, sm = ctx.ideal, ctx.measured, ctx.simulated
+        band = (ed > 0) & (ed <= 6) & (m > 0)
+        if int(band.sum()) < 50:
+            return ctx.weak("edge-fattening signature", gain,
+                         f"only {int(band.sum())} measured pixels lie within 6 px on the background side of depth edges")
+        r_n, r_f = ctx.rate(m < 0.95 * z, band), ctx.rate(m > 1.05 * z, band)
+        r_s = ctx.rate(sm < 0.95 * z, band & (sm > 0))
+        numbers = (f"within 6 px on the background side of depth edges {ctx.pct(r_n)} of the measured depths are more "
+                   f"than 5 % nearer than the background and {ctx.pct(r_f)} more than 5 % farther (current model: "
+                   f"{ctx.pct(r_s)} nearer)")
+        if not (ctx.ge(r_n, r_s + ctx.MIN_RATE_EXCESS) and ctx.ge(r_n, 2 * r_f)):
+            return ctx.weak("edge-fattening signature", gain, numbers)
+        return (f"within 6 px on the background side of depth edges {ctx.pct(r_n)} of the measured depths are more "
+                f"than 5 % nearer than the background (they carry the foreground's depth; {ctx.pct(r_f)} are farther), "
+                f"against {ctx.pct(r_s)} in the current model.")

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw
-from synth.sensor.registry import STAGE_DEPTH, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
 
 
 @dataclass
@@ -30,6 +30,11 @@ class FlyingPixels(Effect):
     """
 
     name = "flying_pixels"
+    SIGNATURE = Signature(
+        "depths between foreground and background at edges",
+        "Pixels within one or two pixels of a depth edge take intermediate depths: large spread "
+        "right at the edge.",
+        panels=(("edge_distance", "std"), ("edge_distance", "bias")))
     IDENTITY_PARAMS = {"probability": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     DRAW_FROM_SHAPE = True

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_POST, Effect, register_effect
+from synth.sensor.registry import STAGE_POST, Effect, Signature, register_effect
 
 
 @dataclass
@@ -29,6 +29,11 @@ class HoleFilling(Effect):
     """
 
     name = "hole_filling"
+    SIGNATURE = Signature(
+        "fewer holes than the physics predicts",
+        "Small holes are filled in: the measured invalid fraction at edges is lower than the "
+        "model's.",
+        panels=(("edge_distance", "invalid_fraction"),))
     KEEPS_INVALID = False  # it fills holes
     IDENTITY_PARAMS = {"max_hole_px": 0}
     Params = HoleFillingParams

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_view, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -30,6 +30,10 @@ class IncidenceDropout(Effect):
     """
 
     name = "incidence_dropout"
+    SIGNATURE = Signature(
+        "holes on oblique surfaces",
+        "The invalid fraction climbs steeply at grazing incidence angles.",
+        panels=(("incidence", "invalid_fraction"), ("incidence", "std")))
     DRAW_FROM_SHAPE = True
     Params = IncidenceDropoutParams
     FITTABLE = {"angle50_deg": (30.0, 90.0), "width_deg": (0.1, 30.0)}
@@ -45,3 +49,30 @@ class IncidenceDropout(Effect):
         p = sigmoid((theta - self.params.angle50_deg) / self.params.width_deg)
         p[~state.view.hit] = 0
         drop_with_probability(state, p, u, self.name)
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Measured hole rate per incidence-angle band (bands with >= 50 pixels).
+
+        Signature present: the rate above 60° exceeds the rate below 40° and the current model's
+        rate above 60° by :data:`ctx.MIN_RATE_EXCESS`."""
+        ang = ctx.incidence_deg()
+        hole = ctx.measured <= 0
+        ok = np.isfinite(ang)
+        rates = []
+        for lo, hi in ((0, 40), (40, 60), (60, 70), (70, 80), (80, 90.1)):
+            sel = ok & (ang >= lo) & (ang < hi)
+            if sel.sum() >= 50:
+                rates.append(f"{ctx.pct(ctx.rate(hole, sel))} at {lo:g}-{min(hi, 90):g}°")
+        low, high = ok & (ang < 40), ok & (ang >= 60)
+        a50 = params.get("incidence_dropout.angle50_deg")
+        tail = f" (fitted 50 % angle {a50:.0f}°)" if a50 is not None else ""
+        if int(high.sum()) < 50:
+            return ctx.weak("incidence signature", gain, f"fewer than 50 pixels are seen at more than 60° incidence "
+                                                      f"({', '.join(rates) or 'no angle band with data'})")
+        r_hi, r_lo, r_mod = ctx.rate(hole, high), ctx.rate(hole, low), ctx.rate(ctx.simulated <= 0, high)
+        numbers = f"measured hole rate {', '.join(rates)} (current model: {ctx.pct(r_mod)} above 60°)"
+        if not (ctx.ge(r_hi, r_lo + ctx.MIN_RATE_EXCESS) and ctx.ge(r_hi, r_mod + ctx.MIN_RATE_EXCESS)):
+            return ctx.weak("incidence signature", gain, numbers)
+        return (f"the measured hole rate rises at grazing incidence: {', '.join(rates)}, against "
+                f"{ctx.pct(r_mod)} above 60° in the current model{tail}.")

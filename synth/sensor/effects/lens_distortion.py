@@ -1,17 +1,24 @@
 """Radial + tangential lens distortion of the IR camera."""
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, register_effect
+from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, Signature, register_effect
 
 
 @dataclass
 class LensDistortionParams:
     coefficients: tuple = ()
     """OpenCV (k1, k2, p1, p2, k3); empty = the preset's ``distortion``."""
+    k1: float = 0.0
+    """Radial distortion added to k1 of ``coefficients`` (else of the preset's distortion): what the
+    sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
+    k2: float = 0.0
+    """Radial distortion added to k2 of the same coefficients."""
 
 
 def undistort_pixels(pts: np.ndarray, K: np.ndarray, coeffs) -> np.ndarray:
@@ -34,6 +41,17 @@ def distortion_maps(intr, coeffs) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(und[..., 0]), np.ascontiguousarray(und[..., 1])
 
 
+def _robust_abs_err(m, z, sel):
+    v = sel & (m > 0)
+    if v.sum() < 30:
+        return float("nan")
+    return float(np.median(np.abs(m[v] - z[v])))
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else float("nan")
+
+
 @register_effect
 class LensDistortion(Effect):
     """The IR lens bends rays: the device's image is distorted (radial k1 k2 k3, tangential p1 p2).
@@ -50,22 +68,39 @@ class LensDistortion(Effect):
     """
 
     name = "lens_distortion"
+    SIGNATURE = Signature(
+        "residual growing with image radius",
+        "The error is small at the image centre and grows towards the corners (a ring or bowl in "
+        "the block map), independent of distance.",
+        plot="radial_error_map")
     IDENTITY_PARAMS = {"coefficients": (0.0, 0.0, 0.0, 0.0, 0.0)}
     Params = LensDistortionParams
     in_reference = True
+    FITTABLE = {"k1": (-0.5, 0.5), "k2": (-0.5, 0.5)}
 
     def __init__(self, params=None, enabled=True):
         super().__init__(params, enabled)
         self._maps: dict = {}
 
     def validate(self) -> None:
+        super().validate()
         if len(self.params.coefficients) not in (0, 4, 5, 8):
             from data_tools.errors import ConfigError
             raise ConfigError(f"effect 'lens_distortion': coefficients need 4, 5 or 8 numbers, "
                               f"got {len(self.params.coefficients)}")
 
     def coefficients(self, preset) -> tuple:
-        return tuple(self.params.coefficients) or tuple(preset.distortion)
+        """The OpenCV coefficients in use: ``coefficients`` (else the preset's), padded to 5 and
+        with ``k1``, ``k2`` added when those are set (the tangential terms of real lenses are small
+        and poorly constrained by depth alone, so only the radial ones are fitted)."""
+        base = tuple(self.params.coefficients) or tuple(preset.distortion)
+        if not (self.params.k1 or self.params.k2):
+            return base
+        c = [float(x) for x in base]
+        c += [0.0] * (5 - len(c))
+        c[0] += float(self.params.k1)
+        c[1] += float(self.params.k2)
+        return tuple(c)
 
     def stage_for(self, physical_model: bool) -> int:
         return STAGE_OPTICS + 5 if physical_model else STAGE_WARP
@@ -99,3 +134,34 @@ class LensDistortion(Effect):
             state.depth = z
             state.valid = z > 0
         state.log[self.name] = {"active": True, "coefficients": list(coeffs)}
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Median |measured - ideal| and hole rate in the image centre (r < 0.35) vs the outer ring
+        (r > 0.7), against the same numbers of the current model.
+
+        Signature present when either (a) the measured outer/centre error ratio is >= 1.25 and
+        >= 1.2x the current model's ratio (the model's ratio carries the radial change of depth and
+        noise that has nothing to do with the lens), or (b) the outer ring's hole rate exceeds the
+        model's there by :data:`ctx.MIN_RATE_EXCESS` more than in the centre."""
+        r = ctx.radial()
+        z, m, sm = ctx.ideal, ctx.measured, ctx.simulated
+        inner, outer = r < 0.35, r > 0.7
+        ei, eo = _robust_abs_err(m, z, inner), _robust_abs_err(m, z, outer)
+        si, so = _robust_abs_err(sm, z, inner), _robust_abs_err(sm, z, outer)
+        hi_, ho = ctx.rate(m <= 0, inner), ctx.rate(m <= 0, outer)
+        hsi, hso = ctx.rate(sm <= 0, inner), ctx.rate(sm <= 0, outer)
+        rm, rs = _ratio(eo, ei), _ratio(so, si)
+        k1 = params.get("lens_distortion.k1")
+        tail = f"; fitted k1 = {k1:+.3f}" if k1 is not None else ""
+        err_growth = ctx.ge(rm, 1.25) and ctx.ge(rm, 1.2 * rs)
+        hole_growth = ctx.ge((ho - hso) - (hi_ - hsi), ctx.MIN_RATE_EXCESS)
+        err_txt = (f"median |measured - ideal| {1000 * ei:.1f} mm in the image centre and {1000 * eo:.1f} mm in the "
+                   f"outer ring (x{rm:.1f}; current model x{rs:.1f})")
+        hole_txt = f"hole rate {ctx.pct(hi_)} vs {ctx.pct(ho)} (current model {ctx.pct(hsi)} vs {ctx.pct(hso)})"
+        if err_growth:
+            return f"the residual grows with the image radius: {err_txt}, {hole_txt}{tail}."
+        if hole_growth:
+            return (f"the outer ring loses more pixels than the current model explains: {hole_txt}; "
+                    f"{err_txt}{tail}.")
+        return ctx.weak("radial signature", gain, f"{err_txt}, {hole_txt}")

@@ -7,7 +7,7 @@ import numpy as np
 
 from synth.sensor.effects._common import (check_draw, cos_incidence, drop_with_probability, sigmoid,
                                           uniform_draw)
-from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -30,6 +30,11 @@ class LowReflectance(Effect):
     """
 
     name = "low_reflectance"
+    SIGNATURE = Signature(
+        "holes where little light returns",
+        "The invalid fraction differs by material (dark surfaces) and grows with distance and "
+        "obliquity (the returned signal falls with z² and cos θ).",
+        panels=(("material", "invalid_fraction"), ("distance", "invalid_fraction"), ("incidence", "invalid_fraction")))
     DRAW_FROM_SHAPE = True
     Params = LowReflectanceParams
     FITTABLE = {"signal50": (1e-6, 1.0), "width_decades": (0.01, 3.0)}
@@ -48,3 +53,34 @@ class LowReflectance(Effect):
         p = sigmoid(x / self.params.width_decades)
         p[~v.hit] = 0
         drop_with_probability(state, p, u, self.name)
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Measured hole rate on dark (albedo < 0.2) vs brighter materials.
+
+        Signature present: the dark-material rate exceeds the brighter materials' rate and the
+        current model's dark-material rate by :data:`ctx.MIN_RATE_EXCESS` and is at least 1.5x the
+        brighter materials' rate."""
+        ids = ctx.material_ids()
+        alb = np.array([ctx.albedo.get(int(i), np.nan) for i in range(int(ids.max()) + 1)])[ids]
+        names = {}
+        for o in ctx.observations:
+            names.update(o.material_names)
+        hole = ctx.measured <= 0
+        known = np.isfinite(alb)
+        if not known.any():
+            return ctx.weak("reflectance signature", gain, "no material albedos are known")
+        cut = 0.2
+        dark = known & (alb < cut)
+        bright = known & (alb >= cut)
+        if not dark.any():
+            return ctx.weak("reflectance signature", gain,
+                         f"no material darker than albedo {cut} is in view; bright surfaces lose {ctx.pct(ctx.rate(hole, bright))}")
+        dark_names = sorted({names.get(int(i), str(i)) for i in np.unique(ids[dark])})
+        r_d, r_b, r_mod = ctx.rate(hole, dark), ctx.rate(hole, bright), ctx.rate(ctx.simulated <= 0, dark)
+        numbers = (f"dark materials (albedo < {cut}: {', '.join(dark_names[:4])}) lose {ctx.pct(r_d)} of their pixels, "
+                   f"brighter ones {ctx.pct(r_b)} (current model: {ctx.pct(r_mod)} on the dark ones)")
+        if not (ctx.ge(r_d, r_b + ctx.MIN_RATE_EXCESS) and ctx.ge(r_d, 1.5 * r_b) and ctx.ge(r_d, r_mod + ctx.MIN_RATE_EXCESS)):
+            return ctx.weak("reflectance signature", gain, numbers)
+        return (f"dark materials (albedo < {cut}: {', '.join(dark_names[:4])}) lose {ctx.pct(r_d)} of their pixels, "
+                f"more than brighter ones ({ctx.pct(r_b)}) and than the current model on the dark ones ({ctx.pct(r_mod)}).")

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, STAGE_OPTICS, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, STAGE_OPTICS, Effect, Signature, register_effect
 
 
 @dataclass
@@ -35,6 +35,10 @@ class MotionBlur(Effect):
     """
 
     name = "motion_blur"
+    SIGNATURE = Signature(
+        "errors at edges under motion",
+        "Errors concentrate next to depth edges (mixed depths during the exposure).",
+        panels=(("edge_distance", "std"), ("edge_distance", "invalid_fraction")))
     IDENTITY_PARAMS = {"exposure_s": 0.0}
     Params = MotionBlurParams
     FITTABLE = {"exposure_s": (0.0, 0.1), "mix_jump_m": (0.001, 1.0)}

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
 
 C_LIGHT = 299_792_458.0
 
@@ -38,6 +38,10 @@ class Multipath(Effect):
     """
 
     name = "multipath"
+    SIGNATURE = Signature(
+        "too-far depths in concave corners",
+        "Surfaces that face other surfaces (oblique, near corners) read too far.",
+        panels=(("incidence", "bias"), ("incidence", "std")))
     IDENTITY_PARAMS = {"strength": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     Params = MultipathParams

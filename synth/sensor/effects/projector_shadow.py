@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -35,6 +35,12 @@ class ProjectorShadow(Effect):
     """
 
     name = "projector_shadow"
+    SIGNATURE = Signature(
+        "holes beside foreground objects on the projector side",
+        "Holes on the background next to depth edges, only on the side where the projector is "
+        "occluded (+ distances: shadow side), as wide as the disparity step; the lit side (- "
+        "distances) stays valid.",
+        plot="shadow_sides")
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = ProjectorShadowParams
     FITTABLE = {"eps_m": (0.0, 0.05)}
@@ -79,3 +85,34 @@ class ProjectorShadow(Effect):
         shadow = (back & v.hit) | sh
         state.invalidate(shadow, self.name)
         state.log[self.name]["shadow_rays"] = n_rays
+
+    @classmethod
+    def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
+        """Hole rate within 6 px of depth edges on the projector-shadow side vs the lit side.
+
+        Signature present: the shadow-side rate exceeds the lit-side rate and the current model's
+        shadow-side rate by :data:`ctx.MIN_RATE_EXCESS` and is at least 1.5x the lit-side rate."""
+        off = ctx.observations[0].projector_offset_m
+        if off is None:
+            return "the sensor has no projector offset: no projector shadows can form."
+        es = ctx.shadow_edge_distance()
+        hole_m = ctx.measured <= 0
+        hole_s = ctx.simulated <= 0
+        near = 6.0
+        sh = (es > 0) & (es <= near)
+        lit = (es < 0) & (es >= -near)
+        if int(sh.sum()) < 50:
+            return ctx.weak("projector-shadow signature", gain,
+                         f"only {int(sh.sum())} pixels lie within {near:g} px on the projector-shadow side of depth edges")
+        r_sh, r_lit, r_mod = ctx.rate(hole_m, sh), ctx.rate(hole_m, lit), ctx.rate(hole_s, sh)
+        share = float((hole_m & sh).sum()) / max(int(hole_m.sum()), 1)
+        numbers = (f"within {near:g} px of depth edges the sensor loses {ctx.pct(r_sh)} of the pixels on the "
+                   f"projector-shadow side and {ctx.pct(r_lit)} on the lit side (current model: {ctx.pct(r_mod)} on the "
+                   f"shadow side)")
+        strong = (ctx.ge(r_sh, r_lit + ctx.MIN_RATE_EXCESS) and ctx.ge(r_sh, 1.5 * r_lit)
+                  and ctx.ge(r_sh, r_mod + ctx.MIN_RATE_EXCESS))
+        if not strong:
+            return ctx.weak("projector-shadow signature", gain, numbers)
+        return (f"within {near:g} px of depth edges the sensor loses {ctx.pct(r_sh)} of the pixels on the "
+                f"projector-shadow side against {ctx.pct(r_lit)} on the lit side (current model: {ctx.pct(r_mod)} on the "
+                f"shadow side); these shadow-side holes are {ctx.pct(share)} of all measured holes.")

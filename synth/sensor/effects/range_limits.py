@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from synth.sensor.registry import STAGE_POST, Effect, register_effect
+from synth.sensor.registry import STAGE_POST, Effect, Signature, register_effect
 
 
 @dataclass
@@ -24,6 +24,10 @@ class RangeLimits(Effect):
     """
 
     name = "range_limits"
+    SIGNATURE = Signature(
+        "holes beyond the working range",
+        "Everything nearer than the minimum or farther than the maximum range is invalid.",
+        panels=(("distance", "invalid_fraction"),))
     Params = RangeLimitsParams
     FITTABLE = {"min_depth_m": (0.0, 5.0), "max_depth_m": (0.0, 50.0)}
     stage = STAGE_POST

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_GEOMETRY, Effect, register_effect
+from synth.sensor.registry import STAGE_GEOMETRY, Effect, Signature, register_effect
 
 
 @dataclass
@@ -35,6 +35,11 @@ class RollingShutter(Effect):
     """
 
     name = "rolling_shutter"
+    SIGNATURE = Signature(
+        "edge displacement under motion",
+        "Depth edges appear shifted: biased errors on both sides of edges and a bias that changes "
+        "across the image.",
+        panels=(("edge_distance", "bias"), ("radial", "bias")))
     KEEPS_INVALID = False  # each row is re-rendered at its own pose
     IDENTITY_PARAMS = {"readout_time_s": 0.0}
     Params = RollingShutterParams

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, Effect, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
 
 
 @dataclass
@@ -32,6 +32,11 @@ class SpecularDropout(Effect):
     """
 
     name = "specular_dropout"
+    SIGNATURE = Signature(
+        "holes on shiny materials",
+        "The invalid fraction differs by material and peaks where the mirror reflection points "
+        "back at the camera (near-normal incidence).",
+        panels=(("material", "invalid_fraction"), ("incidence", "invalid_fraction")))
     DRAW_FROM_SHAPE = True
     Params = SpecularDropoutParams
     FITTABLE = {"specular50": (0.0, 1.0), "width": (0.01, 1.0), "highlight_deg": (0.0, 45.0)}

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
 
 
 @dataclass
@@ -29,6 +29,10 @@ class Wiggling(Effect):
     """
 
     name = "wiggling"
+    SIGNATURE = Signature(
+        "periodic error over distance",
+        "The median error oscillates with distance (ToF phase wiggling).",
+        panels=(("distance", "bias"),))
     IDENTITY_PARAMS = {"amplitude_m": 0.0}
     sensor_types = ("tof",)  # phase measurement of continuous-wave time of flight
     Params = WigglingParams
