@@ -13,7 +13,7 @@ Prints, per frame (medians over a walkthrough, best of the repeats):
   sensor    : full minus the ideal ray cast (the cost the sensor model adds)
 and the ratio full/raycast, plus a per-stage breakdown (wall and CPU ms). Those are single-frame
 latencies (one frame at a time). With ``--workers N`` (default 2) it also measures throughput
-with N frames in flight (synth.sensor.simulator.SimulationPool: N worker processes, each
+with N frames in flight (synth.sensor.pool.SimulationPool: N worker processes, each
 simulating whole frames; results identical to the serial ones) and prints it beside the
 latency, labelled as pipelined. Target: >= 20 frames/s on 2 cores.
 The machine may be shared: the minimum-of-medians over repeats is reported alongside the
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
     target = 20.0
     print(f"target >= {target:.0f} frames/s (one frame at a time): {'met' if 1 / full >= target else 'NOT met'}")
     if args.workers > 0:
-        from synth.sensor.simulator import SimulationPool
+        from synth.sensor.pool import SimulationPool
         prevs = [None] + list(poses[:-1]) if args.motion else None
         with SimulationPool(sim, workers=args.workers) as pool:
             list(pool.map(poses[:args.workers], range(args.workers)))  # warm-up

@@ -115,6 +115,15 @@ def fingerprint(work: Path) -> dict:
     fp["sensor fit model"] = _json(model, lambda d: {k: v for k, v in d.items() if k != "fit"})
     fp["sensor fit record"] = _json(model, lambda d: {k: v for k, v in d.get("fit", {}).items()
                                                       if k in ("gap", "gap_before", "params", "evaluations")})
+    model2 = work / "model_lens_quant.json"
+    _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,lens_distortion,disparity_quantization",
+             "--frames", "2", "--fit-option", "max_evaluations=30", "--out", str(model2))
+    fp["sensor fit lens+quantization record"] = _json(model2, lambda d: {k: v for k, v in d.get("fit", {}).items()
+                                                                         if k in ("gap", "gap_before", "params",
+                                                                                  "evaluations")})
+    simseq2 = work / "sim_lens_quant"
+    _realgap("sensor", "simulate", str(seq), "--model", str(model2), "--frames", "2", "--out", str(simseq2))
+    fp["sensor simulate lens+quantization"] = _hash_pngs(simseq2 / "depth")
     diag = work / "diag"
     _realgap("sensor", "diagnose", str(seq), "--effects", "axial_noise", "--frames", "2",
              "--candidates", "edge_fattening,projector_shadow,lens_distortion",

@@ -58,15 +58,17 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected an object, got {value!r}")
         return config_from_dict(tp, value, where)
-    if origin is tuple:
+    if origin is tuple or tp is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if not args:
+            return tuple(value)
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_coerce(v, args[0], where) for v in value)
         if len(args) != len(value):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
         return tuple(_coerce(v, a, where) for v, a in zip(value, args))
-    if origin is list:
+    if origin is list or tp is list:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
         return [_coerce(v, args[0], where) for v in value] if args else list(value)
@@ -103,16 +105,17 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def config_from_dict(cls: type, data: dict, where: str = "config") -> Any:
+def config_from_dict(cls: type, data: dict, where: str = "config", item: str = "option") -> Any:
     """Build dataclass ``cls`` from JSON data; missing keys keep their defaults, unknown keys
-    and values of the wrong type raise :class:`ConfigError` naming the key."""
+    and values of the wrong type raise :class:`ConfigError` naming the key (``item``: what a
+    key is called in the message, e.g. "parameter")."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected an object, got {data!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ConfigError(f"{where}: unknown option(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
+        raise ConfigError(f"{where}: unknown {item}(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
     kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
     obj = cls(**kwargs)
     validate = getattr(obj, "validate", None)

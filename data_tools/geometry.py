@@ -121,6 +121,33 @@ def pixel_grid(intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
                        np.arange(intr.height, dtype=np.float64))
 
 
+def pixel_rays(intr: Intrinsics, idx: np.ndarray | None = None, unit: bool = True) -> np.ndarray:
+    """Viewing rays of pixels in the camera frame (OpenCV axes), float64: (H, W, 3) for the whole
+    image or (N, 3) for flat pixel indices ``idx`` (v * W + u). Pixel centres at integers (see
+    ../shared/FORMATS.md), no distortion. ``unit``: unit-length rays; else z = 1 (the ray to
+    ``depth`` z is ``ray * z``)."""
+    if idx is None:
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+    else:
+        v, u = np.divmod(np.asarray(idx, dtype=np.int64), intr.width)
+    r = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones(np.shape(u))], axis=-1)
+    return r / np.linalg.norm(r, axis=-1, keepdims=True) if unit else r
+
+
+def rotation_angle_rad(R: np.ndarray) -> np.ndarray:
+    """Rotation angles (...) in radians, in [0, pi], of rotation matrices (..., 3, 3).
+
+    atan2 of the sine (from the skew part) and cosine (from the trace): accurate near 0 and pi,
+    unlike arccos of the trace alone. Equals evo's ``so3_log_angle`` (norm of the rotation vector).
+    The angle between two rotations R_a, R_b is ``rotation_angle_rad(R_b @ R_a.T)``.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    sn = np.linalg.norm(v, axis=-1) / 2.0
+    return np.arctan2(sn, c)
+
+
 def unproject(depth_m: np.ndarray, intr: Intrinsics) -> np.ndarray:
     """Camera-frame points (H, W, 3) metres from a z-depth image (H, W) metres (0 stays 0).
 

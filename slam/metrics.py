@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import ConfigError, FormatError, RealgapError
+from data_tools.geometry import invert_pose, rotation_angle_rad
 from data_tools.trajectory import DEFAULT_MAX_DT, Trajectory, associate, read_tum, write_tum
 
 STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max")
@@ -237,7 +238,7 @@ class OriginAlignment(Aligner):
 
     def estimate(self, ref, est):
         P0, Q0 = est.poses[0], ref.poses[0]
-        T = Q0 @ _invert(P0)
+        T = Q0 @ invert_pose(P0)
         return Alignment(self.name, T[:3, :3], T[:3, 3], 1.0)
 
 
@@ -288,29 +289,6 @@ def _time_range(traj: Trajectory) -> str:
 # pose relations (what an error pose E is measured by)
 
 
-def _invert(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (..., 4, 4)."""
-    Ti = np.zeros_like(T)
-    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
-    Ti[..., :3, :3] = Rt
-    Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    Ti[..., 3, 3] = 1.0
-    return Ti
-
-
-def rotation_angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angles (...) in radians, in [0, pi], of rotation matrices (..., 3, 3).
-
-    atan2 of the sine (from the skew part) and cosine (from the trace): accurate near 0 and pi,
-    unlike arccos of the trace alone. Equals evo's ``so3_log_angle`` (norm of the rotation vector).
-    """
-    R = np.asarray(R, dtype=np.float64)
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    v = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
-    sn = np.linalg.norm(v, axis=-1) / 2.0
-    return np.arctan2(sn, c)
-
-
 class Relation(ABC):
     """Turns error poses E (N, 4, 4) into scalar errors (N,)."""
 
@@ -351,7 +329,7 @@ class RotationAngleDeg(Relation):
     name, unit, evo_name = "rotation_angle_deg", "deg", "rotation_angle_deg"
 
     def errors(self, E):
-        return np.rad2deg(rotation_angle(E[:, :3, :3]))
+        return np.rad2deg(rotation_angle_rad(E[:, :3, :3]))
 
 
 @register_relation
@@ -361,7 +339,7 @@ class RotationAngleRad(Relation):
     name, unit, evo_name = "rotation_angle_rad", "rad", "rotation_angle_rad"
 
     def errors(self, E):
-        return rotation_angle(E[:, :3, :3])
+        return rotation_angle_rad(E[:, :3, :3])
 
 
 @register_relation
@@ -577,7 +555,7 @@ def ape(ref: Trajectory, est: Trajectory, relation: str = "translation", align: 
     if rel.name == "translation":
         errors = np.linalg.norm(e.positions - r.positions, axis=1)   # as evo: no full poses needed
     else:
-        errors = rel.errors(_invert(e.poses) @ r.poses)             # E_i = P_i^-1 Q_i
+        errors = rel.errors(invert_pose(e.poses) @ r.poses)             # E_i = P_i^-1 Q_i
     info = {"ref_name": ref_name, "est_name": est_name, "max_dt": float(max_dt)}
     return MetricResult("ape", rel.name, rel.unit, statistics(errors), len(r), errors,
                         e.timestamps.copy(), e, r, a, None, info)
@@ -612,9 +590,9 @@ def rpe(ref: Trajectory, est: Trajectory, delta: float = 1, delta_unit: str = "f
         raise RealgapError(f"RPE delta = {delta:g} {delta_unit} produced no pose pairs among {len(r)} "
                            f"associated poses: use a smaller delta")
     i, j = ij[:, 0], ij[:, 1]
-    Q_rel = _invert(r.poses[i]) @ r.poses[j]
-    P_rel = _invert(e.poses[i]) @ e.poses[j]
-    errors = rel.errors(_invert(Q_rel) @ P_rel)
+    Q_rel = invert_pose(r.poses[i]) @ r.poses[j]
+    P_rel = invert_pose(e.poses[i]) @ e.poses[j]
+    errors = rel.errors(invert_pose(Q_rel) @ P_rel)
     info = {"ref_name": ref_name, "est_name": est_name, "max_dt": float(max_dt), "delta": float(delta),
             "delta_unit": delta_unit, "all_pairs": bool(all_pairs), "rel_delta_tol": float(rel_delta_tol),
             "pairs_from_reference": bool(pairs_from_reference)}

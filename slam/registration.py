@@ -37,6 +37,7 @@ import numpy as np
 from data_tools.camera import Intrinsics
 from data_tools.config import config_from_dict, config_replace, config_to_dict  # noqa: F401 (re-exported)
 from data_tools.errors import ConfigError
+from data_tools.geometry import rotation_angle_rad
 
 # --------------------------------------------------------------------------------------------
 # per-frame result
@@ -161,9 +162,9 @@ def get_backend(name: str) -> type[RegistrationBackend]:
 
 
 def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a 3x3 rotation matrix, degrees."""
-    c = (np.trace(np.asarray(R)[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of a 3x3 rotation matrix (or the rotation of a 4x4 pose), degrees
+    (:func:`data_tools.geometry.rotation_angle_rad`)."""
+    return float(np.degrees(rotation_angle_rad(np.asarray(R)[:3, :3])))
 
 
 def implausible_motion(T_prev: np.ndarray, T_new: np.ndarray, dt_s: float, max_speed_m_s: float,

@@ -21,7 +21,7 @@ import numpy as np
 
 from data_tools.camera import Intrinsics
 from data_tools.errors import FormatError, RealgapError
-from data_tools.geometry import is_rigid, pixel_grid, pose_from_tum
+from data_tools.geometry import is_rigid, pixel_rays, pose_from_tum
 from data_tools.mesh import TriMesh
 
 UNOBSERVED_RGB = (255, 0, 255)
@@ -55,9 +55,7 @@ def camera_rays(intr: Intrinsics, pose_c2w: np.ndarray) -> np.ndarray:
     """(H, W, 6) float32 rays (origin, direction) in the world frame; directions have unit
     z-component in the camera frame."""
     T = np.asarray(pose_c2w, dtype=np.float64)
-    u, v = pixel_grid(intr)
-    d_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], -1)
-    d = d_cam @ T[:3, :3].T
+    d = pixel_rays(intr, unit=False) @ T[:3, :3].T
     o = np.broadcast_to(T[:3, 3], d.shape)
     return np.concatenate([o, d], -1).astype(np.float32)
 

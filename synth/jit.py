@@ -25,7 +25,7 @@ except ImportError:  # pragma: no cover - exercised only on a broken install
 THREADS: int | None = None
 """Threads for realgap's parallel work (Open3D ray queries, row bands of the compiled kernels);
 None = the CPUs this process may use. Set to 1 in worker processes that each simulate their own
-frame (:class:`synth.sensor.simulator.SimulationPool`)."""
+frame (:class:`synth.sensor.pool.SimulationPool`)."""
 
 
 def n_threads() -> int:

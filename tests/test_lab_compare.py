@@ -16,8 +16,8 @@ from synth.lab import (CompareConfig, FrameObservation, append_history, compare,
                        error_map, load_history, load_result, run_lab, validity_map, worst_bins,
                        worst_blocks, worst_regions)
 from synth.lab.compare import CompareCache, error_scale_m, wasserstein1
-from synth.lab.features import (depth_edges, incidence_angle_deg, radial_distance,
-                                shadow_edge_distance, signed_edge_distance)
+from synth.lab.feature_maps import (depth_edges, incidence_angle_deg, radial_distance, shadow_edge_distance,
+                                    signed_edge_distance)
 from synth.lab.history import step_labels
 
 W, H, F = 160, 120, 150.0
@@ -211,7 +211,7 @@ def test_wasserstein1_matches_scipy():
 
 def test_w1_noise_floor_constant_matches_simulation():
     """E[W1] of two normal samples = W1_NULL_CONSTANT sigma sqrt(1/n + 1/m) (used by the floor)."""
-    from synth.lab.compare import W1_NULL_CONSTANT
+    from synth.lab.gap_stats import W1_NULL_CONSTANT
 
     rng = np.random.default_rng(1)
     n, m, sd = 300, 700, 2.5

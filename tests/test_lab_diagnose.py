@@ -17,7 +17,7 @@ from synth.lab import DiagnoseConfig, FitConfig, MeasuredSequence, diagnose, fit
 from synth.lab.diagnose import _applicability
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.sensor.registry import effect_class, effect_names
-from synth.sensor.simulator import MotionLimits, SensorConfig
+from synth.sensor.config import MotionLimits, SensorConfig
 
 from tests import hidden_effects as he
 

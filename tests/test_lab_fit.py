@@ -11,7 +11,7 @@ import pytest
 from data_tools.errors import ConfigError
 from synth.lab import FitConfig, MeasuredSequence, fit_model
 from synth.lab.fit import ParamSpec, get_params, param_specs, search, set_params
-from synth.sensor.simulator import SensorConfig
+from synth.sensor.config import SensorConfig
 
 from tests import hidden_effects as he
 
@@ -93,7 +93,7 @@ def test_lens_coefficients_are_fitted_on_top_of_the_calibrated_distortion():
 
 
 def test_set_params_keeps_every_other_config_field():
-    from synth.sensor.simulator import MotionLimits
+    from synth.sensor.config import MotionLimits
     motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
     cfg = dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise", "disparity_quantization",
                                                                "lens_distortion"]), motion=motion)

@@ -10,7 +10,7 @@ import pytest
 
 from conftest import shared_path
 from data_tools.errors import ConfigError, FormatError, RealgapError
-from data_tools.geometry import quat_to_matrix
+from data_tools.geometry import quat_to_matrix, rotation_angle_rad
 from data_tools.trajectory import Trajectory, associate, read_tum
 from slam import metrics as M
 
@@ -137,7 +137,7 @@ def test_rotation_angle_is_accurate_at_0_and_pi():
     axes = rng.normal(size=(len(angles), 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     R = Rotation.from_rotvec(axes * angles[:, None]).as_matrix()
-    np.testing.assert_allclose(M.rotation_angle(R), angles, atol=1e-9)
+    np.testing.assert_allclose(rotation_angle_rad(R), angles, atol=1e-9)
 
 
 def test_rpe_constant_speed_error():

@@ -33,7 +33,9 @@ def make_measured_sequence(root: Path, frames: int = 3, width: int = 160, height
     """A small 'measured' sequence: the room scene seen by a cropped Kinect v1 model."""
     from data_tools.sequence import SequenceReader, SequenceWriter
     from synth.sensor.presets import get_preset
-    from synth.sensor.simulator import SensorConfig, SensorSimulator, simulate_trajectory
+    from synth.sensor.config import SensorConfig
+    from synth.sensor.pool import simulate_trajectory
+    from synth.sensor.simulator import SensorSimulator
     from synth.sequence import SEQUENCE_PRESETS, generate_sequence
 
     pre = get_preset("kinect_v1").cropped(width, height)
@@ -154,7 +156,7 @@ def test_fit_accepts_lab_side_parameters_and_model_keeps_motion_limits(measured,
     import dataclasses
 
     from synth.lab.model import save_model
-    from synth.sensor.simulator import MotionLimits, SensorConfig
+    from synth.sensor.config import MotionLimits, SensorConfig
     model = tmp_path / "lens.json"
     assert main(["sensor", "fit", str(measured), "--effects", "lens_distortion", "--out", str(model),
                  "--fit-option", "max_evaluations=4", "--fit-option", "max_frames=1",
@@ -230,7 +232,7 @@ def test_bad_input_is_one_line_exit_1(measured, tmp_path):
 # ------------------------------------------------------------------------------------ figure statistics
 
 def test_binned_statistics_by_hand():
-    from synth.lab.report import binned_statistics
+    from synth.lab.signatures import binned_statistics
     x = np.array([0.5] * 40 + [1.5] * 40 + [2.5] * 5)
     ideal = np.ones(85)
     depth = np.concatenate([np.full(40, 1.01), np.r_[np.zeros(10), np.linspace(0.9, 1.1, 30)], np.ones(5)])
@@ -246,7 +248,7 @@ def test_binned_statistics_by_hand():
 
 def test_depth_level_steps_follow_disparity_quantisation():
     """Depths from quantised disparity d = k/8 px: spacing = z^2 / (8 f b) to first order."""
-    from synth.lab.report import depth_level_steps
+    from synth.lab.signatures import depth_level_steps
     f, b = 580.0, 0.075
     k = np.arange(8 * 10, 8 * 40)  # disparities 10..40 px -> z from ~1.1 m to ~4.3 m
     z = (f * b / (k / 8.0)).astype(np.float64)
@@ -260,7 +262,7 @@ def test_radial_error_map_and_signature_figures(tmp_path):
     signature renders without error."""
     from data_tools.camera import Intrinsics
     from synth.lab.features import FrameObservation
-    from synth.lab.report import radial_error_map, signature_of, write_diagnosis_report
+    from synth.lab.signatures import radial_error_map, signature_of, write_diagnosis_report
     from synth.sensor.registry import effect_names
     intr = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
     v, u = np.mgrid[0:48, 0:64]

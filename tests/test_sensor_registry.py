@@ -52,8 +52,10 @@ def test_bad_params_are_config_errors():
         make_effect({"name": "axial_noise", "params": {"sigma": 1}})
     with pytest.raises(ConfigError, match="outside its bounds"):
         make_effect({"name": "incidence_dropout", "params": {"angle50_deg": 120}})
-    with pytest.raises(ConfigError, match="wrong type"):
+    with pytest.raises(ConfigError, match=r"hole_filling.*max_hole_px: expected an integer"):
         make_effect({"name": "hole_filling", "params": {"max_hole_px": "many"}})
+    with pytest.raises(ConfigError, match=r"axial_noise.*expected a finite number"):
+        make_effect({"name": "axial_noise", "params": {"sigma2_per_m": float("nan")}})
     with pytest.raises(ConfigError, match="twice"):
         SensorConfig.build("kinect_v1", ["axial_noise", "axial_noise"])
 

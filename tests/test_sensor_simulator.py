@@ -185,7 +185,7 @@ def test_simulate_trajectory_writes_and_resumes(box_scene, tmp_path):
 
 
 def test_simulation_pool_gives_the_serial_results_in_order(box_scene):
-    from synth.sensor.simulator import SimulationPool
+    from synth.sensor.pool import SimulationPool
     sim = SensorSimulator(SMALL, "physical", box_scene)
     T = camera_pose()
     T2 = T.copy()

@@ -116,7 +116,7 @@ def test_views_sensor_crop_keeps_the_json_motion_limits(tmp_path):
     import dataclasses
 
     from app.commands.synth import _views_sensor
-    from synth.sensor.simulator import MotionLimits, SensorConfig
+    from synth.sensor.config import MotionLimits, SensorConfig
     motion = MotionLimits(max_speed_m_s=0.7, max_angular_speed_rad_s=0.3)
     path = tmp_path / "sensor_config.json"
     dataclasses.replace(SensorConfig.build("kinect_v1", ["axial_noise"]), motion=motion).save(path)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from data_tools.camera import Intrinsics
+from data_tools.geometry import rotation_angle_rad
 from slam.tsdf import o3d_quiet
 
 
@@ -224,8 +225,7 @@ class SolveResult:
 
 
 def _step_small(D: np.ndarray, eps: float) -> bool:
-    return (np.linalg.norm(D[:3, 3]) < eps and
-            np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)) < eps)
+    return np.linalg.norm(D[:3, 3]) < eps and rotation_angle_rad(D[:3, :3]) < eps
 
 
 def point_to_plane_stats(src_vertex, tgt_vertex, tgt_normal, K, T: np.ndarray, max_dist_m: float

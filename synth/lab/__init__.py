@@ -16,8 +16,10 @@ Measured sequences, fitting and diagnosis::
     diag = diagnose(ms, fit.config)                # which effect is missing?
 
 Modules: :mod:`~synth.lab.features` (per-pixel features, registry), :mod:`~synth.lab.compare`
-(the gap, error maps, worst regions), :mod:`~synth.lab.report` (HTML + PNG),
-:mod:`~synth.lab.history` (gap per step), :mod:`~synth.lab.measured` (measured sequence + cached
+(the gap; its configuration in :mod:`~synth.lab.compare_config`, statistics in
+:mod:`~synth.lab.gap_stats`), :mod:`~synth.lab.regions` (error maps, worst regions),
+:mod:`~synth.lab.report` (report.html + PNGs), :mod:`~synth.lab.signatures` (diagnosis.html: effect
+signature figures), :mod:`~synth.lab.history` (gap per step), :mod:`~synth.lab.measured` (measured sequence + cached
 ideal renders), :mod:`~synth.lab.model` (model JSON), :mod:`~synth.lab.fit` (parameter fit),
 :mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (the context
 effects write their evidence sentences with), :mod:`~synth.lab.runs` (the simulate / compare /
@@ -27,9 +29,8 @@ effect's own file (:mod:`synth.sensor.registry`).
 Fits and diagnoses are deterministic (evaluation-count budgets): the same data, model, settings
 and seed give the same result on any machine.
 """
-from synth.lab.compare import (PRESETS, CompareCache, CompareConfig, CompareResult, Region, compare,
-                               compare_preset, error_map, load_result, validity_map, worst_bins,
-                               worst_blocks, worst_regions)
+from synth.lab.compare import (PRESETS, CompareCache, CompareConfig, CompareResult, compare, compare_preset,
+                               load_result)
 from synth.lab.diagnose import Candidate, DiagnoseConfig, Diagnosis, diagnose
 from synth.lab.features import (FEATURES, Feature, FeatureConfig, FrameObservation,
                                 material_table_from_scene, register_feature)
@@ -37,6 +38,7 @@ from synth.lab.fit import FitConfig, FitResult, fit_model
 from synth.lab.history import append_history, load_history
 from synth.lab.measured import MeasuredSequence
 from synth.lab.model import load_model, save_model
+from synth.lab.regions import Region, error_map, validity_map, worst_bins, worst_blocks, worst_regions
 from synth.lab.report import run_lab, write_report
 
 __all__ = ["FrameObservation", "CompareConfig", "CompareResult", "CompareCache", "Region", "PRESETS",

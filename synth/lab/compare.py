@@ -91,21 +91,22 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from data_tools.config import config_from_dict, config_to_dict
-from data_tools.errors import ConfigError, FormatError, RealgapError
-from synth.lab.features import (FEATURES, CategoricalValues, FeatureConfig,
-                                FrameFeatures, FrameObservation, make_feature,
-                                radial_max_px)
+from data_tools.errors import FormatError, RealgapError
+from data_tools.results import json_safe
+from synth.lab.compare_config import PRESETS, CompareConfig, compare_preset, error_scale_m
+from synth.lab.feature_maps import radial_max_px
+from synth.lab.features import FrameObservation, make_feature
+from synth.lab.gap_stats import (CompareCache, Pooled, SortedErrors, bin_terms, collect_samples, noise_floor,
+                                 wasserstein1, weighted_mean, within_var)
 
-__all__ = ["CompareConfig", "CompareResult", "CompareCache", "Region", "PRESETS", "compare_preset", "compare",
-           "error_map", "validity_map", "worst_bins", "worst_blocks", "worst_regions",
-           "load_result", "error_scale_m", "wasserstein1", "FrameObservation",
-           "VALIDITY_LABELS", "BREAKDOWN_FEATURES"]
+__all__ = ["CompareConfig", "CompareResult", "CompareCache", "PRESETS", "compare_preset", "compare",
+           "load_result", "error_scale_m", "wasserstein1", "FrameObservation", "BREAKDOWN_FEATURES",
+           "check_observations"]
 
 BREAKDOWN_FEATURES = ("distance", "incidence", "radial", "material", "edge_distance")
 """Features always present as keys of ``metrics.json`` ``breakdowns`` (others when available)."""
@@ -115,482 +116,8 @@ CONFIG_FILE = "compare_config.json"
 
 
 # --------------------------------------------------------------------------------------------
-# Configuration
-# --------------------------------------------------------------------------------------------
-
-@dataclass
-class CompareConfig:
-    """How the comparison samples, bins and weighs (see the module docstring for the formula)."""
-
-    max_pixels_per_frame: int | None = 20000
-    """Random (seeded) geometry pixels used per frame for the binned terms; None = all pixels."""
-    seed: int = 0
-    """Seed of the pixel subsets (frame k uses the stream (seed, k))."""
-    gap_features: tuple[str, ...] = ("distance", "incidence", "radial", "material",
-                                     "edge_distance", "edge_shadow")
-    """Features whose terms are averaged into the gap (those without data are skipped)."""
-    extra_features: tuple[str, ...] = ("incidence_projector",)
-    """Features computed for the breakdowns only."""
-    scale_a_m: float = 0.001
-    """Constant part a of the error scale s(z) = a + b z^2, metres."""
-    scale_b_per_m: float = 0.002
-    """Quadratic coefficient b of s(z) = a + b z^2, 1/metre (so b z^2 is metres)."""
-    error_clip: float = 10.0
-    """Normalised errors e / s(z) are clipped to +-error_clip before W1."""
-    weight_error: float = 1.0
-    """w_err: weight of the W1 term (units of s(z))."""
-    weight_invalid: float = 2.0
-    """w_inv: weight of the invalid-fraction difference."""
-    weight_spatial: float = 2.0
-    """w_sp: weight of the spatial (misplaced holes) term."""
-    min_bin_count: int = 20
-    """Bins with fewer sampled geometry pixels are left out."""
-    min_valid_count: int = 10
-    """W1 needs at least this many valid samples on both sides (else it counts 0)."""
-    spatial_block_px: int = 8
-    """Block size (pixels) of the spatial term."""
-    spatial_kappa: float = 2.0
-    """Binomial standard deviations of hole-rate difference forgiven per block."""
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    """How features are computed and binned."""
-
-    def validate(self) -> "CompareConfig":
-        if self.max_pixels_per_frame is not None and int(self.max_pixels_per_frame) < 1:
-            raise ConfigError(f"max_pixels_per_frame must be >= 1 or None, got {self.max_pixels_per_frame}")
-        for name in (*self.gap_features, *self.extra_features):
-            if name not in FEATURES:
-                raise ConfigError(f"unknown lab feature {name!r}; known: {', '.join(FEATURES)}")
-        if self.scale_a_m < 0 or self.scale_b_per_m < 0 or self.scale_a_m + self.scale_b_per_m <= 0:
-            raise ConfigError("error scale s(z) = a + b z^2 needs a, b >= 0, not both 0")
-        for name in ("error_clip", "weight_error", "weight_invalid", "weight_spatial", "spatial_kappa"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{name} must be a finite number >= 0, got {v}")
-        if self.error_clip <= 0:
-            raise ConfigError("error_clip must be > 0")
-        if self.min_bin_count < 1 or self.min_valid_count < 1 or self.spatial_block_px < 1:
-            raise ConfigError("min_bin_count, min_valid_count and spatial_block_px must be >= 1")
-        self.features.validate()
-        return self
-
-    def feature_names(self) -> list[str]:
-        """Gap and extra features in registry order."""
-        wanted = set(self.gap_features) | set(self.extra_features)
-        return [n for n in FEATURES if n in wanted]
-
-    def to_dict(self) -> dict:
-        return config_to_dict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "CompareConfig":
-        return config_from_dict(cls, d, "compare config")
-
-
-PRESETS: dict[str, CompareConfig] = {
-    "default": CompareConfig(),
-    "fast": CompareConfig(max_pixels_per_frame=5000),
-    "exact": CompareConfig(max_pixels_per_frame=None),
-}
-"""Named configurations: ``default`` (20k samples/frame), ``fast`` (5k), ``exact`` (all pixels)."""
-
-
-def compare_preset(name: str) -> CompareConfig:
-    """A fresh copy of a named preset."""
-    if name not in PRESETS:
-        raise ConfigError(f"unknown compare preset {name!r}; known: {', '.join(PRESETS)}")
-    return CompareConfig.from_dict(PRESETS[name].to_dict())
-
-
-def error_scale_m(z_m: np.ndarray, config: CompareConfig) -> np.ndarray:
-    """s(z) = a + b z^2 in metres for ideal depths z (metres)."""
-    z = np.asarray(z_m, dtype=np.float64)
-    return config.scale_a_m + config.scale_b_per_m * z * z
-
-
-# --------------------------------------------------------------------------------------------
-# Grouped statistics (vectorised over bins)
-# --------------------------------------------------------------------------------------------
-
-def wasserstein1(a: np.ndarray, b: np.ndarray) -> float:
-    """Exact 1-D Wasserstein-1 distance between two empirical samples (any sizes)."""
-    a = np.asarray(a, dtype=np.float64).ravel()
-    b = np.asarray(b, dtype=np.float64).ravel()
-    if a.size == 0 or b.size == 0:
-        raise RealgapError("wasserstein1 needs two non-empty samples")
-    w, _, _ = _Pooled(a, np.ones(a.size, bool), b, np.ones(b.size, bool),
-                      index_a=np.zeros(a.size, np.int64), index_b=np.zeros(b.size, np.int64)).w1(
-        np.zeros(1, np.int64), 1)
-    return float(w[0])
-
-
-def _sort_key_dtype(nkeys: int):
-    return np.int16 if nkeys < 32767 else np.int64
-
-
-class _Pooled:
-    """Valid samples of both sources sorted once by value; W1 per group by one integer sort.
-
-    Sample k of source a has value ya[k] and belongs to ``index_a[k]`` (a row of the key array
-    passed to :meth:`w1`); same for b.
-    """
-
-    def __init__(self, ya, valid_a, yb, valid_b, index_a=None, index_b=None):
-        ia = np.flatnonzero(valid_a)
-        ib = np.flatnonzero(valid_b)
-        vals = np.concatenate([ya[ia], yb[ib]])
-        order = np.argsort(vals)  # ties: any order (zero-width steps)
-        self.v = vals[order]
-        self.src = np.concatenate([np.zeros(ia.size, bool), np.ones(ib.size, bool)])[order]
-        rows_a = ia if index_a is None else index_a[ia]
-        rows_b = ib if index_b is None else index_b[ib]
-        self.row = np.concatenate([rows_a, rows_b])[order]
-
-    def w1(self, keys: np.ndarray, nkeys: int):
-        """(W1 per key, valid count a per key, valid count b per key); keys (rows,) int, -1 = out.
-
-        Sorted by (key, value), each element carries the integer weight +n_b (source a) or -n_a
-        (source b) of its key, so the running sum is n_a n_b (F_a - F_b) inside a key and returns
-        exactly to 0 at its end (integer arithmetic: identical samples give exactly 0); W1 is the
-        sum of |F_a - F_b| times the gap to the next value. Keys with an empty side get zero
-        weights (their W1 is reported as 0 and masked by the caller).
-        """
-        dt = _sort_key_dtype(nkeys + 1)
-        kk = keys.astype(dt)
-        kk[kk < 0] = nkeys                                   # 'out' group, weight 0
-        k = kk[self.row]
-        perm = np.argsort(k, kind="stable")                 # radix sort for int16
-        k = k[perm]
-        s = self.src[perm]
-        v = self.v[perm]
-        nb = np.bincount(k, weights=s, minlength=nkeys + 1).round()
-        na = np.bincount(k, minlength=nkeys + 1) - nb
-        both = (na > 0) & (nb > 0)
-        both[nkeys] = False
-        na = na.astype(np.int64)
-        nb = nb.astype(np.int64)
-        # integer weights n_b (a) and -n_a (b): the running sum is n_a n_b (F_a - F_b); it stays an
-        # integer below 2**53 (n_a n_b < 1e15), so float64 holds it exactly
-        table = np.zeros(2 * (nkeys + 1))
-        table[0::2] = np.where(both, nb, 0)
-        table[1::2] = np.where(both, -na, 0)
-        idx = k.astype(np.int32)
-        idx <<= 1
-        idx += s
-        w = table[idx]
-        if k.size < 2:
-            return np.zeros(nkeys), na[:nkeys], nb[:nkeys]
-        norm = np.where(both, 1.0 / np.maximum(na * nb, 1), 0.0)
-        d = np.cumsum(w)[:-1]
-        np.abs(d, out=d)
-        d *= norm[k[:-1]]
-        d *= np.diff(v)
-        d[k[1:] != k[:-1]] = 0.0
-        out = np.bincount(k[:-1], weights=d, minlength=nkeys + 1)[:nkeys]
-        return out, na[:nkeys], nb[:nkeys]
-
-
-class _Sorted:
-    """Valid raw errors of one source sorted by value, for per-group quantiles."""
-
-    def __init__(self, e, valid):
-        rows = np.flatnonzero(valid)
-        vals = e[rows]
-        order = np.argsort(vals)  # ties: any order (zero-width steps)
-        self.v = vals[order]
-        self.row = rows[order]
-
-    def quantiles(self, keys, nkeys, qs=(0.25, 0.5, 0.75)) -> np.ndarray:
-        """(len(qs), nkeys) linear-interpolated quantiles per key (NaN for empty keys)."""
-        kk = keys.astype(_sort_key_dtype(nkeys + 1))
-        kk[kk < 0] = nkeys
-        k = kk[self.row]
-        perm = np.argsort(k, kind="stable")
-        k, v = k[perm], self.v[perm]
-        n = np.bincount(k, minlength=nkeys + 1)[:nkeys]
-        start = np.searchsorted(k, np.arange(nkeys))
-        out = np.full((len(qs), nkeys), np.nan)
-        ok = n > 0
-        if not ok.any():
-            return out
-        for i, q in enumerate(qs):
-            pos = start[ok] + q * (n[ok] - 1)
-            lo = np.floor(pos).astype(np.int64)
-            hi = np.minimum(lo + 1, start[ok] + n[ok] - 1)
-            out[i, ok] = v[lo] + (pos - lo) * (v[hi] - v[lo])
-        return out
-
-
-W1_NULL_CONSTANT = 1.2884
-"""E[W1] between two samples (sizes n, m) of one normal distribution of std sigma is
-``1.2884 sigma sqrt(1/n + 1/m)`` (sqrt(2/pi) * integral of sqrt(Phi (1 - Phi)); checked by
-simulation in the tests)."""
-
-
-def _noise_floor(n, pm, ps, na, nb, var_w, cfg: CompareConfig):
-    """Expected bin term when both images come from the same process (sampling noise only).
-
-    W1 part: ``W1_NULL_CONSTANT * sigma * sqrt(1/n_a + 1/n_b)`` with sigma the within-source
-    std of the clipped normalised errors (``var_w``); invalid part: E|p_a - p_b| =
-    sqrt(2/pi) sqrt(2 p (1 - p) / n) at the pooled hole rate p.
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w1_ok = (na >= cfg.min_valid_count) & (nb >= cfg.min_valid_count)
-        both = np.minimum(1 - pm, 1 - ps)
-        e = W1_NULL_CONSTANT * np.sqrt(np.maximum(var_w, 0)) * np.sqrt(1 / np.maximum(na, 1) + 1 / np.maximum(nb, 1))
-        p = 0.5 * (pm + ps)
-        i = math.sqrt(2 / math.pi) * np.sqrt(2 * p * (1 - p) / n)
-    floor = cfg.weight_error * both * np.where(w1_ok, e, 0.0) + cfg.weight_invalid * i
-    return np.where(n >= cfg.min_bin_count, floor, np.nan)
-
-
-def _within_var(keys, nkeys, ym, vm, ys, vs):
-    """Pooled within-source variance of the (clipped, normalised) errors per key."""
-    out_s = np.zeros(nkeys)
-    out_n = np.zeros(nkeys)
-    for y, v in ((ym, vm), (ys, vs)):
-        sel = v & (keys >= 0)
-        k = keys[sel]
-        yy = y[sel]
-        c = np.bincount(k, minlength=nkeys).astype(np.float64)
-        s1 = np.bincount(k, weights=yy, minlength=nkeys)
-        s2 = np.bincount(k, weights=yy * yy, minlength=nkeys)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out_s += np.where(c > 0, s2 - s1 * s1 / np.maximum(c, 1), 0.0)
-        out_n += np.maximum(c - 1, 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(out_n > 0, out_s / out_n, np.nan)
-
-
-def _bin_terms(n, inv_m, inv_s, w1, na, nb, cfg: CompareConfig):
-    """Per-bin arrays: p_m, p_s, w1 (NaN where not computed), invalid term, term (NaN = left out)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        pm = inv_m / n
-        ps = inv_s / n
-    w1_ok = (na >= cfg.min_valid_count) & (nb >= cfg.min_valid_count)
-    w1v = np.where(w1_ok, w1, np.nan)
-    both = np.minimum(1 - pm, 1 - ps)
-    err_term = cfg.weight_error * both * np.where(w1_ok, w1, 0.0)
-    inv_term = cfg.weight_invalid * np.abs(pm - ps)
-    term = err_term + inv_term
-    used = n >= cfg.min_bin_count
-    return pm, ps, w1v, np.where(used, err_term, np.nan), np.where(used, inv_term, np.nan), np.where(used, term, np.nan)
-
-
-def _weighted_mean(term, n):
-    ok = np.isfinite(term)
-    tot = n[ok].sum()
-    return float((term[ok] * n[ok]).sum() / tot) if tot > 0 else float("nan")
-
-
-# --------------------------------------------------------------------------------------------
-# Sampling
-# --------------------------------------------------------------------------------------------
-
-@dataclass
-class _Samples:
-    frame: np.ndarray
-    z: np.ndarray
-    err_m: np.ndarray
-    err_s: np.ndarray
-    valid_m: np.ndarray
-    valid_s: np.ndarray
-    values: dict            # feature -> float array (numeric) or int codes (categorical)
-    categories: dict        # categorical feature -> list of names
-    spatial: np.ndarray     # (F, 2): sum n*d, sum n per frame
-    skipped: dict
-    diagnostics: dict
-
-
-def _blocksum(mask: np.ndarray, B: int) -> np.ndarray:
-    """Sum of ``mask`` over B x B image blocks (the image zero-padded to whole blocks)."""
-    h, w = mask.shape
-    H, W = -(-h // B) * B, -(-w // B) * B
-    p = np.zeros((H, W), np.int32)
-    p[:h, :w] = mask
-    return p.reshape(H // B, B, W // B, B).sum(axis=(1, 3))
-
-
-@dataclass
-class _FrameStatic:
-    """Everything :func:`compare` derives from one frame's measured depth and ideal geometry
-    alone (independent of the simulated depth): the sampled pixels, their ideal depth, measured
-    errors and feature values (the edge distance transforms are computed here), and the
-    measured side of the spatial term."""
-
-    geom: np.ndarray          # (H, W) bool, ideal > 0
-    flat: np.ndarray          # (N,) sampled flat pixel indices (sorted)
-    z: np.ndarray             # (N,) ideal depth, metres
-    err_m: np.ndarray         # (N,) measured - ideal, metres; NaN where invalid
-    values: dict              # feature -> (N,) float array | CategoricalValues | None (unavailable)
-    block_n: np.ndarray       # (by, bx) float geometry pixels per spatial block
-    block_inv_m: np.ndarray   # (by, bx) int measured holes on geometry per block
-    counts: tuple             # (no-geometry px, no-geometry px measured valid, geometry px)
-
-
-def _frame_static(i: int, o: FrameObservation, cfg: CompareConfig, feats: dict) -> _FrameStatic:
-    geom = o.ideal > 0
-    vm = o.measured > 0
-    ng = ~geom
-    B = int(cfg.spatial_block_px)
-    flat = np.flatnonzero(geom.ravel())
-    m = cfg.max_pixels_per_frame
-    if m is not None and flat.size > m:
-        rng = np.random.default_rng([int(cfg.seed), i])
-        flat = np.sort(rng.choice(flat, size=int(m), replace=False))
-    z = o.ideal.reshape(-1)[flat].astype(np.float64)
-    me = o.measured.reshape(-1)[flat].astype(np.float64)
-    ff = FrameFeatures(o, cfg.features)
-    values = {}
-    for name, feat in feats.items():
-        values[name] = feat.values(ff, flat) if feat.available(ff) else None
-    return _FrameStatic(geom, flat, z, np.where(me > 0, me - z, np.nan), values,
-                        _blocksum(geom, B).astype(np.float64), _blocksum(geom & ~vm, B),
-                        (int(ng.sum()), int((ng & vm).sum()), int(geom.sum())))
-
-
-class CompareCache:
-    """Per-frame cache of what :func:`compare` derives from the measured depth and the ideal
-    geometry alone (sampled pixels, feature values incl. the 4 edge distance transforms,
-    measured errors, measured block hole counts), for callers that compare the *same* measured
-    frames with many simulations (a fit: hundreds of comparisons).
-
-    An entry is keyed by the frame's position in the observation list and the settings that
-    shape it (pixel count, seed, features), and is used only when the frame's ``measured``,
-    ``ideal``, ``normals`` and ``material_ids`` are the *same array objects* as when it was
-    stored (and intrinsics, projector offset and material table are equal); the entry holds
-    references to them, so an id cannot be reused while it lives. The arrays must not be
-    modified in place while cached (:class:`~synth.lab.measured.MeasuredSequence` never does).
-    With or without the cache :func:`compare` returns identical results (tested).
-
-    ``max_entries`` bounds the memory (least recently used entries are dropped; an entry holds
-    ~10 arrays of ``max_pixels_per_frame`` values plus an (H, W) mask: ~0.6 MB at 4000 samples
-    of a VGA frame, ~2 MB at 20000).
-    """
-
-    def __init__(self, max_entries: int = 96):
-        from collections import OrderedDict
-        self.max_entries = int(max_entries)
-        self._entries: OrderedDict = OrderedDict()
-        self.hits = 0
-        """Lookups served from the cache."""
-        self.misses = 0
-        """Lookups that computed (and stored) an entry."""
-
-    @staticmethod
-    def _settings(cfg: CompareConfig) -> tuple:
-        return (cfg.max_pixels_per_frame, int(cfg.seed), int(cfg.spatial_block_px),
-                json.dumps(cfg.features.to_dict(), sort_keys=True), tuple(cfg.feature_names()))
-
-    def frame(self, i: int, o: FrameObservation, cfg: CompareConfig, feats: dict) -> _FrameStatic:
-        key = (int(i), self._settings(cfg))
-        e = self._entries.get(key)
-        if e is not None:
-            src, static = e
-            if (src[0] is o.measured and src[1] is o.ideal and src[2] is o.normals and src[3] is o.material_ids
-                    and src[4] == (o.intrinsics, o.projector_offset_m, dict(o.material_names))):
-                self._entries.move_to_end(key)
-                self.hits += 1
-                return static
-        static = _frame_static(i, o, cfg, feats)
-        self.misses += 1
-        self._entries[key] = ((o.measured, o.ideal, o.normals, o.material_ids,
-                               (o.intrinsics, o.projector_offset_m, dict(o.material_names))), static)
-        self._entries.move_to_end(key)
-        while len(self._entries) > self.max_entries:
-            self._entries.popitem(last=False)
-        return static
-
-    def clear(self) -> None:
-        self._entries.clear()
-
-    def __len__(self) -> int:
-        return len(self._entries)
-
-
-def _collect(obs: list[FrameObservation], cfg: CompareConfig, feats: dict,
-             cache: CompareCache | None = None) -> _Samples:
-    frames, zs, ems, ess, values, cats = [], [], [], [], {k: [] for k in feats}, {}
-    cat_index: dict[str, dict[str, int]] = {}
-    available = {k: False for k in feats}
-    spatial = np.zeros((len(obs), 2))
-    unmod = np.zeros(4)
-    for i, o in enumerate(obs):
-        st = cache.frame(i, o, cfg, feats) if cache is not None else _frame_static(i, o, cfg, feats)
-        geom = st.geom
-        vs = o.simulated > 0
-        # spatial term (module docstring): hole-rate difference per block beyond binomial noise
-        n = st.block_n
-        with np.errstate(invalid="ignore", divide="ignore"):
-            qm, qs = st.block_inv_m / n, _blocksum(geom & ~vs, int(cfg.spatial_block_px)) / n
-            q = 0.5 * (qm + qs)
-            thr = cfg.spatial_kappa * np.sqrt(2.0 * q * (1.0 - q) / n)
-            d = np.maximum(0.0, np.abs(qm - qs) - thr)
-        ok = n >= max(1.0, cfg.spatial_block_px ** 2 / 4.0)
-        n = np.where(ok, n, 0.0)
-        d = np.where(ok, d, 0.0)
-        spatial[i] = ((n * d).sum(), n.sum())
-        ng_count, ng_vm, geom_count = st.counts
-        unmod += (ng_count, ng_vm, int(np.count_nonzero(vs)) - int(np.count_nonzero(vs & geom)), geom_count)
-        flat = st.flat
-        se = o.simulated.reshape(-1)[flat].astype(np.float64)
-        frames.append(np.full(flat.size, i, np.int32))
-        zs.append(st.z)
-        ems.append(st.err_m)
-        ess.append(np.where(se > 0, se - st.z, np.nan))
-        for name, feat in feats.items():
-            v = st.values[name]
-            if v is None:
-                values[name].append(np.full(flat.size, -1 if feat.categorical else np.nan))
-                continue
-            available[name] = True
-            if feat.categorical:
-                assert isinstance(v, CategoricalValues)
-                idx = cat_index.setdefault(name, {})
-                lut = np.array([idx.setdefault(s, len(idx)) for s in v.names] + [-1], np.int64)
-                values[name].append(lut[np.where(v.codes >= 0, v.codes, len(v.names))])
-            else:
-                values[name].append(np.asarray(v, dtype=np.float64))
-    for name, idx in cat_index.items():
-        cats[name] = list(idx)
-    skipped = {}
-    for name, ok in available.items():
-        if not ok:
-            reason = ("needs projector_offset_m with an x/y component"
-                      if name in ("edge_shadow", "incidence_projector") else "not available for these frames")
-            skipped[name] = reason
-    diag = {
-        "geometry_pixels": int(unmod[3]),
-        "no_geometry_pixels": int(unmod[0]),
-        "unmodelled_valid_fraction": {
-            "measured": float(unmod[1] / unmod[0]) if unmod[0] else 0.0,
-            "simulated": float(unmod[2] / unmod[0]) if unmod[0] else 0.0},
-    }
-    cat = lambda xs, dt: np.concatenate(xs) if xs else np.zeros(0, dt)  # noqa: E731
-    em, es = cat(ems, np.float64), cat(ess, np.float64)
-    return _Samples(cat(frames, np.int32), cat(zs, np.float64), em, es, np.isfinite(em),
-                    np.isfinite(es), {k: cat(v, np.float64) for k, v in values.items()}, cats,
-                    spatial, skipped, diag)
-
-
-# --------------------------------------------------------------------------------------------
 # Result
 # --------------------------------------------------------------------------------------------
-
-def _clean(x):
-    """JSON-safe copy: NaN/inf -> None, numpy -> Python."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return x if math.isfinite(x) else None
-    return x
-
 
 def _nan(x):
     """Inverse of :func:`_clean` for numeric lists: None -> NaN."""
@@ -634,7 +161,7 @@ class CompareResult:
     """Free text describing the run."""
 
     def to_json(self) -> dict:
-        return _clean({
+        return json_safe({
             "gap": self.gap, "spatial_term": self.spatial_term,
             "feature_terms": self.feature_terms, "gap_features": self.gap_features,
             "breakdowns": self.breakdowns, "frame_gaps": self.frame_gaps,
@@ -680,7 +207,7 @@ class CompareResult:
         atomically; ``header``: the result header (:mod:`data_tools.results`) written with it."""
         from data_tools.results import atomic_write_json, write_result
         out = Path(out_dir)
-        atomic_write_json(out / CONFIG_FILE, _clean(self.config))
+        atomic_write_json(out / CONFIG_FILE, json_safe(self.config))
         if header is None:
             return atomic_write_json(out / METRICS_FILE, self.to_json(), indent=1, allow_nan=False)
         return write_result(out / METRICS_FILE, header, self.to_json(), indent=1, allow_nan=False)
@@ -704,7 +231,7 @@ def load_result(path: str | os.PathLike) -> CompareResult:
 # The comparison
 # --------------------------------------------------------------------------------------------
 
-def _check_observations(observations) -> list[FrameObservation]:
+def check_observations(observations) -> list[FrameObservation]:
     obs = list(observations)
     if not obs:
         raise RealgapError("compare: no frames given")
@@ -722,9 +249,9 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
     ``cache``: a :class:`CompareCache` to reuse what depends on the measured depth and the ideal
     geometry only (for repeated comparisons of the same measured frames; same result)."""
     cfg = (config or CompareConfig()).validate()
-    obs = _check_observations(observations)
+    obs = check_observations(observations)
     feats = {name: make_feature(name, cfg.features) for name in cfg.feature_names()}
-    smp = _collect(obs, cfg, feats, cache)
+    smp = collect_samples(obs, cfg, feats, cache)
     nf = len(obs)
     if smp.z.size == 0:
         raise RealgapError("compare: no frame has ideal geometry (ideal depth is 0 everywhere)")
@@ -733,9 +260,9 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
     c = cfg.error_clip
     ym = np.clip(smp.err_m / scale, -c, c)
     ys = np.clip(smp.err_s / scale, -c, c)
-    pooled = _Pooled(ym, smp.valid_m, ys, smp.valid_s)
-    sorted_m = _Sorted(smp.err_m, smp.valid_m)
-    sorted_s = _Sorted(smp.err_s, smp.valid_s)
+    pooled = Pooled(ym, smp.valid_m, ys, smp.valid_s)
+    sorted_m = SortedErrors(smp.err_m, smp.valid_m)
+    sorted_s = SortedErrors(smp.err_s, smp.valid_s)
     inv_m_w = (~smp.valid_m).astype(np.float64)
     inv_s_w = (~smp.valid_s).astype(np.float64)
 
@@ -764,13 +291,13 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
         im = np.bincount(b[inb], weights=inv_m_w[inb], minlength=k)
         is_ = np.bincount(b[inb], weights=inv_s_w[inb], minlength=k)
         w1, na, nb = pooled.w1(b, k)
-        pm, ps, w1v, et, it, term = _bin_terms(n, im, is_, w1, na, nb, cfg)
-        floor = _noise_floor(n, pm, ps, na, nb, _within_var(b, k, ym, smp.valid_m, ys, smp.valid_s), cfg)
+        pm, ps, w1v, et, it, term = bin_terms(n, im, is_, w1, na, nb, cfg)
+        floor = noise_floor(n, pm, ps, na, nb, within_var(b, k, ym, smp.valid_m, ys, smp.valid_s), cfg)
         qm = sorted_m.quantiles(b, k)
         qs = sorted_s.quantiles(b, k)
         qm[:, na < cfg.min_valid_count] = np.nan   # no bias/std from a handful of pixels
         qs[:, nb < cfg.min_valid_count] = np.nan
-        ft = _weighted_mean(term, n)
+        ft = weighted_mean(term, n)
         feature_terms[name] = ft
         bd = {
             "title": feat.title, "unit": feat.unit, "categorical": feat.categorical,
@@ -799,9 +326,9 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
         im2 = np.bincount(fk[inb], weights=inv_m_w[inb], minlength=nkeys)
         is2 = np.bincount(fk[inb], weights=inv_s_w[inb], minlength=nkeys)
         w12, na2, nb2 = pooled.w1(fk, nkeys)
-        t2 = _bin_terms(n2, im2, is2, w12, na2, nb2, cfg)[5].reshape(nf, k)
+        t2 = bin_terms(n2, im2, is2, w12, na2, nb2, cfg)[5].reshape(nf, k)
         n2 = n2.reshape(nf, k)
-        frame_terms[name] = np.array([_weighted_mean(t2[i], n2[i]) for i in range(nf)])
+        frame_terms[name] = np.array([weighted_mean(t2[i], n2[i]) for i in range(nf)])
 
     gap_feats = [f for f in cfg.feature_names() if f in cfg.gap_features and f in feature_terms
                  and math.isfinite(feature_terms[f])]
@@ -827,209 +354,3 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
                          frame_indices=[o.index for o in obs], n_samples=int(smp.z.size),
                          config=cfg.to_dict(), diagnostics=diag, skipped_features=skipped,
                          effects=[str(e) for e in effects], label=label)
-
-
-# --------------------------------------------------------------------------------------------
-# Maps and worst regions
-# --------------------------------------------------------------------------------------------
-
-VALIDITY_BOTH_VALID, VALIDITY_MEASURED_ONLY, VALIDITY_SIMULATED_ONLY, VALIDITY_BOTH_INVALID = 0, 1, 2, 3
-VALIDITY_LABELS = ("both valid", "measured valid only", "simulated valid only", "both invalid")
-"""Names of the codes of :func:`validity_map`."""
-
-
-def error_map(obs: FrameObservation) -> np.ndarray:
-    """(H, W) float32 measured - simulated depth, metres; NaN where either is invalid."""
-    m, s = obs.measured, obs.simulated
-    out = (m - s).astype(np.float32)
-    out[(m <= 0) | (s <= 0)] = np.nan
-    return out
-
-
-def validity_map(obs: FrameObservation) -> np.ndarray:
-    """(H, W) uint8 codes: 0 both valid, 1 measured valid only, 2 simulated valid only, 3 both invalid."""
-    vm = obs.measured > 0
-    vs = obs.simulated > 0
-    out = np.full(obs.shape, VALIDITY_BOTH_INVALID, np.uint8)
-    out[vm & vs] = VALIDITY_BOTH_VALID
-    out[vm & ~vs] = VALIDITY_MEASURED_ONLY
-    out[~vm & vs] = VALIDITY_SIMULATED_ONLY
-    return out
-
-
-@dataclass
-class Region:
-    """One place where the model fails: a feature bin or an image block."""
-
-    kind: str
-    """``"bin"`` (a feature bin) or ``"block"`` (an image block of one frame)."""
-    rank: int
-    """1 = worst within its kind."""
-    score: float
-    """Excess of the bin's term (bins) or the block's local gap (blocks) over its noise floor."""
-    description: str
-    """One sentence saying what is wrong."""
-    feature: str | None = None
-    """Feature of a bin region."""
-    bin_label: str | None = None
-    """Label of the bin."""
-    frame: int | None = None
-    """Position of the frame in the observation list (blocks)."""
-    frame_index: int | None = None
-    """``FrameObservation.index`` of that frame (blocks)."""
-    bbox: tuple[int, int, int, int] | None = None
-    """(x0, y0, x1, y1) pixels, end exclusive (blocks)."""
-    details: dict = field(default_factory=dict)
-    """Numbers behind the sentence (invalid fractions, bias/std in metres, terms)."""
-
-    def to_json(self) -> dict:
-        return _clean(asdict(self))
-
-
-def _mm(x: float) -> str:
-    return "n/a" if not math.isfinite(x) else f"{1000 * x:.1f} mm"
-
-
-def _diagnose(pm, ps, bm, bs, sm, ss, err_part, inv_part) -> str:
-    if inv_part >= err_part:
-        if ps > pm:
-            return f"the model drops too many pixels ({100 * ps:.0f}% invalid vs {100 * pm:.0f}% measured)"
-        return f"the model keeps pixels the sensor loses ({100 * ps:.0f}% invalid vs {100 * pm:.0f}% measured)"
-    db = bs - bm if math.isfinite(bs) and math.isfinite(bm) else 0.0
-    ds = ss - sm if math.isfinite(ss) and math.isfinite(sm) else 0.0
-    if abs(db) >= abs(ds):
-        side = "far" if db > 0 else "near"
-        return f"the model is {_mm(abs(db))} too {side} (median error {_mm(bs)} vs {_mm(bm)} measured)"
-    lvl = "high" if ds > 0 else "low"
-    return f"the model's noise is too {lvl} (robust std {_mm(ss)} vs {_mm(sm)} measured)"
-
-
-SIGNIFICANCE = 3.0
-"""A bin or block is reported only when its term exceeds this multiple of its noise floor (the
-null term's spread is ~0.37 of the floor, so 3x is ~5 standard deviations: with ~100 bins per
-comparison a lower threshold lists sampling noise of a correct model)."""
-
-
-def worst_bins(result: CompareResult, top: int = 5, min_share: float = 0.005,
-               significance: float = SIGNIFICANCE) -> list[Region]:
-    """Feature bins of the gap features where the model disagrees most, worst first.
-
-    Candidates: bins holding at least ``min_share`` of the feature's sampled pixels whose term
-    exceeds ``significance`` times its noise floor (the term expected from sampling noise alone
-    when the model is right). Ranked by the excess ``term - floor`` (per-pixel disagreement
-    beyond noise): ranking by the raw contribution ``(n_b / N) term_b / |features|`` would always
-    name the biggest bins (e.g. the dominant material) instead of where the failure
-    concentrates; the contribution is kept in ``details["contribution"]``. An empty list means
-    no bin differs from the measurement beyond sampling noise.
-    """
-    out = []
-    nfeat = max(1, len(result.gap_features))
-    for f in result.gap_features:
-        b = result.breakdowns[f]
-        n = np.asarray(b["measured"]["count"], dtype=np.float64)
-        term = np.asarray(b["term"], dtype=np.float64)
-        floor = np.asarray(b.get("noise_floor", np.zeros(len(term))), dtype=np.float64)
-        floor = np.where(np.isfinite(floor), floor, 0.0)
-        ok = np.isfinite(term)
-        tot = n[ok].sum()
-        if tot <= 0:
-            continue
-        for i in np.flatnonzero(ok & (n >= min_share * tot) & (term > significance * floor) & (term > 0)):
-            contrib = float(n[i] * term[i] / tot / nfeat)
-            m, s = b["measured"], b["simulated"]
-            vals = [float(x) for x in (m["invalid_fraction"][i], s["invalid_fraction"][i], m["bias"][i],
-                                       s["bias"][i], m["std"][i], s["std"][i],
-                                       b["error_term"][i], b["invalid_term"][i])]
-            label = b["labels"][i]
-            unit = {"deg": "°"}.get(b["unit"], b["unit"])
-            where = f"{f.replace('_', ' ')} {label}" + (f" {unit}" if unit and not label.endswith(unit) else "")
-            share = 100 * contrib / result.gap if result.gap > 0 else 0.0
-            desc = (f"{where} ({100 * n[i] / tot:.0f}% of pixels, bin term {term[i]:.3f}, "
-                    f"{term[i] / floor[i] if floor[i] > 0 else math.inf:.0f}x the noise floor): "
-                    f"{_diagnose(*vals)}; {share:.0f}% of the gap.")
-            out.append(Region("bin", 0, float(term[i] - floor[i]), desc, feature=f, bin_label=label, details={
-                "count": int(n[i]), "share": float(n[i] / tot), "contribution": contrib,
-                "term": float(term[i]), "noise_floor": float(floor[i]),
-                "invalid_fraction_measured": vals[0], "invalid_fraction_simulated": vals[1],
-                "bias_measured_m": vals[2], "bias_simulated_m": vals[3], "std_measured_m": vals[4],
-                "std_simulated_m": vals[5], "error_term": vals[6], "invalid_term": vals[7]}))
-    out.sort(key=lambda r: -r.score)
-    out = out[:top]
-    for k, r in enumerate(out, 1):
-        r.rank = k
-    return out
-
-
-def worst_blocks(observations: Sequence[FrameObservation], config: CompareConfig | None = None,
-                 top: int = 5, block_px: int = 32, significance: float = SIGNIFICANCE) -> list[Region]:
-    """Image blocks (``block_px`` squares, all pixels) with the highest local gap beyond noise.
-
-    Local gap of a block = the per-bin term of the module docstring with the block as the bin
-    (W1 of normalised errors weighted by the both-valid fraction + w_inv * hole-rate
-    difference). Blocks with less than a quarter of their pixels on geometry, or whose local
-    gap is below ``significance`` times its sampling-noise floor, are skipped; the rest are
-    ranked by ``local gap - floor``.
-    """
-    cfg = (config or CompareConfig()).validate()
-    obs = _check_observations(observations)
-    if block_px < 2:
-        raise ConfigError(f"block_px must be >= 2, got {block_px}")
-    out = []
-    for fi, o in enumerate(obs):
-        h, w = o.shape
-        nbx = -(-w // block_px)
-        nby = -(-h // block_px)
-        geom = (o.ideal > 0).ravel()
-        rows = np.flatnonzero(geom)
-        v, u = np.divmod(rows, w)
-        key = (v // block_px) * nbx + (u // block_px)
-        nk = nbx * nby
-        z = o.ideal.ravel()[rows].astype(np.float64)
-        me = o.measured.ravel()[rows].astype(np.float64)
-        se = o.simulated.ravel()[rows].astype(np.float64)
-        vm, vs = me > 0, se > 0
-        em = np.where(vm, me - z, np.nan)
-        es = np.where(vs, se - z, np.nan)
-        sc = error_scale_m(z, cfg)
-        c = cfg.error_clip
-        ym, ys = np.clip(em / sc, -c, c), np.clip(es / sc, -c, c)
-        pooled = _Pooled(ym, vm, ys, vs)
-        w1, na, nb = pooled.w1(key, nk)
-        n = np.bincount(key, minlength=nk).astype(np.float64)
-        im = np.bincount(key, weights=(~vm).astype(float), minlength=nk)
-        is_ = np.bincount(key, weights=(~vs).astype(float), minlength=nk)
-        pm, ps, w1v, et, it, term = _bin_terms(n, im, is_, w1, na, nb, cfg)
-        floor = _noise_floor(n, pm, ps, na, nb, _within_var(key, nk, ym, vm, ys, vs), cfg)
-        floor = np.where(np.isfinite(floor), floor, 0.0)
-        term = np.where((n >= block_px * block_px / 4) & (term > significance * floor), term, np.nan)
-        qm = _Sorted(em, vm).quantiles(key, nk)
-        qs = _Sorted(es, vs).quantiles(key, nk)
-        for kk in np.flatnonzero(np.isfinite(term) & (term > 0)):
-            by, bx = divmod(int(kk), nbx)
-            x0, y0 = bx * block_px, by * block_px
-            x1, y1 = min(w, x0 + block_px), min(h, y0 + block_px)
-            vals = [float(x) for x in (pm[kk], ps[kk], qm[1, kk], qs[1, kk], (qm[2, kk] - qm[0, kk]) / 1.349,
-                                       (qs[2, kk] - qs[0, kk]) / 1.349, et[kk], it[kk])]
-            ratio = term[kk] / floor[kk] if floor[kk] > 0 else math.inf
-            desc = (f"frame {o.index}, x {x0}–{x1}, y {y0}–{y1} px: {_diagnose(*vals)} "
-                    f"(local gap {term[kk]:.3f}, {ratio:.0f}x the noise floor).")
-            out.append(Region("block", 0, float(term[kk] - floor[kk]), desc, frame=fi, frame_index=o.index,
-                              bbox=(x0, y0, x1, y1), details={
-                                  "count": int(n[kk]), "term": float(term[kk]), "noise_floor": float(floor[kk]),
-                                  "invalid_fraction_measured": vals[0],
-                                  "invalid_fraction_simulated": vals[1], "bias_measured_m": vals[2],
-                                  "bias_simulated_m": vals[3], "std_measured_m": vals[4],
-                                  "std_simulated_m": vals[5], "error_term": vals[6], "invalid_term": vals[7]}))
-    out.sort(key=lambda r: -r.score)
-    out = out[:top]
-    for k, r in enumerate(out, 1):
-        r.rank = k
-    return out
-
-
-def worst_regions(result: CompareResult, observations: Sequence[FrameObservation], *,
-                  top_bins: int = 5, top_blocks: int = 5, block_px: int = 32) -> list[Region]:
-    """Ranked list: the worst feature bins (by contribution to the gap), then the worst image
-    blocks of ``observations`` (by local gap), each with a one-sentence description."""
-    cfg = CompareConfig.from_dict(result.config) if result.config else CompareConfig()
-    return worst_bins(result, top_bins) + worst_blocks(observations, cfg, top_blocks, block_px)

@@ -55,7 +55,7 @@ import numpy as np
 
 from data_tools.config import config_to_dict
 from data_tools.errors import ConfigError
-from synth.lab.compare import _clean
+from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
@@ -185,7 +185,7 @@ class Diagnosis:
         return self.ranking[0] if self.ranking else None
 
     def to_json(self) -> dict:
-        return _clean({"gap": self.gap, "ranking": [c.to_json() for c in self.ranking], "model": list(self.model),
+        return json_safe({"gap": self.gap, "ranking": [c.to_json() for c in self.ranking], "model": list(self.model),
                        "gap_given": self.gap_given, "model_params": dict(self.model_params),
                        "skipped": dict(self.skipped), "frames": list(self.frames), "seconds": self.seconds,
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
@@ -209,7 +209,7 @@ class Diagnosis:
 
 def _with_effect(config, name: str):
     import dataclasses
-    from synth.sensor.simulator import SensorConfig
+    from synth.sensor.config import SensorConfig
     cand = SensorConfig.build(config.preset, [name]).effects[0]
     return dataclasses.replace(config, effects=list(config.effects) + [cand])
 

@@ -29,8 +29,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from synth.lab.features import (FrameObservation, incidence_angle_deg, radial_distance,
-                                shadow_edge_distance, signed_edge_distance)
+from synth.lab.feature_maps import incidence_angle_deg, radial_distance, shadow_edge_distance, signed_edge_distance
+from synth.lab.features import FrameObservation
 
 __all__ = ["EvidenceContext", "evidence_for", "generic_evidence", "has_evidence"]
 

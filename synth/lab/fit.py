@@ -164,7 +164,7 @@ class FitResult:
     """Outcome of :func:`fit_model`."""
 
     config: object
-    """The fitted :class:`~synth.sensor.simulator.SensorConfig`."""
+    """The fitted :class:`~synth.sensor.config.SensorConfig`."""
     gap_before: float
     """Gap of the starting model on the evaluation set (same frames, seeds and pixels as ``gap``)."""
     gap: float

@@ -224,7 +224,7 @@ class MeasuredSequence:
 
     def default_config(self, effects=None):
         """``SensorConfig.build(self.preset, effects)``."""
-        from synth.sensor.simulator import SensorConfig
+        from synth.sensor.config import SensorConfig
         return SensorConfig.build(self.preset, effects)
 
     def simulator(self, config):

@@ -1,4 +1,4 @@
-"""Sensor-model files of the lab: a :class:`~synth.sensor.simulator.SensorConfig` JSON plus fit info.
+"""Sensor-model files of the lab: a :class:`~synth.sensor.config.SensorConfig` JSON plus fit info.
 
 A model file is ``SensorConfig.to_json()`` (``{"preset": {...}, "effects": [...]}``), so
 ``synth sequence --sensor model.json`` and :class:`SensorSimulator` read it directly; the lab
@@ -33,7 +33,7 @@ def _read(path: Path) -> dict:
 
 def load_model(path: str | os.PathLike):
     """The :class:`SensorConfig` stored in a model JSON (FormatError naming the file otherwise)."""
-    from synth.sensor.simulator import SensorConfig
+    from synth.sensor.config import SensorConfig
     path = Path(path)
     d = _read(path)
     d = {k: v for k, v in d.items() if k not in ("fit", "header")}
@@ -53,21 +53,11 @@ def load_fit_info(path: str | os.PathLike) -> dict | None:
 def save_model(config, path: str | os.PathLike, fit_info: dict | None = None, header: dict | None = None) -> Path:
     """Write ``config`` (+ ``fit_info`` under ``"fit"``, + the result ``header`` of
     :mod:`data_tools.results` when given) to ``path`` atomically (folders created); returns the path."""
-    from data_tools.results import atomic_write_text
+    from data_tools.results import atomic_write_json
     d = config.to_json()
     if fit_info is not None:
         d["fit"] = fit_info
     if header is not None:
         d = {"header": header, **d}
-    return atomic_write_text(path, json.dumps(d, indent=2, default=_jsonable) + "\n")
+    return atomic_write_json(path, d, indent=2)
 
-
-def _jsonable(x):
-    import numpy as np
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON-serialisable: {type(x).__name__}")

@@ -435,7 +435,7 @@ def diagnose_sequence(req: LabRequest, out: str | Path, *, candidates: Sequence[
     refitted model and the top candidates (:func:`save_diagnosis_models`). Returns
     (Diagnosis, path of diagnosis.html)."""
     from synth.lab.diagnose import DiagnoseConfig, diagnose
-    from synth.lab.report import write_diagnosis_report
+    from synth.lab.signatures import write_diagnosis_report
     out = Path(out)
     timings = {}
     with _timed(timings, "load_s"):

@@ -40,6 +40,7 @@ from synth.jit import n_threads
 
 from data_tools.camera import Intrinsics
 from data_tools.errors import RealgapError
+from data_tools.geometry import pixel_rays
 from data_tools.scene_spec import SceneSpec
 
 AMBIENT = 0.3
@@ -73,15 +74,9 @@ def build_raycasting_scene(scene: SceneSpec):
 
 
 def pinhole_ray_dirs(intr: Intrinsics) -> np.ndarray:
-    """(H, W, 3) float32 unit ray directions in the camera frame (pixel centres at integers)."""
-    u = (np.arange(intr.width, dtype=np.float64) - intr.cx) / intr.fx
-    v = (np.arange(intr.height, dtype=np.float64) - intr.cy) / intr.fy
-    d = np.empty((intr.height, intr.width, 3))
-    d[..., 0] = u[None, :]
-    d[..., 1] = v[:, None]
-    d[..., 2] = 1.0
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    return d.astype(np.float32)
+    """(H, W, 3) float32 unit ray directions in the camera frame (pixel centres at integers;
+    :func:`data_tools.geometry.pixel_rays`)."""
+    return pixel_rays(intr).astype(np.float32)
 
 
 @dataclass

@@ -9,17 +9,20 @@ Public API::
     render_views(model, sim, out_dir)                    # object-centred views (synth.sensor.views)
 
 Submodules: presets (devices), registry (effect base class + registry), effects/ (one module
-per effect), pattern (dot patterns), matching (block matching), state, simulator, views.
+per effect), pattern (dot patterns), matching (block matching), state (what effects share within
+a frame), config (SensorConfig: a preset + effects), simulator (SensorSimulator, one frame), pool
+(trajectories, worker processes), views (object-centred views), validation (checks against physics).
 """
 from synth.sensor.pattern import DotPattern, generate_dot_pattern, load_pattern
 from synth.sensor.presets import PRESETS, SensorPreset, get_preset
 from synth.sensor.registry import Effect, effect_class, effect_names, make_effect, register_effect
-from synth.sensor.simulator import (MotionLimits, SensorConfig, SensorSimulator, SimResult, list_presets,
-                                    simulate_trajectory)
+from synth.sensor.config import MotionLimits, SensorConfig
+from synth.sensor.pool import SimulationPool, simulate_trajectory
+from synth.sensor.simulator import SensorSimulator, SimResult, list_presets
 
 __all__ = ["DotPattern", "generate_dot_pattern", "load_pattern", "PRESETS", "SensorPreset", "get_preset",
            "Effect", "effect_class", "effect_names", "make_effect", "register_effect", "MotionLimits", "SensorConfig",
-           "SensorSimulator", "SimResult", "list_presets", "simulate_trajectory", "render_views"]
+           "SensorSimulator", "SimResult", "list_presets", "simulate_trajectory", "SimulationPool", "render_views"]
 
 
 def render_views(*args, **kwargs):

@@ -227,39 +227,11 @@ def params_to_dict(params) -> dict:
 
 
 def params_from_dict(cls, d: dict, effect_name: str = ""):
-    """Build a Params dataclass from a dict; unknown keys and wrong types are ConfigErrors."""
-    if not isinstance(d, dict):
-        raise ConfigError(f"effect {effect_name!r}: params must be a JSON object")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(d) - set(fields))
-    if unknown:
-        raise ConfigError(f"effect {effect_name!r}: unknown parameter(s) {', '.join(unknown)}; "
-                          f"known: {', '.join(fields)}")
-    kw = {}
-    for k, v in d.items():
-        default = getattr(cls(), k)
-        try:
-            if isinstance(default, bool):
-                if not isinstance(v, bool):
-                    raise TypeError("expected true/false")
-                kw[k] = v
-            elif isinstance(default, int) and not isinstance(default, bool):
-                if float(v) != int(v):
-                    raise TypeError("expected an integer")
-                kw[k] = int(v)
-            elif isinstance(default, float):
-                kw[k] = float(v)
-            elif isinstance(default, tuple):
-                kw[k] = tuple(float(x) for x in v)
-            elif isinstance(default, str):
-                if not isinstance(v, str):
-                    raise TypeError("expected a string")
-                kw[k] = v
-            else:
-                kw[k] = v
-        except (TypeError, ValueError) as e:
-            raise ConfigError(f"effect {effect_name!r}: parameter {k}={v!r} has the wrong type ({e})") from None
-    return cls(**kw)
+    """Build a Params dataclass from a dict (:func:`data_tools.config.config_from_dict`): missing
+    keys keep their defaults; unknown keys and wrong types are one-line ConfigErrors naming the
+    effect and the parameter."""
+    from data_tools.config import config_from_dict
+    return config_from_dict(cls, d, f"effect {effect_name!r} params", item="parameter")
 
 
 _REGISTRY: dict[str, type[Effect]] = {}

@@ -189,12 +189,6 @@ def empty_view(shape: tuple[int, int]) -> ViewGeometry:
                         z3.copy(), np.broadcast_to(np.eye(4), (H, 4, 4)))
 
 
-def pinhole_rays(intr: Intrinsics) -> np.ndarray:
-    """(H, W, 3) float32 unit ray directions (same convention as synth.render)."""
-    from synth.render import pinhole_ray_dirs
-    return pinhole_ray_dirs(intr)
-
-
 # ------------------------------------------------------------------------------------------
 # Camera motion within a frame
 # ------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, Signature, r
 
 @dataclass
 class LensDistortionParams:
-    coefficients: tuple = ()
+    coefficients: tuple[float, ...] = ()
     """OpenCV (k1, k2, p1, p2, k3); empty = the preset's ``distortion``."""
     k1: float = 0.0
     """Radial distortion added to k1 of ``coefficients`` (else of the preset's distortion): what the
