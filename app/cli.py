@@ -65,8 +65,9 @@ def main(argv: list[str] | None = None) -> int:
         # a group without its subcommand: print that group's help
         (getattr(args, "_group_parser", None) or parser).print_help()
         return 1 if args.command else 0
+    from data_tools.results import running_command
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), running_command(sys.argv[1:] if argv is None else argv):
             warnings.simplefilter("default")
             warnings.showwarning = _one_line_warning
             rc = func(args)

@@ -8,8 +8,11 @@ builds one back, converting each value to its field's annotated type and raising
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
 import json
+import textwrap
 import types
 import typing
 from typing import Any
@@ -166,3 +169,22 @@ def config_from_options(cls: type, items, flag: str, base: dict | None = None) -
     except (TypeError, ValueError) as e:
         raise ConfigError(f"{flag}: bad value ({e})") from None
     return obj
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Docstrings written under the fields of dataclass ``cls`` (and its bases), by field name."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass is object or not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            src = textwrap.dedent(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = ast.parse(src).body[0].body
+        for a, b in zip(body, body[1:]):
+            if (isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name)
+                    and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
+                    and isinstance(b.value.value, str)):
+                docs[a.target.id] = " ".join(b.value.value.split())
+    return docs

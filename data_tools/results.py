@@ -175,16 +175,37 @@ def _flat_numbers(d: dict | None) -> dict[str, float]:
     return out
 
 
+_COMMAND: list[str | None] = [None]
+"""The command line being run (set by :func:`running_command`), recorded in every header."""
+
+
+class running_command:
+    """``with running_command(argv): ...``: headers made inside record ``realgap ARGV`` as their
+    command (the CLI wraps every command in it, so a command called as ``main([...])`` from
+    Python records its own arguments, not the interpreter's)."""
+
+    def __init__(self, argv: list[str]):
+        self.text = " ".join(["realgap"] + [shlex.quote(str(a)) for a in argv])
+
+    def __enter__(self) -> "running_command":
+        self._saved = _COMMAND[0]
+        _COMMAND[0] = self.text
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _COMMAND[0] = self._saved
+
+
 def make_header(kind: str, *, inputs: dict[str, str | os.PathLike] | None = None, parameters: dict | None = None,
                 seed: int | None = None, timings_s: dict | None = None, metrics: dict | None = None,
                 command: str | None = None) -> dict:
     """The ``header`` object of a result (see the module docstring). ``inputs``: role -> path;
     ``metrics``: numbers only (non-numbers and non-finite values are left out); ``command``
-    defaults to this process's command line."""
+    defaults to the command being run (:class:`running_command`), else this process's arguments."""
     if kind not in KINDS:
         raise ValueError(f"unknown result kind {kind!r}; known: {', '.join(KINDS)}")
     if command is None:
-        command = " ".join(["realgap"] + [shlex.quote(a) for a in sys.argv[1:]])
+        command = _COMMAND[0] or " ".join(["realgap"] + [shlex.quote(a) for a in sys.argv[1:]])
     return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "command": command,
             "realgap_version": realgap_version(),
             "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),

@@ -20,12 +20,10 @@ the field docstrings for ``--help`` texts.
 """
 from __future__ import annotations
 
-import ast
 import dataclasses
 import importlib
 import inspect
 import pkgutil
-import textwrap
 import typing
 from abc import ABC
 from dataclasses import dataclass
@@ -35,7 +33,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from data_tools.camera import Intrinsics
-from data_tools.config import config_from_dict, config_replace, config_to_dict  # noqa: F401 (re-exported)
+from data_tools.config import config_from_dict, config_replace, config_to_dict, field_docs  # noqa: F401 (re-exported)
 from data_tools.errors import ConfigError
 from data_tools.geometry import rotation_angle_rad
 
@@ -271,25 +269,6 @@ class TrackingCheckConfig:
 
 
 @lru_cache(maxsize=None)
-def field_docs(cls: type) -> dict[str, str]:
-    """Docstrings written under the fields of dataclass ``cls`` (and its bases), by field name."""
-    docs: dict[str, str] = {}
-    for klass in reversed(cls.__mro__):
-        if klass is object or not dataclasses.is_dataclass(klass):
-            continue
-        try:
-            src = textwrap.dedent(inspect.getsource(klass))
-        except (OSError, TypeError):
-            continue
-        body = ast.parse(src).body[0].body
-        for a, b in zip(body, body[1:]):
-            if (isinstance(a, ast.AnnAssign) and isinstance(a.target, ast.Name)
-                    and isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant)
-                    and isinstance(b.value.value, str)):
-                docs[a.target.id] = " ".join(b.value.value.split())
-    return docs
-
-
 def parse_value(text: str, tp: Any) -> Any:
     """A command-line string converted to JSON data for field type ``tp`` (lists are
     comma-separated)."""

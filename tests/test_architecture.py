@@ -3,6 +3,7 @@ plotting imports."""
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -216,3 +217,85 @@ def test_no_import_cycles_between_modules():
 def test_cycle_finder_finds_a_cycle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+# ------------------------------------------------------------------------------------------
+# README's "How the code is organised" matches the code
+# ------------------------------------------------------------------------------------------
+
+_PATH_TOKEN = re.compile(r"(?<![\w./-])([A-Za-z_][\w]*(?:\.py|/))(?=[\s,)]|$)")
+DESCRIBED_AS_A_GROUP = {"synth/sensor/effects", "slam/backends", "app/commands"}
+"""Folders the README describes as a whole ("one file per effect") instead of file by file."""
+
+
+def readme_tree(text: str) -> set[str]:
+    """Paths named in the code block of the README's "How the code is organised" section: the
+    first path on a line is placed by its indentation (2 spaces per level); the other paths on
+    the line are inside it when it is a folder, else beside it; lines that start with prose
+    continue the line before."""
+    sec = text.split("## How the code is organised", 1)[1]
+    block = sec.split("```", 2)[1]
+    paths: set[str] = set()
+    stack: list[str] = []  # folder at each depth
+    context = None
+    for line in block.splitlines():
+        if not line.strip():
+            continue
+        indent = len(line) - len(line.lstrip())
+        m = _PATH_TOKEN.match(line.strip())
+        tokens = _PATH_TOKEN.findall(line)
+        if m and indent % 2 == 0 and indent // 2 <= len(stack):
+            depth = indent // 2
+            del stack[depth:]
+            first = "/".join(stack + [m.group(1).rstrip("/")])
+            paths.add(first)
+            if m.group(1).endswith("/"):
+                stack.append(m.group(1).rstrip("/"))
+                context = first
+            else:
+                context = "/".join(stack)
+            tokens = tokens[1:]
+        for t in tokens:
+            paths.add((context + "/" if context else "") + t.rstrip("/"))
+    return paths
+
+
+def test_readme_tree_parser_places_paths():
+    text = ("## How the code is organised\n```\na/   x.py (one), sub/ two\n  y.py  b.py also z.py\n"
+            "       prose continues w.py\n  c/   d.py\nb/\n```\n")
+    assert readme_tree(text) == {"a", "a/x.py", "a/sub", "a/y.py", "a/b.py", "a/z.py", "a/w.py", "a/c",
+                                 "a/c/d.py", "b"}
+
+
+def test_readme_describes_every_package_and_module():
+    named = readme_tree((REPO / "README.md").read_text())
+    missing_on_disk = sorted(p for p in named if not (REPO / p).exists())
+    assert not missing_on_disk, f"README names paths that do not exist: {missing_on_disk}"
+    unnamed = []
+    for pkg in ["app", "data_tools", "synth", "slam", "recog"]:
+        for f in sorted((REPO / pkg).rglob("*.py")):
+            rel = f.relative_to(REPO)
+            folder = rel.parent.as_posix()
+            if f.name == "__init__.py":
+                if folder not in named:
+                    unnamed.append(folder + "/")
+                continue
+            if f.name.startswith("_") or any(folder == g or folder.startswith(g + "/") for g in DESCRIBED_AS_A_GROUP):
+                continue
+            if rel.as_posix() not in named:
+                unnamed.append(rel.as_posix())
+    assert not unnamed, f"README's 'How the code is organised' does not name: {unnamed}"
+
+
+MAX_MODULE_LINES = 700
+"""A library module longer than this usually holds two ideas (split it: see the README tree)."""
+
+
+def test_library_modules_hold_one_idea_each():
+    long = []
+    for pkg in ["app", "data_tools", "synth", "slam", "recog"]:
+        for f in sorted((REPO / pkg).rglob("*.py")):
+            n = len(f.read_text().splitlines())
+            if n > MAX_MODULE_LINES:
+                long.append(f"{f.relative_to(REPO)} ({n} lines)")
+    assert not long, f"modules longer than {MAX_MODULE_LINES} lines: {long}"

@@ -92,7 +92,11 @@ def test_rpe_outputs(files):
     assert data["n_errors"] == len(lib.errors)
     lib_rot = M.rpe(read_tum(gt), read_tum(est), 0.2, "m", relation="rotation_angle_deg")
     assert data["rotation"]["rmse"] == pytest.approx(lib_rot.rmse, abs=1e-12)
-    assert read_tum(d / "rpe_aligned.txt") is not None
+    # RPE does not align (align none): the written estimate is the associated estimate, unchanged
+    aligned, e = read_tum(d / "rpe_aligned.txt"), read_tum(est)
+    assert len(aligned) == data["pairs"] == 40
+    np.testing.assert_array_equal(aligned.timestamps, e.timestamps)
+    np.testing.assert_allclose(aligned.poses, e.poses, atol=1e-9)
     assert (d / "rpe_errors.png").read_bytes()[:8] == PNG_MAGIC
 
 

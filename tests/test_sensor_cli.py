@@ -149,6 +149,15 @@ def test_fit_saves_model_reused_by_compare(measured, tmp_path):
     fitted = next(e for e in d["effects"] if e["name"] == "axial_noise")
     assert ax["params"] == fitted["params"]
 
+    # both carry the one result header; `realgap show` lines them up
+    from data_tools.results import read_result
+    fit_r, lab_r = read_result(model), read_result(lab)
+    assert (fit_r.kind, lab_r.kind) == ("lab.fit", "lab.compare")
+    assert fit_r.metrics["gap"] == d["fit"]["gap"]
+    assert lab_r.metrics["gap"] == json.loads((lab / "metrics.json").read_text())["gap"]
+    assert fit_r.header["command"].startswith("realgap sensor fit ") and fit_r.header["inputs"][0]["sha256"]
+    assert main(["show", str(model), str(lab)]) == 0
+
 
 def test_fit_accepts_lab_side_parameters_and_model_keeps_motion_limits(measured, tmp_path):
     """lens_distortion's only fittable parameters are k1/k2 (added to its coefficients), so `sensor fit` must accept
@@ -187,6 +196,9 @@ def test_diagnose_ranks_the_missing_effect_first(measured, tmp_path):
     gains = [c["gain"] for c in d["ranking"]]
     assert gains == sorted(gains, reverse=True)
     assert d["ranking"][0]["effect"] == "projector_shadow"
+    from data_tools.results import read_result
+    res = read_result(out)
+    assert res.kind == "lab.diagnose" and res.metrics["gap"] == d["gap"]
     page = (out / "diagnosis.html").read_text()
     assert "projector_shadow" in page and "holes beside foreground objects" in page
     assert len(list((out / "figures").glob("diag_*.png"))) == 2

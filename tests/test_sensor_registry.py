@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from data_tools.config import field_docs
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from synth.sensor import (PRESETS, SensorConfig, SensorPreset, effect_class, effect_names, get_preset,
                           make_effect)
@@ -27,9 +28,11 @@ def test_required_effects_are_registered():
 def test_effect_class_is_documented_typed_and_fittable(name):
     cls = effect_class(name)
     assert cls.name == name
-    assert cls.__doc__ and len(cls.__doc__) > 200, "each effect explains its physics"
+    assert cls.__doc__, "each effect explains its physics"
     assert dataclasses.is_dataclass(cls.Params)
     fields = {f.name for f in dataclasses.fields(cls.Params)}
+    undocumented = fields - set(field_docs(cls.Params))
+    assert not undocumented, f"{name}: parameters without a docstring: {sorted(undocumented)}"
     assert set(cls.FITTABLE) <= fields
     for k, (lo, hi) in cls.FITTABLE.items():
         assert lo < hi

@@ -82,3 +82,5 @@ def test_cli_batch(tmp_path, two_sequences, capsys):
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "report:" in out and (tmp_path / "rep" / "index.html").is_file()
+    from data_tools.results import read_result
+    assert read_result(tmp_path / "rep").kind == "batch"

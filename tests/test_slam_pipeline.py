@@ -169,6 +169,10 @@ def test_cli_run_and_render(tmp_path, seq, capsys):
     assert f"{N_FRAMES}/{N_FRAMES} frames registered" in out
     cfg = load_run(run).config
     assert cfg.backend_config.iterations == (10, 5, 4) and cfg.tsdf.mesh_weight_threshold == 1.0
+    from data_tools.results import read_result
+    res = read_result(run)   # stats.json with the result header
+    assert res.kind == "slam.run" and res.header["inputs"][0]["role"] == "sequence"
+    assert res.header["parameters"]["backend"] == "icp" and res.metrics["frames_tracked"] == N_FRAMES
     # re-running the finished command is a no-op that reports the same run
     assert main(["slam", "run", str(seq), "--backend", "icp", "--out", str(run), "--no-progress",
                  "--tsdf.voxel_size_m", "0.01", "--tsdf.mesh-weight-threshold", "1",

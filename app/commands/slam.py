@@ -30,7 +30,7 @@ def _type_name(tp) -> str:
 
 def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) -> None:
     import dataclasses
-    from slam.registration import field_docs
+    from data_tools.config import field_docs
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
     inst = cls()
