@@ -40,6 +40,37 @@ def test_effect_class_is_documented_typed_and_fittable(name):
     assert e.enabled
 
 
+@pytest.mark.parametrize("name", effect_names())
+def test_every_parameter_declares_unit_and_plausible_range(name):
+    """Each effect file declares, per parameter, a unit and bounds (or choices); defaults, every
+    preset's value and the fit range lie inside; a value outside is a one-line ConfigError
+    naming effect, parameter and range."""
+    cls = effect_class(name)
+    for spec in cls.param_specs():
+        where = f"{name}.{spec.name}"
+        assert spec.unit is not None, f"{where}: no unit (declare it with registry.param)"
+        assert spec.doc, f"{where}: no docstring"
+        if spec.type in ("int", "float"):
+            assert spec.bounds is not None, f"{where}: no plausible range"
+            lo, hi = spec.bounds
+            assert lo <= spec.default <= hi, f"{where}: default {spec.default} outside [{lo}, {hi}]"
+            if spec.fit_range is not None:
+                assert lo <= spec.fit_range[0] < spec.fit_range[1] <= hi, f"{where}: fit range outside bounds"
+            for preset in PRESETS.values():
+                v = preset.effect_params.get(name, {}).get(spec.name)
+                if v is not None:
+                    assert lo <= v <= hi, f"{where}: preset {preset.name} sets {v}, outside [{lo}, {hi}]"
+            bad = hi + (abs(hi) + 1.0)
+            with pytest.raises(ConfigError) as ei:
+                make_effect({"name": name, "params": {spec.name: int(bad) if spec.type == "int" else bad}})
+            msg = str(ei.value)
+            assert name in msg and spec.name in msg and "bounds" in msg and "\n" not in msg
+        elif spec.type == "str":
+            assert spec.choices and spec.default in spec.choices, f"{where}: declare its choices"
+            with pytest.raises(ConfigError, match=f"{spec.name}='nope' is not one of"):
+                make_effect({"name": name, "params": {spec.name: "nope"}})
+
+
 def test_unknown_effect_lists_known_names():
     with pytest.raises(ConfigError) as ei:
         effect_class("gaussian_blurr")

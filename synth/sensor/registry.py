@@ -3,8 +3,11 @@
 An effect has
 
 * a unique ``name`` (the key used in JSON models and on the command line),
-* a typed ``Params`` dataclass (one docstring per field, units in the names),
-* ``FITTABLE``: the parameters a sensor lab may fit, with (low, high) bounds,
+* a typed ``Params`` dataclass: every field is a :func:`param` with its unit and plausible
+  bounds (or choices), and a docstring under it; values outside are a one-line ConfigError;
+  :meth:`Effect.param_specs` lists them (``realgap sensor effects`` prints that table),
+* ``FITTABLE``: the parameters a sensor lab may fit, with their (low, high) search range (the
+  plausible bounds of a fittable parameter unless :func:`param` gives wider ones),
 * ``sample(rng, state) -> draw``: the random draw of one frame (unit noise fields, uniform
   variates...), independent of the parameters wherever possible so that a fit sees common
   random numbers,
@@ -23,18 +26,22 @@ preset uses it) and its tests; ``tests/test_effect_contract.py`` runs on it auto
 
 Effects are ordered by ``stage`` (geometry < projection < optics < capture < matching < depth
 < post-processing), so a model can list them in any order. Modules in
-``synth/sensor/effects/`` are discovered lazily (on first lookup, never at import time): adding
-an effect is one new file with a ``@register_effect`` class.
+``synth/sensor/effects/`` (and folders named in ``$REALGAP_EFFECT_PATH``) are discovered lazily
+(on first lookup, never at import time): adding an effect is one new file with a
+``@register_effect`` class (``tests/test_effect_plugin.py`` adds one from outside the package and
+runs the contract suite, a fit and a diagnosis on it).
 """
 from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
 import pkgutil
 import zlib
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -64,6 +71,41 @@ STAGE_WARP = 85
 """Direct geometric warps of the depth image (lens distortion on depth)."""
 STAGE_POST = 90
 """Device post-processing (range limits, hole filling)."""
+
+
+def param(default: Any, unit: str, low: float | None = None, high: float | None = None, *,
+          choices: tuple[str, ...] | None = None):
+    """A ``Params`` field with its unit and plausible range: ``unit`` is an SI-style symbol (``m``,
+    ``px``, ``deg``, ``rad``, ``s``, ``Hz``, ``1/m``, ``e-``; ``1`` for dimensionless numbers, ``""``
+    for switches and names); ``low``/``high`` bound the values a model may hold (None: the
+    ``FITTABLE`` range of the parameter); ``choices`` lists the allowed strings."""
+    if (low is None) != (high is None):
+        raise TypeError("param: give both low and high, or neither")
+    return dataclasses.field(default=default, metadata={
+        "unit": unit, "bounds": None if low is None else (low, high),
+        "choices": None if choices is None else tuple(choices)})
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter of an effect as a user sees it (``realgap sensor effects``)."""
+
+    name: str
+    """Field name in ``Params`` (and in model JSON)."""
+    type: str
+    """``float``, ``int``, ``bool``, ``str`` or ``tuple``."""
+    default: Any
+    """Value when a model does not set it (a preset may set another: ``effect_params``)."""
+    unit: str | None
+    """Unit symbol (see :func:`param`); None when the effect does not declare it."""
+    bounds: tuple[float, float] | None
+    """Plausible (allowed) range; None: any value of the type."""
+    choices: tuple[str, ...] | None
+    """Allowed strings; None: any."""
+    fit_range: tuple[float, float] | None
+    """The sensor lab's search range when the parameter is ``FITTABLE``, else None."""
+    doc: str
+    """The docstring under the field."""
 
 
 @dataclass(frozen=True)
@@ -157,11 +199,36 @@ class Effect(ABC):
 
     # -- overridable -----------------------------------------------------------------------
     def validate(self) -> None:
-        """Raise ConfigError for impossible parameter values (default: check FITTABLE bounds)."""
-        for k, (lo, hi) in self.FITTABLE.items():
-            v = getattr(self.params, k)
-            if not (lo <= float(v) <= hi):
-                raise ConfigError(f"effect {self.name!r}: {k}={v} is outside its bounds [{lo}, {hi}]")
+        """Raise ConfigError for impossible parameter values (default: every parameter within its
+        declared bounds / choices, see :meth:`param_specs`; overrides add checks and call this)."""
+        for spec in self.param_specs():
+            v = getattr(self.params, spec.name)
+            if spec.choices is not None and v not in spec.choices:
+                raise ConfigError(f"effect {self.name!r}: {spec.name}={v!r} is not one of "
+                                  f"{', '.join(repr(c) for c in spec.choices)}")
+            if spec.bounds is not None and not isinstance(v, (str, tuple, list)):
+                lo, hi = spec.bounds
+                if not (lo <= float(v) <= hi):
+                    raise ConfigError(f"effect {self.name!r}: {spec.name}={v} is outside its bounds [{lo}, {hi}]"
+                                      + (f" {spec.unit}" if spec.unit not in (None, "", "1") else ""))
+
+    @classmethod
+    def param_specs(cls) -> list[ParamSpec]:
+        """Every parameter with its type, default, unit, bounds, choices, fit range and docstring."""
+        from data_tools.config import field_docs
+        if cls.Params is None:
+            return []
+        docs = field_docs(cls.Params)
+        out = []
+        for f in dataclasses.fields(cls.Params):
+            meta = f.metadata or {}
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            fit = cls.FITTABLE.get(f.name)
+            bounds = meta.get("bounds") or (tuple(fit) if fit is not None else None)
+            out.append(ParamSpec(f.name, type(default).__name__, default, meta.get("unit"), bounds,
+                                 meta.get("choices"), tuple(fit) if fit is not None else None,
+                                 docs.get(f.name, "")))
+        return out
 
     def stage_for(self, physical_model: bool) -> int:
         """Stage in a model that does (``physical_model``) or does not run the physical pipeline."""
@@ -263,8 +330,15 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
+EFFECT_PATH_ENV = "REALGAP_EFFECT_PATH"
+"""Environment variable: folders (``os.pathsep``-separated) whose ``*.py`` files are effect
+modules too, loaded with the built-in ones: an effect of your own is one file there, no change to
+realgap (worker processes inherit the variable)."""
+
+
 def discover_effects() -> None:
-    """Import every module of ``synth.sensor.effects`` (once) so their classes register."""
+    """Import every module of ``synth.sensor.effects`` and of the folders in
+    ``$REALGAP_EFFECT_PATH`` (once) so their classes register."""
     global _DISCOVERED
     if _DISCOVERED:
         return
@@ -273,6 +347,29 @@ def discover_effects() -> None:
         if not mod.name.startswith("_"):
             importlib.import_module(f"{pkg.__name__}.{mod.name}")
     _DISCOVERED = True
+    for folder in filter(None, os.environ.get(EFFECT_PATH_ENV, "").split(os.pathsep)):
+        _load_effect_folder(Path(folder))
+
+
+def _load_effect_folder(folder: Path) -> None:
+    import importlib.util
+    import sys
+    if not folder.is_dir():
+        raise ConfigError(f"{folder}: not a folder (named in ${EFFECT_PATH_ENV})")
+    for path in sorted(folder.glob("*.py")):
+        if path.name.startswith("_"):
+            continue
+        name = f"realgap_user_effects.{path.stem}"
+        if name in sys.modules:
+            continue
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as e:  # a user's file: report it as one line naming the file
+            del sys.modules[name]
+            raise ConfigError(f"{path}: cannot load this effect module ({type(e).__name__}: {e})") from None
 
 
 def effect_names() -> list[str]:

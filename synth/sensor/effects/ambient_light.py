@@ -6,18 +6,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_incidence, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, STAGE_LIGHT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, STAGE_LIGHT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class AmbientLightParams:
-    level: float = 0.0
+    level: float = param(0.0, "1")
     """Ambient IR radiance of a white surface, in the projector's units (1 = the pattern's
     brightest dot on a white surface at 1 m). Indoors ~0.01; overcast daylight ~1; direct sun
     >> 10."""
-    contrast50: float = 0.3
+    contrast50: float = param(0.3, "1")
     """Direct model: pattern contrast signal / (signal + ambient) at which half the pixels drop."""
-    contrast_width: float = 0.08
+    contrast_width: float = param(0.08, "1")
     """Direct model: width of that transition (logistic scale)."""
 
 

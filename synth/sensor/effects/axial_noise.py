@@ -6,20 +6,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_incidence, normal_draw
-from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
 @dataclass
 class AxialNoiseParams:
-    sigma0_m: float = 0.0
+    sigma0_m: float = param(0.0, "m")
     """Constant part of the std, metres."""
-    sigma1: float = 0.0
+    sigma1: float = param(0.0, "1")
     """Part growing linearly with depth (std = sigma1 * z), dimensionless."""
-    sigma2_per_m: float = 0.0014
+    sigma2_per_m: float = param(0.0014, "1/m")
     """Part growing with the squared depth: sigma2 (z - z_offset)^2, 1/metres."""
-    z_offset_m: float = 0.0
+    z_offset_m: float = param(0.0, "m")
     """Depth offset of the quadratic part, metres."""
-    reflectance_exponent: float = 0.0
+    reflectance_exponent: float = param(0.0, "1")
     """std is multiplied by (albedo cos(incidence))^-exponent (ToF: 0.5, shot-noise-limited
     phase noise grows as the amplitude falls; structured light: 0)."""
 

@@ -5,44 +5,44 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_MATCHING, Effect, register_effect
+from synth.sensor.registry import STAGE_MATCHING, Effect, param, register_effect
 
 
 @dataclass
 class BlockMatchingParams:
-    block_size: int = 0
+    block_size: int = param(0, "px", 0, 63)
     """Window side, pixels (odd); 0 = the preset's."""
-    prefilter: str = "normalized"
+    prefilter: str = param("normalized", "", choices=("normalized", "xsobel"))
     """StereoBM pre-filter: ``normalized`` (local mean removal/contrast normalisation, what a
     correlator on a dot pattern does) or ``xsobel``."""
-    prefilter_size: int = 9
+    prefilter_size: int = param(9, "px", 5, 255)
     """Pre-filter window, pixels (odd, >= 5)."""
-    prefilter_cap: int = 31
+    prefilter_cap: int = param(31, "1")
     """Clip of the pre-filtered image (1..63): limits the weight of bright dots."""
-    uniqueness_ratio: int = 10
+    uniqueness_ratio: int = param(10, "%")
     """Uniqueness check: the best SAD must beat every other disparity (outside +-1) by this
     percentage, else the pixel is a hole (ambiguous match)."""
-    texture_threshold: int = 0
+    texture_threshold: int = param(0, "1", 0, 100000)
     """Minimum summed pre-filtered texture in the window (0 = off)."""
-    speckle_window_px: int = 200
+    speckle_window_px: int = param(200, "px²")
     """Connected regions of consistent disparity smaller than this are removed (holes), as the
     device removes isolated blobs; 0 = off."""
-    speckle_range_steps: float = 1.0
+    speckle_range_steps: float = param(1.0, "steps")
     """Neighbouring disparities differing by more than this many device sub-pixel steps start a
     new region (so steep disparity gradients - grazing surfaces - fall apart into small
     regions and are removed)."""
-    lr_max_diff_px: int = -1
+    lr_max_diff_px: int = param(-1, "px", -1, 64)
     """Left-right consistency check tolerance (SGBM), pixels; -1 = off."""
-    sgbm_p1: float = 1.0
+    sgbm_p1: float = param(1.0, "1")
     """SGBM smoothness penalty for +-1 px disparity changes, per window pixel (P1 = this x
     block^2). OpenCV's usual 8 makes the sub-pixel estimate lock to integers on dot patterns."""
-    sgbm_p2: float = 4.0
+    sgbm_p2: float = param(4.0, "1")
     """SGBM penalty for larger disparity jumps, per window pixel (P2 = this x block^2)."""
-    subpixel_iterations: int = 2
+    subpixel_iterations: int = param(2, "1", 0, 20)
     """Gauss-Newton sub-pixel refinement steps on the window-normalised images after the
     integer/1/16 px search (0 = keep the matcher's own interpolation, which locks to integer
     disparities on dot patterns)."""
-    max_refine_px: float = 1.0
+    max_refine_px: float = param(1.0, "px", 0.0, 16.0)
     """Where the refinement moves farther than this, pixels (a window straddling a depth
     edge), the matcher's own sub-pixel value is kept."""
 
@@ -78,8 +78,6 @@ class BlockMatching(Effect):
         p = self.params
         if p.block_size and (p.block_size < 3 or p.block_size % 2 == 0):
             raise ConfigError(f"effect 'block_matching': block_size must be 0 or odd >= 3, got {p.block_size}")
-        if p.prefilter not in ("normalized", "xsobel"):
-            raise ConfigError(f"effect 'block_matching': prefilter must be 'normalized' or 'xsobel', got {p.prefilter!r}")
 
     def setup(self, preset):
         from synth.sensor.matching import MatchSetup

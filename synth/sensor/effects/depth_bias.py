@@ -7,18 +7,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
 @dataclass
 class DepthBiasParams:
-    offset_m: float = 0.0
+    offset_m: float = param(0.0, "m")
     """Constant depth offset, metres."""
-    scale: float = 0.0
+    scale: float = param(0.0, "1")
     """Relative depth scale error (z' = (1 + scale) z)."""
-    disparity_offset_px: float = 0.0
+    disparity_offset_px: float = param(0.0, "px")
     """Constant disparity error, pixels (-> depth error growing as z^2; triangulation only)."""
-    radial_disparity_px: float = 0.0
+    radial_disparity_px: float = param(0.0, "px")
     """Disparity error at the image corner, growing with the squared radius from the centre
     (the Kinect's 'depth distortion' bowl)."""
 

@@ -7,12 +7,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_QUANTIZE, ConfigParameter, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_QUANTIZE, ConfigParameter, Effect, Signature, param, register_effect
 
 
 @dataclass
 class DisparityQuantizationParams:
-    step_px: float = 0.0
+    step_px: float = param(0.0, "px")
     """Disparity step, pixels; 0 = the preset's (Kinect v1: 1/8)."""
 
 

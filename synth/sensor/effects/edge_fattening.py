@@ -5,14 +5,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class EdgeFatteningParams:
-    radius_px: int = 0
+    radius_px: int = param(0, "px")
     """How far foreground depth spreads, pixels; 0 = half the preset's matching window."""
-    min_jump_rel: float = 0.03
+    min_jump_rel: float = param(0.03, "1")
     """A neighbour counts as foreground when it is nearer by more than this fraction of depth."""
 
 

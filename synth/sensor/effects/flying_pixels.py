@@ -6,14 +6,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw
-from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
 @dataclass
 class FlyingPixelsParams:
-    jump_m: float = 0.1
+    jump_m: float = param(0.1, "m")
     """A pixel is on an edge when its 3x3 neighbourhood spans more than this depth, metres."""
-    probability: float = 0.7
+    probability: float = param(0.7, "1")
     """Fraction of edge pixels that become flying pixels."""
 
 

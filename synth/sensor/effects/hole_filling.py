@@ -5,14 +5,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_POST, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_POST, Effect, Signature, param, register_effect
 
 
 @dataclass
 class HoleFillingParams:
-    max_hole_px: int = 30
+    max_hole_px: int = param(30, "px²")
     """Holes (connected invalid regions) up to this area, pixels, are filled; larger stay."""
-    mode: str = "farthest"
+    mode: str = param("farthest", "", choices=("farthest", "nearest"))
     """Fill value from the hole's border: ``farthest`` (background wins, RealSense's default
     hole-filling filter mode) or ``nearest`` (foreground wins)."""
 
@@ -39,12 +39,6 @@ class HoleFilling(Effect):
     Params = HoleFillingParams
     FITTABLE = {"max_hole_px": (0, 100000)}
     stage = STAGE_POST + 5
-
-    def validate(self) -> None:
-        super().validate()
-        if self.params.mode not in ("farthest", "nearest"):
-            from data_tools.errors import ConfigError
-            raise ConfigError(f"effect 'hole_filling': mode must be 'farthest' or 'nearest', got {self.params.mode!r}")
 
     def apply(self, state, draw) -> None:
         import cv2

@@ -6,14 +6,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, cos_view, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class IncidenceDropoutParams:
-    angle50_deg: float = 78.0
+    angle50_deg: float = param(78.0, "deg")
     """Angle between the surface normal and the viewing ray at which half the pixels drop."""
-    width_deg: float = 2.5
+    width_deg: float = param(2.5, "deg")
     """Width of the transition (logistic scale), degrees."""
 
 

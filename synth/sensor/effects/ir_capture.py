@@ -7,24 +7,24 @@ import numpy as np
 
 from synth.jit import kernel, run_row_bands
 from synth.sensor.effects._common import check_draw
-from synth.sensor.registry import STAGE_CAPTURE, Effect, register_effect
+from synth.sensor.registry import STAGE_CAPTURE, Effect, param, register_effect
 
 
 @dataclass
 class IRCaptureParams:
-    gain_e: float = 30000.0
+    gain_e: float = param(30000.0, "e-")
     """Photo-electrons per unit radiance during one exposure (exposure x aperture x QE)."""
-    full_well_e: float = 20000.0
+    full_well_e: float = param(20000.0, "e-")
     """Full-well capacity, electrons: brighter pixels saturate."""
-    read_noise_e: float = 5.0
+    read_noise_e: float = param(5.0, "e-")
     """Read noise, electrons RMS."""
-    speckle_contrast: float = 0.1
+    speckle_contrast: float = param(0.1, "1")
     """Laser speckle: std of the multiplicative intensity noise of the pattern (0 = incoherent)."""
-    psf_sigma_px: float = 0.6
+    psf_sigma_px: float = param(0.6, "px")
     """Gaussian optical blur (lens PSF + defocus) of the IR camera, pixels."""
-    adc_bits: int = 10
+    adc_bits: int = param(10, "bit", 6, 16)
     """ADC resolution; the raw image ``state.ir`` is in counts 0 .. 2^bits - 1."""
-    companding: str = "sqrt"
+    companding: str = param("sqrt", "", choices=("sqrt", "linear"))
     """How counts become the 8-bit image the matcher sees: ``sqrt`` (square-root LUT, which
     equalises shot noise over the range) or ``linear``."""
 
@@ -56,14 +56,6 @@ class IRCapture(Effect):
     stage = STAGE_CAPTURE
     physical = True
     in_reference = True
-
-    def validate(self) -> None:
-        super().validate()
-        from data_tools.errors import ConfigError
-        if not 6 <= int(self.params.adc_bits) <= 16:
-            raise ConfigError(f"effect 'ir_capture': adc_bits must be in [6, 16], got {self.params.adc_bits}")
-        if self.params.companding not in ("sqrt", "linear"):
-            raise ConfigError(f"effect 'ir_capture': companding must be 'sqrt' or 'linear', got {self.params.companding!r}")
 
     def sample(self, rng, state):
         sh = state.shape

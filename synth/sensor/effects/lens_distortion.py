@@ -7,17 +7,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, Signature, param, register_effect
 
 
 @dataclass
 class LensDistortionParams:
-    coefficients: tuple[float, ...] = ()
+    coefficients: tuple[float, ...] = param((), "1")
     """OpenCV (k1, k2, p1, p2, k3); empty = the preset's ``distortion``."""
-    k1: float = 0.0
+    k1: float = param(0.0, "1")
     """Radial distortion added to k1 of ``coefficients`` (else of the preset's distortion): what the
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
-    k2: float = 0.0
+    k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
 
 

@@ -7,15 +7,15 @@ import numpy as np
 
 from synth.sensor.effects._common import (check_draw, cos_incidence, drop_with_probability, sigmoid,
                                           uniform_draw)
-from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class LowReflectanceParams:
-    signal50: float = 0.004
+    signal50: float = param(0.004, "1")
     """Relative returned signal at which half the pixels drop; signal = albedo (1 - specular)
     cos(incidence) / r^2 with r in metres (a white wall facing the sensor at 1 m = 1)."""
-    width_decades: float = 0.25
+    width_decades: float = param(0.25, "decades")
     """Width of the transition in decades of signal (logistic scale)."""
 
 

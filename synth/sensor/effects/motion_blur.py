@@ -5,16 +5,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, STAGE_OPTICS, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, STAGE_OPTICS, Effect, Signature, param, register_effect
 
 
 @dataclass
 class MotionBlurParams:
-    exposure_s: float = 0.015
+    exposure_s: float = param(0.015, "s")
     """Exposure time, seconds."""
-    taps: int = 3
+    taps: int = param(3, "1", 1, 64)
     """Sub-exposures averaged (physical) / samples along the motion (direct)."""
-    mix_jump_m: float = 0.05
+    mix_jump_m: float = param(0.05, "m")
     """Direct model: if the depths seen during the exposure spread more than this (an edge
     swept over the pixel), the pixel becomes a hole instead of a mixed value."""
 

@@ -5,20 +5,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 C_LIGHT = 299_792_458.0
 
 
 @dataclass
 class MultipathParams:
-    strength: float = 1.0
+    strength: float = param(1.0, "1")
     """Scale of the indirect light (1 = Lambertian one-bounce estimate)."""
-    modulation_hz: float = 80e6
+    modulation_hz: float = param(80e6, "Hz", 1000000.0, 1000000000.0)
     """Modulation frequency whose phase is measured (Kinect v2: 16/80/120 MHz; 80 MHz dominates)."""
-    grid_px: int = 12
+    grid_px: int = param(12, "px", 1, 256)
     """Indirect light is computed on a grid of this spacing (pixels) and interpolated."""
-    max_error_m: float = 0.2
+    max_error_m: float = param(0.2, "m")
     """Clip of the multipath error, metres."""
 
 

@@ -6,24 +6,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.jit import kernel, n_threads, run_row_bands
-from synth.sensor.registry import STAGE_PROJECTION, Effect, register_effect
+from synth.sensor.registry import STAGE_PROJECTION, Effect, param, register_effect
 
 
 @dataclass
 class PatternProjectionParams:
-    power: float = 1.0
+    power: float = param(1.0, "1")
     """Projector radiant intensity scale: radiance 1 = a white Lambertian surface facing the
     projector at 1 m lit by pattern value 1."""
-    dot_sigma_px: float = 0.5
+    dot_sigma_px: float = param(0.5, "px")
     """Gaussian spread of one projected dot, in pattern pixels (diffraction/defocus of the
     DOE; also the anti-aliasing filter of the point-sampled pattern)."""
-    specular_exponent: float = 40.0
+    specular_exponent: float = param(40.0, "1")
     """Phong exponent of the mirror lobe (larger = tighter highlight)."""
-    shadow_rays: bool = True
+    shadow_rays: bool = param(True, "")
     """Cast a shadow ray from every lit surface point to the projector (projector shadows)."""
-    shadow_eps_m: float = 0.002
+    shadow_eps_m: float = param(0.002, "m", 0.0, 0.1)
     """Free gap at both ends of a shadow ray, metres (no self-shadowing)."""
-    shadow_method: str = "hybrid"
+    shadow_method: str = param("hybrid", "", choices=("hybrid", "raycast", "scanline"))
     """``raycast``: one shadow ray per lit pixel through the scene's RaycastingScene (exact);
     ``scanline``: the rectified-rig ordering test on the camera's own depth (a pixel is
     shadowed when a pixel farther towards the projector along its row maps to the same or an
@@ -429,13 +429,6 @@ class PatternProjection(Effect):
     def __init__(self, params=None, enabled=True):
         super().__init__(params, enabled)
         self._cache: dict = {}
-
-    def validate(self) -> None:
-        super().validate()
-        if self.params.shadow_method not in ("raycast", "scanline", "hybrid"):
-            from data_tools.errors import ConfigError
-            raise ConfigError(f"effect 'pattern_projection': shadow_method must be 'hybrid', 'raycast' or "
-                              f"'scanline', got {self.params.shadow_method!r}")
 
     def apply(self, state, draw) -> None:
         from synth.sensor.state import cast_view

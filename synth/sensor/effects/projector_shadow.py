@@ -5,14 +5,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class ProjectorShadowParams:
-    eps_m: float = 0.002
+    eps_m: float = param(0.002, "m")
     """Free gap at both ends of each shadow ray, metres (no self-shadowing)."""
-    method: str = "hybrid"
+    method: str = param("hybrid", "", choices=("hybrid", "raycast"))
     """``raycast``: one shadow ray per valid pixel; ``hybrid`` (default): the same shadows
     with exact rays only where the rectified-rig ordering test cannot rule a shadow out (see
     :func:`synth.sensor.effects.pattern_projection.hybrid_shadow`)."""
@@ -45,13 +45,6 @@ class ProjectorShadow(Effect):
     Params = ProjectorShadowParams
     FITTABLE = {"eps_m": (0.0, 0.05)}
     stage = STAGE_DROPOUT
-
-    def validate(self) -> None:
-        super().validate()
-        if self.params.method not in ("hybrid", "raycast"):
-            from data_tools.errors import ConfigError
-            raise ConfigError(f"effect 'projector_shadow': method must be 'hybrid' or 'raycast', "
-                              f"got {self.params.method!r}")
 
     def source_offset(self, preset):
         if preset.type == "active_stereo":

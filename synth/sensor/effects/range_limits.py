@@ -3,14 +3,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from synth.sensor.registry import STAGE_POST, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_POST, Effect, Signature, param, register_effect
 
 
 @dataclass
 class RangeLimitsParams:
-    min_depth_m: float = 0.0
+    min_depth_m: float = param(0.0, "m")
     """Nearest reported depth, metres (0 = the preset's)."""
-    max_depth_m: float = 0.0
+    max_depth_m: float = param(0.0, "m")
     """Farthest reported depth, metres (0 = the preset's)."""
 
 

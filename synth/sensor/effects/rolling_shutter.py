@@ -5,12 +5,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_GEOMETRY, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_GEOMETRY, Effect, Signature, param, register_effect
 
 
 @dataclass
 class RollingShutterParams:
-    readout_time_s: float = 0.03
+    readout_time_s: float = param(0.03, "s")
     """Time between the exposure of the first and the last row, seconds (0 = global shutter)."""
 
 

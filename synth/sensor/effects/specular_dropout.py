@@ -6,16 +6,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from synth.sensor.effects._common import check_draw, drop_with_probability, sigmoid, uniform_draw
-from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DROPOUT, Effect, Signature, param, register_effect
 
 
 @dataclass
 class SpecularDropoutParams:
-    specular50: float = 0.6
+    specular50: float = param(0.6, "1")
     """Material specular weight at which half the pixels drop."""
-    width: float = 0.1
+    width: float = param(0.1, "1")
     """Width of the transition (logistic scale)."""
-    highlight_deg: float = 5.0
+    highlight_deg: float = param(5.0, "deg")
     """Pixels whose mirror direction points within this angle of the camera saturate and drop
     (when the material has any specular lobe)."""
 

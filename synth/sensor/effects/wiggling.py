@@ -5,17 +5,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, register_effect
+from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
 @dataclass
 class WigglingParams:
-    amplitude_m: float = 0.003
+    amplitude_m: float = param(0.003, "m")
     """Amplitude of the periodic range error, metres."""
-    period_m: float = 0.47
+    period_m: float = param(0.47, "m")
     """Period in range, metres (a quarter of the 1.875 m unambiguous range at 80 MHz: odd
     harmonics of the modulation alias onto the 4th harmonic of the phase with 4-tap sampling)."""
-    phase_rad: float = 0.0
+    phase_rad: float = param(0.0, "rad")
     """Phase of the error at range 0."""
 
 
