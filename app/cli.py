@@ -4,9 +4,12 @@ Each module in :mod:`app.commands` is a command group: it defines ``NAME`` (the 
 ``HELP`` (one line) and ``register(parser)`` which adds its own sub-subcommands and sets
 ``func`` on them. Groups are discovered by name, so adding a group is one new file.
 
-Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1, every
-Python warning one ``realgap: warning:`` line;
-Ctrl-C exits with 130 and leaves finished outputs in place.
+Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1; so does
+an operating-system error on a file (``realgap: error: PATH: No such file or directory``) and any
+other, unexpected exception (one line plus "re-run with --debug for the traceback"; ``realgap
+--debug ...`` or ``REALGAP_DEBUG=1`` shows the traceback). Usage errors exit 2 (argparse). Every
+Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130 and leaves finished
+outputs in place.
 """
 from __future__ import annotations
 
@@ -37,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Bridge the realism gap between synthetic and real RGB-D data: simulate depth "
                     "sensors, compare them with measurements, register and evaluate RGB-D sequences.")
     parser.add_argument("--version", action="version", version=f"realgap {_version()}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an unexpected error (also: REALGAP_DEBUG=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=getattr(mod, "DESCRIPTION", mod.HELP))
@@ -72,12 +77,33 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _one_line_warning
             rc = func(args)
     except RealgapError as e:
-        print(f"realgap: error: {e}", file=sys.stderr)
+        print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
+        return 1
+    except OSError as e:
+        if _debug(args):
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"realgap: error: {where}{_one_line(e.strerror or str(e))}", file=sys.stderr)
+        return 1
+    except Exception as e:
+        if _debug(args):
+            raise
+        print(f"realgap: error: unexpected {type(e).__name__}: {_one_line(str(e))} (a bug: re-run with --debug for "
+              f"the traceback)", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("realgap: interrupted (finished outputs are kept; re-run to continue)", file=sys.stderr)
         return 130
     return int(rc or 0)
+
+
+def _debug(args) -> bool:
+    import os
+    return bool(getattr(args, "debug", False)) or os.environ.get("REALGAP_DEBUG", "") not in ("", "0")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split()) or "(no message)"
 
 
 def entry() -> None:

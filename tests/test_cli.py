@@ -52,3 +52,33 @@ def test_demo_refuses_too_few_frames_before_writing(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--frames must be at least 3" in err[0]
     assert not (tmp_path / "d").exists()
+
+
+def test_unexpected_errors_are_one_line_unless_debug(monkeypatch, capsys):
+    import app.commands.show as show
+
+    def bug(args):
+        raise ValueError("bad\nthing")
+    monkeypatch.setattr(show, "run", bug)
+    monkeypatch.delenv("REALGAP_DEBUG", raising=False)
+    assert main(["show", "x.json"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == "realgap: error: unexpected ValueError: bad thing (a bug: re-run with --debug for the traceback)"
+    with pytest.raises(ValueError):
+        main(["--debug", "show", "x.json"])
+    monkeypatch.setenv("REALGAP_DEBUG", "1")
+    with pytest.raises(ValueError):
+        main(["show", "x.json"])
+
+
+def test_os_errors_name_the_file(monkeypatch, capsys, tmp_path):
+    import app.commands.show as show
+
+    def write_under_a_file(args):
+        (tmp_path / "f").write_text("x")
+        (tmp_path / "f" / "out.json").write_text("{}")
+    monkeypatch.setattr(show, "run", write_under_a_file)
+    monkeypatch.delenv("REALGAP_DEBUG", raising=False)
+    assert main(["show", "x.json"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("realgap: error: ") and str(tmp_path / "f" / "out.json") in err and "\n" not in err

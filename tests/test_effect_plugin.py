@@ -76,7 +76,15 @@ def test_an_effect_in_one_outside_file_gets_everything(tmp_path):
     n_passed = int(r.stdout.strip().splitlines()[-1].split(" passed")[0].split()[-1])
     assert n_passed >= 8, r.stdout[-500:]
 
-    # 2. a measured sequence with a 3 cm step: the fit finds it, the diagnosis ranks it first with its
+    # 2. `realgap sensor effects` lists it with its parameters (generated from the registry)
+    r = subprocess.run([sys.executable, "-m", "app", "sensor", "effects", "step_bias", "--json"], cwd=REPO, env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    (entry,) = json.loads(r.stdout)
+    offset = next(p for p in entry["parameters"] if p["name"] == "offset_m")
+    assert offset["unit"] == "m" and offset["fit_range"] == [-0.1, 0.1] and entry["signature"].startswith("a step")
+
+    # 3. a measured sequence with a 3 cm step: the fit finds it, the diagnosis ranks it first with its
     # own signature figure and evidence sentence
     script = textwrap.dedent(f"""
         import json, sys

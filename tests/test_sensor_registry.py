@@ -208,3 +208,34 @@ def test_bad_config_file(tmp_path):
     with pytest.raises(FormatError, match="warp_drive"):
         SensorConfig.load(p)
     assert issubclass(FormatError, RealgapError)
+
+
+def test_sensor_effects_and_presets_commands_come_from_the_registry(capsys):
+    from app.cli import main
+    assert main(["sensor", "effects", "--json"]) == 0
+    listed = {e["name"]: e for e in json.loads(capsys.readouterr().out)}
+    assert sorted(listed) == effect_names()
+    for name, e in listed.items():
+        specs = {s.name: s for s in effect_class(name).param_specs()}
+        for p in e["parameters"]:
+            if p["name"] in specs:
+                s = specs[p["name"]]
+                assert p["unit"] == s.unit and p["bounds"] == (list(s.bounds) if s.bounds else None)
+                assert p["fit_range"] == (list(s.fit_range) if s.fit_range else None)
+    sigma2 = next(p for p in listed["axial_noise"]["parameters"] if p["name"] == "sigma2_per_m")
+    assert sigma2["presets"]["kinect_v1"] == PRESETS["kinect_v1"].effect_params["axial_noise"]["sigma2_per_m"]
+    assert "kinect_v1" in listed["disparity_quantization"]["used_by"]
+
+    assert main(["sensor", "effects", "incidence_dropout"]) == 0
+    text = capsys.readouterr().out
+    assert "angle50_deg" in text and "deg" in text and "(30, 90)" in text
+
+    assert main(["sensor", "presets", "kinect_v1", "--json"]) == 0
+    (k1,) = json.loads(capsys.readouterr().out)
+    fields = {f["name"]: f["value"] for f in k1["fields"]}
+    assert fields["fx"] == PRESETS["kinect_v1"].fx and k1["physical_effects"] == list(PRESETS["kinect_v1"].physical_effects)
+    assert main(["sensor", "presets"]) == 0
+    rows = capsys.readouterr().out.splitlines()
+    assert len(rows) == 2 + len(PRESETS) and len({len(r.rstrip()) <= len(rows[1]) for r in rows}) == 1
+    assert main(["sensor", "presets", "kinect_v9"]) == 1
+    assert "kinect_v9" in capsys.readouterr().err

@@ -12,7 +12,10 @@ effects named by ``--effects`` and/or loaded from ``--model``) and works with th
   DIR/report.html, and one more step in DIR/history.json;
 * ``sensor diagnose SEQ --effects ... --out DIR``: DIR/diagnosis.json (candidate effects ranked
   by how much of the gap they remove) and DIR/diagnosis.html with their signature figures;
-* ``sensor fit SEQ --effects ... --out MODEL.json``: the fitted model, reusable with ``--model``.
+* ``sensor fit SEQ --effects ... --out MODEL.json``: the fitted model, reusable with ``--model``;
+* ``sensor effects [NAME]`` and ``sensor presets [NAME]``: what the model knows (every effect with
+  its physics and parameters: units, defaults per preset, plausible range, fit range; every device),
+  generated from the registry (:mod:`synth.sensor.catalog`).
 
 ``--effects`` takes a comma list of effect names, ``none`` (the ideal model: ideal depth, no
 effect), ``physical`` or ``direct`` (the preset's pipelines). With ``--model`` the model's
@@ -44,6 +47,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     _add_compare(sub)
     _add_diagnose(sub)
     _add_fit(sub)
+    _add_catalog(sub)
 
 
 # --------------------------------------------------------------------------- shared options
@@ -127,6 +131,22 @@ def _add_fit(sub) -> None:
     p.set_defaults(func=_cmd_fit)
 
 
+def _add_catalog(sub) -> None:
+    p = sub.add_parser("effects", help="list the sensor effects: physics, parameters, units, defaults, ranges",
+                       description="Every registered sensor effect (built-in and from $REALGAP_EFFECT_PATH) with "
+                                   "its one-line physics; with NAME its parameters: unit, default, the value each "
+                                   "preset sets, plausible range, and the range a fit may search.")
+    p.add_argument("name", nargs="?", help="one effect, in detail")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=_cmd_catalog, catalog="effects")
+    p = sub.add_parser("presets", help="list the sensor presets (devices) and their numbers",
+                       description="Every device preset; with NAME every field with its meaning, the effects "
+                                   "of its physical and direct models and the parameter values it sets.")
+    p.add_argument("name", nargs="?", help="one preset, in detail")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=_cmd_catalog, catalog="presets")
+
+
 # --------------------------------------------------------------------------- commands
 
 def _request(args) -> LabRequest:
@@ -180,4 +200,15 @@ def _cmd_fit(args) -> int:
     params = ", ".join(f"{k}={v:.4g}" for k, v in res.params.items())
     print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {res.evaluations} evaluations "
           f"({res.seconds:.1f} s); {params}")
+    return 0
+
+
+def _cmd_catalog(args) -> int:
+    import json
+    from synth.sensor import catalog
+    if args.catalog == "effects":
+        entries, text = catalog.effect_catalog(args.name), catalog.format_effects
+    else:
+        entries, text = catalog.preset_catalog(args.name), catalog.format_presets
+    print(json.dumps(entries, indent=2) if args.json else text(entries, detail=args.name is not None))
     return 0

@@ -230,7 +230,7 @@ KINECT_V1 = SensorPreset(
             "'Technical description of Kinect calibration' (ROS wiki, 2011); Khoshelham & Elberink, "
             "Sensors 12(2):1437, 2012 (b ~ 7.5 cm, f ~ 5.45 mm ~ 580 px, 11-bit disparity); 3x3 tiled "
             "pattern of ~34,700 dots (shared/data/patterns). Noise levels of ir_capture are tuned on the "
-            "flat-wall experiment (synth/validation.py) against Khoshelham 2012 and Nguyen et al. 2012."),
+            "flat-wall experiment (synth/sensor/validation.py) against Khoshelham 2012 and Nguyen et al. 2012."),
 )
 
 STRUCTURE = SensorPreset(
