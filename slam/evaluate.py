@@ -70,12 +70,16 @@ def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict) -> dict:
 
 
 def evaluate_ate(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
-    """ATE of ``est_path`` against ``ref_path``: ``json_path`` (statistics + header), and in
-    ``out_dir`` (default: beside the JSON) ``<stem>_aligned.txt`` and ``<stem>_top.png``."""
+    """ATE of ``est_path`` against ``ref_path``: ``json_path`` (statistics + header; default
+    ``out_dir/ate.json``), and in ``out_dir`` (default: beside the JSON) ``<stem>_aligned.txt`` and
+    ``<stem>_top.png``. Neither given: the statistics only, no file written."""
     from slam.plots import plot_top_view
     ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
     res = ate(ref, est, cfg.align, cfg.max_dt, ref_name=str(ref_path), est_name=str(est_path))
-    out = Path(json_path)
+    info = {"reference_poses": len(ref), "estimate_poses": len(est)}
+    if json_path is None and out_dir is None:
+        return Evaluation({"ate": res}, [], info)
+    out = Path(json_path) if json_path is not None else Path(out_dir) / "ate.json"
     outdir = Path(out_dir) if out_dir else out.parent
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_top.png"
     d = res.to_dict()
@@ -87,7 +91,7 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -
     write_tum(aligned_path, res.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
     plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate ({cfg.align}-aligned)"),
                   title=f"ATE ({cfg.align}): rmse {res.rmse:.4f} m over {res.pairs} poses")
-    return Evaluation({"ate": res}, [out, aligned_path, png], {"reference_poses": len(ref), "estimate_poses": len(est)})
+    return Evaluation({"ate": res}, [out, aligned_path, png], info)
 
 
 def rpe_pair(ref, est, cfg: EvalConfig, ref_name: str, est_name: str) -> tuple[MetricResult, MetricResult]:
@@ -105,12 +109,16 @@ def _rpe_dict(tr: MetricResult, rot: MetricResult, cfg: EvalConfig) -> dict:
 
 
 def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
-    """RPE (translation and rotation) of ``est_path`` against ``ref_path``: ``json_path`` and,
-    in ``out_dir``, ``<stem>_aligned.txt`` and ``<stem>_errors.png``."""
+    """RPE (translation and rotation) of ``est_path`` against ``ref_path``: ``json_path`` (default
+    ``out_dir/rpe.json``) and, in ``out_dir``, ``<stem>_aligned.txt`` and ``<stem>_errors.png``.
+    Neither given: the statistics only, no file written."""
     from slam.plots import plot_errors_over_time
     ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
     tr, rot = rpe_pair(ref, est, cfg, str(ref_path), str(est_path))
-    out = Path(json_path)
+    info = {"reference_poses": len(ref), "estimate_poses": len(est)}
+    if json_path is None and out_dir is None:
+        return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info)
+    out = Path(json_path) if json_path is not None else Path(out_dir) / "rpe.json"
     outdir = Path(out_dir) if out_dir else out.parent
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_errors.png"
     d = _rpe_dict(tr, rot, cfg)
@@ -123,8 +131,7 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -
     plot_errors_over_time(png, [("RPE translation", tr.timestamps, tr.errors, "m"),
                                 ("RPE rotation", rot.timestamps, rot.errors, "deg")],
                           title=f"RPE ({delta}, align: {cfg.align})")
-    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png],
-                      {"reference_poses": len(ref), "estimate_poses": len(est)})
+    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info)
 
 
 def read_failed_timestamps(stats_path: Path) -> np.ndarray:

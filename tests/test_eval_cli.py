@@ -201,3 +201,18 @@ def test_run_bad_input_is_one_line(tmp_path, capsys, case):
         names = ["stats.json", "failed_timestamps"]
     assert main(args) == 1
     _one_line_error(capsys, *names)
+
+
+def test_ate_and_rpe_print_without_writing(files, capsys, monkeypatch):
+    d, gt, est = files
+    monkeypatch.chdir(d)
+    before = sorted(p.name for p in d.iterdir())
+    assert main(["eval", "ate", str(gt), str(est)]) == 0
+    out = capsys.readouterr().out
+    lib = M.ate(read_tum(gt), read_tum(est), "se3", 0.02)
+    assert f"rmse {lib.rmse:.6g} m" in out and "wrote" not in out
+    assert main(["eval", "rpe", str(gt), str(est)]) == 0
+    assert "RPE rotation" in capsys.readouterr().out
+    assert sorted(p.name for p in d.iterdir()) == before
+    assert main(["eval", "ate", str(gt), str(est), "--out-dir", str(d / "o")]) == 0
+    assert json.loads((d / "o" / "ate.json").read_text())["rmse"] == pytest.approx(lib.rmse, abs=1e-12)

@@ -120,3 +120,15 @@ def test_show_lines_up_eval_outputs(tmp_path, capsys):
     assert main(["show", str(tmp_path / "missing.json")]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "missing.json" in err
+
+
+def test_written_files_follow_the_umask(tmp_path):
+    from synth.lab.history import append_history
+    old = os.umask(0o022)
+    try:
+        append_history(tmp_path, ["axial_noise"], 0.5)
+        p = atomic_write_json(tmp_path / "r.json", {"a": 1})
+    finally:
+        os.umask(old)
+    for f in (tmp_path / "history.json", p):
+        assert (f.stat().st_mode & 0o777) == 0o644, f

@@ -58,7 +58,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("ref", metavar="REF", help="reference trajectory (TUM file)")
     p.add_argument("est", metavar="EST", help="estimated trajectory (TUM file)")
     _add_config_flags(p, _ATE_FIELDS)
-    p.add_argument("--json", required=True, metavar="OUT", help="statistics JSON to write")
+    p.add_argument("--json", metavar="OUT", help="statistics JSON to write (default: print only; with --out-dir: "
+                                                 "D/ate.json)")
     p.add_argument("--out-dir", metavar="D", help="folder for the aligned TUM and the plot (default: next to OUT)")
     p.set_defaults(func=cmd_ate)
 
@@ -67,7 +68,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("ref", metavar="REF", help="reference trajectory (TUM file)")
     p.add_argument("est", metavar="EST", help="estimated trajectory (TUM file)")
     _add_config_flags(p, _RPE_FIELDS, note={"align": "default: none, as evo_rpe; RPE is invariant to se3"})
-    p.add_argument("--json", required=True, metavar="OUT", help="statistics JSON to write")
+    p.add_argument("--json", metavar="OUT", help="statistics JSON to write (default: print only; with --out-dir: "
+                                                 "D/rpe.json)")
     p.add_argument("--out-dir", metavar="D", help="folder for the aligned TUM and the plot (default: next to OUT)")
     p.set_defaults(func=cmd_rpe)
 
@@ -90,7 +92,8 @@ def cmd_ate(args) -> int:
     cfg = _config(args, _ATE_FIELDS)
     ev = evaluate_ate(args.ref, args.est, cfg, args.json, args.out_dir)
     print(f"ATE ({cfg.align}): {stats_line(ev.results['ate'])}")
-    print(f"wrote {', '.join(str(f) for f in ev.files)}")
+    if ev.files:
+        print(f"wrote {', '.join(str(f) for f in ev.files)}")
     return 0
 
 
@@ -101,7 +104,8 @@ def cmd_rpe(args) -> int:
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     print(f"RPE translation ({delta}): {stats_line(ev.results['rpe_translation'])}")
     print(f"RPE rotation    ({delta}): {stats_line(ev.results['rpe_rotation'])}")
-    print(f"wrote {', '.join(str(f) for f in ev.files)}")
+    if ev.files:
+        print(f"wrote {', '.join(str(f) for f in ev.files)}")
     return 0
 
 

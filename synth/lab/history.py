@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from datetime import datetime, timezone
 from pathlib import Path
@@ -71,12 +70,8 @@ def save_history(out_dir: str | os.PathLike, entries: Sequence[dict]) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     p = out / HISTORY_FILE
     clean = [_check_entry(dict(e), p, k) for k, e in enumerate(entries)]
-    fd, tmp = tempfile.mkstemp(dir=out, prefix=".history.", suffix=".json")
-    with os.fdopen(fd, "w") as f:
-        json.dump({"version": HISTORY_VERSION, "entries": clean}, f, indent=1)
-        f.write("\n")
-    os.replace(tmp, p)
-    return p
+    from data_tools.results import atomic_write_text
+    return atomic_write_text(p, json.dumps({"version": HISTORY_VERSION, "entries": clean}, indent=1) + "\n")
 
 
 def append_history(out_dir: str | os.PathLike, effects: Sequence[str], gap: float,
