@@ -84,7 +84,7 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
     appended to the index files only once their images are in place).
     """
     import cv2
-    from tqdm import tqdm
+    from data_tools.progress import progress_bar
 
     src, dst = Path(src), Path(dst)
     if not src.is_dir():
@@ -132,8 +132,8 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
 
     n_fixed = 0
     it = range(done, len(frames))
-    bar = tqdm(it, desc=f"convert {src.name}", unit="frame", disable=not progress, initial=done,
-               total=len(frames))
+    bar = progress_bar(it, desc=f"convert {src.name}", unit="frame", enabled=progress, initial=done,
+                       total=len(frames))
     for k in bar:
         idx, color_name = frames[k]
         stem = f"frame-{idx:06d}"

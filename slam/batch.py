@@ -26,7 +26,6 @@ from __future__ import annotations
 import html
 import json
 import os
-import sys
 import time
 import traceback
 from abc import ABC, abstractmethod
@@ -170,8 +169,8 @@ def get_executor(name: str, workers: int = 0) -> Executor:
 def _bar(progress: bool, total: int):
     if not progress:
         return None
-    from tqdm import tqdm
-    return tqdm(total=total, desc="batch", unit="job", file=sys.stderr, dynamic_ncols=True)
+    from data_tools.progress import progress_bar
+    return progress_bar(total=total, desc="batch", unit="job")
 
 
 @register_executor

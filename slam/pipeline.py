@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -227,14 +226,13 @@ def load_run(run_dir: str | os.PathLike) -> SlamResult:
 
 
 class _Progress:
-    """tqdm on stderr (or nothing)."""
+    """A progress display on stderr (:func:`data_tools.progress.progress_bar`) or nothing."""
 
     def __init__(self, enabled: bool, total: int, initial: int, desc: str):
         self.bar = None
         if enabled:
-            from tqdm import tqdm
-            self.bar = tqdm(total=total, initial=initial, desc=desc, unit="frame", file=sys.stderr,
-                            dynamic_ncols=True, leave=True)
+            from data_tools.progress import progress_bar
+            self.bar = progress_bar(total=total, initial=initial, desc=desc, unit="frame")
 
     def update(self, n=1, **post):
         if self.bar is not None:

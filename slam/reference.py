@@ -212,8 +212,8 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
     intr = reader.intrinsics
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(idx), desc="fusing reference", unit="frame", leave=False)
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=len(idx), desc="fusing reference", unit="frame", leave=False)
     for i in idx:
         depth = reader.read_depth(i)
         vol.integrate(depth, None, intr, reader.poses[i])

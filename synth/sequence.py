@@ -14,7 +14,6 @@ configuration, which must match).
 from __future__ import annotations
 
 import json
-import sys
 import time
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -183,8 +182,7 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
     with neither, an existing sequence is an error. Frames whose view holds no geometry are
     written too (all-zero depth) and counted in ``empty_frames``.
     """
-    from tqdm import tqdm
-
+    from data_tools.progress import progress_bar
     from synth.render import IdealRenderer
     from synth.scenes import build_scene
 
@@ -212,8 +210,8 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
                               f"of the configured trajectory ({traj.timestamps[start - 1]:.6f})")
     empty = 0
     render_s = 0.0
-    with tqdm(total=len(traj), initial=start, desc=f"synth {config.scene}", unit="frame",
-              file=sys.stderr, disable=not progress) as bar:
+    with progress_bar(total=len(traj), initial=start, desc=f"synth {config.scene}", unit="frame",
+                      enabled=progress) as bar:
         for i in range(start, len(traj)):
             t0 = time.perf_counter()
             res = renderer.render(traj.poses[i], intr, with_rgb=True)

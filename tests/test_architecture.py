@@ -299,3 +299,19 @@ def test_library_modules_hold_one_idea_each():
             if n > MAX_MODULE_LINES:
                 long.append(f"{f.relative_to(REPO)} ({n} lines)")
     assert not long, f"modules longer than {MAX_MODULE_LINES} lines: {long}"
+
+
+def test_progress_goes_through_one_module():
+    """tqdm redraws with carriage returns, which fill log files: every long job uses
+    data_tools.progress (a bar on a terminal, whole lines otherwise)."""
+    bad = []
+    for pkg in ["app", "data_tools", "synth", "slam", "recog"]:
+        for f in sorted((REPO / pkg).rglob("*.py")):
+            if f.relative_to(REPO).as_posix() == "data_tools/progress.py":
+                continue
+            for node in ast.walk(ast.parse(f.read_text(), str(f))):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+                if any(n.split(".")[0] == "tqdm" for n in names):
+                    bad.append(f"{f.relative_to(REPO)}:{node.lineno}")
+    assert not bad, f"tqdm imported outside data_tools/progress.py: {bad}"

@@ -322,3 +322,21 @@ def test_scene_json_round_trip_units(tmp_path):
     back = read_scene_json(tmp_path / "scene.json")
     assert [m.name for m in back.meshes] == ["a", "b"]
     np.testing.assert_allclose(back.meshes[1].bounds, [[1.75, -0.25, -0.25], [2.25, 0.25, 0.25]], atol=1e-9)
+
+
+def test_progress_is_whole_lines_when_not_a_terminal(capsys):
+    from data_tools.progress import LineProgress, progress_bar
+    bar = progress_bar(total=20, desc="job", unit="frame")      # pytest's stderr is not a terminal
+    assert isinstance(bar, LineProgress)
+    for _ in range(20):
+        bar.update(1)
+    bar.set_postfix_str("1 cut")
+    bar.close()
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert "\r" not in err and lines[0] == "job: 0/20 frame" and len(lines) == 1 + 10 + 1
+    assert lines[-1].startswith("job: 20/20 frame done") and lines[-1].endswith("[1 cut]")
+    assert list(progress_bar(range(3), desc="it", initial=2)) == [0, 1, 2]
+    assert capsys.readouterr().err.splitlines()[-1].startswith("it: 5/5 it done")
+    list(progress_bar(range(3), desc="quiet", enabled=False))
+    assert capsys.readouterr().err == ""

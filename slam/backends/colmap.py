@@ -259,9 +259,8 @@ class _NoBar:
 def _progress(enabled: bool, total: int, desc: str):
     if not enabled:
         return _NoBar()
-    import sys
-    from tqdm import tqdm
-    return tqdm(total=total, desc=desc, unit="frame", file=sys.stderr, dynamic_ncols=True)
+    from data_tools.progress import progress_bar
+    return progress_bar(total=total, desc=desc, unit="frame")
 
 
 

@@ -266,8 +266,8 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
                 cands.append(n)
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(cands) + 1, desc="diagnose", unit="effect")
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=len(cands) + 1, desc="diagnose", unit="effect")
 
     def fitcfg(evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""

@@ -539,7 +539,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     effect of ``config``) to ``measured`` (a :class:`~synth.lab.measured.MeasuredSequence`).
 
     Returns a :class:`FitResult` whose ``gap_before``/``gap`` are scored on the evaluation set
-    with the same seeds and pixels. ``progress`` shows a tqdm bar (stderr) of evaluations.
+    with the same seeds and pixels. ``progress`` shows the evaluations on stderr (:mod:`data_tools.progress`).
     """
     fc = (fit_config or FitConfig()).validate()
     t0 = time.perf_counter()
@@ -552,8 +552,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=fc.max_evaluations, desc="fitting", unit="eval")
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=fc.max_evaluations, desc="fitting", unit="eval")
     try:
         start_cfg = config
         g_start = obj(config)

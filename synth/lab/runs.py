@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import shutil
-import sys
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
@@ -333,8 +332,8 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     kept = len(measured) - len(todo)
     bar = None
     if progress and todo:
-        from tqdm import tqdm
-        bar = tqdm(total=len(measured), initial=kept, desc="simulating", unit="frame", file=sys.stderr, leave=False)
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=len(measured), initial=kept, desc="simulating", unit="frame", leave=False)
     for k in todo:
         i = measured.frame_indices[k]
         rel = reader.depth_files[i]
@@ -381,8 +380,8 @@ def simulate_all(measured, config, seed: int, progress: bool = True) -> list:
     sim = measured.simulator(config)
     frames = range(len(measured))
     if progress:
-        from tqdm import tqdm
-        frames = tqdm(frames, desc="simulating", unit="frame", file=sys.stderr, leave=False)
+        from data_tools.progress import progress_bar
+        frames = progress_bar(frames, desc="simulating", unit="frame", leave=False)
     out = []
     for k in frames:
         out.extend(measured.simulate(config, seed=seed, frames=[k], simulator=sim))

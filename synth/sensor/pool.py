@@ -38,8 +38,8 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     start = len(writer)
     idx = range(start, len(poses))
     if progress:
-        from tqdm import tqdm
-        idx = tqdm(idx, desc=f"simulating {sim.preset.name}", initial=start, total=len(poses))
+        from data_tools.progress import progress_bar
+        idx = progress_bar(idx, desc=f"simulating {sim.preset.name}", initial=start, total=len(poses), unit="frame")
     prevs = [poses[i - 1] if (motion and i > 0) else None for i in range(len(poses))]
     n_workers = min(int(workers), len(poses) - start)   # no more processes than frames left
     pool = SimulationPool(sim, workers=n_workers) if n_workers > 1 else None

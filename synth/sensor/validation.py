@@ -278,8 +278,8 @@ def projector_shadow_side(preset, effects: str = "physical") -> str:
 def _progress(enabled: bool):
     if not enabled:
         return lambda xs, desc: xs
-    from tqdm import tqdm
-    return lambda xs, desc: tqdm(list(xs), desc=desc, leave=False)
+    from data_tools.progress import progress_bar
+    return lambda xs, desc: progress_bar(list(xs), desc=desc, leave=False)
 
 
 def plot_flat_wall(res: FlatWallResult, path: str | os.PathLike) -> Path:

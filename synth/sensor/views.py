@@ -281,8 +281,9 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     todo = [j for j in jobs if j[0] not in done]
     it = todo
     if progress:
-        from tqdm import tqdm
-        it = tqdm(todo, desc=f"views of {model.name}", initial=len(jobs) - len(todo), total=len(jobs))
+        from data_tools.progress import progress_bar
+        it = progress_bar(todo, desc=f"views of {model.name}", initial=len(jobs) - len(todo), total=len(jobs),
+                          unit="view")
     scale = sim.camera().depth_scale
     written = 0
     views = []
