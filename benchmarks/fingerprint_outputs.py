@@ -26,7 +26,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("REALGAP_SHARED_DATA", REPO.parent / "shared" / "data"))
 VOLATILE = ("header", "seconds", "time", "timing", "_s", "path", "sequence", "created", "version", "host", "command",
-            "out", "dir", "file", "inputs", "mesh", "model", "slam_run")
+            "out", "dir", "file", "inputs", "mesh", "model", "slam_run", "source", "description")
 
 
 def _realgap(*args: str, one_thread: bool = False) -> None:
