@@ -312,9 +312,13 @@ def _fmt(v) -> str:
     return f"{v:.6g}"
 
 
-def format_table(cols: list[str], rows: list[list[str]]) -> str:
-    """Rows as an aligned text table (first column left-aligned, the others right-aligned)."""
+def format_table(cols: list[str], rows: list[list[str]], align: str | None = None) -> str:
+    """Rows as an aligned text table under a dashed rule. ``align``: one letter per column, ``l``
+    or ``r`` (default: the first column left-aligned, the others - numbers - right-aligned)."""
     widths = [max(len(str(c)) for c in col) for col in zip(cols, *rows)]
+    align = align or "l" + "r" * (len(widths) - 1)
+
     def line(cells):
-        return "  ".join(str(c).ljust(w) if i == 0 else str(c).rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+        text = "  ".join(str(c).ljust(w) if a == "l" else str(c).rjust(w) for c, w, a in zip(cells, widths, align))
+        return text.rstrip() if align.endswith("l") else text   # no padding after a left-aligned last column
     return "\n".join([line(cols), "  ".join("-" * w for w in widths), *(line(r) for r in rows)])

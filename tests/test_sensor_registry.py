@@ -46,6 +46,8 @@ def test_every_parameter_declares_unit_and_plausible_range(name):
     preset's value and the fit range lie inside; a value outside is a one-line ConfigError
     naming effect, parameter and range."""
     cls = effect_class(name)
+    for key, cp in cls.CONFIG_PARAMETERS.items():
+        assert cp.unit is not None and cp.low < cp.high, f"{name}.{key}: config parameter without unit or range"
     for spec in cls.param_specs():
         where = f"{name}.{spec.name}"
         assert spec.unit is not None, f"{where}: no unit (declare it with registry.param)"

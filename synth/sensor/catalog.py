@@ -10,6 +10,7 @@ import dataclasses
 
 from data_tools.config import field_docs
 from data_tools.errors import ConfigError
+from data_tools.results import format_table
 from synth.sensor.presets import PRESETS, get_preset
 from synth.sensor.registry import effect_class, effect_names
 
@@ -36,7 +37,7 @@ def effect_catalog(name: str | None = None) -> list[dict]:
                            "presets": per_preset, "bounds": _plain(s.bounds), "choices": _plain(s.choices),
                            "fit_range": _plain(s.fit_range), "doc": s.doc})
         for key, cp in sorted(getattr(cls, "CONFIG_PARAMETERS", {}).items()):
-            params.append({"name": key, "type": "float", "unit": None, "default": None, "presets": {},
+            params.append({"name": key, "type": "float", "unit": cp.unit, "default": None, "presets": {},
                            "bounds": [cp.low, cp.high], "choices": None, "fit_range": [cp.low, cp.high],
                            "doc": cp.doc + " (lives in the sensor config, not in the effect's params)"})
         out.append({
@@ -88,9 +89,7 @@ def _num(x) -> str:
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
-    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    fmt = lambda r: "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip()  # noqa: E731
-    return [fmt(header), "  ".join("-" * w for w in widths), *(fmt(r) for r in rows)]
+    return format_table(header, rows, align="l" * len(header)).splitlines()
 
 
 def format_effects(entries: list[dict], detail: bool) -> str:

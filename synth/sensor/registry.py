@@ -34,6 +34,7 @@ runs the contract suite, a fit and a diagnosis on it).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import os
 import pkgutil
@@ -143,6 +144,8 @@ class ConfigParameter:
     applies: Callable | None = None
     """applies(config) -> False when the parameter has no effect for this sensor (then it is not
     fitted); None = always."""
+    unit: str | None = None
+    """Unit symbol (as for :func:`param`)."""
 
 
 class Effect(ABC):
@@ -214,21 +217,10 @@ class Effect(ABC):
 
     @classmethod
     def param_specs(cls) -> list[ParamSpec]:
-        """Every parameter with its type, default, unit, bounds, choices, fit range and docstring."""
-        from data_tools.config import field_docs
-        if cls.Params is None:
-            return []
-        docs = field_docs(cls.Params)
-        out = []
-        for f in dataclasses.fields(cls.Params):
-            meta = f.metadata or {}
-            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-            fit = cls.FITTABLE.get(f.name)
-            bounds = meta.get("bounds") or (tuple(fit) if fit is not None else None)
-            out.append(ParamSpec(f.name, type(default).__name__, default, meta.get("unit"), bounds,
-                                 meta.get("choices"), tuple(fit) if fit is not None else None,
-                                 docs.get(f.name, "")))
-        return out
+        """Every parameter with its type, default, unit, bounds, choices, fit range and docstring
+        (read once per class: the docstrings come from the source, and ``validate`` runs on every
+        construction)."""
+        return list(_param_specs(cls))
 
     def stage_for(self, physical_model: bool) -> int:
         """Stage in a model that does (``physical_model``) or does not run the physical pipeline."""
@@ -285,6 +277,24 @@ class Effect(ABC):
         return f"{type(self).__name__}({self.params!r}, enabled={self.enabled})"
 
 
+@functools.cache
+def _param_specs(cls: type) -> tuple[ParamSpec, ...]:
+    from data_tools.config import field_docs
+    if cls.Params is None:
+        return ()
+    docs = field_docs(cls.Params)
+    out = []
+    for f in dataclasses.fields(cls.Params):
+        meta = f.metadata or {}
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        fit = cls.FITTABLE.get(f.name)
+        bounds = meta.get("bounds") or (tuple(fit) if fit is not None else None)
+        out.append(ParamSpec(f.name, type(default).__name__, default, meta.get("unit"), bounds,
+                             meta.get("choices"), tuple(fit) if fit is not None else None,
+                             docs.get(f.name, "")))
+    return tuple(out)
+
+
 def params_to_dict(params) -> dict:
     d = dataclasses.asdict(params)
     for k, v in d.items():
@@ -311,10 +321,10 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
         raise TypeError(f"{cls.__name__} has no name")
     if cls.Params is None or not dataclasses.is_dataclass(cls.Params):
         raise TypeError(f"{cls.__name__}.Params must be a dataclass")
-    for k in cls.FITTABLE:
-        if k not in {f.name for f in dataclasses.fields(cls.Params)}:
-            raise TypeError(f"{cls.__name__}.FITTABLE names unknown parameter {k!r}")
     fields = {f.name for f in dataclasses.fields(cls.Params)}
+    for k in cls.FITTABLE:
+        if k not in fields:
+            raise TypeError(f"{cls.__name__}.FITTABLE names unknown parameter {k!r}")
     for k in (cls.IDENTITY_PARAMS or {}):
         if k not in fields:
             raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")

@@ -52,7 +52,7 @@ LEVEL_PHASE = ConfigParameter(
          "by less than one step's worth of disparity (~2 % of z0 for Kinect v1 at VGA), which the direct "
          "model uses only for this quantisation (a physical model's stored reference pattern is re-made with "
          "it). Structured light only (active stereo quantises the absolute disparity)"),
-    applies=_phase_applies)
+    applies=_phase_applies, unit="1")
 
 
 def _concentration(d: np.ndarray, step: float) -> float:
