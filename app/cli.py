@@ -8,8 +8,10 @@ Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exi
 an operating-system error on a file (``realgap: error: PATH: No such file or directory``) and any
 other, unexpected exception (one line plus "re-run with --debug for the traceback"; ``realgap
 --debug ...`` or ``REALGAP_DEBUG=1`` shows the traceback). Usage errors exit 2 (argparse). Every
-Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130 and leaves finished
-outputs in place.
+Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130, leaves finished
+outputs in place and says what a re-run does: a command that continues sets
+``on_interrupt`` (``parser.set_defaults(on_interrupt=RESUMES)``), any other says it starts again.
+``--no-progress`` on any command switches every progress display off.
 """
 from __future__ import annotations
 
@@ -70,7 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         # a group without its subcommand: print that group's help
         (getattr(args, "_group_parser", None) or parser).print_help()
         return 1 if args.command else 0
+    from data_tools.progress import set_progress_enabled
     from data_tools.results import running_command
+    set_progress_enabled(not getattr(args, "no_progress", False))
     try:
         with warnings.catch_warnings(), running_command(sys.argv[1:] if argv is None else argv):
             warnings.simplefilter("default")
@@ -92,8 +96,11 @@ def main(argv: list[str] | None = None) -> int:
               f"the traceback)", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        print("realgap: interrupted (finished outputs are kept; re-run to continue)", file=sys.stderr)
+        note = getattr(args, "on_interrupt", None) or "files already written are kept; re-running starts again"
+        print(f"realgap: interrupted ({note})", file=sys.stderr)
         return 130
+    finally:
+        set_progress_enabled(True)
     return int(rc or 0)
 
 

@@ -23,6 +23,8 @@ def run_demo(out: str | Path = "demo_out", frames: int = 60, sensor: str = "kine
 
     if frames < 3:
         raise ConfigError(f"demo: --frames must be at least 3 (the ATE alignment needs 3 poses), got {frames}")
+    from data_tools.outputs import check_output_dir
+    check_output_dir(out, what="demo folder")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

@@ -29,6 +29,15 @@ VOLATILE = ("header", "seconds", "time", "timing", "_s", "path", "sequence", "cr
             "out", "dir", "file", "inputs", "mesh", "model", "slam_run", "source", "description")
 
 
+def _old_eval_cli() -> bool:
+    """Before the one-dialect change, ``eval ate`` wrote its JSON with ``--json OUT`` (now ``--out DIR``)."""
+    r = subprocess.run([sys.executable, "-m", "app", "eval", "ate", "--help"], cwd=REPO, capture_output=True, text=True)
+    return "--out-dir" in r.stdout
+
+
+_OLD_EVAL = None
+
+
 def _realgap(*args: str, one_thread: bool = False) -> None:
     """Run ``realgap ARGS``; ``one_thread`` limits Open3D to one thread (its parallel float
     reductions differ in the last bits from run to run otherwise, see slam.batch)."""
@@ -107,31 +116,31 @@ def fingerprint(work: Path) -> dict:
     # 2. the sensor lab on the simulated kinect_v1 sequence
     seq = work / "seq_kinect_v1"
     lab = work / "lab"
-    _realgap("sensor", "compare", str(seq), "--effects", "axial_noise", "--frames", "3", "--out", str(lab))
+    _realgap("sensor", "compare", str(seq), "--effects", "axial_noise", "--max-frames", "3", "--out", str(lab))
     fp["sensor compare gap+breakdowns"] = _json(lab / "metrics.json")
     model = work / "model.json"
-    _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,range_limits,edge_fattening", "--frames", "3",
+    _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,range_limits,edge_fattening", "--max-frames", "3",
              "--fit-option", "max_evaluations=24", "--out", str(model))
     fp["sensor fit model"] = _json(model, lambda d: {k: v for k, v in d.items() if k != "fit"})
     fp["sensor fit record"] = _json(model, lambda d: {k: v for k, v in d.get("fit", {}).items()
                                                       if k in ("gap", "gap_before", "params", "evaluations")})
     model2 = work / "model_lens_quant.json"
     _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,lens_distortion,disparity_quantization",
-             "--frames", "2", "--fit-option", "max_evaluations=30", "--out", str(model2))
+             "--max-frames", "2", "--fit-option", "max_evaluations=30", "--out", str(model2))
     fp["sensor fit lens+quantization record"] = _json(model2, lambda d: {k: v for k, v in d.get("fit", {}).items()
                                                                          if k in ("gap", "gap_before", "params",
                                                                                   "evaluations")})
     simseq2 = work / "sim_lens_quant"
-    _realgap("sensor", "simulate", str(seq), "--model", str(model2), "--frames", "2", "--out", str(simseq2))
+    _realgap("sensor", "simulate", str(seq), "--model", str(model2), "--max-frames", "2", "--out", str(simseq2))
     fp["sensor simulate lens+quantization"] = _hash_pngs(simseq2 / "depth")
     diag = work / "diag"
-    _realgap("sensor", "diagnose", str(seq), "--effects", "axial_noise", "--frames", "2",
+    _realgap("sensor", "diagnose", str(seq), "--effects", "axial_noise", "--max-frames", "2",
              "--candidates", "edge_fattening,projector_shadow,lens_distortion",
              "--fit-option", "max_evaluations=10", "--diagnose-option", "candidate_evaluations=8",
              "--top", "1", "--report-frames", "1", "--out", str(diag))
     fp["sensor diagnose"] = _json(diag / "diagnosis.json")
     simseq = work / "sim"
-    _realgap("sensor", "simulate", str(seq), "--model", str(model), "--frames", "3", "--out", str(simseq))
+    _realgap("sensor", "simulate", str(seq), "--model", str(model), "--max-frames", "3", "--out", str(simseq))
     fp["sensor simulate"] = _hash_pngs(simseq / "depth")
 
     # 3. slam on the simulated sequence, and the metrics
@@ -142,10 +151,12 @@ def fingerprint(work: Path) -> dict:
     _realgap("slam", "run", str(seq), "--backend", "rgbd_odometry", "--out", str(run2), one_thread=True)
     fp["slam run rgbd_odometry trajectory"] = _trajectory(run2 / "trajectory.txt")
     evo = SHARED / "evo_trajectories"
+    global _OLD_EVAL
+    _OLD_EVAL = _old_eval_cli()
     if evo.is_dir():
-        ate = work / "ate.json"
+        ate = work / "ate" / "ate.json"
         _realgap("eval", "ate", str(evo / "freiburg1_xyz-groundtruth.txt"), str(evo / "freiburg1_xyz-rgbdslam.txt"),
-                 "--json", str(ate))
+                 *(["--json", str(ate)] if _OLD_EVAL else ["--out", str(ate.parent)]))
         fp["eval ate"] = _json(ate)
 
     # 4. object-centred views for recognition

@@ -136,6 +136,8 @@ def camera_from_dict(d: dict, path: str | os.PathLike | None = None) -> Camera:
     """Build a :class:`Camera` from parsed camera.json content; errors name ``path``."""
     if not isinstance(d, dict):
         raise FormatError(path, "camera.json must hold a JSON object")
+    if "intrinsic_matrix" in d and "fx" not in d:
+        d = _from_open3d_intrinsic(d, path)
     missing = [k for k in _REQUIRED if k not in d]
     if missing:
         raise FormatError(path, f"camera.json is missing key(s): {', '.join(missing)}")
@@ -169,17 +171,55 @@ def camera_from_dict(d: dict, path: str | os.PathLike | None = None) -> Camera:
     return Camera(intr, scale, sensor)
 
 
+OPEN3D_DEFAULT_DEPTH_SCALE = 1000.0
+"""Depth units per metre assumed for an Open3D intrinsic JSON (Open3D's own default: millimetres)."""
+
+
+def _from_open3d_intrinsic(d: dict, path) -> dict:
+    """camera.json keys from Open3D's ``PinholeCameraIntrinsic`` JSON (``width``, ``height`` and the
+    3x3 ``intrinsic_matrix`` stored column-major, as ``o3d.io.write_pinhole_camera_intrinsic``
+    writes it). It has no depth scale: ``depth_scale`` from the file if present, else 1000
+    (Open3D's default) with a warning."""
+    import warnings
+    K = d.get("intrinsic_matrix")
+    if not isinstance(K, list) or len(K) != 9:
+        raise FormatError(path, "intrinsic_matrix must hold 9 numbers (Open3D: the 3x3 matrix, column-major)")
+    try:
+        M = [[float(K[c * 3 + r]) for c in range(3)] for r in range(3)]
+    except (TypeError, ValueError):
+        raise FormatError(path, "intrinsic_matrix must hold 9 numbers") from None
+    if M[0][1] != 0 or M[1][0] != 0 or M[2] != [0.0, 0.0, 1.0]:
+        raise FormatError(path, "intrinsic_matrix is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] "
+                                "(Open3D stores it column-major)")
+    out = {"width": d.get("width"), "height": d.get("height"), "fx": M[0][0], "fy": M[1][1], "cx": M[0][2],
+           "cy": M[1][2], "depth_scale": d.get("depth_scale", OPEN3D_DEFAULT_DEPTH_SCALE)}
+    if "depth_scale" not in d:
+        warnings.warn(f"{path}: Open3D intrinsic JSON has no depth scale; assuming {OPEN3D_DEFAULT_DEPTH_SCALE:g} "
+                      f"units per metre (Open3D's default; add \"depth_scale\" to the file to change it)",
+                      stacklevel=3)
+    for k in ("sensor", "distortion"):
+        if k in d:
+            out[k] = d[k]
+    return out
+
+
 def read_camera_json(path: str | os.PathLike) -> Camera:
-    """Read camera.json (see ../shared/FORMATS.md)."""
+    """Read camera.json (see ../shared/FORMATS.md), or Open3D's ``PinholeCameraIntrinsic`` JSON
+    (converted by :func:`_from_open3d_intrinsic`)."""
     path = Path(path)
+    if path.is_dir():
+        raise FormatError(path, "is a folder, expected a camera JSON file")
     try:
         d = json.loads(path.read_text())
     except FileNotFoundError:
         raise FormatError(path, "file not found") from None
+    except UnicodeDecodeError:
+        raise FormatError(path, "not a text (JSON) file") from None
     except json.JSONDecodeError as e:
         raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
     return camera_from_dict(d, path)
 
 
 def write_camera_json(path: str | os.PathLike, camera: Camera) -> None:
-    Path(path).write_text(json.dumps(camera.to_json(), indent=2) + "\n")
+    from data_tools.results import atomic_write_json
+    atomic_write_json(path, camera.to_json())

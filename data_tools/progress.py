@@ -11,15 +11,29 @@ per ``LINE_STEP`` of the work (and at least every ``LINE_SECONDS``) and one when
     synth room: 100/100 frame done (97.6 s)
 
 Both have ``update(n)``, ``set_postfix_str(text)``, ``close()``, iteration (with ``iterable``) and
-``with``. ``enabled=False`` gives a silent object with the same interface.
+``with``. ``enabled=False`` gives a silent object with the same interface; so does every bar after
+:func:`set_progress_enabled` (False) — the CLI's ``--no-progress`` — or with ``REALGAP_NO_PROGRESS=1``.
 """
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections.abc import Iterable
 
-__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS"]
+__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS", "set_progress_enabled"]
+
+_ENABLED = True
+
+
+def set_progress_enabled(enabled: bool) -> None:
+    """Switch every progress display of this process on or off (``--no-progress``)."""
+    global _ENABLED
+    _ENABLED = bool(enabled)
+
+
+def _globally_enabled() -> bool:
+    return _ENABLED and os.environ.get("REALGAP_NO_PROGRESS", "") in ("", "0")
 
 LINE_STEP = 0.1
 """A line every this fraction of the total (10 %)."""
@@ -96,6 +110,7 @@ def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, 
                  initial: int = 0, enabled: bool = True, leave: bool = True, file=None):
     """tqdm on stderr when it is a terminal, else :class:`LineProgress`; ``enabled=False``: silent."""
     out = file or sys.stderr
+    enabled = enabled and _globally_enabled()
     if enabled and getattr(out, "isatty", lambda: False)():
         from tqdm import tqdm
         return tqdm(iterable, total=total, desc=desc, unit=unit, initial=initial, leave=leave, file=out,

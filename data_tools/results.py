@@ -65,16 +65,16 @@ _FOLDER_HASH_SUFFIXES = (".txt", ".json")
 # atomic writes
 # ------------------------------------------------------------------------------------------
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and ``os.replace``
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and ``os.replace``
     (readers see the old file or the new one, never a truncated one). Creates the parent folder.
     The new file gets the permissions the umask gives an ordinary new file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
@@ -83,6 +83,43 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """``text`` (UTF-8) written with :func:`atomic_write_bytes`."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_image(path: str | os.PathLike, image) -> Path:
+    """An image array (uint8/uint16, grey or BGR as OpenCV expects) encoded by the file's suffix
+    (.png, .jpg, ...) and written with :func:`atomic_write_bytes`; RealgapError naming the file
+    when it cannot be encoded."""
+    import cv2
+    import numpy as np
+    from data_tools.errors import RealgapError
+    path = Path(path)
+    ok, buf = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(image))
+    if not ok:
+        raise RealgapError(f"{path}: cannot encode the image as {path.suffix or '.png'}")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
+def atomic_save_figure(fig, path: str | os.PathLike, **kwargs) -> Path:
+    """``fig.savefig`` into memory, then :func:`atomic_write_bytes` (format from the suffix)."""
+    import io
+    path = Path(path)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=(path.suffix.lstrip(".") or "png"), **kwargs)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def atomic_save_npy(path: str | os.PathLike, array) -> Path:
+    """``np.save`` into memory, then :func:`atomic_write_bytes`."""
+    import io
+    import numpy as np
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def json_safe(x):

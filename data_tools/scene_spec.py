@@ -114,5 +114,6 @@ def write_scene_json(seq_dir: str | os.PathLike, scene: SceneSpec, mesh_dir: str
     if "default" in used and "default" not in mats:
         mats["default"] = DEFAULT_MATERIAL.to_json()
     out = seq_dir / "scene.json"
-    out.write_text(json.dumps({"units": "m", "meshes": entries, "materials": mats}, indent=2) + "\n")
+    from data_tools.results import atomic_write_json
+    atomic_write_json(out, {"units": "m", "meshes": entries, "materials": mats})
     return out

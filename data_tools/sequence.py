@@ -237,6 +237,11 @@ def sequence_info(path: str | os.PathLike) -> dict:
         sc = seq.scene
         info["scene_meshes"] = len(sc.meshes)
         info["scene_triangles"] = int(sum(len(m.triangles) for m in sc.meshes))
+    from data_tools.outputs import incomplete_text, read_incomplete
+    marker = read_incomplete(seq.path)
+    info["complete"] = marker is None
+    if marker is not None:
+        info["incomplete"] = incomplete_text(marker)
     return info
 
 
@@ -274,9 +279,8 @@ def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
 def write_depth_png(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float) -> None:
     """Write depth (metres) as a 16-bit PNG (:func:`encode_depth`; the inverse of
     :func:`read_depth_png`); RealgapError naming the file when it cannot be written."""
-    import cv2
-    if not cv2.imwrite(str(path), encode_depth(depth_m, depth_scale)):
-        raise RealgapError(f"{path}: cannot write image")
+    from data_tools.results import atomic_write_image
+    atomic_write_image(path, encode_depth(depth_m, depth_scale))
 
 
 class SequenceWriter:
@@ -285,12 +289,20 @@ class SequenceWriter:
     Index files are appended and flushed after every frame, so an interrupted job keeps every
     frame it finished; ``resume=True`` reopens such a sequence and reports how many frames
     are already there (``len(writer)``) so the caller can skip them.
+
+    With ``expected_frames`` the folder carries the unfinished marker of
+    :mod:`data_tools.outputs` (``incomplete.json``: frames written / expected, updated after every
+    frame) until that many frames are written; ``command`` names the writer in it.
     """
 
     def __init__(self, path: str | os.PathLike, camera: Camera, scene: SceneSpec | None = None,
-                 rgb_ext: str = "png", resume: bool = False, overwrite: bool = False):
-        self.path = Path(path)
+                 rgb_ext: str = "png", resume: bool = False, overwrite: bool = False,
+                 expected_frames: int | None = None, command: str = "realgap"):
+        from data_tools.outputs import check_output_dir
+        self.path = check_output_dir(path, what="sequence folder")
         self.camera = camera
+        self.expected_frames = expected_frames
+        self.command = command
         self.rgb_ext = rgb_ext
         exists = (self.path / "depth.txt").exists()
         if exists and not (resume or overwrite):
@@ -313,6 +325,16 @@ class SequenceWriter:
         if scene is not None:
             write_scene_json(self.path, scene)
         self._gt_path = self.path / "groundtruth.txt"
+        self._update_marker()
+
+    def _update_marker(self) -> None:
+        if self.expected_frames is None:
+            return
+        from data_tools.outputs import clear_incomplete, mark_incomplete
+        if len(self._timestamps) >= self.expected_frames:
+            clear_incomplete(self.path)
+        else:
+            mark_incomplete(self.path, self.command, len(self._timestamps), self.expected_frames)
 
     def _truncate_to_complete(self) -> None:
         """After an interruption rgb.txt/groundtruth.txt may hold one entry more than depth.txt
@@ -327,7 +349,8 @@ class SequenceWriter:
                 s = line.split("#", 1)[0].split()
                 if not s or float(s[0]) <= last + 1e-9:
                     keep.append(line)
-            p.write_text("\n".join(keep) + "\n")
+            from data_tools.results import atomic_write_text
+            atomic_write_text(p, "\n".join(keep) + "\n")
 
     def __len__(self) -> int:
         return len(self._timestamps)
@@ -340,7 +363,6 @@ class SequenceWriter:
 
     def write(self, frame: Frame) -> None:
         """Append one frame (images first, then index lines, so the index never lists a missing file)."""
-        import cv2
         t = float(frame.timestamp)
         if self._timestamps and t <= self._timestamps[-1]:
             raise RealgapError(f"{self.path}: frame timestamp {t:.6f} is not after the previous one "
@@ -354,8 +376,8 @@ class SequenceWriter:
         rgb_rel = None
         if frame.rgb is not None:
             rgb_rel = f"rgb/{name}.{self.rgb_ext}"
-            if not cv2.imwrite(str(self.path / rgb_rel), np.ascontiguousarray(frame.rgb[:, :, ::-1])):
-                raise RealgapError(f"{self.path / rgb_rel}: cannot write image")
+            from data_tools.results import atomic_write_image
+            atomic_write_image(self.path / rgb_rel, frame.rgb[:, :, ::-1])
         if frame.pose is not None:
             from data_tools.geometry import pose_to_tum
             if not np.all(np.isfinite(frame.pose)):
@@ -371,6 +393,7 @@ class SequenceWriter:
         with open(self.path / "depth.txt", "a") as f:
             f.write(f"{name} {depth_rel}\n")
         self._timestamps.append(t)
+        self._update_marker()
 
     def close(self) -> None:
         pass

@@ -13,7 +13,6 @@ a rotation, or with NaN, is an error naming the file.
 """
 from __future__ import annotations
 
-import json
 import os
 import re
 import shutil
@@ -25,6 +24,7 @@ import numpy as np
 from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
 from data_tools.errors import FormatError
 from data_tools.geometry import pose_to_tum
+from data_tools.results import atomic_write_image, atomic_write_json, atomic_write_text
 
 SEVENSCENES_DEFAULT_K = (585.0, 585.0, 320.0, 240.0)
 """fx, fy, cx, cy published with 7-Scenes (depth camera), used when camera-intrinsics.txt is absent."""
@@ -86,9 +86,9 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
     import cv2
     from data_tools.progress import progress_bar
 
-    src, dst = Path(src), Path(dst)
-    if not src.is_dir():
-        raise FormatError(src, "source folder not found")
+    from data_tools.outputs import check_input_dir, check_output_dir
+    src = check_input_dir(src, "7-Scenes sequence folder")
+    dst = check_output_dir(dst, what="output sequence folder")
     frames = sorted((int(m.group(1)), m.group(0)) for f in os.listdir(src) if (m := _FRAME_RE.match(f)))
     if not frames:
         raise FormatError(src, "no 7-Scenes frames (frame-XXXXXX.color.jpg) found")
@@ -111,6 +111,12 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
                     SensorSpec("structured_light", 0.075, (0.075, 0.0, 0.0), {"model": "kinect_v1"}))
 
     if dst.exists() and overwrite:
+        ours = {"depth.txt", "rgb.txt", "groundtruth.txt", "camera.json", "convert.json", "depth", "rgb",
+                "incomplete.json"}
+        other = sorted(p.name for p in dst.iterdir() if p.name not in ours)
+        if other:
+            raise FormatError(dst, f"--overwrite would delete files that are not a converted sequence "
+                                   f"({', '.join(other[:3])}); choose another output folder")
         shutil.rmtree(dst)
     (dst / "rgb").mkdir(parents=True, exist_ok=True)
     (dst / "depth").mkdir(parents=True, exist_ok=True)
@@ -122,7 +128,7 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
             lines = (dst / name).read_text().splitlines() if (dst / name).exists() else []
             head = [x for x in lines if x.startswith("#")]
             data = [x for x in lines if x.strip() and not x.startswith("#")][:done]
-            (dst / name).write_text("\n".join(head + data) + "\n")
+            atomic_write_text(dst / name, "\n".join(head + data) + "\n")
     else:
         (dst / "rgb.txt").write_text("# colour images (converted from 7-Scenes)\n# timestamp filename\n")
         (dst / "depth.txt").write_text("# depth images, millimetres (depth_scale 1000)\n# timestamp filename\n")
@@ -130,6 +136,8 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
                                              "# timestamp tx ty tz qx qy qz qw\n")
     write_camera_json(dst / "camera.json", camera)
 
+    from data_tools.outputs import clear_incomplete, mark_incomplete
+    mark_incomplete(dst, "realgap data convert-7scenes", done, len(frames))
     n_fixed = 0
     it = range(done, len(frames))
     bar = progress_bar(it, desc=f"convert {src.name}", unit="frame", enabled=progress, initial=done,
@@ -148,7 +156,7 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
             raise FormatError(src / f"{stem}.depth.png", f"depth is {depth.shape[1]}x{depth.shape[0]}, colour is {w}x{h}")
         if (depth == 65535).any():
             depth = np.where(depth == 65535, 0, depth).astype(np.uint16)
-            cv2.imwrite(str(dst / "depth" / f"{ts}.png"), depth)
+            atomic_write_image(dst / "depth" / f"{ts}.png", depth)
             n_fixed += 1
         else:
             shutil.copyfile(src / f"{stem}.depth.png", dst / "depth" / f"{ts}.png")
@@ -160,6 +168,8 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
             f.write(f"{ts} rgb/{ts}.{ext}\n")
         with open(dst / "depth.txt", "a") as f:
             f.write(f"{ts} depth/{ts}.png\n")
+        mark_incomplete(dst, "realgap data convert-7scenes", k + 1, len(frames))
     result = ConvertResult(str(src), str(dst), len(frames), done, n_fixed, fps)
-    (dst / "convert.json").write_text(json.dumps(asdict(result), indent=2) + "\n")
+    atomic_write_json(dst / "convert.json", asdict(result))
+    clear_incomplete(dst)
     return result

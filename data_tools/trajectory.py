@@ -128,7 +128,8 @@ def write_tum(path: str | os.PathLike, traj: Trajectory, header: str | None = No
     lines.append("# timestamp tx ty tz qx qy qz qw")
     for t, r in zip(traj.timestamps, rows):
         lines.append(f"{t:.6f} " + " ".join(f"{x:.9g}" for x in r))
-    Path(path).write_text("\n".join(lines) + "\n")
+    from data_tools.results import atomic_write_text
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def associate(ts_a: np.ndarray, ts_b: np.ndarray, max_dt: float = DEFAULT_MAX_DT,

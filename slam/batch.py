@@ -291,11 +291,9 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         raise ConfigError("no backends given")
     for b in backends:
         get_backend(b)
-    seqs = [Path(s).resolve() for s in sequences]
-    for s in seqs:
-        if not s.is_dir():
-            raise RealgapError(f"{s}: sequence folder not found")
-    out = Path(out)
+    from data_tools.outputs import check_input_dir, check_output_dir
+    seqs = [check_input_dir(s, "sequence folder").resolve() for s in sequences]
+    out = check_output_dir(out, what="report folder")
     out.mkdir(parents=True, exist_ok=True)
     ex = get_executor(executor, workers)
     n_jobs = len(seqs) * len(backends)
@@ -394,7 +392,8 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
            f"<p>ATE: RMS position error after SE(3) alignment; APE median: median of the same errors; "
            f"RPE: RMS between consecutive registered frames; failed: frames the backend could not "
            f"register (left out of the trajectory).</p></body></html>")
-    (out / "index.html").write_text(doc)
+    from data_tools.results import atomic_write_text
+    atomic_write_text(out / "index.html", doc)
     return out / "index.html"
 
 
@@ -426,7 +425,8 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
         if png:
             parts.append(f"<p><img src='{html.escape(png)}' width='560'></p>")
     parts.append("</body></html>")
-    (out / f"{name}.html").write_text("".join(parts))
+    from data_tools.results import atomic_write_text
+    atomic_write_text(out / f"{name}.html", "".join(parts))
 
 
 def _plot(out: Path, name: str, r: dict) -> str | None:

@@ -16,7 +16,8 @@ import numpy as np
 
 from data_tools.errors import FormatError
 from data_tools.results import atomic_write_json, make_header, write_result
-from data_tools.trajectory import Trajectory, read_tum, write_tum
+from data_tools.outputs import check_output_dir
+from data_tools.trajectory import Trajectory, write_tum
 from slam.metrics import STAT_KEYS, EvalConfig, MetricResult, ape, ate, rpe
 
 __all__ = ["read_for_eval", "evaluate_ate", "evaluate_rpe", "evaluate_run", "Evaluation", "stats_line"]
@@ -34,11 +35,13 @@ class Evaluation:
     """Counts of the inputs (poses, failed frames)."""
 
 
-def read_for_eval(path, cfg: EvalConfig) -> Trajectory:
-    """``read_tum`` with the evaluation's duplicate-timestamp policy; the error for duplicates
-    names the flag that keeps the first."""
+def read_for_eval(path, cfg: EvalConfig, fmt: str = "auto") -> Trajectory:
+    """A trajectory file in any format of :mod:`data_tools.trajectory_formats` (``fmt`` auto: from the
+    extension or content) with the evaluation's duplicate-timestamp policy; the error for
+    duplicates names the flag that keeps the first."""
+    from data_tools.trajectory_formats import read_trajectory
     try:
-        return read_tum(path, drop_duplicate_timestamps=cfg.drop_duplicate_timestamps)
+        return read_trajectory(path, fmt, drop_duplicate_timestamps=cfg.drop_duplicate_timestamps)
     except FormatError as e:
         if "duplicated timestamp" in e.problem:
             raise FormatError(e.path, f"{e.problem}; --drop-duplicate-timestamps keeps the first") from None
@@ -69,18 +72,22 @@ def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict) -> dict:
     return make_header(kind, inputs=inputs, parameters=cfg.to_dict(), metrics=metrics)
 
 
-def evaluate_ate(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
-    """ATE of ``est_path`` against ``ref_path``: ``json_path`` (statistics + header; default
-    ``out_dir/ate.json``), and in ``out_dir`` (default: beside the JSON) ``<stem>_aligned.txt`` and
-    ``<stem>_top.png``. Neither given: the statistics only, no file written."""
+def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite: bool = False,
+                 fmt: str = "auto") -> Evaluation:
+    """ATE of ``est_path`` against ``ref_path`` (trajectory files in ``fmt``, default: detected).
+    With ``out_dir``: ``ate.json`` (statistics + header), ``ate_aligned.txt`` (TUM) and
+    ``ate_top.png`` there (a finished ate.json is replaced only with ``overwrite``). Without:
+    the statistics only, no file written."""
     from slam.plots import plot_top_view
-    ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
+    if out_dir is not None:
+        check_output_dir(out_dir, finished="ate.json", overwrite=overwrite)
+    ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     res = ate(ref, est, cfg.align, cfg.max_dt, ref_name=str(ref_path), est_name=str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
-    if json_path is None and out_dir is None:
+    if out_dir is None:
         return Evaluation({"ate": res}, [], info)
-    out = Path(json_path) if json_path is not None else Path(out_dir) / "ate.json"
-    outdir = Path(out_dir) if out_dir else out.parent
+    outdir = Path(out_dir)
+    out = outdir / "ate.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_top.png"
     d = res.to_dict()
     d["config"] = cfg.to_dict()
@@ -108,18 +115,21 @@ def _rpe_dict(tr: MetricResult, rot: MetricResult, cfg: EvalConfig) -> dict:
     return d
 
 
-def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, json_path, out_dir=None) -> Evaluation:
-    """RPE (translation and rotation) of ``est_path`` against ``ref_path``: ``json_path`` (default
-    ``out_dir/rpe.json``) and, in ``out_dir``, ``<stem>_aligned.txt`` and ``<stem>_errors.png``.
-    Neither given: the statistics only, no file written."""
+def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite: bool = False,
+                 fmt: str = "auto") -> Evaluation:
+    """RPE (translation and rotation) of ``est_path`` against ``ref_path``. With ``out_dir``:
+    ``rpe.json``, ``rpe_aligned.txt`` and ``rpe_errors.png`` there (a finished rpe.json is
+    replaced only with ``overwrite``). Without: the statistics only, no file written."""
     from slam.plots import plot_errors_over_time
-    ref, est = read_for_eval(ref_path, cfg), read_for_eval(est_path, cfg)
+    if out_dir is not None:
+        check_output_dir(out_dir, finished="rpe.json", overwrite=overwrite)
+    ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     tr, rot = rpe_pair(ref, est, cfg, str(ref_path), str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
-    if json_path is None and out_dir is None:
+    if out_dir is None:
         return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info)
-    out = Path(json_path) if json_path is not None else Path(out_dir) / "rpe.json"
-    outdir = Path(out_dir) if out_dir else out.parent
+    outdir = Path(out_dir)
+    out = outdir / "rpe.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_errors.png"
     d = _rpe_dict(tr, rot, cfg)
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
@@ -175,11 +185,13 @@ def nearest_positions(traj: Trajectory, ts: np.ndarray, max_dt: float) -> np.nda
     return traj.positions[k[ok]]
 
 
-def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None) -> Evaluation:
+def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool = False,
+                 fmt: str = "auto") -> Evaluation:
     """ATE, rotation APE and RPE of ``run_dir/trajectory.txt`` against ``gt`` (a sequence folder
     or a TUM file), written to ``out_dir`` (default ``run_dir/eval``): ate.json, ape_rotation.json,
     rpe.json, config.json, estimate_aligned.txt, the metric folders, top_view.png (failed frames
-    marked) and errors_over_time.png."""
+    marked) and errors_over_time.png. A finished evaluation there is replaced only with
+    ``overwrite``. ``fmt``: format of a ground-truth file (default: detected)."""
     from slam.plots import plot_errors_over_time, plot_top_view
     run = Path(run_dir)
     if not run.is_dir():
@@ -187,9 +199,11 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None) -> Evaluation:
     traj_path = run / "trajectory.txt"
     if not traj_path.is_file():
         raise FormatError(run, "run folder has no trajectory.txt (written by 'realgap slam run')")
+    out = Path(out_dir) if out_dir else run / "eval"
+    check_output_dir(out, finished="ate.json", overwrite=overwrite)
     failed = read_failed_timestamps(run / "stats.json")
     gt_path = ground_truth_path(gt)
-    gt_traj = read_for_eval(gt_path, cfg)
+    gt_traj = read_for_eval(gt_path, cfg, fmt)
     est = read_for_eval(traj_path, cfg)
     names = dict(ref_name=str(gt_path), est_name=str(traj_path))
 
@@ -197,7 +211,6 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None) -> Evaluation:
     res_r = ape(gt_traj, est, "rotation_angle_deg", cfg.align, cfg.max_dt, **names)
     rpe_t, rpe_r = rpe_pair(gt_traj, est, cfg, **names)
 
-    out = Path(out_dir) if out_dir else run / "eval"
     out.mkdir(parents=True, exist_ok=True)
     run_info = {"failed_frames": int(len(failed)), "estimate_poses": len(est), "reference_poses": len(gt_traj)}
     inputs = {"run": run, "trajectory": traj_path, "ground_truth": gt_path}

@@ -255,8 +255,37 @@ def align(ref: Trajectory, est: Trajectory, mode: str = "se3") -> tuple[Trajecto
         raise RealgapError(f"align: trajectories must be associated first ({len(ref)} vs {len(est)} poses)")
     if len(est) < aligner.min_pairs:
         raise RealgapError(f"{mode} alignment needs at least {aligner.min_pairs} associated poses, got {len(est)}")
+    if aligner.min_pairs >= 3:
+        warn_if_ill_conditioned(est, mode)
     a = aligner.estimate(ref, est)
     return a.apply(est), a
+
+
+ILL_CONDITIONED_MIN_POSES = 10
+"""Fewer associated poses than this make a rotational alignment (se3, sim3) ill-conditioned."""
+ILL_CONDITIONED_SPREAD_RATIO = 0.05
+"""... as does a position cloud whose second principal extent is below this fraction of the first
+(near-collinear motion: the rotation about the line of travel is set by noise)."""
+
+
+def alignment_condition(est: Trajectory) -> float:
+    """sigma_2 / sigma_1 of the centred positions (1 = isotropic spread, 0 = collinear or a point)."""
+    P = est.positions - est.positions.mean(axis=0)
+    sv = np.linalg.svd(P, compute_uv=False) if len(P) else np.zeros(3)
+    return float(sv[1] / sv[0]) if len(sv) > 1 and sv[0] > 0 else 0.0
+
+
+def warn_if_ill_conditioned(est: Trajectory, mode: str) -> None:
+    """A ``UserWarning`` (one CLI line) when a rotational alignment rests on too few poses or on
+    near-collinear motion: the fitted rotation, and every rotation error after it, is then
+    unreliable (``--align origin`` or ``none`` avoid fitting a rotation)."""
+    import warnings
+    n, ratio = len(est), alignment_condition(est)
+    if n < ILL_CONDITIONED_MIN_POSES or ratio < ILL_CONDITIONED_SPREAD_RATIO:
+        why = (f"only {n} associated poses" if n < ILL_CONDITIONED_MIN_POSES else
+               f"near-collinear motion (spread ratio {ratio:.3f} < {ILL_CONDITIONED_SPREAD_RATIO})")
+        warnings.warn(f"{mode} alignment is ill-conditioned: {why}; the fitted rotation and rotation errors "
+                      f"are unreliable (consider --align origin or none)", stacklevel=3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -492,12 +521,13 @@ class MetricResult:
         d.mkdir(parents=True, exist_ok=True)
         info = {"metric": self.metric, "relation": self.relation, "unit": self.unit,
                 "pairs": int(self.pairs), "alignment": self.alignment.to_dict(), "info": self.info}
-        (d / "info.json").write_text(json.dumps(info, indent=2) + "\n")
-        (d / "stats.json").write_text(json.dumps({k: float(self.stats[k]) for k in STAT_KEYS}, indent=2) + "\n")
-        np.save(d / "errors.npy", np.asarray(self.errors, dtype=np.float64))
-        np.save(d / "timestamps.npy", np.asarray(self.timestamps, dtype=np.float64))
+        from data_tools.results import atomic_save_npy, atomic_write_json
+        atomic_write_json(d / "info.json", info)
+        atomic_write_json(d / "stats.json", {k: float(self.stats[k]) for k in STAT_KEYS})
+        atomic_save_npy(d / "errors.npy", np.asarray(self.errors, dtype=np.float64))
+        atomic_save_npy(d / "timestamps.npy", np.asarray(self.timestamps, dtype=np.float64))
         if self.index_pairs is not None:
-            np.save(d / "index_pairs.npy", np.asarray(self.index_pairs, dtype=np.int64))
+            atomic_save_npy(d / "index_pairs.npy", np.asarray(self.index_pairs, dtype=np.int64))
         hdr = f"{self.metric} {self.relation}: {self.alignment.mode}-aligned estimate"
         write_tum(d / "estimate_aligned.txt", self.aligned, header=hdr)
         write_tum(d / "reference.txt", self.reference, header="associated reference")

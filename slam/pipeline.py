@@ -42,6 +42,7 @@ import numpy as np
 from data_tools.camera import Camera, read_camera_json, write_camera_json
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import save_mesh
+from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
 from data_tools.sequence import SequenceReader
 from data_tools.trajectory import Trajectory, read_tum, write_tum
 from slam.registration import (TrackResult, check_positive, config_from_dict, config_to_dict,
@@ -191,9 +192,8 @@ class SlamResult:
 
 
 def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from data_tools.results import atomic_write_text
+    atomic_write_text(path, text)
 
 
 def _read_json(path: Path) -> dict:
@@ -298,6 +298,7 @@ def _make_backend(backend_cls, config, intr, tsdf_config, sensor):
 def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLike,
              config: SlamConfig | None = None, camera: Camera | None = None, resume: bool = True,
              overwrite: bool = False, progress: bool = True, stop_after: int | None = None,
+             skip_unreadable: bool = False,
              on_frame: Callable[[int, TrackResult], None] | None = None) -> SlamResult:
     """Run registration + TSDF fusion over ``sequence`` and write the RUN folder ``out``.
 
@@ -308,6 +309,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     result)`` is called after every frame.
     """
     cfg = (config or SlamConfig()).validate()
+    check_output_dir(out, what="run folder")
     reader = sequence if isinstance(sequence, SequenceReader) else SequenceReader(sequence, camera=camera)
     cam = reader.camera
     intr = cam.intrinsics
@@ -346,6 +348,9 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
         _atomic_write(out / "checkpoint.json", json.dumps(
             {"next": next_pos, "records": records, "poses": poses, "timing": timing,
              "backend_state": backend.state_dict() if backend_cls.online else {}}) + "\n")
+        mark_incomplete(out, "realgap slam run", next_pos, len(indices))
+
+    mark_incomplete(out, "realgap slam run", pos, len(indices))
 
     if not backend_cls.online:
         if pos < len(indices):
@@ -362,7 +367,12 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
                     bar.close()
                     return load_run(out)
                 i = indices[pos]
-                res = _process(reader, i, backend, volume, cfg, intr, timing)
+                try:
+                    res = _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable)
+                except FormatError:
+                    checkpoint(pos)  # the frames before it are kept: a re-run continues here
+                    bar.close()
+                    raise
                 records.append(res.record(reader.timestamps[i], i))
                 poses.append(None if res.failed else res.pose.reshape(-1).tolist())
                 pos += 1
@@ -382,11 +392,14 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta)
 
 
-def _process(reader, i, backend, volume, cfg, intr, timing) -> TrackResult:
+def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
     t0 = time.perf_counter()
     try:
         frame = reader[i]
-    except FormatError as e:  # corrupt/unreadable image: a failed frame, not a crash
+    except FormatError as e:
+        if not skip_unreadable:  # bad input is an error; --skip-unreadable makes it a failed frame
+            raise FormatError(e.path, f"{e.problem} (frame {i}; pass --skip-unreadable to register the "
+                                      f"sequence without it)") from None
         timing["read_s"] += time.perf_counter() - t0
         return TrackResult(None, None, None, True, f"unreadable frame: {e}")
     t1 = time.perf_counter()
@@ -469,6 +482,7 @@ def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> Slam
                                                         "frames_relocalised", "frames_per_second")})
     write_result(out / "stats.json", header, stats, indent=1)
     (out / "checkpoint.json").unlink(missing_ok=True)
+    clear_incomplete(out)
     if traj is None:
         raise RealgapError(f"{reader.path}: no frame could be registered ({len(failed)} failed; "
                            f"see {out / 'stats.json'})")

@@ -26,10 +26,8 @@ def _figure(width_in: float, height_in: float):
 
 
 def _save(fig, path: str | os.PathLike) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
+    from data_tools.results import atomic_save_figure
+    return atomic_save_figure(fig, path)
 
 
 def top_view_axes(*trajectories: Trajectory) -> tuple[int, int]:

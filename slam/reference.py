@@ -38,6 +38,7 @@ import numpy as np
 from data_tools.camera import Camera, Intrinsics, SensorSpec, write_camera_json
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh, check_mesh
+from data_tools.outputs import check_input_dir, check_output_dir, clear_incomplete, mark_incomplete
 from data_tools.scene_spec import Material, SceneSpec, write_scene_json
 from data_tools.sequence import SequenceReader, link_or_copy, read_index, spread_indices
 from slam.registration import config_from_dict, config_to_dict
@@ -82,8 +83,8 @@ class ReferenceConfig:
     tsdf: TSDFConfig = field(default_factory=lambda: TSDFConfig(voxel_size_m=0.01, integrate_color=False,
                                                                 depth_max_m=4.0))
     """TSDF options (1 cm voxels, 4 cm truncation, depth up to 4 m; colour is not needed)."""
-    max_frames: int = 0
-    """Fuse at most this many frames, evenly spread over the sequence; 0 = every frame with a pose."""
+    max_frames: int | None = None
+    """Fuse at most this many frames, evenly spread over the sequence; None = every frame with a pose."""
     mesh_weight_threshold: float = 0.0
     """Minimum number of fused observations of a voxel kept in the mesh; 0 = automatic:
     min(3, frames fused) (short sequences keep single-view surfaces)."""
@@ -100,8 +101,8 @@ class ReferenceConfig:
 
     def validate(self) -> "ReferenceConfig":
         self.tsdf.validate()
-        if int(self.max_frames) < 0:
-            raise ConfigError(f"max_frames must be >= 0, got {self.max_frames}")
+        if self.max_frames is not None and int(self.max_frames) < 1:
+            raise ConfigError(f"max_frames must be >= 1 (None: every frame), got {self.max_frames}")
         if self.mesh_weight_threshold < 0:
             raise ConfigError(f"mesh_weight_threshold must be >= 0, got {self.mesh_weight_threshold}")
         if int(self.min_component_triangles) < 0:
@@ -206,7 +207,7 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
     idx = np.flatnonzero(has_pose).tolist()
     if not idx:
         raise FormatError(reader.path / "groundtruth.txt", "no ground-truth pose within 0.02 s of any depth frame")
-    idx = [idx[i] for i in spread_indices(len(idx), int(cfg.max_frames) or None)]
+    idx = [idx[i] for i in spread_indices(len(idx), None if cfg.max_frames is None else int(cfg.max_frames))]
     t0 = time.perf_counter()
     vol = TSDFVolume(cfg.tsdf)
     intr = reader.intrinsics
@@ -262,8 +263,8 @@ def make_reference(seq_dir: str | os.PathLike, out_dir: str | os.PathLike | None
     ``overwrite``; a finished output (reference_config.json present) is not recomputed.
     """
     cfg = (config or ReferenceConfig()).validate()
-    src = Path(seq_dir)
-    out = src if out_dir is None else Path(out_dir)
+    src = check_input_dir(seq_dir, "sequence folder")
+    out = src if out_dir is None else check_output_dir(out_dir, what="output sequence folder")
     reader = SequenceReader(src, camera=camera)
     cam = camera or reader.camera
     meta_path = out / REFERENCE_CONFIG_FILE
@@ -287,10 +288,12 @@ def make_reference(seq_dir: str | os.PathLike, out_dir: str | os.PathLike | None
         _copy_sequence(reader, out, cam)
     elif camera is not None:
         write_camera_json(out / "camera.json", cam)
+    mark_incomplete(out, "realgap data make-reference", 0, None, unit="frames fused", resumable=False)
     res = fuse_reference(reader, cfg, progress=progress)
     scene = SceneSpec([res.mesh], {cfg.material: Material(float(cfg.albedo), float(cfg.specular))})
     write_scene_json(out, scene)
     res.out_dir = out
-    meta_path.write_text(json.dumps({"source": str(src.resolve()), "config": cfg.to_dict(),
-                                     "result": res.to_json()}, indent=2) + "\n")
+    from data_tools.results import atomic_write_json
+    atomic_write_json(meta_path, {"source": str(src.resolve()), "config": cfg.to_dict(), "result": res.to_json()})
+    clear_incomplete(out)
     return res

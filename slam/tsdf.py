@@ -654,8 +654,9 @@ class TSDFVolume:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         self.vbg.save(str(path))
-        Path(str(path) + ".json").write_text(json.dumps(
-            {"tsdf": config_to_dict(self.config), "frames_integrated": self.frames_integrated}, indent=2) + "\n")
+        from data_tools.results import atomic_write_json
+        atomic_write_json(str(path) + ".json",
+                          {"tsdf": config_to_dict(self.config), "frames_integrated": self.frames_integrated})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "TSDFVolume":

@@ -198,8 +198,10 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
     traj = make_sequence_trajectory(config, scene)
     renderer = IdealRenderer(scene)
     intr = config.intrinsics()
-    writer = SequenceWriter(out_dir, config.camera(), scene=scene, resume=resume, overwrite=overwrite)
-    (out_dir / CONFIG_FILE).write_text(json.dumps(config.to_json(), indent=2) + "\n")
+    writer = SequenceWriter(out_dir, config.camera(), scene=scene, resume=resume, overwrite=overwrite,
+                            expected_frames=len(traj), command="realgap synth sequence")
+    from data_tools.results import atomic_write_json
+    atomic_write_json(out_dir / CONFIG_FILE, config.to_json())
     start = len(writer)
     if start > len(traj):
         raise ConfigError(f"{out_dir}: holds {start} frames, more than the {len(traj)} configured")
@@ -246,7 +248,8 @@ def generate_sensor_sequence(config: SequenceConfig, ideal_dir: str | Path, sim_
     ideal = SequenceReader(ideal_dir)
     traj = ideal.trajectory
     sim = SensorSimulator(sensor, effects, ideal.scene)
-    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, resume=resume, overwrite=overwrite) as w:
+    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, resume=resume, overwrite=overwrite,
+                        expected_frames=len(traj), command="realgap synth sequence --sensor") as w:
         sim.config.save(sim_dir / "sensor_config.json")
         n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=config.seed, progress=progress,
                                 workers=workers)

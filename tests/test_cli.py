@@ -32,7 +32,7 @@ def test_help_lists_subcommands_and_each_has_help(capsys):
 def test_bad_input_is_one_line_exit_1(tmp_path):
     src = tmp_path / "src"
     src.mkdir()
-    r = _run("data", "convert-7scenes", str(src), str(tmp_path / "dst"))
+    r = _run("data", "convert-7scenes", str(src), "--out", str(tmp_path / "dst"))
     assert r.returncode == 1
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and str(src) in lines[0] and "Traceback" not in r.stderr

@@ -49,7 +49,7 @@ def _one_line_error(capsys, *names):
 def test_ate_outputs(files, capsys):
     d, gt, est = files
     out = d / "res" / "ate.json"
-    assert main(["eval", "ate", str(gt), str(est), "--json", str(out)]) == 0
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "res")]) == 0
     data = json.loads(out.read_text())
     for k in ("rmse", "mean", "median", "std", "min", "max", "pairs", "align", "alignment", "info", "config"):
         assert k in data
@@ -66,22 +66,31 @@ def test_ate_outputs(files, capsys):
     assert "ATE (se3): rmse" in printed and "40 associated pairs" in printed
 
 
-def test_ate_out_dir_and_options(files):
+def test_ate_out_options_overwrite_and_json(files, capsys):
     d, gt, est = files
-    out = d / "a.json"
-    assert main(["eval", "ate", str(gt), str(est), "--json", str(out), "--align", "sim3",
-                 "--max-dt", "0.01", "--out-dir", str(d / "extra")]) == 0
+    out = d / "extra" / "ate.json"
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "extra"), "--align", "sim3",
+                 "--max-dt", "0.01"]) == 0
     data = json.loads(out.read_text())
     assert data["align"] == "sim3" and data["config"]["max_dt"] == 0.01
     assert data["rmse"] == pytest.approx(M.ate(read_tum(gt), read_tum(est), "sim3", 0.01).rmse, abs=1e-12)
-    assert (d / "extra" / "a_aligned.txt").is_file() and (d / "extra" / "a_top.png").is_file()
-    assert not (d / "a_aligned.txt").exists()
+    assert (d / "extra" / "ate_aligned.txt").is_file() and (d / "extra" / "ate_top.png").is_file()
+    # a finished result is not replaced without --overwrite (and stays byte-identical)
+    before = out.read_bytes()
+    capsys.readouterr()
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "extra")]) == 1
+    _one_line_error(capsys, "extra", "--overwrite")
+    assert out.read_bytes() == before
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "extra"), "--overwrite", "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["ate"]["rmse"] == pytest.approx(M.ate(read_tum(gt), read_tum(est), "se3", 0.02).rmse, abs=1e-12)
+    assert printed["ate"]["unit"] == "m" and printed["ate"]["pairs"] == 40
 
 
 def test_rpe_outputs(files):
     d, gt, est = files
     out = d / "rpe.json"
-    assert main(["eval", "rpe", str(gt), str(est), "--json", str(out), "--delta", "0.2", "--delta-unit", "m"]) == 0
+    assert main(["eval", "rpe", str(gt), str(est), "--out", str(d), "--delta", "0.2", "--delta-unit", "m"]) == 0
     data = json.loads(out.read_text())
     for k in ("rmse", "mean", "median", "std", "min", "max", "pairs", "align", "rotation"):
         assert k in data
@@ -149,10 +158,10 @@ def test_duplicate_timestamps_hint_and_flag(files, capsys):
     lines = gt.read_text().splitlines()
     lines.insert(5, lines[4])                           # repeat one pose
     gt.write_text("\n".join(lines) + "\n")
-    out = d / "o.json"
-    assert main(["eval", "ate", str(gt), str(est), "--json", str(out)]) == 1
+    out = d / "o"
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(out)]) == 1
     _one_line_error(capsys, "gt.txt", "duplicated timestamp", "--drop-duplicate-timestamps")
-    assert main(["eval", "ate", str(gt), str(est), "--json", str(out), "--drop-duplicate-timestamps"]) == 0
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(out), "--drop-duplicate-timestamps"]) == 0
     assert "dropped 1 pose" in capsys.readouterr().err
 
 
@@ -178,10 +187,10 @@ def test_ate_bad_input_is_one_line(tmp_path, capsys, case):
         write_tum(e, est)
         extra = ["--align", "none", "--max-dt", "-1"]
         names = ["max_dt"]
-    rc = main(["eval", "ate", str(gt), str(e), "--json", str(tmp_path / "o.json"), *extra])
+    rc = main(["eval", "ate", str(gt), str(e), "--out", str(tmp_path / "o"), *extra])
     assert rc == 1
     _one_line_error(capsys, *names)
-    assert not (tmp_path / "o.json").exists()
+    assert not (tmp_path / "o" / "ate.json").exists()
 
 
 @pytest.mark.parametrize("case", ["no_run", "no_trajectory", "no_groundtruth", "bad_stats"])
@@ -214,5 +223,5 @@ def test_ate_and_rpe_print_without_writing(files, capsys, monkeypatch):
     assert main(["eval", "rpe", str(gt), str(est)]) == 0
     assert "RPE rotation" in capsys.readouterr().out
     assert sorted(p.name for p in d.iterdir()) == before
-    assert main(["eval", "ate", str(gt), str(est), "--out-dir", str(d / "o")]) == 0
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "o")]) == 0
     assert json.loads((d / "o" / "ate.json").read_text())["rmse"] == pytest.approx(lib.rmse, abs=1e-12)

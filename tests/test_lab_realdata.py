@@ -47,12 +47,12 @@ def test_tum_fr1_ideal_worse_than_axial_noise_fast(tmp_path):
 def _lab_run(seq: Path, lab: Path, frames: int, diag_frames: int) -> dict:
     """ideal -> axial_noise -> diagnose -> best fitted model (diagnose's best_model.json), all through
     the CLI; the history in ``lab`` must fall at every step. Returns the numbers."""
-    common = ["--frames", str(frames), "--report-frames", "2"]
+    common = ["--max-frames", str(frames), "--report-frames", "2"]
     assert main(["sensor", "compare", str(seq), "--effects", "none", "--out", str(lab), *common]) == 0
     assert main(["sensor", "compare", str(seq), "--effects", "axial_noise", "--out", str(lab), *common]) == 0
     diag_dir = lab / "diagnosis"
     assert main(["sensor", "diagnose", str(seq), "--effects", "axial_noise", "--out", str(diag_dir),
-                 "--frames", str(diag_frames)]) == 0
+                 "--max-frames", str(diag_frames)]) == 0
     diag = json.loads((diag_dir / "diagnosis.json").read_text())
     assert diag["ranking"] and diag["ranking"][0]["gain"] > 0, diag["ranking"]
     # the best fitted model = the diagnosis's best candidate (axial noise refitted + that effect)
@@ -79,7 +79,7 @@ def test_tum_fr1_end_to_end_gap_falls(tmp_path):
 def test_sevenscenes_chess_end_to_end_gap_falls(tmp_path):
     src = shared_path("sevenscenes_chess_1000")
     conv = tmp_path / "chess"
-    assert main(["data", "convert-7scenes", str(src), str(conv)]) == 0
+    assert main(["data", "convert-7scenes", str(src), "--out", str(conv)]) == 0
     seq = tmp_path / "chess_ref"
     assert main(["data", "make-reference", str(conv), "--out", str(seq), "--material", "chess_scene",
                  "--albedo", "0.5"]) == 0

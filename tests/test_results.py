@@ -101,10 +101,8 @@ def test_show_lines_up_eval_outputs(tmp_path, capsys):
     ref, est = _pair()
     write_tum(tmp_path / "gt.txt", ref)
     write_tum(tmp_path / "est.txt", est)
-    assert main(["eval", "ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"),
-                 "--json", str(tmp_path / "ate.json")]) == 0
-    assert main(["eval", "rpe", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"),
-                 "--json", str(tmp_path / "rpe.json")]) == 0
+    assert main(["eval", "ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--out", str(tmp_path)]) == 0
+    assert main(["eval", "rpe", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--out", str(tmp_path)]) == 0
     ate, rpe = json.loads((tmp_path / "ate.json").read_text()), json.loads((tmp_path / "rpe.json").read_text())
     capsys.readouterr()
     assert main(["show", str(tmp_path / "ate.json"), str(tmp_path / "rpe.json")]) == 0

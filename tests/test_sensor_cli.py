@@ -124,7 +124,7 @@ def test_simulate_keeps_timestamps_and_names_and_resumes(measured, tmp_path):
     r = _run("sensor", "simulate", measured, "--effects", "axial_noise", "--out", out)
     assert r.returncode == 1 and "--overwrite" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert main(["sensor", "simulate", str(measured), "--effects", "none", "--out", str(out), "--overwrite",
-                 "--frames", "2"]) == 0
+                 "--max-frames", "2"]) == 0
     assert len(_data_lines(out / "depth.txt")) == 2
 
 

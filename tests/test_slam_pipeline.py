@@ -83,14 +83,23 @@ def test_black_depth_frame_is_reported_not_a_crash(tmp_path, seq_black, backend)
     assert _ate(res.trajectory, seq_black) < 0.005
 
 
-def test_unreadable_frame_is_a_failure(tmp_path, seq):
+def test_unreadable_frame_stops_the_run_unless_skipped(tmp_path, seq):
+    """A corrupt input frame is an error naming the file (frames before it are checkpointed, a
+    re-run continues); with skip_unreadable it is a failed frame of the result."""
     import shutil
+    from data_tools.errors import FormatError
+    from data_tools.outputs import read_incomplete
     s = tmp_path / "seq"
     shutil.copytree(seq, s)
     victim = sorted((s / "depth").iterdir())[2]
     victim.write_bytes(b"not a png")
-    res = run_slam(s, tmp_path / "run", _small(), progress=False)
+    with pytest.raises(FormatError, match=f"{victim.name}.*--skip-unreadable"):
+        run_slam(s, tmp_path / "stop", _small(), progress=False)
+    marker = read_incomplete(tmp_path / "stop")
+    assert marker is not None and marker["done"] == 2 and marker["total"] == N_FRAMES
+    res = run_slam(s, tmp_path / "run", _small(), progress=False, skip_unreadable=True)
     assert res.stats["frames_failed"] == 1 and "unreadable" in res.stats["per_frame"][2]["reason"]
+    assert read_incomplete(tmp_path / "run") is None
 
 
 @pytest.fixture

@@ -84,7 +84,7 @@ def test_make_reference_cli_copies_and_does_not_touch_source(ideal_seq, tmp_path
     src_files = sorted(p.name for p in ideal_seq.iterdir())
     out = tmp_path / "with_ref"
     args = ["data", "make-reference", str(ideal_seq), "--out", str(out), "--voxel", "0.03", "--depth-max", "6",
-            "--material", "room_fused", "--albedo", "0.4", "--frames", "4"]
+            "--material", "room_fused", "--albedo", "0.4", "--max-frames", "4"]
     assert main(args) == 0
     assert sorted(p.name for p in ideal_seq.iterdir()) == src_files  # source untouched
     sc = json.loads((out / "scene.json").read_text())
@@ -98,7 +98,7 @@ def test_make_reference_cli_copies_and_does_not_touch_source(ideal_seq, tmp_path
     mtime = (out / "meshes" / "reference.ply").stat().st_mtime_ns
     assert main(args) == 0
     assert (out / "meshes" / "reference.ply").stat().st_mtime_ns == mtime
-    p = subprocess.run([sys.executable, "-m", "app", *args[:-2], "--frames", "3"], capture_output=True, text=True,
+    p = subprocess.run([sys.executable, "-m", "app", *args[:-2], "--max-frames", "3"], capture_output=True, text=True,
                        cwd=REPO, timeout=120)
     assert p.returncode == 1 and "--overwrite" in p.stderr and len(p.stderr.strip().splitlines()) == 1
 

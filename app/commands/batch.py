@@ -52,11 +52,13 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("sequences", nargs="+", metavar="SEQ", help="TUM-layout sequence folders")
     parser.add_argument("--backends", default="icp,rgbd_odometry",
                         help="comma-separated backends (default: icp,rgbd_odometry)")
-    parser.add_argument("--out", required=True, metavar="REPORT", help="report folder")
+    from app.commands import RESUMES, add_shared
+    add_shared(parser, "--out", "the report folder (runs/ with one run folder per sequence and backend)",
+               required=True, metavar="REPORT")
     parser.add_argument("--executor", default="local", choices=sorted(EXECUTORS),
                         help="local: process pool on this machine; ray: Ray tasks (ray.init(), "
                              "RAY_ADDRESS for a cluster; needs the optional package ray)")
-    parser.add_argument("--workers", type=int, default=0, help="parallel jobs (default: CPU count)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_shared(parser, "--workers", "jobs at once (default: the CPU count)", default=0)
+    add_shared(parser, "--no-progress")
     add_config_arguments(parser)
-    parser.set_defaults(func=_run)
+    parser.set_defaults(func=_run, on_interrupt=RESUMES)

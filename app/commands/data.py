@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from app.commands import add_group
+from app.commands import RESUMES, add_group, add_shared
 
 NAME = "data"
 HELP = "convert and inspect RGB-D datasets (TUM layout + camera.json/scene.json)"
@@ -16,13 +16,21 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "into a TUM-layout sequence with camera.json (depth_scale 1000). Re-running "
                                    "continues an interrupted conversion.")
     p.add_argument("src", help="7-Scenes sequence folder")
-    p.add_argument("dst", help="output sequence folder (TUM layout)")
+    add_shared(p, "--out", "the converted sequence folder (TUM layout)", required=True, metavar="DST")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate used to make timestamps (default 30)")
-    p.add_argument("--overwrite", action="store_true", help="delete DST first instead of resuming")
-    p.set_defaults(func=_convert_7scenes)
+    add_shared(p, "--overwrite", "delete DST first instead of continuing the conversion in it")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_convert_7scenes, on_interrupt=RESUMES)
 
-    p = sub.add_parser("info", help="validate a sequence and print what it holds")
+    p = sub.add_parser("info", help="validate a sequence and print what it holds",
+                       description="Read the index, calibration and scene files of SEQ and print what it holds "
+                                   "(frames, duration, intrinsics, depth scale, poses, scene; 'incomplete' when a "
+                                   "command writing it has not finished). With --deep every image is opened: "
+                                   "16-bit depth, size as camera.json says, decodable, median depth plausible; bad "
+                                   "frames are listed by file name and the exit code is 1.")
     p.add_argument("seq", help="sequence folder (TUM layout)")
+    p.add_argument("--deep", action="store_true", help="open and check every image (see above)")
+    add_shared(p, "--no-progress")
     p.set_defaults(func=_info)
 
     p = sub.add_parser("make-reference", help="fuse a reference mesh (scene.json) from a sequence and its poses",
@@ -32,26 +40,27 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "hard-linked when possible) and SEQ is left untouched; without it the "
                                    "reference is written into SEQ. reference_config.json records the options.")
     p.add_argument("seq", help="sequence folder (TUM layout with groundtruth.txt)")
-    p.add_argument("--out", metavar="SEQ_OUT", help="write a copy of the sequence with the reference here")
+    add_shared(p, "--out", "write a copy of the sequence with the reference here (default: into SEQ)",
+               metavar="SEQ_OUT")
     p.add_argument("--camera", metavar="JSON|NAME",
                    help="camera.json to use (and write) instead of the sequence's own, or one of "
                         "tum_fr1, tum_fr2, tum_fr3, sevenscenes (TUM folders have no camera.json)")
     p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
     p.add_argument("--depth-max", type=float, default=4.0, metavar="M",
                    help="ignore depth beyond this many metres (default 4)")
-    p.add_argument("--frames", type=int, default=0, metavar="N",
-                   help="fuse at most N frames, evenly spread (default: all with a pose)")
+    add_shared(p, "--max-frames", "fuse at most N frames (default: every frame with a pose)")
     p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")
     p.add_argument("--albedo", type=float, default=0.5, help="albedo of that material (default 0.5)")
     p.add_argument("--min-component", type=int, default=200, metavar="TRIANGLES",
                    help="drop connected pieces with fewer triangles (default 200)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing scene.json")
+    add_shared(p, "--overwrite", "an existing scene.json")
+    add_shared(p, "--no-progress")
     p.set_defaults(func=_make_reference)
 
 
 def _convert_7scenes(args) -> int:
     from data_tools.sevenscenes import convert_7scenes
-    r = convert_7scenes(args.src, args.dst, fps=args.fps, overwrite=args.overwrite)
+    r = convert_7scenes(args.src, args.out, fps=args.fps, overwrite=args.overwrite)
     print(f"wrote {r.frames} frames to {r.dst} (resumed after {r.skipped_existing}; "
           f"{r.invalid_65535_frames} depth images had 65535 invalid markers)")
     return 0
@@ -59,8 +68,19 @@ def _convert_7scenes(args) -> int:
 
 def _info(args) -> int:
     import json
+    import sys
     from data_tools.sequence import sequence_info
-    print(json.dumps(sequence_info(args.seq), indent=2))
+    info = sequence_info(args.seq)
+    if not args.deep:
+        print(json.dumps(info, indent=2))
+        return 0
+    from data_tools.sequence_check import check_sequence
+    check = check_sequence(args.seq)
+    info["deep"] = check.to_json()
+    print(json.dumps(info, indent=2))
+    if not check.ok:
+        print(f"realgap: error: {check.summary()}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -69,7 +89,7 @@ def _make_reference(args) -> int:
     from slam.tsdf import TSDFConfig
     cfg = ReferenceConfig(tsdf=TSDFConfig(voxel_size_m=args.voxel, depth_max_m=args.depth_max,
                                           integrate_color=False),
-                          max_frames=args.frames, min_component_triangles=args.min_component,
+                          max_frames=args.max_frames, min_component_triangles=args.min_component,
                           material=args.material, albedo=args.albedo).validate()
     cam = named_camera(args.camera) if args.camera else None
     r = make_reference(args.seq, args.out, cfg, camera=cam, overwrite=args.overwrite, progress=True)

@@ -15,11 +15,13 @@ HELP = "run the main demo on embedded default data (simulate -> register -> eval
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="demo_out", help="output folder (default demo_out)")
-    parser.add_argument("--frames", type=int, default=60, help="frames to simulate (default 60)")
+    from app.commands import RESUMES, add_shared
+    add_shared(parser, "--out", "the demo folder (default demo_out)", default="demo_out")
+    parser.add_argument("--frames", type=int, default=60, help="number of frames to generate (default 60)")
     parser.add_argument("--sensor", default="kinect_v1", help="sensor preset (default kinect_v1)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.set_defaults(func=run)
+    add_shared(parser, "--seed", "(default 0)", default=0)
+    add_shared(parser, "--no-progress")
+    parser.set_defaults(func=run, on_interrupt=RESUMES)
 
 
 def run(args) -> int:

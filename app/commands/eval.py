@@ -9,7 +9,8 @@ from slam.metrics import ALIGNERS, DELTA_UNITS, PRESETS, EvalConfig
 NAME = "eval"
 HELP = "evaluate estimated trajectories against ground truth (ATE, APE, RPE; agrees with evo)"
 DESCRIPTION = (
-    "Evaluate camera trajectories (TUM format, camera-to-world, metres) against a reference. "
+    "Evaluate camera trajectories (camera-to-world, metres; TUM, KITTI, EuRoC CSV or Open3D .log, "
+    "detected from the extension and content) against a reference. "
     "Poses are associated by nearest timestamp (within --max-dt s), the estimate is aligned "
     "(--align), then the errors are computed with evo's definitions. Outputs: JSON statistics, "
     "the aligned estimate in TUM format and PNG plots.")
@@ -55,22 +56,18 @@ def register(parser: argparse.ArgumentParser) -> None:
 
     p = sub.add_parser("ate", help="absolute trajectory error (translation APE after alignment)",
                        description="Absolute trajectory error of EST against REF (metres).")
-    p.add_argument("ref", metavar="REF", help="reference trajectory (TUM file)")
-    p.add_argument("est", metavar="EST", help="estimated trajectory (TUM file)")
+    p.add_argument("ref", metavar="REF", help="reference trajectory file")
+    p.add_argument("est", metavar="EST", help="estimated trajectory file")
     _add_config_flags(p, _ATE_FIELDS)
-    p.add_argument("--json", metavar="OUT", help="statistics JSON to write (default: print only; with --out-dir: "
-                                                 "D/ate.json)")
-    p.add_argument("--out-dir", metavar="D", help="folder for the aligned TUM and the plot (default: next to OUT)")
+    _add_io_flags(p, "ate")
     p.set_defaults(func=cmd_ate)
 
     p = sub.add_parser("rpe", help="relative pose error (drift per delta frames or metres)",
                        description="Relative pose error of EST against REF: translation (m) and rotation (deg).")
-    p.add_argument("ref", metavar="REF", help="reference trajectory (TUM file)")
-    p.add_argument("est", metavar="EST", help="estimated trajectory (TUM file)")
+    p.add_argument("ref", metavar="REF", help="reference trajectory file")
+    p.add_argument("est", metavar="EST", help="estimated trajectory file")
     _add_config_flags(p, _RPE_FIELDS, note={"align": "default: none, as evo_rpe; RPE is invariant to se3"})
-    p.add_argument("--json", metavar="OUT", help="statistics JSON to write (default: print only; with --out-dir: "
-                                                 "D/rpe.json)")
-    p.add_argument("--out-dir", metavar="D", help="folder for the aligned TUM and the plot (default: next to OUT)")
+    _add_io_flags(p, "rpe")
     p.set_defaults(func=cmd_rpe)
 
     p = sub.add_parser("run", help="evaluate a folder written by 'realgap slam run'",
@@ -78,19 +75,48 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "with plots marking the frames where registration failed "
                                    "(RUN/stats.json: failed_timestamps).")
     p.add_argument("run", metavar="RUN", help="folder with trajectory.txt and optionally stats.json")
-    p.add_argument("--gt", required=True, metavar="SEQ_OR_TUM",
-                   help="ground truth: a sequence folder (uses SEQ/groundtruth.txt) or a TUM file")
+    p.add_argument("--gt", required=True, metavar="SEQ_OR_FILE",
+                   help="ground truth: a sequence folder (uses SEQ/groundtruth.txt) or a trajectory file")
     _add_config_flags(p, _RUN_FIELDS)
-    p.add_argument("--out", metavar="DIR", help="output folder (default: RUN/eval)")
+    _add_io_flags(p, "run")
     p.set_defaults(func=cmd_run)
+
+
+def _add_io_flags(p: argparse.ArgumentParser, kind: str) -> None:
+    from app.commands import add_shared
+    from data_tools.trajectory_formats import FORMATS
+    p.add_argument("--format", default="auto", choices=("auto",) + FORMATS,
+                   help="trajectory file format (default auto: .csv EuRoC, .log Open3D, .kitti KITTI; .txt by its "
+                        "columns, 8 TUM or 12 KITTI). KITTI and .log have no time: pose k is paired with pose k")
+    if kind == "run":
+        add_shared(p, "--out", "folder for the JSON statistics, aligned trajectory and plots (default: RUN/eval)",
+                   metavar="DIR")
+    else:
+        add_shared(p, "--out", f"folder for {kind}.json, the aligned trajectory and the plot (default: print "
+                               f"only, write nothing)", metavar="DIR")
+    add_shared(p, "--overwrite", f"a finished {'evaluation' if kind == 'run' else kind + '.json'} in DIR")
+    add_shared(p, "--json")
 
 
 # ------------------------------------------------------------------------------------------
 
+def _print_json(ev) -> None:
+    import json
+    from data_tools.results import json_safe
+    d = {name: {"unit": r.unit, "pairs": int(r.pairs), "values": int(len(r.errors)),
+                **{k: float(r.stats[k]) for k in r.stats}} for name, r in ev.results.items()}
+    d["inputs"] = ev.info
+    d["files"] = [str(f) for f in ev.files]
+    print(json.dumps(json_safe(d), indent=2))
+
+
 def cmd_ate(args) -> int:
     from slam.evaluate import evaluate_ate, stats_line
     cfg = _config(args, _ATE_FIELDS)
-    ev = evaluate_ate(args.ref, args.est, cfg, args.json, args.out_dir)
+    ev = evaluate_ate(args.ref, args.est, cfg, args.out, overwrite=args.overwrite, fmt=args.format)
+    if args.json:
+        _print_json(ev)
+        return 0
     print(f"ATE ({cfg.align}): {stats_line(ev.results['ate'])}")
     if ev.files:
         print(f"wrote {', '.join(str(f) for f in ev.files)}")
@@ -100,7 +126,10 @@ def cmd_ate(args) -> int:
 def cmd_rpe(args) -> int:
     from slam.evaluate import evaluate_rpe, stats_line
     cfg = _config(args, _RPE_FIELDS, defaults={"align": "none"})
-    ev = evaluate_rpe(args.ref, args.est, cfg, args.json, args.out_dir)
+    ev = evaluate_rpe(args.ref, args.est, cfg, args.out, overwrite=args.overwrite, fmt=args.format)
+    if args.json:
+        _print_json(ev)
+        return 0
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     print(f"RPE translation ({delta}): {stats_line(ev.results['rpe_translation'])}")
     print(f"RPE rotation    ({delta}): {stats_line(ev.results['rpe_rotation'])}")
@@ -112,7 +141,10 @@ def cmd_rpe(args) -> int:
 def cmd_run(args) -> int:
     from slam.evaluate import evaluate_run, stats_line
     cfg = _config(args, _RUN_FIELDS)
-    ev = evaluate_run(args.run, args.gt, cfg, args.out)
+    ev = evaluate_run(args.run, args.gt, cfg, args.out, overwrite=args.overwrite, fmt=args.format)
+    if args.json:
+        _print_json(ev)
+        return 0
     i, delta = ev.info, f"delta {cfg.delta:g} {cfg.delta_unit}"
     print(f"{args.run}: {i['estimate_poses']} estimated poses, {ev.results['ate'].pairs} associated with "
           f"{i['ground_truth']} (max_dt {cfg.max_dt:g} s), {i['failed_frames']} failed frames")

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from app.commands import RESUMES, add_shared
 from synth.lab.runs import LabRequest, effect_names_option
 
 NAME = "sensor"
@@ -62,11 +63,11 @@ def _common(p: argparse.ArgumentParser, cmd: str, fit_flag: bool = True) -> None
     if fit_flag:
         p.add_argument("--fit", action="store_true", help="fit the model's parameters to SEQ first")
     n = DEFAULT_FRAMES[cmd]
-    p.add_argument("--max-frames", "--frames", dest="max_frames", type=int, default=n, metavar="N",
-                   help=f"use at most N frames, evenly spread (default {'all' if n is None else n})")
+    add_shared(p, "--max-frames", f"default {'all' if n is None else n}", default=n)
     p.add_argument("--preset", help="sensor preset to start from (default from camera.json's sensor type: "
-                                    "kinect_v1, realsense_d435, kinect_v2)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulation and of the pixel samples (default 0)")
+                                    "kinect_v1, realsense_d435, kinect_v2; 'realgap sensor presets' lists them)")
+    add_shared(p, "--seed", "of the simulation and of the pixel samples (default 0)", default=0)
+    add_shared(p, "--no-progress")
     if fit_flag or cmd == "fit" or cmd == "diagnose":
         p.add_argument("--fit-option", action="append", default=[], metavar="KEY=VALUE",
                        help="FitConfig option, repeatable (e.g. max_evaluations=40)")
@@ -80,9 +81,9 @@ def _add_simulate(sub) -> None:
                                    "linked from SEQ when it has colour, since the model simulates depth only). "
                                    "Interrupted runs continue when re-run with the same options.")
     _common(p, "simulate")
-    p.add_argument("--out", required=True, metavar="OUTSEQ", help="output sequence folder")
-    p.add_argument("--overwrite", action="store_true", help="replace a simulation already in OUTSEQ")
-    p.set_defaults(func=_cmd_simulate)
+    add_shared(p, "--out", "the simulated sequence folder", required=True, metavar="OUTSEQ")
+    add_shared(p, "--overwrite", "a different simulation in OUTSEQ (the same one is continued)")
+    p.set_defaults(func=_cmd_simulate, on_interrupt=RESUMES)
 
 
 def _add_compare(sub) -> None:
@@ -93,7 +94,8 @@ def _add_compare(sub) -> None:
                                    "DIR/report.html (error maps, binned curves, worst regions, gap history). "
                                    "Every run appends one step to DIR/history.json.")
     _common(p, "compare")
-    p.add_argument("--out", required=True, metavar="DIR", help="lab folder (report, metrics, history)")
+    add_shared(p, "--out", "lab folder (report, metrics; each run adds a step to its history)", required=True,
+               metavar="DIR")
     p.add_argument("--compare-against", metavar="PREVDIR",
                    help="continue the gap history of an earlier lab folder")
     p.add_argument("--label", help="label of this step in the history (default: the effects)")
@@ -110,7 +112,9 @@ def _add_diagnose(sub) -> None:
                                    "them by gain = (gap - gap_after) / gap and write DIR/diagnosis.json and "
                                    "DIR/diagnosis.html (signature figures of the top candidates).")
     _common(p, "diagnose", fit_flag=False)
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_shared(p, "--out", "folder for diagnosis.json/.html and the candidates' models", required=True,
+               metavar="DIR")
+    add_shared(p, "--overwrite", "a finished diagnosis in DIR (an interrupted one is continued)")
     p.add_argument("--candidates", metavar="E1,E2,...", help="candidate effects (default: every effect that "
                                                              "applies to the sensor type and is not in the model)")
     p.add_argument("--top", type=int, default=3, metavar="K", help="candidates explained with figures (default 3)")
@@ -118,7 +122,7 @@ def _add_diagnose(sub) -> None:
                    help="frames simulated per top candidate for the figures (default 3)")
     p.add_argument("--diagnose-option", action="append", default=[], metavar="KEY=VALUE",
                    help="DiagnoseConfig option, repeatable (e.g. candidate_evaluations=20, refit_model=false)")
-    p.set_defaults(func=_cmd_diagnose)
+    p.set_defaults(func=_cmd_diagnose, on_interrupt=RESUMES)
 
 
 def _add_fit(sub) -> None:
@@ -126,9 +130,10 @@ def _add_fit(sub) -> None:
                        description="Fit the fittable parameters of the model's effects to SEQ (minimising "
                                    "the gap) and save the model with its fit record.")
     _common(p, "fit", fit_flag=False)
-    p.add_argument("--out", required=True, metavar="MODEL.json", help="where to save the fitted model")
+    add_shared(p, "--out", "the fitted model file", required=True, metavar="MODEL.json")
+    add_shared(p, "--overwrite", "an existing MODEL.json (an interrupted fit is continued)")
     p.add_argument("--only", metavar="E1,E2,...", help="fit only these effects' parameters (default: all)")
-    p.set_defaults(func=_cmd_fit)
+    p.set_defaults(func=_cmd_fit, on_interrupt=RESUMES)
 
 
 def _add_catalog(sub) -> None:
@@ -137,13 +142,13 @@ def _add_catalog(sub) -> None:
                                    "its one-line physics; with NAME its parameters: unit, default, the value each "
                                    "preset sets, plausible range, and the range a fit may search.")
     p.add_argument("name", nargs="?", help="one effect, in detail")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    add_shared(p, "--json")
     p.set_defaults(func=_cmd_catalog, catalog="effects")
     p = sub.add_parser("presets", help="list the sensor presets (devices) and their numbers",
                        description="Every device preset; with NAME every field with its meaning, the effects "
                                    "of its physical and direct models and the parameter values it sets.")
     p.add_argument("name", nargs="?", help="one preset, in detail")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    add_shared(p, "--json")
     p.set_defaults(func=_cmd_catalog, catalog="presets")
 
 
@@ -186,7 +191,8 @@ def _cmd_diagnose(args) -> int:
     candidates = effect_names_option(args.candidates, "--candidates") if args.candidates else None
     req = _request(args)
     diag, path = diagnose_sequence(req, args.out, candidates=candidates, top=args.top,
-                                   report_frames=args.report_frames, diagnose_options=args.diagnose_option)
+                                   report_frames=args.report_frames, diagnose_options=args.diagnose_option,
+                                   overwrite=args.overwrite, log=_log)
     top = ", ".join(f"{c.effect} ({100 * c.gain:.0f} %)" for c in diag.ranking[:3])
     print(f"{path}: gap {diag.gap:.4f}; best candidates: {top or 'none'}")
     return 0
@@ -196,7 +202,7 @@ def _cmd_fit(args) -> int:
     from synth.lab.runs import fit_sequence
     req = _request(args)
     only = effect_names_option(args.only, "--only") if args.only else None
-    res, path = fit_sequence(req, args.out, only=only)
+    res, path = fit_sequence(req, args.out, only=only, overwrite=args.overwrite, log=_log)
     params = ", ".join(f"{k}={v:.4g}" for k, v in res.params.items())
     print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {res.evaluations} evaluations "
           f"({res.seconds:.1f} s); {params}")

@@ -18,12 +18,19 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("results", nargs="+", metavar="RESULT",
                         help="result JSON files or folders holding one (sensor compare/diagnose/fit, slam run, "
                              "eval ate/rpe/run, batch)")
-    parser.add_argument("--json", action="store_true", help="print the headers as JSON instead of a table")
+    from app.commands import add_shared
+    add_shared(parser, "--json", "the result headers")
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from data_tools.errors import FormatError
+    from data_tools.outputs import incomplete_text, read_incomplete
     from data_tools.results import format_table, read_result, results_table
+    for p in args.results:
+        marker = read_incomplete(p)
+        if marker is not None:  # a folder a killed or running command left: say so, not "no result"
+            raise FormatError(p, f"{incomplete_text(marker)}: no finished result yet")
     results = [read_result(p) for p in args.results]
     if args.json:
         print(json.dumps([{"path": str(r.path), "header": r.header, "metrics": r.metrics} for r in results], indent=2))

@@ -117,7 +117,7 @@ def _run(args) -> int:
     from slam.pipeline import run_slam
     cfg = config_from_args(args, args.backend)
     res = run_slam(args.sequence, args.out, cfg, camera=_camera(args), overwrite=args.overwrite,
-                   progress=not args.no_progress)
+                   progress=not args.no_progress, skip_unreadable=args.skip_unreadable)
     s = res.stats
     fps = s.get("frames_per_second")
     print(f"{res.run_dir}: {s.get('frames_tracked', 0)}/{s.get('frames', 0)} frames registered with "
@@ -140,7 +140,7 @@ def _render(args) -> int:
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    from app.commands import add_group
+    from app.commands import RESUMES, add_group, add_shared
     from slam.registration import backend_names
     sub = add_group(parser)
     p = sub.add_parser("run", help="register a sequence, fuse it, write RUN/",
@@ -149,11 +149,14 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "Re-running the same command resumes an interrupted run.")
     p.add_argument("sequence", metavar="SEQ", help="TUM-layout sequence folder")
     p.add_argument("--backend", default="icp", choices=backend_names(), help="registration backend (default: icp)")
-    p.add_argument("--out", required=True, metavar="RUN", help="output run folder")
-    p.add_argument("--overwrite", action="store_true", help="discard an existing run in RUN")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_shared(p, "--out", "the run folder", required=True, metavar="RUN")
+    add_shared(p, "--overwrite", "discard a run in RUN made with other settings (the same run is continued)")
+    add_shared(p, "--no-progress")
+    p.add_argument("--skip-unreadable", action="store_true",
+                   help="register the sequence without input frames that cannot be read (reported as failed "
+                        "frames); default: such a frame stops the run with an error naming it")
     add_config_arguments(p)
-    p.set_defaults(func=_run)
+    p.set_defaults(func=_run, on_interrupt=RESUMES)
 
     p = sub.add_parser("render", help="render colour + depth of the fused model from a pose",
                        description="Render the reconstruction in RUN from any camera pose (novel view) "
@@ -164,7 +167,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--pose", metavar='"tx ty tz qx qy qz qw"', help="camera-to-world pose (TUM order)")
     g.add_argument("--frame", type=int, metavar="K", help="use the K-th pose of RUN/trajectory.txt")
-    p.add_argument("--out", required=True, metavar="PNG", help="output colour image (.png)")
+    add_shared(p, "--out", "colour image (.png); the depth image and the view's JSON are written next to it",
+               required=True, metavar="PNG")
+    add_shared(p, "--overwrite", "existing images of that name")
     p.add_argument("--scale", type=float, default=1.0, help="image size relative to the run's camera (default 1)")
     p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume"),
                    help="render the mesh or the saved TSDF volume (auto: volume when saved)")

@@ -61,29 +61,30 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     """The options of ``synth sequence`` that map to :class:`synth.sequence.SequenceConfig`."""
     from synth.sequence import SEQUENCE_PRESETS
     from synth.trajectories import TRAJECTORY_KINDS
-    p.add_argument("--out", required=True, metavar="SEQ", help="output sequence folder")
+    from app.commands import add_shared
+    add_shared(p, "--out", "the sequence folder", required=True, metavar="SEQ")
     p.add_argument("--preset", choices=sorted(SEQUENCE_PRESETS), default="kinect_v1",
                    help="starting configuration (default: kinect_v1 = 640x480, f=580 px, 300 frames)")
     p.add_argument("--scene", help="registered scene name (see 'realgap synth scenes'; default room)")
     p.add_argument("--scene-param", action="append", type=_parse_param, default=[], metavar="KEY=VALUE",
                    help="scene builder parameter, repeatable (e.g. path=room.obj)")
-    p.add_argument("--frames", type=int, help="number of frames")
+    p.add_argument("--frames", type=int, help="number of frames to generate (default from --preset)")
     p.add_argument("--fps", type=float, help="frame rate (default 30)")
     p.add_argument("--trajectory", choices=sorted(TRAJECTORY_KINDS), help="camera path (default walkthrough)")
-    p.add_argument("--seed", type=int, help="seed of scene, trajectory and jitter (default 0)")
+    add_shared(p, "--seed", "of scene, trajectory and jitter (default 0)")
     p.add_argument("--no-jitter", action="store_true", help="no hand-held shake on the trajectory")
     p.add_argument("--sensor", help="simulate this depth-sensor preset (kinect_v1, structure, realsense_d435, "
                                     "kinect_v2) instead of writing ideal depth; the ideal sequence goes to SEQ/ideal")
     p.add_argument("--effects", default=None,
                    help="with --sensor: 'physical' (default), 'direct' or a comma list of effect names")
-    p.add_argument("--workers", type=int, default=1, metavar="N",
-                   help="with --sensor: simulate N frames at once in worker processes (same frames, more "
-                        "frames/s when cores are free; default 1)")
+    add_shared(p, "--workers", "with --sensor, simulate N frames at once (same frames, more frames/s when cores "
+                              "are free; default 1)", default=1)
+    add_shared(p, "--no-progress")
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)
     p.add_argument("--height", type=int, help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="continue an interrupted sequence in SEQ")
-    g.add_argument("--overwrite", action="store_true", help="replace a sequence already in SEQ")
+    add_shared(g, "--overwrite", "a sequence already in SEQ")
 
 
 def sequence_config_from_args(args: argparse.Namespace):
@@ -161,7 +162,8 @@ def _add_views(sub) -> argparse.ArgumentParser:
                     "sensor_config.json and views_config.json (the effective settings). Interrupted "
                     "runs continue with --resume.")
     p.add_argument("--model", required=True, metavar="MESH", help="PLY/OBJ/STL/OFF model of the object")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    from app.commands import add_shared
+    add_shared(p, "--out", "folder of the views (depth/, mask/, ideal/, labels.json)", required=True, metavar="DIR")
     p.add_argument("--sensor", default="kinect_v1",
                    help="sensor preset (kinect_v1, structure, realsense_d435, kinect_v2) or a sensor_config.json "
                         "(default kinect_v1)")
@@ -186,14 +188,15 @@ def _add_views(sub) -> argparse.ArgumentParser:
     p.add_argument("--background", action="store_true", help="surround the set-up with four walls")
     p.add_argument("--no-ground", action="store_true", help="no ground plane under the object")
     p.add_argument("--no-ideal", action="store_true", help="do not write the ideal depth images")
-    p.add_argument("--seed", type=int, default=0, help="seed of the clutter and of the sensor draws (default 0)")
+    add_shared(p, "--seed", "of the clutter and of the sensor draws (default 0)", default=0)
+    add_shared(p, "--no-progress")
     p.add_argument("--limit", type=int, default=None, metavar="N",
                    help="render only the first N views (a later --resume without --limit adds the rest)")
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)   # centred crop of the sensor image (tests)
     p.add_argument("--height", type=int, help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true", help="continue an interrupted run in DIR")
-    g.add_argument("--overwrite", action="store_true", help="replace views already in DIR")
+    add_shared(g, "--overwrite", "views already in DIR")
     p.set_defaults(func=_cmd_views)
     return p
 

@@ -362,9 +362,25 @@ class Objective:
         self.last_result = None
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
+        self.journal = getattr(measured, "eval_journal", None)
+        """An :class:`~synth.lab.journal.EvalJournal` set on the measured sequence by a resumable
+        command (None: no journal). Replayed evaluations leave ``last_result`` unchanged."""
 
     def __call__(self, config) -> float:
         self.evaluations += 1
+        key = None
+        if self.journal is not None:
+            key = self.journal.key(config, [self.measured.frame_indices[k] for k in self.frames],
+                                   self.compare_config, self.seed, self.measured.seq_dir)
+            g = self.journal.get(key)
+            if g is not None:
+                return g
+        g = self._gap(config)
+        if key is not None:
+            self.journal.put(key, g)
+        return g
+
+    def _gap(self, config) -> float:
         sims = self.measured.simulate(config, self.seed, self.frames)
         obs = self.measured.observations(sims, self.frames)
         self.last_result = compare(obs, self.compare_config, cache=self.cache)

@@ -18,7 +18,6 @@ global backend state). The diagnosis page (``diagnosis.html``, signature figures
 from __future__ import annotations
 
 import html
-import json
 import math
 import os
 from collections.abc import Sequence
@@ -53,9 +52,8 @@ def figure(width_in: float, height_in: float):
 
 def save_figure(fig, path: str | os.PathLike) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
+    from data_tools.results import atomic_save_figure
+    return atomic_save_figure(fig, path)
 
 
 def plot_frame(path: str | os.PathLike, obs: FrameObservation, regions: Sequence[Region] = ()) -> Path:
@@ -237,7 +235,8 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
         regions = worst_bins(result, top_bins) + (worst_blocks(obs, cfg, top_blocks, block_px) if obs else [])
     regions = list(regions)
     result.save(out)
-    (out / "regions.json").write_text(json.dumps([r.to_json() for r in regions], indent=1) + "\n")
+    from data_tools.results import atomic_write_json
+    atomic_write_json(out / "regions.json", [r.to_json() for r in regions], indent=1)
 
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
              f"<style>{REPORT_CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
@@ -290,9 +289,8 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
     parts.append("<h2>Per-frame gaps</h2>" + html_table(
         [(i, fmt_number(g)) for i, g in zip(result.frame_indices, result.frame_gaps)], ("frame", "gap")))
     parts.append("</body></html>\n")
-    path = out / REPORT_FILE
-    path.write_text("\n".join(parts))
-    return path
+    from data_tools.results import atomic_write_text
+    return atomic_write_text(out / REPORT_FILE, "\n".join(parts))
 
 
 def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike, *,

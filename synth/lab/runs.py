@@ -28,6 +28,7 @@ from pathlib import Path
 
 from data_tools.config import config_from_options
 from data_tools.errors import ConfigError, FormatError, RealgapError
+from data_tools.outputs import check_input_dir, check_output_dir, check_output_file, clear_incomplete, mark_incomplete
 from data_tools.results import atomic_write_json, make_header
 
 __all__ = ["LabRequest", "parse_effects", "build_config", "simulate_sequence", "write_simulated_sequence",
@@ -188,13 +189,41 @@ def _maybe_fit(req: LabRequest, measured, config, out_dir: Path | None, log: Cal
     require_fittable(config, "--fit: ")
     from synth.lab.fit import fit_model
     from synth.lab.model import save_model
-    res = fit_model(measured, config, fit_config=req.fit_config(), progress=True)
+    with evaluation_journal(measured, None if out_dir is None else out_dir / FIT_JOURNAL_FILE, log):
+        res = fit_model(measured, config, fit_config=req.fit_config(), progress=True)
     if out_dir is not None:
         save_model(res.config, out_dir / "model.json", fit_info=res.to_json())
     if log is not None:
         log(f"fitted {len(res.params)} parameters in {res.evaluations} evaluations ({res.seconds:.1f} s): "
             f"gap {res.gap_before:.4f} -> {res.gap:.4f}")
     return res.config, res
+
+
+FIT_JOURNAL_FILE = "fit_journal.jsonl"
+"""Evaluations of an unfinished ``--fit`` inside an output folder (:mod:`synth.lab.journal`)."""
+
+
+@contextmanager
+def evaluation_journal(measured, path: Path | None, log: Callable[[str], None] | None = None,
+                       keep: bool = False):
+    """Record (and replay) the objective evaluations of the searches run inside the block in the
+    journal ``path`` (:class:`~synth.lab.journal.EvalJournal`), so a killed fit or diagnosis
+    continues where it stopped with an identical result. The journal is removed when the block
+    finishes without error (unless ``keep``). ``path`` None: no journal."""
+    if path is None:
+        yield None
+        return
+    from synth.lab.journal import EvalJournal
+    journal = EvalJournal(path)
+    if journal.loaded and log is not None:
+        log(f"resuming: {journal.loaded} objective evaluations already done are read from {path}")
+    measured.eval_journal = journal
+    try:
+        yield journal
+    finally:
+        measured.eval_journal = None
+    if not keep:
+        journal.remove()
 
 
 def _step_label(req: LabRequest, label: str | None, config, fit) -> str | None:
@@ -238,12 +267,16 @@ def simulate_sequence(req: LabRequest, out: str | Path, *, overwrite: bool = Fal
                       log: Callable[[str], None] | None = None) -> SimulateOutcome:
     """Simulate every kept frame of ``req.seq`` with its model into ``out`` (see
     :func:`write_simulated_sequence`), fitting the model first when ``req.fit``."""
-    out = Path(out)
+    out = check_output_dir(out)
     t0 = time.perf_counter()
     measured, config = req.load(preload=False)  # streams; a fit reads only its own frames
+    if req.fit:
+        mark_incomplete(out, "realgap sensor simulate", 0, len(measured))
     config, _fit = _maybe_fit(req, measured, config, out, log)
     n_new, n_kept = write_simulated_sequence(measured, config, out, seed=req.seed, overwrite=overwrite,
                                              lab_config=req.describe("simulate", measured, config))
+    if n_kept and log is not None:
+        log(f"resumed: {n_kept} frames already simulated in {out} were kept")
     return SimulateOutcome(out, config, n_new, n_kept, time.perf_counter() - t0)
 
 
@@ -283,7 +316,7 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     from data_tools.scene_spec import write_scene_json
     from data_tools.sequence import SequenceReader, link_or_copy, write_depth_png
 
-    out = Path(out_dir)
+    out = check_output_dir(out_dir)
     src = Path(measured.seq_dir)
     if out.resolve() == src.resolve():
         raise RealgapError(f"{out}: the output must not be the measured sequence itself")
@@ -298,13 +331,17 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
             shutil.rmtree(out / "depth", ignore_errors=True)
             shutil.rmtree(out / "rgb", ignore_errors=True)
         else:
-            old = json.loads(sig_path.read_text()) if sig_path.exists() else None
+            try:
+                old = json.loads(sig_path.read_text()) if sig_path.exists() else None
+            except ValueError:
+                old = None
             if old != json.loads(json.dumps(signature)):
                 raise RealgapError(f"{out}: holds a different simulation (other model, seed, frames or source); "
                                    f"use --overwrite to replace it")
     out.mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(exist_ok=True)
-    sig_path.write_text(json.dumps(signature) + "\n")
+    mark_incomplete(out, "realgap sensor simulate", 0, len(measured))
+    atomic_write_json(sig_path, signature, indent=None)
     write_camera_json(out / "camera.json", reader.camera)
     if (src / "groundtruth.txt").is_file():
         shutil.copyfile(src / "groundtruth.txt", out / "groundtruth.txt")
@@ -330,6 +367,8 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     scale = reader.camera.depth_scale
     todo = [k for k in range(len(measured)) if reader.depth_files[measured.frame_indices[k]] not in done]
     kept = len(measured) - len(todo)
+    done_count = kept
+    mark_incomplete(out, "realgap sensor simulate", done_count, len(measured))
     bar = None
     if progress and todo:
         from data_tools.progress import progress_bar
@@ -350,10 +389,13 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
             done_rgb.add(rgb_rel)
         with open(out / "depth.txt", "a") as f:
             f.write(depth_lines.get(rel, f"{reader.timestamps[i]:.6f} {rel}") + "\n")
+        done_count += 1
+        mark_incomplete(out, "realgap sensor simulate", done_count, len(measured))
         if bar is not None:
             bar.update(1)
     if bar is not None:
         bar.close()
+    clear_incomplete(out)
     return len(todo), kept
 
 
@@ -396,7 +438,9 @@ def compare_sequence(req: LabRequest, out: str | Path, *, compare_against: str |
     from synth.lab.compare import compare_preset as get_compare_preset
     from synth.lab.history import load_history
     from synth.lab.report import run_lab
-    out = Path(out)
+    out = check_output_dir(out)
+    if compare_against is not None:
+        check_input_dir(compare_against, "earlier lab folder", "--compare-against")
     timings = {}
     with _timed(timings, "load_s"):
         measured, config = req.load()
@@ -427,21 +471,32 @@ def compare_sequence(req: LabRequest, out: str | Path, *, compare_against: str |
 
 # --------------------------------------------------------------------------- diagnose
 
+DIAGNOSE_JOURNAL_FILE = "diagnose_journal.jsonl"
+"""Evaluations of an unfinished diagnosis inside its output folder (:mod:`synth.lab.journal`)."""
+
+
 def diagnose_sequence(req: LabRequest, out: str | Path, *, candidates: Sequence[str] | None = None,
-                      top: int = 3, report_frames: int = 3, diagnose_options: Sequence[str] = ()):
+                      top: int = 3, report_frames: int = 3, diagnose_options: Sequence[str] = (),
+                      overwrite: bool = False, log: Callable[[str], None] | None = None):
     """Rank the effects missing from the model by how much gap they remove: ``out/diagnosis.json``,
     ``out/diagnosis.html`` (signature figures of the ``top`` candidates), and model files of the
     refitted model and the top candidates (:func:`save_diagnosis_models`). Returns
-    (Diagnosis, path of diagnosis.html)."""
+    (Diagnosis, path of diagnosis.html).
+
+    Resumable: every objective evaluation is journalled in ``out/diagnose_journal.jsonl``; a re-run
+    after a kill replays them and computes only the rest (same result as an uninterrupted run).
+    A finished diagnosis in ``out`` is replaced only with ``overwrite``."""
     from synth.lab.diagnose import DiagnoseConfig, diagnose
     from synth.lab.signatures import write_diagnosis_report
-    out = Path(out)
+    out = check_output_dir(out, finished="diagnosis.json", overwrite=overwrite)
+    dcfg = config_from_options(DiagnoseConfig, diagnose_options, "--diagnose-option")
     timings = {}
     with _timed(timings, "load_s"):
         measured, config = req.load()
-    with _timed(timings, "diagnose_s"):
+    mark_incomplete(out, "realgap sensor diagnose", 0, None, unit="candidates")
+    with _timed(timings, "diagnose_s"), evaluation_journal(measured, out / DIAGNOSE_JOURNAL_FILE, log, keep=True):
         diag = diagnose(measured, config, candidates=candidates, fit_config=req.fit_config(), progress=True,
-                        diagnose_config=config_from_options(DiagnoseConfig, diagnose_options, "--diagnose-option"))
+                        diagnose_config=dcfg)
     diag.save(out)
     models = save_diagnosis_models(diag, out, top=top)
     with _timed(timings, "report_s"):
@@ -458,6 +513,8 @@ def diagnose_sequence(req: LabRequest, out: str | Path, *, candidates: Sequence[
     diag.save(out, header=req.header("lab.diagnose", config, timings, metrics,
                                      {"candidates": list(candidates) if candidates else None, "top": top,
                                       "diagnose_options": list(diagnose_options)}))
+    (out / DIAGNOSE_JOURNAL_FILE).unlink(missing_ok=True)
+    clear_incomplete(out)
     return diag, path
 
 
@@ -503,11 +560,18 @@ def diagnosis_figure_data(measured, config, diag, *, top: int = 3, n_frames: int
 
 # --------------------------------------------------------------------------- fit
 
-def fit_sequence(req: LabRequest, out: str | Path, *, only: Sequence[str] | None = None):
+def fit_sequence(req: LabRequest, out: str | Path, *, only: Sequence[str] | None = None, overwrite: bool = False,
+                 log: Callable[[str], None] | None = None):
     """Fit the fittable parameters of the model's effects (``only``: of these effects) to SEQ and
-    save the model with its fit record and the result header to ``out``. Returns (FitResult, path)."""
+    save the model with its fit record and the result header to ``out``. Returns (FitResult, path).
+
+    An existing ``out`` is replaced only with ``overwrite``. Resumable: the evaluations are
+    journalled in ``out`` + ``.journal.jsonl`` until the model is saved; a re-run after a kill
+    replays them (same result as an uninterrupted run)."""
     from synth.lab.fit import fit_model
     from synth.lab.model import save_model
+    out = check_output_file(out, what="model file", overwrite=overwrite)
+    journal = out.with_name(out.name + ".journal.jsonl")
     timings = {}
     with _timed(timings, "load_s"):
         measured, config = req.load()
@@ -516,7 +580,7 @@ def fit_sequence(req: LabRequest, out: str | Path, *, only: Sequence[str] | None
         missing = [n for n in only if n not in config.names()]
         if missing:
             raise ConfigError(f"--only names effects that are not in the model: {', '.join(missing)}")
-    with _timed(timings, "fit_s"):
+    with _timed(timings, "fit_s"), evaluation_journal(measured, journal, log, keep=True):
         res = fit_model(measured, config, names=list(only) if only else None, fit_config=req.fit_config(),
                         progress=True)
     info = res.to_json()
@@ -524,4 +588,6 @@ def fit_sequence(req: LabRequest, out: str | Path, *, only: Sequence[str] | None
     metrics = {"gap_before": res.gap_before, "gap": res.gap, "evaluations": res.evaluations,
                **{f"param.{k}": v for k, v in res.params.items()}}
     header = req.header("lab.fit", res.config, timings, metrics, {"only": list(only) if only else None})
-    return res, save_model(res.config, out, fit_info=info, header=header)
+    path = save_model(res.config, out, fit_info=info, header=header)
+    journal.unlink(missing_ok=True)
+    return res, path

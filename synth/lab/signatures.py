@@ -433,7 +433,6 @@ def write_diagnosis_report(diagnosis: dict, base: Sequence[FrameObservation],
         parts.append(f"<img src='figures/{name}' alt='{html.escape(eff)} signature'>")
     parts.append("</body></html>\n")
     out.mkdir(parents=True, exist_ok=True)
-    path = out / DIAGNOSIS_FILE
-    path.write_text("\n".join(parts))
-    return path
+    from data_tools.results import atomic_write_text
+    return atomic_write_text(out / DIAGNOSIS_FILE, "\n".join(parts))
 

@@ -26,7 +26,6 @@ uses the whole image.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import asdict, dataclass, field
@@ -139,7 +138,8 @@ class FlatWallResult:
     def save(self, out_dir: str | os.PathLike, figure: bool = True) -> Path:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "flat_wall.json").write_text(json.dumps({"summary": self.summary(), **self.to_json()}, indent=1) + "\n")
+        from data_tools.results import atomic_write_json
+        atomic_write_json(out / "flat_wall.json", {"summary": self.summary(), **self.to_json()}, indent=1)
         if figure:
             plot_flat_wall(self, out / "flat_wall.png")
         return out
@@ -343,6 +343,7 @@ def plot_flat_wall(res: FlatWallResult, path: str | os.PathLike) -> Path:
                  f"band check 0.8-4 m: {'PASS' if res.band_ok else 'FAIL'}; projector shadow: {res.shadow_side}")
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    from data_tools.results import atomic_save_figure
+    atomic_save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -30,6 +30,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.mesh import TriMesh
+from data_tools.results import atomic_write_image, atomic_write_json
 from data_tools.scene_spec import Material, SceneSpec
 
 
@@ -214,7 +215,6 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     SensorSimulator (its config is reused). ``overrides`` set ViewsConfig fields
     (e.g. ``subdivisions=2, inplane_deg=(-30, 0, 30), clutter=5``). Returns a ViewsResult.
     """
-    import cv2
     from data_tools.camera import write_camera_json
     from data_tools.sequence import write_depth_png
     from synth.sensor.simulator import SensorSimulator
@@ -236,10 +236,11 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     if cfg.distance_m is not None and not (math.isfinite(cfg.distance_m) and cfg.distance_m > 0):
         raise ConfigError(f"render_views: distance_m must be a positive number, got {cfg.distance_m}")
     check_model_size(model)
-    out = Path(out_dir)
+    from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
+    out = check_output_dir(out_dir, what="views folder")
     index_path = out / "views.jsonl"
     if index_path.exists() and not (resume or overwrite):
-        raise RealgapError(f"{out}: already holds views (use resume or overwrite)")
+        raise RealgapError(f"{out}: already holds views (--resume continues them, --overwrite replaces them)")
     if overwrite and index_path.exists():
         import shutil
         index_path.unlink()
@@ -267,7 +268,7 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
         (out / sub).mkdir(parents=True, exist_ok=True)
     write_camera_json(out / "camera.json", sim.camera())
     sim.config.save(out / "sensor_config.json")
-    (out / "views_config.json").write_text(json.dumps(effective, indent=2) + "\n")
+    atomic_write_json(out / "views_config.json", effective)
     done = set()
     if index_path.exists():
         for line in index_path.read_text().splitlines():
@@ -287,6 +288,7 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
     scale = sim.camera().depth_scale
     written = 0
     views = []
+    mark_incomplete(out, "realgap synth views", len(jobs) - len(todo), len(jobs), unit="views")
     for idx, d, roll in it:
         T_c2w = _look_at_with_roll(centre + d * dist, centre, roll)
         res = sim.simulate(T_c2w, seed=cfg.seed + idx)
@@ -294,7 +296,7 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
         for sub, arr in (("depth", res.depth),) + ((("ideal", res.ideal_depth),) if cfg.write_ideal else ()):
             write_depth_png(out / sub / name, arr, scale)
         mask = (res.instance_ids == 1).astype(np.uint8) * 255
-        cv2.imwrite(str(out / "mask" / name), mask)
+        atomic_write_image(out / "mask" / name, mask)
         from data_tools.geometry import invert_pose
         T_obj2cam = invert_pose(T_c2w) @ T_place
         rec = {"index": idx, "object": model.name, "depth": f"depth/{name}", "mask": f"mask/{name}",
@@ -308,9 +310,11 @@ def render_views(model: TriMesh, sensor, out_dir: str | os.PathLike, config: Vie
             f.write(json.dumps(rec) + "\n")
         views.append(rec)
         written += 1
+        mark_incomplete(out, "realgap synth views", len(jobs) - len(todo) + written, len(jobs), unit="views")
     all_recs = read_views(out)
-    (out / "labels.json").write_text(json.dumps({"object": model.name, "camera": "camera.json",
-                                                 "views": all_recs}, indent=1) + "\n")
+    atomic_write_json(out / "labels.json", {"object": model.name, "camera": "camera.json", "views": all_recs},
+                      indent=1)
+    clear_incomplete(out)
     return ViewsResult(str(out), len(jobs), written, model.name, views, n_all)
 
 

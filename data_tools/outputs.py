@@ -1,0 +1,161 @@
+"""Checks of input and output paths done *before* a command starts work, and the marker of an
+unfinished output folder.
+
+Every long command calls :func:`check_output_dir` / :func:`check_output_file` on its outputs
+first, so that a path that cannot be written (an existing file where a folder is wanted, a
+folder under a file, a read-only parent, a finished result that would be replaced without
+``--overwrite``) is a one-line :class:`~data_tools.errors.RealgapError` before minutes of work,
+not an ``OSError`` at the final write. Inputs are checked the same way
+(:func:`check_input_file`, :func:`check_input_dir`): a folder given where a file is expected is
+named as such.
+
+An output folder being written carries ``incomplete.json`` (:data:`INCOMPLETE_FILE`): the command,
+how many steps of how many are finished, and whether re-running continues. It is written when
+the work starts and after each finished step, and removed when the command finishes, so
+``realgap data info`` and ``realgap show`` can say "incomplete: 37/100 frames" about a folder a
+killed run left behind.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+from data_tools.errors import RealgapError
+
+__all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
+           "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
+
+INCOMPLETE_FILE = "incomplete.json"
+"""Marker of an output folder whose command has not finished (see :func:`mark_incomplete`)."""
+
+
+def _label(what: str, flag: str | None) -> str:
+    return f"{what} ({flag})" if flag else what
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest ancestor of ``path`` (itself included) that exists; a file there is an error."""
+    p = path
+    while not p.exists() and not p.is_symlink():
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _check_creatable(path: Path, what: str, flag: str | None) -> None:
+    """``path`` does not exist: its nearest existing ancestor must be a writable folder."""
+    anc = _existing_ancestor(path.parent if path.parent != path else path)
+    if anc.exists() and not anc.is_dir():
+        raise RealgapError(f"{path}: cannot create the {_label(what, flag)}: {anc} is a file, not a folder")
+    if anc.exists() and not os.access(anc, os.W_OK | os.X_OK):
+        raise RealgapError(f"{path}: cannot create the {_label(what, flag)}: {anc} is not writable")
+
+
+def check_output_dir(path: str | os.PathLike, *, what: str = "output folder", flag: str | None = "--out",
+                     finished: str | tuple[str, ...] | None = None, overwrite: bool = False,
+                     overwrite_flag: str = "--overwrite") -> Path:
+    """Check that ``path`` can be used as an output folder, before any work.
+
+    Errors (one line naming ``path``): it is a file; a parent is a file; the nearest existing
+    parent is not writable; it is not writable; it already holds a finished result (a file named
+    in ``finished`` exists) and ``overwrite`` is false. Nothing is created. Returns ``Path(path)``.
+    """
+    p = Path(path)
+    if p.exists() or p.is_symlink():
+        if not p.is_dir():
+            raise RealgapError(f"{p}: the {_label(what, flag)} is an existing file, not a folder")
+        if not os.access(p, os.W_OK | os.X_OK):
+            raise RealgapError(f"{p}: the {_label(what, flag)} is not writable")
+        names = (finished,) if isinstance(finished, str) else tuple(finished or ())
+        done = [n for n in names if (p / n).exists()]
+        if done and not overwrite and not (p / INCOMPLETE_FILE).exists():
+            raise RealgapError(f"{p}: already holds a finished result ({done[0]}); pass {overwrite_flag} to "
+                               f"replace it or choose another {flag or 'folder'}")
+    else:
+        _check_creatable(p, what, flag)
+    return p
+
+
+def check_output_file(path: str | os.PathLike, *, what: str = "output file", flag: str | None = "--out",
+                      overwrite: bool = False, overwrite_flag: str = "--overwrite") -> Path:
+    """Check that ``path`` can be written as a file, before any work.
+
+    Errors (one line naming ``path``): it is a folder; a parent is a file or not writable; it
+    exists and ``overwrite`` is false. Nothing is created. Returns ``Path(path)``.
+    """
+    p = Path(path)
+    if p.is_dir():
+        raise RealgapError(f"{p}: the {_label(what, flag)} is an existing folder, expected a file name")
+    if p.exists():
+        if not overwrite:
+            raise RealgapError(f"{p}: exists; pass {overwrite_flag} to replace it or choose another "
+                               f"{flag or 'file name'}")
+        if not os.access(p.parent, os.W_OK | os.X_OK):
+            raise RealgapError(f"{p}: cannot replace the {_label(what, flag)}: {p.parent} is not writable")
+    else:
+        _check_creatable(p, what, flag)
+    return p
+
+
+def check_input_file(path: str | os.PathLike, what: str = "input file", flag: str | None = None) -> Path:
+    """``path`` must be an existing, readable file (a folder or a missing path is one line)."""
+    p = Path(path)
+    if not p.exists():
+        raise RealgapError(f"{p}: {_label(what, flag)} not found")
+    if p.is_dir():
+        raise RealgapError(f"{p}: the {_label(what, flag)} is a folder, expected a file")
+    if not os.access(p, os.R_OK):
+        raise RealgapError(f"{p}: the {_label(what, flag)} is not readable")
+    return p
+
+
+def check_input_dir(path: str | os.PathLike, what: str = "input folder", flag: str | None = None) -> Path:
+    """``path`` must be an existing folder (a file or a missing path is one line)."""
+    p = Path(path)
+    if not p.exists():
+        raise RealgapError(f"{p}: {_label(what, flag)} not found")
+    if not p.is_dir():
+        raise RealgapError(f"{p}: the {_label(what, flag)} is a file, expected a folder")
+    return p
+
+
+def mark_incomplete(folder: str | os.PathLike, command: str, done: int, total: int | None, unit: str = "frames",
+                    resumable: bool = True) -> None:
+    """Write (atomically) the marker saying ``folder`` is unfinished: ``done``/``total`` ``unit``."""
+    from data_tools.results import atomic_write_json
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(folder / INCOMPLETE_FILE, {
+        "command": command, "done": int(done), "total": None if total is None else int(total), "unit": unit,
+        "resumable": bool(resumable), "updated": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "note": "written while the command runs; removed when it finishes"
+                + ("; re-run the same command to continue" if resumable else
+                   "; re-running starts again (this command cannot continue)")})
+
+
+def clear_incomplete(folder: str | os.PathLike) -> None:
+    """Remove the marker: the command in ``folder`` has finished."""
+    (Path(folder) / INCOMPLETE_FILE).unlink(missing_ok=True)
+
+
+def read_incomplete(folder: str | os.PathLike) -> dict | None:
+    """The marker of an unfinished ``folder``, or None when it is finished (or not ours)."""
+    p = Path(folder) / INCOMPLETE_FILE
+    if not p.is_file():
+        return None
+    try:
+        d = json.loads(p.read_text())
+        return d if isinstance(d, dict) else {"command": "?", "done": 0, "total": None, "unit": "steps"}
+    except (OSError, ValueError):
+        return {"command": "?", "done": 0, "total": None, "unit": "steps"}
+
+
+def incomplete_text(marker: dict) -> str:
+    """"incomplete: 37/100 frames (realgap sensor simulate; re-run to continue)"."""
+    total = marker.get("total")
+    count = f"{marker.get('done', 0)}/{total}" if total is not None else f"{marker.get('done', 0)}"
+    how = "re-run to continue" if marker.get("resumable", True) else "re-running starts again"
+    return f"incomplete: {count} {marker.get('unit', 'steps')} ({marker.get('command', '?')}; {how})"
