@@ -22,7 +22,7 @@ import os
 import time
 from pathlib import Path
 
-from data_tools.errors import RealgapError
+from data_tools.errors import FormatError, RealgapError
 
 __all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
            "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
@@ -104,11 +104,11 @@ def check_input_file(path: str | os.PathLike, what: str = "input file", flag: st
     """``path`` must be an existing, readable file (a folder or a missing path is one line)."""
     p = Path(path)
     if not p.exists():
-        raise RealgapError(f"{p}: {_label(what, flag)} not found")
+        raise FormatError(p, f"{_label(what, flag)} not found")
     if p.is_dir():
-        raise RealgapError(f"{p}: the {_label(what, flag)} is a folder, expected a file")
+        raise FormatError(p, f"the {_label(what, flag)} is a folder, expected a file")
     if not os.access(p, os.R_OK):
-        raise RealgapError(f"{p}: the {_label(what, flag)} is not readable")
+        raise FormatError(p, f"the {_label(what, flag)} is not readable")
     return p
 
 
@@ -116,9 +116,9 @@ def check_input_dir(path: str | os.PathLike, what: str = "input folder", flag: s
     """``path`` must be an existing folder (a file or a missing path is one line)."""
     p = Path(path)
     if not p.exists():
-        raise RealgapError(f"{p}: {_label(what, flag)} not found")
+        raise FormatError(p, f"{_label(what, flag)} not found")
     if not p.is_dir():
-        raise RealgapError(f"{p}: the {_label(what, flag)} is a file, expected a folder")
+        raise FormatError(p, f"the {_label(what, flag)} is a file, expected a folder")
     return p
 
 

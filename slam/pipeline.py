@@ -71,7 +71,7 @@ class SlamConfig:
     frame_step: int = 1
     """Use every n-th frame of the sequence."""
     max_frames: int = 0
-    """Process at most this many frames (after ``frame_step``); 0 = all."""
+    """The first N frames (after ``frame_step``); 0 = every frame (the command line's --max-frames takes N >= 1)."""
     checkpoint_every: int = 100
     """Write a resumable checkpoint every this many frames."""
     save_volume: bool = False

@@ -16,7 +16,7 @@ import argparse
 SHARED_FLAGS: dict[str, str] = {
     "--out": "output",
     "--overwrite": "replace a finished result already at --out (without it such an output is an error)",
-    "--max-frames": "use at most N frames, evenly spread over the sequence",
+    "--max-frames": "use at most N frames of the sequence",
     "--seed": "random seed: the same seed gives the same output",
     "--workers": "parallel worker processes",
     "--no-progress": "no progress display on stderr (also: REALGAP_NO_PROGRESS=1)",

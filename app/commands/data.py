@@ -48,7 +48,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
     p.add_argument("--depth-max", type=float, default=4.0, metavar="M",
                    help="ignore depth beyond this many metres (default 4)")
-    add_shared(p, "--max-frames", "fuse at most N frames (default: every frame with a pose)")
+    add_shared(p, "--max-frames", "fuse N frames evenly spread (default: every frame with a pose)")
     p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")
     p.add_argument("--albedo", type=float, default=0.5, help="albedo of that material (default 0.5)")
     p.add_argument("--min-component", type=int, default=200, metavar="TRIANGLES",

@@ -63,7 +63,7 @@ def _common(p: argparse.ArgumentParser, cmd: str, fit_flag: bool = True) -> None
     if fit_flag:
         p.add_argument("--fit", action="store_true", help="fit the model's parameters to SEQ first")
     n = DEFAULT_FRAMES[cmd]
-    add_shared(p, "--max-frames", f"default {'all' if n is None else n}", default=n)
+    add_shared(p, "--max-frames", f"evenly spread (default {'all' if n is None else n})", default=n)
     p.add_argument("--preset", help="sensor preset to start from (default from camera.json's sensor type: "
                                     "kinect_v1, realsense_d435, kinect_v2; 'realgap sensor presets' lists them)")
     add_shared(p, "--seed", "of the simulation and of the pixel samples (default 0)", default=0)

@@ -5,6 +5,7 @@ import argparse
 import sys
 import typing
 
+from app.commands import SHARED_FLAGS
 from data_tools.camera import read_camera_json
 from data_tools.errors import ConfigError
 
@@ -42,6 +43,9 @@ def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) 
         if isinstance(default, tuple):
             default = ",".join(str(x) for x in default)
         help_text = docs.get(f.name, "").replace("%", "%%") + f" (default: {default})"
+        shared = f"--{prefix}{f.name.replace('_', '-')}"
+        if shared in SHARED_FLAGS:
+            help_text = SHARED_FLAGS[shared].replace("%", "%%") + ": " + help_text
         names = [f"--{prefix}{f.name}"]
         if "_" in f.name:
             names.append(f"--{prefix}{f.name.replace('_', '-')}")
@@ -101,8 +105,39 @@ def config_from_args(args, backend: str):
         hints = typing.get_type_hints(cls)
         if name not in {f.name for f in dataclasses.fields(cls)}:
             raise ConfigError(f"unknown option --{dotted}")
-        overrides[target] = parse_value(raw, hints[name])
-    return make_config(backend, args.preset, overrides, base)
+        try:
+            overrides[target] = parse_value(raw, hints[name])
+        except ConfigError as e:
+            raise ConfigError(f"--{dotted.replace('_', '-')}: {e}") from None
+        if dotted == "max_frames" and (str(raw).strip() in ("0", "-0") or str(raw).strip().startswith("-")):
+            raise ConfigError(f"--max-frames must be at least 1 (leave it out for every frame), got {raw}")
+    try:
+        return make_config(backend, args.preset, overrides, base)
+    except ConfigError as e:
+        raise ConfigError(flag_names(str(e), backend)) from None
+
+
+def flag_names(message: str, backend: str) -> str:
+    """An error of the configuration classes in the words of the command line: ``SlamConfig.max_frames``
+    -> ``--max-frames``, ``TSDFConfig.voxel_size_m`` -> ``--tsdf.voxel-size-m``, ``backend_config.x`` and
+    ``ICPConfig.x`` -> ``--icp.x``."""
+    import re
+    from slam.registration import get_backend
+    try:
+        backend_cls = get_backend(backend).Config.__name__
+    except Exception:
+        backend_cls = None
+
+    def dash(name: str) -> str:
+        return name.replace("_", "-")
+    message = re.sub(r"\bconfig\.tsdf\.(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
+    message = re.sub(r"\bconfig\.backend_config\.(\w+)", lambda m: f"--{backend}.{dash(m.group(1))}", message)
+    message = re.sub(r"\b(?:SlamConfig|config)\.(\w+)", lambda m: f"--{dash(m.group(1))}", message)
+    message = re.sub(r"\bTSDFConfig[.:] ?(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
+    message = re.sub(r"\bbackend_config\.(\w+)", lambda m: f"--{backend}.{dash(m.group(1))}", message)
+    if backend_cls:
+        message = re.sub(rf"\b{backend_cls}\.(\w+)", lambda m: f"--{backend}.{dash(m.group(1))}", message)
+    return message
 
 
 def _camera(args):

@@ -58,6 +58,8 @@ def preset_from_camera(camera: Camera, preset: str | None = None, path: str | os
     try:
         pre = get_preset(name)
     except ConfigError as e:
+        if preset:  # the user's --preset, not the file
+            raise ConfigError(f"--preset: {e} ('realgap sensor presets' lists them)") from None
         raise FormatError(path, str(e)) from None
     i = camera.intrinsics
     changes = dict(width=int(i.width), height=int(i.height), fx=float(i.fx), fy=float(i.fy),
