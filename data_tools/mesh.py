@@ -42,6 +42,21 @@ class TriMesh:
         return TriMesh(self.vertices * s, self.triangles.copy(), self.name, self.material,
                        None if self.vertex_colors is None else self.vertex_colors.copy())
 
+    def canonical(self) -> "TriMesh":
+        """The same surface with vertices in lexicographic (x, y, z) order and triangles sorted
+        (each rotated to start at its smallest index, winding kept): meshes extracted by parallel
+        code, whose order follows the thread schedule, become byte-identical files."""
+        order = np.lexsort(self.vertices.T[::-1])
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        tri = rank[self.triangles].astype(np.int32)
+        if len(tri):
+            shift = np.argmin(tri, axis=1)
+            tri = np.take_along_axis(tri, (shift[:, None] + np.arange(3)[None]) % 3, axis=1)
+            tri = tri[np.lexsort(tri.T[::-1])]
+        colors = None if self.vertex_colors is None else self.vertex_colors[order]
+        return TriMesh(self.vertices[order], tri, self.name, self.material, colors)
+
     @property
     def bounds(self) -> np.ndarray:
         """(2, 3) axis-aligned min/max corners, metres."""

@@ -220,7 +220,13 @@ class SequenceReader:
 
 def sequence_info(path: str | os.PathLike) -> dict:
     """What ``data info`` prints: frame count, duration, intrinsics, depth scale, sensor block,
-    frames with a pose and the scene's size (reading the index and calibration files)."""
+    frames with a pose and the scene's size (reading the index and calibration files). An
+    unfinished output folder of another command (a diagnosis, a batch report) that a killed run
+    left is named as such instead of "depth.txt not found"."""
+    from data_tools.outputs import incomplete_text, read_incomplete
+    marker = read_incomplete(path)
+    if marker is not None and not (Path(path) / "depth.txt").is_file():
+        raise FormatError(path, f"{incomplete_text(marker)}; no sequence in it yet")
     seq = SequenceReader(path)
     i = seq.intrinsics
     info = {
@@ -237,7 +243,6 @@ def sequence_info(path: str | os.PathLike) -> dict:
         sc = seq.scene
         info["scene_meshes"] = len(sc.meshes)
         info["scene_triangles"] = int(sum(len(m.triangles) for m in sc.meshes))
-    from data_tools.outputs import incomplete_text, read_incomplete
     marker = read_incomplete(seq.path)
     info["complete"] = marker is None
     if marker is not None:

@@ -31,7 +31,7 @@ import traceback
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar
 
 from data_tools.camera import Camera, camera_from_dict
 from data_tools.errors import ConfigError, RealgapError
@@ -98,7 +98,10 @@ def run_job(job: dict) -> dict:
         res.frames_failed = int(s["frames_failed"])
         res.failed_timestamps = list(s["failed_timestamps"])
         res.frames_per_second = s.get("frames_per_second")
-        _score(res, j, run.trajectory, cam)
+        # score the trajectory as written (what `realgap eval run` reads): a fresh run and a
+        # finished one read back after an interrupted batch give the same numbers
+        from slam.pipeline import load_run
+        _score(res, j, load_run(j.run_dir).trajectory if run.complete else run.trajectory, cam)
         res.ok = True
     except RealgapError as e:
         res.error = str(e)
@@ -148,7 +151,9 @@ class Executor(ABC):
         self.workers = workers if workers > 0 else max(1, os.cpu_count() or 1)
 
     @abstractmethod
-    def map(self, jobs: list[BatchJob], progress: bool = True) -> list[dict]:
+    def map(self, jobs: list[BatchJob], progress: bool = True,
+            on_result: Callable[[int], None] | None = None) -> list[dict]:
+        """Results in job order; ``on_result(n_done)`` is called after each finished job."""
         ...
 
 
@@ -179,7 +184,7 @@ class LocalExecutor(Executor):
 
     name = "local"
 
-    def map(self, jobs, progress=True):
+    def map(self, jobs, progress=True, on_result=None):
         import multiprocessing as mp  # noqa: F401
         from concurrent.futures import ProcessPoolExecutor, as_completed
         if not jobs:
@@ -194,6 +199,8 @@ class LocalExecutor(Executor):
                 out[futs[f]] = f.result()
                 if bar is not None:
                     bar.update(1)
+                if on_result is not None:
+                    on_result(sum(r is not None for r in out))
         if bar is not None:
             bar.close()
         return out
@@ -210,7 +217,7 @@ class RayExecutor(Executor):
 
     name = "ray"
 
-    def map(self, jobs, progress=True):
+    def map(self, jobs, progress=True, on_result=None):
         try:
             import ray
         except ImportError:
@@ -242,6 +249,8 @@ class RayExecutor(Executor):
                     out[index[r]] = ray.get(r)
                     if bar is not None:
                         bar.update(1)
+                    if on_result is not None:
+                        on_result(sum(x is not None for x in out))
             if bar is not None:
                 bar.close()
             return out
@@ -260,6 +269,8 @@ class BatchReport:
 
     out: Path
     results: list[dict]
+    runs_kept: int = 0
+    """Runs already finished in REPORT/runs before this call (an interrupted batch re-run): read, not redone."""
 
     def table(self) -> dict[tuple[str, str], dict]:
         return {(r["name"], r["backend"]): r for r in self.results}
@@ -304,8 +315,12 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
             cfg = _config_for(config, b)
             jobs.append(BatchJob(str(s), name, b, str((out / "runs" / name / b).resolve()), cfg.to_dict(),
                                  camera.to_json() if camera is not None else None, threads))
+    from data_tools.outputs import clear_incomplete, mark_incomplete
+    kept = sum(_run_finished(Path(j.run_dir)) for j in jobs)
+    mark_incomplete(out, "realgap batch", kept, n_jobs, unit="runs")
     t0 = time.perf_counter()
-    results = ex.map(jobs, progress=progress)
+    results = ex.map(jobs, progress=progress,
+                     on_result=lambda n: mark_incomplete(out, "realgap batch", max(n, kept), n_jobs, unit="runs"))
     meta = {"executor": ex.name, "workers": ex.workers, "threads_per_job": threads,
             "seconds": time.perf_counter() - t0, "sequences": [str(s) for s in seqs],
             "backends": list(backends), "created": time.strftime("%Y-%m-%d %H:%M:%S"),
@@ -322,10 +337,19 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
                                      "config": config.to_dict() if hasattr(config, "to_dict") else config},
                          timings_s={"total": meta["seconds"]}, metrics=metrics)
     write_result(out / "results.json", header, {"meta": meta, "results": results})
-    report = BatchReport(out, results)
+    report = BatchReport(out, results, runs_kept=kept)
     if write_html:
         write_html_report(report, meta)
+    clear_incomplete(out)
     return report
+
+
+def _run_finished(run_dir: Path) -> bool:
+    """A run folder whose run completed (its stats.json says so)."""
+    try:
+        return bool(json.loads((run_dir / "stats.json").read_text()).get("complete"))
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _config_for(config, backend: str) -> SlamConfig:

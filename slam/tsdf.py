@@ -607,7 +607,8 @@ class TSDFVolume:
     # ---------------------------------------------------------------- extraction
     def extract_mesh(self, weight_threshold: float | None = None) -> TriMesh:
         """Marching-cubes mesh of the zero level set (world frame, metres), with vertex colours
-        when colour is fused. Voxels with fewer than ``weight_threshold`` observations (default
+        when colour is fused, in canonical order (:meth:`TriMesh.canonical`: the same volume gives
+        the same file). Voxels with fewer than ``weight_threshold`` observations (default
         :attr:`TSDFConfig.mesh_weight_threshold`) are left out."""
         w = self.config.mesh_weight_threshold if weight_threshold is None else weight_threshold
         w = max(float(w) - 0.5, 0.0)  # Open3D keeps weights strictly above; weights count frames
@@ -625,7 +626,8 @@ class TSDFVolume:
         colors = None
         if self.config.integrate_color and "colors" in m.vertex:
             colors = np.clip(m.vertex["colors"].cpu().numpy().astype(np.float64), 0.0, 1.0)
-        return TriMesh(v, f, name="tsdf", vertex_colors=colors)
+        # canonical order: Open3D's hash map orders blocks by the thread schedule
+        return TriMesh(v, f, name="tsdf", vertex_colors=colors).canonical()
 
     def extract_point_cloud(self, weight_threshold: float | None = None
                             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

@@ -340,3 +340,27 @@ def test_progress_is_whole_lines_when_not_a_terminal(capsys):
     assert capsys.readouterr().err.splitlines()[-1].startswith("it: 5/5 it done")
     list(progress_bar(range(3), desc="quiet", enabled=False))
     assert capsys.readouterr().err == ""
+
+
+def test_canonical_mesh_ignores_vertex_and_triangle_order():
+    """Two orderings of one surface (shuffled vertices, shuffled and rotated triangles) give the
+    identical canonical mesh, with each triangle's winding kept."""
+    import trimesh
+
+    from data_tools.mesh import TriMesh
+    box = trimesh.creation.icosphere(subdivisions=1)
+    a = TriMesh(box.vertices, box.faces, vertex_colors=np.abs(box.vertices))
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(box.vertices))
+    inv = np.argsort(perm)
+    tri = inv[box.faces][rng.permutation(len(box.faces))]
+    tri = np.roll(tri, 1, axis=1)                   # same winding, another first corner
+    b = TriMesh(box.vertices[perm], tri, vertex_colors=np.abs(box.vertices[perm]))
+    ca, cb = a.canonical(), b.canonical()
+    np.testing.assert_array_equal(ca.vertices, cb.vertices)
+    np.testing.assert_array_equal(ca.triangles, cb.triangles)
+    np.testing.assert_array_equal(ca.vertex_colors, cb.vertex_colors)
+    # the same triangles with the same outward normals
+    n0 = trimesh.Trimesh(a.vertices, a.triangles, process=False).face_normals
+    n1 = trimesh.Trimesh(ca.vertices, ca.triangles, process=False).face_normals
+    np.testing.assert_allclose(np.sort(n0, axis=0), np.sort(n1, axis=0), atol=1e-12)

@@ -42,6 +42,8 @@ def _run(args) -> int:
                     executor=args.executor, workers=args.workers, progress=not args.no_progress)
     from data_tools.results import format_table
     print(format_table(*_table(rep.results)))
+    if rep.runs_kept:
+        print(f"resumed: {rep.runs_kept} of {len(rep.results)} runs had finished before and were read, not redone")
     print(f"report: {rep.out / 'index.html'}")
     return 0 if all(r["ok"] for r in rep.results) else 1
 

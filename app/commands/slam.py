@@ -46,9 +46,9 @@ def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) 
         shared = f"--{prefix}{f.name.replace('_', '-')}"
         if shared in SHARED_FLAGS:
             help_text = SHARED_FLAGS[shared].replace("%", "%%") + ": " + help_text
-        names = [f"--{prefix}{f.name}"]
+        names = [shared]     # the dashed spelling is the one shown; the field's own name is accepted too
         if "_" in f.name:
-            names.append(f"--{prefix}{f.name.replace('_', '-')}")
+            names.append(f"--{prefix}{f.name}")
         group.add_argument(*names, dest=f"cfg:{dest_prefix}{f.name}", metavar=_type_name(tp),
                            default=argparse.SUPPRESS, help=help_text)
 

@@ -18,6 +18,7 @@ import json
 import sys
 from dataclasses import replace
 
+from app.commands import RESUMES
 from data_tools.errors import ConfigError
 
 NAME = "synth"
@@ -40,10 +41,18 @@ def _add_sequence(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("sequence", help="render an ideal RGB-D sequence of a scene along a trajectory",
                        description="Render an ideal (noise-free) RGB-D sequence: TUM layout with "
                                    "groundtruth.txt, camera.json, scene.json and config.json. "
-                                   "Interrupted runs continue with --resume.")
+                                   "An interrupted run continues when re-run (or with --resume).")
     add_sequence_arguments(p)
-    p.set_defaults(func=_cmd_sequence)
+    p.set_defaults(func=_cmd_sequence, on_interrupt=RESUMES)
     return p
+
+
+def _continues(args: argparse.Namespace, *folders: str) -> bool:
+    """--resume, or (without --overwrite) an unfinished folder that a killed run left (incomplete.json)."""
+    from data_tools.outputs import read_incomplete
+    if args.resume:
+        return True
+    return not args.overwrite and any(read_incomplete(f) is not None for f in folders)
 
 
 def _parse_param(text: str) -> tuple[str, object]:
@@ -83,7 +92,9 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)
     p.add_argument("--height", type=int, help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--resume", action="store_true", help="continue an interrupted sequence in SEQ")
+    g.add_argument("--resume", action="store_true",
+                   help="continue the sequence in SEQ (an unfinished one, marked by incomplete.json, continues "
+                        "without it)")
     add_shared(g, "--overwrite", "a sequence already in SEQ")
 
 
@@ -114,7 +125,8 @@ def _cmd_sequence(args: argparse.Namespace) -> int:
     cfg = sequence_config_from_args(args)
     if args.sensor:
         return _cmd_sensor_sequence(args, cfg)
-    res = generate_sequence(cfg, args.out, resume=args.resume, overwrite=args.overwrite, progress=True)
+    res = generate_sequence(cfg, args.out, resume=_continues(args, args.out), overwrite=args.overwrite,
+                            progress=True)
     kept = f", kept {res.frames_skipped} already there" if res.frames_skipped else ""
     empty = f", {res.empty_frames} with an empty view" if res.empty_frames else ""
     timing = f" ({res.render_ms_mean:.1f} ms/frame ray casting)" if res.frames_written else ""
@@ -125,7 +137,8 @@ def _cmd_sequence(args: argparse.Namespace) -> int:
 def _cmd_sensor_sequence(args: argparse.Namespace, cfg) -> int:
     """Ideal sequence in SEQ/ideal (ground truth, ideal depth), simulated sensor frames in SEQ."""
     from synth.sequence import generate_simulated_sequence
-    ideal, n = generate_simulated_sequence(cfg, args.out, args.sensor, args.effects, resume=args.resume,
+    resume = _continues(args, args.out, f"{args.out}/ideal")
+    ideal, n = generate_simulated_sequence(cfg, args.out, args.sensor, args.effects, resume=resume,
                                            overwrite=args.overwrite, workers=args.workers)
     print(f"{args.out}: simulated {n} {args.sensor} frames (kept {ideal.frames_total - n}); "
           f"ideal depth and ground truth in {ideal.out_dir}")
@@ -195,9 +208,10 @@ def _add_views(sub) -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)   # centred crop of the sensor image (tests)
     p.add_argument("--height", type=int, help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--resume", action="store_true", help="continue an interrupted run in DIR")
+    g.add_argument("--resume", action="store_true",
+                   help="add views to DIR (an unfinished run, marked by incomplete.json, continues without it)")
     add_shared(g, "--overwrite", "views already in DIR")
-    p.set_defaults(func=_cmd_views)
+    p.set_defaults(func=_cmd_views, on_interrupt=RESUMES)
     return p
 
 
@@ -234,7 +248,8 @@ def _views_sensor(args: argparse.Namespace):
 def _cmd_views(args: argparse.Namespace) -> int:
     from synth.sensor.views import render_views_of_file
     cfg = views_config_from_args(args)
-    res = render_views_of_file(args.model, args.scale, _views_sensor(args), args.out, cfg, resume=args.resume,
+    res = render_views_of_file(args.model, args.scale, _views_sensor(args), args.out, cfg,
+                               resume=_continues(args, args.out),
                                overwrite=args.overwrite, progress=True)
     kept = res.n_views - res.n_written
     part = f" (first {res.n_views} of {res.n_views_all}; --resume without --limit adds the rest)" \
