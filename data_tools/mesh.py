@@ -108,6 +108,8 @@ def load_mesh(path: str | os.PathLike, scale: float = 1.0, name: str | None = No
     """
     import trimesh
     path = Path(path)
+    if path.is_dir():
+        raise FormatError(path, "is a folder, expected a mesh file (.ply, .obj, .stl, .off)")
     if not path.is_file():
         raise FormatError(path, "mesh file not found")
     try:

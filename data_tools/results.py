@@ -318,6 +318,9 @@ def read_result(path: str | os.PathLike) -> Result:
     if not isinstance(d, dict):
         raise FormatError(p, "a result file holds a JSON object")
     header = d.pop("header", {}) or {}
+    if not header and p.name not in set(KINDS.values()) | {"metrics.json"}:
+        raise FormatError(p, f"not a realgap result (no header, and not a result file name: "
+                             f"{', '.join(dict.fromkeys(KINDS.values()))})")
     if not isinstance(header, dict) or (header and header.get("format") != FORMAT):
         raise FormatError(p, f"'header' is not a {FORMAT} header")
     if header.get("format_version", FORMAT_VERSION) > FORMAT_VERSION:

@@ -119,8 +119,8 @@ class SequenceReader:
     def __init__(self, path: str | os.PathLike, max_dt: float = DEFAULT_MAX_DT,
                  camera: Camera | None = None, check_files: bool = True):
         self.path = Path(path)
-        if not self.path.is_dir():
-            raise FormatError(self.path, "sequence folder not found")
+        from data_tools.outputs import check_input_dir
+        check_input_dir(self.path, "sequence folder")
         self.max_dt = max_dt
         cam_file = self.path / "camera.json"
         if camera is not None:

@@ -135,6 +135,8 @@ def _set_threads(n: int) -> None:
 
 
 def _worker_init(threads: int) -> None:
+    from data_tools.workers import exit_with_parent
+    exit_with_parent()
     _set_threads(threads)
 
 

@@ -38,8 +38,32 @@ def run_ok(args) -> subprocess.CompletedProcess:
     return r
 
 
+def _descendants(pid: int) -> set[int]:
+    """Process ids of every child, grandchild, ... of ``pid`` (Linux /proc)."""
+    out, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        try:
+            kids = [int(k) for t in os.listdir(f"/proc/{p}/task")
+                    for k in open(f"/proc/{p}/task/{t}/children").read().split()]
+        except OSError:
+            continue
+        out.update(kids)
+        todo += kids
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
 def kill_part_way(args, ready, timeout: float = 300.0) -> None:
-    """Start ``realgap ARGS``, SIGKILL it as soon as ``ready()`` holds; fail if it ends first."""
+    """Start ``realgap ARGS``, SIGKILL it as soon as ``ready()`` holds; fail if it ends first.
+    Its worker processes must end with it (no orphans left computing)."""
     p = subprocess.Popen(_cmd(args), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     t0 = time.monotonic()
     try:
@@ -50,11 +74,16 @@ def kill_part_way(args, ready, timeout: float = 300.0) -> None:
             if time.monotonic() - t0 > timeout:
                 pytest.fail("the command showed no progress on disk in time")
             time.sleep(0.01)
+        workers = _descendants(p.pid)
         p.send_signal(signal.SIGKILL)
     finally:
         p.wait(timeout=30)
         p.stderr.close()
     assert p.returncode == -signal.SIGKILL
+    t0 = time.monotonic()
+    while any(_alive(w) for w in workers) and time.monotonic() - t0 < 10:
+        time.sleep(0.1)
+    assert not [w for w in workers if _alive(w)], "worker processes outlived the killed command"
 
 
 def marker_at_least(folder: Path, n: int):
@@ -120,7 +149,8 @@ def room(tmp_path_factory) -> Path:
 # ----------------------------------------------------------------------------------- synth
 
 def test_synth_sequence_killed_resumes_identically(tmp_path):
-    args = ["synth", "sequence", "--preset", "small", "--frames", "36", "--sensor", "kinect_v1", "--seed", "2"]
+    args = ["synth", "sequence", "--preset", "small", "--frames", "36", "--sensor", "kinect_v1", "--seed", "2",
+            "--workers", "2"]
     part, full = tmp_path / "part", tmp_path / "full"
     kill_part_way([*args, "--out", part], marker_at_least(part, 3))
     assert_reported_incomplete(part)

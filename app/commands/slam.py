@@ -141,7 +141,10 @@ def flag_names(message: str, backend: str) -> str:
 
 
 def _camera(args):
-    return read_camera_json(args.camera) if getattr(args, "camera", None) else None
+    if not getattr(args, "camera", None):
+        return None
+    from data_tools.outputs import check_input_file
+    return read_camera_json(check_input_file(args.camera, "camera file", "--camera"))
 
 
 # --------------------------------------------------------------------------------------------

@@ -147,8 +147,8 @@ class MeasuredSequence:
         from data_tools.sequence import SequenceReader
 
         seq_dir = Path(seq_dir)
-        if not seq_dir.is_dir():
-            raise FormatError(seq_dir, "sequence folder not found")
+        from data_tools.outputs import check_input_dir
+        check_input_dir(seq_dir, "sequence folder")
         cam_file = seq_dir / "camera.json"
         if not cam_file.is_file():
             raise FormatError(cam_file, "file not found (the sensor lab needs the depth camera's intrinsics)")

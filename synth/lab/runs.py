@@ -28,7 +28,7 @@ from pathlib import Path
 
 from data_tools.config import config_from_options
 from data_tools.errors import ConfigError, FormatError, RealgapError
-from data_tools.outputs import check_input_dir, check_output_dir, check_output_file, clear_incomplete, mark_incomplete
+from data_tools.outputs import check_input_dir, check_input_file, check_output_dir, check_output_file, clear_incomplete, mark_incomplete
 from data_tools.results import atomic_write_json, make_header
 
 __all__ = ["LabRequest", "parse_effects", "build_config", "simulate_sequence", "write_simulated_sequence",
@@ -103,8 +103,8 @@ class LabRequest:
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"--max-frames must be >= 1, got {self.max_frames}")
         self.effect_list = parse_effects(self.effects)
-        if self.model and not Path(self.model).is_file():
-            raise FormatError(self.model, "model file not found")
+        if self.model:
+            check_input_file(self.model, "model file", "--model")
 
     def fit_config(self):
         from synth.lab.fit import FitConfig
@@ -319,7 +319,7 @@ def write_simulated_sequence(measured, config, out_dir, *, seed: int = 0, overwr
     out = check_output_dir(out_dir)
     src = Path(measured.seq_dir)
     if out.resolve() == src.resolve():
-        raise RealgapError(f"{out}: the output must not be the measured sequence itself")
+        raise RealgapError(f"{out}: the output (--out) must not be the measured sequence itself")
     reader = SequenceReader(src)
     signature = {"sensor_config": config.to_json(), "seed": int(seed), "frame_indices": list(measured.frame_indices),
                  "sequence": str(src.resolve())}

@@ -168,6 +168,8 @@ def _pool_init(config_json: dict, scene, pattern) -> None:
     global _POOL_SIM
     import cv2
     import synth.jit
+    from data_tools.workers import exit_with_parent
+    exit_with_parent()
     cv2.setNumThreads(1)
     synth.jit.THREADS = 1
     sim = SensorSimulator(SensorConfig.from_json(config_json), scene=scene if scene is not None and
