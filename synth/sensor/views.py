@@ -159,7 +159,9 @@ class ViewsResult:
     """Views of the full set (n_views is the subset of this run when max_views is set)."""
 
 
-def _clutter(rng: np.random.Generator, n: int, obj_radius: float, keep_out: float) -> list[TriMesh]:
+def clutter_meshes(rng: np.random.Generator, n: int, obj_radius: float, keep_out: float) -> list[TriMesh]:
+    """``n`` random boxes on the ground (z = 0) around an object of radius ``obj_radius`` at the
+    origin, none nearer than ``keep_out`` metres to it (names and materials ``clutter_<i>``)."""
     from synth.sensor.testscenes import box_mesh
     out = []
     for i in range(n):
@@ -195,7 +197,7 @@ def build_views_scene(model: TriMesh, config: ViewsConfig, material: Material | 
     if config.ground:
         g = max(20 * radius, 3.0)
         meshes.append(quad_mesh([0, 0, 0], [g, 0, 0], [0, g, 0], "ground", "ground", 4))
-    for m in _clutter(rng, config.clutter, radius, keep_out=radius * 1.2):
+    for m in clutter_meshes(rng, config.clutter, radius, keep_out=radius * 1.2):
         mats[m.material] = Material(float(rng.uniform(0.1, 0.9)), float(rng.choice([0.0, 0.0, 0.3, 0.7])))
         meshes.append(m)
     if config.background:

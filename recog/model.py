@@ -1,0 +1,191 @@
+"""The recogniser: network + descriptor database + the objects, saved as one folder.
+
+    MODEL/recogniser.json   format, version, objects (name, source, scale, symmetry), the
+                            patch / data / training configurations, the training log summary
+    MODEL/weights.pt        the network's state_dict
+    MODEL/database.npz      descriptors of every training view with object and pose
+    MODEL/data/             the simulated training patches (kept for retraining; may be deleted)
+    MODEL/checkpoint.pt     while training: the resumable checkpoint
+
+:meth:`Recogniser.predict` answers one detection window: patch -> descriptor -> k-NN vote for
+the object -> the nearest view's pose moved to the window (:func:`recog.patches.from_ray_frame`)
+-> optional ICP refinement against the measured points (:mod:`recog.refine`).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.camera import Intrinsics
+from data_tools.errors import ConfigError, FormatError
+from recog.data import DataConfig
+from recog.database import DescriptorDB
+from recog.objects import RecogObject
+from recog.patches import PatchConfig, extract_patch, from_ray_frame
+from recog.train import TrainConfig
+
+__all__ = ["Recogniser", "Prediction", "MODEL_FORMAT", "MODEL_VERSION"]
+
+MODEL_FORMAT = "realgap-recogniser"
+MODEL_VERSION = 1
+
+
+@dataclass
+class Prediction:
+    """The recogniser's answer for one window."""
+
+    object: str
+    """Recognised object name."""
+    pose: np.ndarray
+    """(4, 4) object-to-camera pose (refined when ICP ran and was accepted)."""
+    pose_initial: np.ndarray
+    """(4, 4) pose from the nearest database view, before ICP."""
+    distance: float
+    """Descriptor distance to that view."""
+    votes: dict = field(default_factory=dict)
+    """Object name -> vote weight of the k nearest neighbours."""
+    icp_fitness: float | None = None
+    icp_accepted: bool | None = None
+
+    def to_json(self) -> dict:
+        return {"object": self.object, "pose": self.pose.tolist(), "pose_initial": self.pose_initial.tolist(),
+                "distance": self.distance, "votes": self.votes, "icp_fitness": self.icp_fitness,
+                "icp_accepted": self.icp_accepted}
+
+
+class Recogniser:
+    """A trained recogniser (see the module docstring)."""
+
+    def __init__(self, objects: list[dict], net, db: DescriptorDB, patch: PatchConfig, data: DataConfig,
+                 train: TrainConfig, info: dict | None = None, folder: Path | None = None):
+        self.objects = objects
+        """Object records: name, source, scale, symmetry, diameter_m."""
+        self.net = net
+        self.db = db
+        self.patch = patch
+        self.data = data
+        self.train = train
+        self.info = info or {}
+        self.folder = folder
+        self._loaded: dict[int, RecogObject] = {}
+        self._casters: dict[int, object] = {}
+
+    @property
+    def names(self) -> list[str]:
+        return [o["name"] for o in self.objects]
+
+    # ------------------------------------------------------------------ descriptors
+    def describe(self, patches: np.ndarray, batch: int = 512) -> np.ndarray:
+        """(N, S, S) patches -> (N, d) float32 descriptors."""
+        import torch
+        out = []
+        with torch.no_grad():
+            for i in range(0, len(patches), batch):
+                x = torch.from_numpy(np.ascontiguousarray(patches[i:i + batch], np.float32)).unsqueeze(1)
+                out.append(self.net(x).numpy())
+        return np.concatenate(out) if out else np.zeros((0, self.train.descriptor), np.float32)
+
+    # ------------------------------------------------------------------ objects (for ICP)
+    def object(self, k: int) -> RecogObject:
+        """The k-th object with its meshes (loaded from its source on first use)."""
+        if k not in self._loaded:
+            from recog.objects import load_objects
+            rec = self.objects[k]
+            src = rec["source"]
+            if src.startswith("embedded:"):
+                objs = {o.name: o for o in load_objects(src.split(":", 1)[1])}
+                if rec["name"] not in objs:
+                    raise FormatError(self.folder or Path("."), f"embedded object {rec['name']!r} not found")
+                obj = objs[rec["name"]]
+            else:
+                if not Path(src).is_file():
+                    raise FormatError(src, f"model file of object {rec['name']!r} not found (needed for ICP; "
+                                           f"moved? use --no-icp)")
+                obj = load_objects([src], scale=rec["scale"])[0]
+            obj.symmetry = rec.get("symmetry", {})
+            self._loaded[k] = obj
+        return self._loaded[k]
+
+    def index_of(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise ConfigError(f"unknown object {name!r}: this recogniser knows {', '.join(self.names)}") from None
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, depth_m: np.ndarray, intr: Intrinsics, bbox, icp: bool = True, k: int = 5) -> Prediction:
+        """Recognise the object in window ``bbox`` of ``depth_m`` ((H, W) metres)."""
+        p = extract_patch(depth_m, intr, bbox, self.patch)
+        m = self.db.query(self.describe(p.image[None]), k)[0]
+        j = m.nearest
+        T0 = from_ray_frame(self.db.R_local[j], self.db.offset[j], p)
+        pred = Prediction(self.names[m.object_index], T0, T0.copy(), m.distance,
+                          {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])})
+        if icp:
+            from recog.refine import ModelRaycaster, refine_pose
+            obj = self.object(m.object_index)
+            if m.object_index not in self._casters:
+                self._casters[m.object_index] = ModelRaycaster(obj)
+            r = refine_pose(obj, T0, depth_m, intr, p.bbox, self._casters[m.object_index])
+            pred.pose, pred.icp_fitness, pred.icp_accepted = r.pose, r.fitness, r.accepted
+        return pred
+
+    # ------------------------------------------------------------------ files
+    def save(self, folder: str | os.PathLike) -> Path:
+        import io
+
+        import torch
+
+        from data_tools.results import atomic_write_bytes, atomic_write_json
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        buf = io.BytesIO()
+        torch.save(self.net.state_dict(), buf)
+        atomic_write_bytes(folder / "weights.pt", buf.getvalue())
+        self.db.save(folder / "database.npz")
+        atomic_write_json(folder / "recogniser.json", {
+            "format": MODEL_FORMAT, "version": MODEL_VERSION, "objects": self.objects,
+            "patch": asdict(self.patch), "data": asdict(self.data), "train": asdict(self.train), "info": self.info})
+        self.folder = folder
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike, index: str = "auto") -> "Recogniser":
+        import torch
+
+        from data_tools.config import config_from_dict
+        from recog.net import make_network
+        folder = Path(folder)
+        meta_path = folder / "recogniser.json"
+        if folder.is_file():
+            raise FormatError(folder, "a recogniser is a folder (MODEL/recogniser.json, weights.pt, database.npz)")
+        if not meta_path.is_file():
+            raise FormatError(folder, "not a recogniser folder (recogniser.json missing; made by 'realgap recog train')")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise FormatError(meta_path, f"not valid JSON ({e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
+            raise FormatError(meta_path, f"not a {MODEL_FORMAT} file")
+        if meta.get("version") != MODEL_VERSION:
+            raise FormatError(meta_path, f"recogniser format version {meta.get('version')!r}, this realgap reads "
+                                         f"version {MODEL_VERSION}: retrain it with 'realgap recog train'")
+        patch = config_from_dict(PatchConfig, meta.get("patch", {}), str(meta_path))
+        data = config_from_dict(DataConfig, meta.get("data", {}), str(meta_path))
+        train = config_from_dict(TrainConfig, meta.get("train", {}), str(meta_path))
+        net = make_network(train.network, patch.size, train.descriptor)
+        try:
+            net.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
+        except FileNotFoundError:
+            raise FormatError(folder / "weights.pt", "file not found") from None
+        except Exception as e:
+            raise FormatError(folder / "weights.pt", f"weights do not fit the network ({type(e).__name__})") from None
+        net.eval()
+        db = DescriptorDB.load(folder / "database.npz", index)
+        if db.descriptors.shape[1] != train.descriptor:
+            raise FormatError(folder / "database.npz", "descriptor size differs from the network's")
+        return cls(meta["objects"], net, db, patch, data, train, meta.get("info", {}), folder)

@@ -1,0 +1,241 @@
+"""Training the descriptor network on simulated views (thesis sections 3.2.1 and 3.4.3).
+
+Batches are built by pose-aware mining (:class:`TripletMiner`): an anchor view (object o, view v,
+one of its noise draws), its positive = the view of o whose pose is nearest (one of the two
+nearest, symmetry-aware, rotation in the patch's virtual camera), a negative = a view of another
+object (probability ``1 - same_object_negatives``) or a view of o farther from the anchor than
+the positive, and the pair partner = the anchor view under its other noise draw. The loss is
+:mod:`recog.loss`. Every ``log_every`` iterations the log records the losses, the fraction of
+*active* triplets (loss > 0; near 0 means the task is solved or too easy, near 1 that it is not
+learning) and the descriptor spread (std of the batch's descriptors; a spread near 0 is a
+collapse to one point, which the run reports as a warning).
+
+Training is resumable: ``checkpoint.pt`` (network, optimiser, iteration, random states) is
+written every ``checkpoint_every`` iterations; a re-run continues from it and reaches the same
+weights as an uninterrupted run (the random states are restored, CPU kernels are deterministic).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from data_tools.errors import ConfigError
+from recog.data import TrainingData
+
+__all__ = ["TrainConfig", "TRAIN_PRESETS", "TripletMiner", "train_network", "TrainLog"]
+
+
+@dataclass
+class TrainConfig:
+    """How the network is trained (saved with the recogniser)."""
+
+    network: str = "lenet"
+    """Network name (:data:`recog.net.NETWORKS`)."""
+    descriptor: int = 64
+    """Descriptor dimension d."""
+    iterations: int = 3000
+    """Optimiser steps."""
+    batch: int = 64
+    """Triplets per step (each also gives one pair): 4 x batch patches go through the network."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    weight_decay: float = 1e-5
+    """lambda of the loss (L2 on the weights, as the optimiser's weight decay)."""
+    class_margin: float = 4.0
+    """Margin for negatives of another object (> pi)."""
+    same_object_negatives: float = 0.5
+    """Fraction of negatives taken from the anchor's own object (another pose)."""
+    pair_weight: float = 1.0
+    """Weight of the pair loss."""
+    checkpoint_every: int = 250
+    """Write checkpoint.pt every this many steps."""
+    log_every: int = 50
+    """Record the losses every this many steps."""
+    seed: int = 0
+    """Seed of the initial weights and of the mining."""
+    device: str = "cpu"
+    """torch device ('cpu', 'cuda')."""
+
+    def validate(self) -> "TrainConfig":
+        from recog.net import NETWORKS
+        if self.network not in NETWORKS:
+            raise ConfigError(f"unknown network {self.network!r}; choose one of {', '.join(NETWORKS)}")
+        for name in ("iterations", "batch", "descriptor", "checkpoint_every", "log_every"):
+            if int(getattr(self, name)) < 1:
+                raise ConfigError(f"train option {name} must be >= 1, got {getattr(self, name)}")
+        if not self.class_margin > math.pi:
+            raise ConfigError(f"class_margin must exceed pi, got {self.class_margin}")
+        if not 0.0 <= self.same_object_negatives <= 1.0:
+            raise ConfigError(f"same_object_negatives must be in [0, 1], got {self.same_object_negatives}")
+        return self
+
+
+TRAIN_PRESETS = {
+    "cpu": TrainConfig(),
+    "gpu": TrainConfig(network="deeper", iterations=20000, batch=256, device="cuda"),
+}
+"""``cpu``: LeNet, 3000 steps of 64 triplets (about 5 minutes on 2 cores); ``gpu``: the deeper
+network, 20000 steps of 256 triplets."""
+
+
+@dataclass
+class TrainLog:
+    """What training recorded."""
+
+    steps: list[dict] = field(default_factory=list)
+    """Every ``log_every`` steps: step, loss, triplet, pair, active fraction, descriptor spread."""
+    seconds: float = 0.0
+    resumed_from: int = 0
+    """Step the run continued from (0 = a fresh start)."""
+    warnings: list[str] = field(default_factory=list)
+
+
+class TripletMiner:
+    """Draws (anchor, positive, negative, pair) index tuples from :class:`TrainingData` by pose."""
+
+    def __init__(self, data: TrainingData, symmetries: list[dict]):
+        from recog.symmetry import sym_angles
+        self.data = data
+        self.by_obj = [np.nonzero(data.obj == k)[0] for k in range(len(data.names))]
+        if any(len(ix) < 3 for ix in self.by_obj):
+            bad = [data.names[k] for k, ix in enumerate(self.by_obj) if len(ix) < 3]
+            raise ConfigError(f"too few usable training views of {', '.join(bad)} (is the object visible?)")
+        self.angles = []      # per object: (n, n) symmetry-aware angles between its views, radians
+        self.nearest = []     # per object: (n, 2) the two nearest other views (local indices)
+        for k, ix in enumerate(self.by_obj):
+            A = sym_angles(data.R_local[ix], data.R_local[ix], symmetries[k]).astype(np.float32)
+            np.fill_diagonal(A, np.inf)
+            self.angles.append(A)
+            self.nearest.append(np.argsort(A, axis=1)[:, :2])
+            np.fill_diagonal(A, 0.0)
+
+    def sample(self, rng: np.random.Generator, batch: int, same_object_negatives: float):
+        """Index arrays into the data (view rows) and draw columns:
+        (anchor, a_draw, positive, p_draw, negative, n_draw, pair_draw, same_object, angle_rad)."""
+        n_obj = len(self.by_obj)
+        D = self.data.patches.shape[1]
+        objs = rng.integers(0, n_obj, batch)
+        a, p, ng = np.zeros(batch, np.int64), np.zeros(batch, np.int64), np.zeros(batch, np.int64)
+        same, ang = np.zeros(batch, bool), np.zeros(batch, np.float32)
+        for i, o in enumerate(objs):
+            ix = self.by_obj[o]
+            la = int(rng.integers(len(ix)))
+            lp = int(self.nearest[o][la, rng.integers(2)])
+            a[i], p[i] = ix[la], ix[lp]
+            if n_obj == 1 or rng.random() < same_object_negatives:
+                far = np.nonzero(self.angles[o][la] > self.angles[o][la, lp])[0]
+                ln = int(rng.choice(far)) if len(far) else int(rng.integers(len(ix)))
+                ng[i], same[i], ang[i] = ix[ln], True, self.angles[o][la, ln]
+            else:
+                o2 = (o + rng.integers(1, n_obj)) % n_obj
+                ng[i] = self.by_obj[o2][rng.integers(len(self.by_obj[o2]))]
+        a_draw = rng.integers(0, D, batch)
+        pair_draw = (a_draw + rng.integers(1, D, batch)) % D
+        return (a, a_draw, p, rng.integers(0, D, batch), ng, rng.integers(0, D, batch), pair_draw, same, ang)
+
+
+def _rng_state(rng: np.random.Generator) -> dict:
+    return rng.bit_generator.state
+
+
+def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfig, size: int,
+                  checkpoint: str | Path | None = None, progress: bool = True,
+                  log: Callable[[str], None] | None = None):
+    """Train the descriptor network; returns (network in eval mode, :class:`TrainLog`).
+    ``checkpoint``: the resumable checkpoint file (continued from when it exists)."""
+    import torch
+
+    from recog.loss import dynamic_margin, pair_loss, triplet_loss
+    from recog.net import make_network
+    config.validate()
+    device = torch.device(config.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
+    torch.manual_seed(config.seed)
+    net = make_network(config.network, size, config.descriptor).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    rng = np.random.default_rng(config.seed)
+    miner = TripletMiner(data, symmetries)
+    patches = torch.from_numpy(np.ascontiguousarray(data.patches))       # (N, D, S, S) float16
+    tlog = TrainLog()
+    start = 0
+    ck = Path(checkpoint) if checkpoint is not None else None
+    if ck is not None and ck.is_file():
+        try:
+            state = torch.load(ck, map_location=device, weights_only=False)
+            net.load_state_dict(state["net"])
+            opt.load_state_dict(state["opt"])
+            rng.bit_generator.state = state["rng"]
+            torch.set_rng_state(state["torch_rng"])
+            start = int(state["step"])
+            tlog.steps = list(state.get("log", []))
+        except Exception as e:
+            from data_tools.errors import FormatError
+            raise FormatError(ck, f"unreadable training checkpoint ({type(e).__name__}); delete it to start again") \
+                from None
+        tlog.resumed_from = start
+        if log is not None:
+            log(f"resuming training at step {start} of {config.iterations} from {ck}")
+    bar = None
+    if progress:
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=config.iterations, initial=start, desc=f"training {config.network}", unit="step")
+    t0 = time.perf_counter()
+    net.train()
+
+    def save(step: int) -> None:
+        if ck is None:
+            return
+        import io
+
+        from data_tools.results import atomic_write_bytes
+        buf = io.BytesIO()
+        torch.save({"net": net.state_dict(), "opt": opt.state_dict(), "rng": _rng_state(rng),
+                    "torch_rng": torch.get_rng_state(), "step": step, "log": tlog.steps}, buf)
+        atomic_write_bytes(ck, buf.getvalue())
+
+    acc = {"loss": 0.0, "triplet": 0.0, "pair": 0.0, "active": 0.0, "spread": 0.0, "n": 0}
+    for step in range(start, config.iterations):
+        a, ad, p, pd, n, nd, qd, same, ang = miner.sample(rng, config.batch, config.same_object_negatives)
+        x = torch.cat([patches[a, ad], patches[p, pd], patches[n, nd], patches[a, qd]]).float().unsqueeze(1)
+        f = net(x.to(device))
+        B = config.batch
+        fb, fp, fn, fq = f[:B], f[B:2 * B], f[2 * B:3 * B], f[3 * B:]
+        m = dynamic_margin(torch.from_numpy(same).to(device), torch.from_numpy(ang).to(device), config.class_margin)
+        lt = triplet_loss(fb, fp, fn, m)
+        lp = pair_loss(fb, fq)
+        loss = lt.mean() + config.pair_weight * lp.mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            acc["loss"] += float(loss)
+            acc["triplet"] += float(lt.mean())
+            acc["pair"] += float(lp.mean())
+            acc["active"] += float((lt > 0).float().mean())
+            acc["spread"] += float(fb.std(0).mean())
+            acc["n"] += 1
+        if (step + 1) % config.log_every == 0 or step + 1 == config.iterations:
+            rec = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
+            tlog.steps.append(rec)
+            acc = {k: 0.0 for k in acc} | {"n": 0}
+            if bar is not None:
+                bar.set_postfix_str(f"loss {rec['loss']:.3f} active {rec['active']:.2f} spread {rec['spread']:.3f}")
+        if (step + 1) % config.checkpoint_every == 0 and step + 1 < config.iterations:
+            save(step + 1)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    tlog.seconds = time.perf_counter() - t0
+    if tlog.steps and tlog.steps[-1]["spread"] < 1e-3:
+        tlog.warnings.append(f"descriptor collapse: the descriptors' spread is {tlog.steps[-1]['spread']:.2g} "
+                             f"(every input maps to nearly one point)")
+    save(config.iterations)
+    net.eval()
+    return net, tlog
