@@ -132,3 +132,37 @@ def _self_check(desc: np.ndarray, td) -> dict:
 
 def describe_configs(data: DataConfig, train: TrainConfig) -> dict:
     return {"data": asdict(data), "train": asdict(train)}
+
+
+def predict_file(model_dir, depth_png, bbox_text: str, camera_json=None, icp: bool = True):
+    """``recog predict``: the :class:`~recog.model.Prediction` for a window of a depth PNG. The
+    camera is ``camera_json`` or the camera.json next to the image or in its parent folder."""
+    from data_tools.camera import read_camera_json
+    from data_tools.errors import FormatError
+    from data_tools.outputs import check_input_file
+    from data_tools.sequence import read_depth_png
+    png = check_input_file(depth_png, "depth image")
+    if camera_json is None:
+        for cand in (png.parent / "camera.json", png.parent.parent / "camera.json"):
+            if cand.is_file():
+                camera_json = cand
+                break
+        else:
+            raise FormatError(png, "no camera.json next to the image or in its parent folder (give --camera)")
+    cam = read_camera_json(check_input_file(camera_json, "camera file", "--camera"))
+    try:
+        bbox = [float(v) for v in str(bbox_text).split(",")]
+    except ValueError:
+        raise ConfigError(f"--bbox: expected x0,y0,x1,y1 in pixels, got {bbox_text!r}") from None
+    if len(bbox) != 4:
+        raise ConfigError(f"--bbox: expected x0,y0,x1,y1 in pixels, got {bbox_text!r}")
+    depth = read_depth_png(png, cam.depth_scale)
+    if depth.shape != (cam.intrinsics.height, cam.intrinsics.width):
+        raise FormatError(png, f"image is {depth.shape[1]}x{depth.shape[0]}, the camera says "
+                               f"{cam.intrinsics.width}x{cam.intrinsics.height}")
+    from recog.patches import check_bbox
+    try:
+        check_bbox(bbox, cam.intrinsics.width, cam.intrinsics.height, "--bbox")
+    except Exception as e:
+        raise ConfigError(str(e)) from None
+    return Recogniser.load(model_dir).predict(depth, cam.intrinsics, bbox, icp=icp)

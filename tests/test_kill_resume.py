@@ -282,3 +282,26 @@ def test_make_reference_killed_says_it_starts_again(room, tmp_path):
     b = sorted((full / "meshes").iterdir())
     assert [p.name for p in a] == [p.name for p in b]
     assert all(x.read_bytes() == y.read_bytes() for x, y in zip(a, b))
+
+
+# ----------------------------------------------------------------------------- recog
+
+def test_recog_train_killed_resumes_identically(tmp_path):
+    """Killed while training (after a checkpoint): the re-run continues from the checkpoint and
+    gives the same database as an uninterrupted run."""
+    import trimesh
+    trimesh.creation.box(extents=(0.10, 0.06, 0.05)).export(tmp_path / "box.ply")
+    trimesh.creation.cylinder(radius=0.03, height=0.09).export(tmp_path / "cyl.ply")
+    args = ["recog", "train", "--objects", f"{tmp_path / 'box.ply'},{tmp_path / 'cyl.ply'}", "--variant", "gaussian",
+            "--subdivisions", "0", "--iterations", "120", "--batch", "8", "--checkpoint-every", "20",
+            "--workers", "1"]
+    part, full = tmp_path / "part", tmp_path / "full"
+    kill_part_way([*args, "--out", part], lambda: (part / "checkpoint.pt").is_file())
+    assert_reported_incomplete_marker = json.loads((part / "incomplete.json").read_text())
+    assert assert_reported_incomplete_marker["command"] == "realgap recog train"
+    r = run_ok([*args, "--out", part])
+    assert "resumed: 2 chunks" in r.stderr and "resuming training at step" in r.stderr, r.stderr
+    run_ok([*args, "--out", full])
+    a, b = np.load(part / "database.npz"), np.load(full / "database.npz")
+    np.testing.assert_array_equal(a["descriptors"], b["descriptors"])
+    assert not (part / "checkpoint.pt").exists() and not (part / "incomplete.json").exists()

@@ -1,0 +1,309 @@
+"""recog: loss values on hand-made triplets, the dynamic margin, symmetry detection and
+symmetry-aware errors, patch geometry round trips, database save -> load, ICP refinement, a
+short 2-object training run that separates the classes, and one-line errors for bad input.
+
+The objects are tiny hand-made meshes (a box, a cylinder, an L-bracket) so the tests need no
+shared data and run in seconds; T-LESS numbers are in benchmarks/bench_recog.py.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from app.cli import main  # noqa: E402
+from data_tools.camera import Intrinsics  # noqa: E402
+from recog.database import DescriptorDB, ExactIndex  # noqa: E402
+from recog.loss import dynamic_margin, pair_loss, triplet_loss  # noqa: E402
+from recog.patches import PatchConfig, extract_patch, from_ray_frame, ray_rotation, to_ray_frame  # noqa: E402
+from recog.symmetry import _rot, detect_symmetry, rotation_error_deg, sym_angles  # noqa: E402
+
+INTR = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
+
+
+def _mesh(tm, name="m"):
+    from data_tools.mesh import TriMesh
+    return TriMesh(np.asarray(tm.vertices), np.asarray(tm.faces), name)
+
+
+def _l_bracket():
+    import trimesh
+    a = trimesh.creation.box(extents=(0.10, 0.03, 0.02))
+    b = trimesh.creation.box(extents=(0.03, 0.06, 0.02))
+    b.apply_translation((0.035, 0.045, 0.0))
+    c = trimesh.creation.box(extents=(0.03, 0.03, 0.05))
+    c.apply_translation((-0.035, 0.0, 0.035))
+    return trimesh.util.concatenate([a, b, c])
+
+
+@pytest.fixture(scope="module")
+def model_files(tmp_path_factory):
+    import trimesh
+    d = tmp_path_factory.mktemp("models")
+    trimesh.creation.box(extents=(0.10, 0.06, 0.05)).export(d / "box.ply")
+    _l_bracket().export(d / "bracket.ply")
+    return d
+
+
+# ----------------------------------------------------------------------------- loss
+
+def test_triplet_and_pair_loss_by_hand():
+    fb = torch.tensor([[0.0, 0.0], [0.0, 0.0]])
+    fp = torch.tensor([[1.0, 0.0], [1.0, 0.0]])
+    fn = torch.tensor([[2.0, 0.0], [1.0, 0.0]])
+    m = torch.tensor([0.5, 0.5])
+    # d_pos = 1; d_neg = 4 -> 1 - 4 / 1.5 < 0 -> 0; d_neg = 1 -> 1 - 1 / 1.5 = 1/3
+    np.testing.assert_allclose(triplet_loss(fb, fp, fn, m).numpy(), [0.0, 1.0 / 3.0], atol=1e-7)
+    np.testing.assert_allclose(pair_loss(fb, torch.tensor([[0.0, 2.0], [3.0, 4.0]])).numpy(), [4.0, 25.0])
+
+
+def test_dynamic_margin_within_and_across_objects():
+    same = torch.tensor([True, False, True])
+    ang = torch.tensor([0.3, 0.3, math.pi])
+    np.testing.assert_allclose(dynamic_margin(same, ang, 4.0).numpy(), [0.3, 4.0, math.pi], rtol=1e-6)
+    with pytest.raises(ValueError):
+        dynamic_margin(same, ang, 3.0)            # must exceed pi
+    # the margin of a same-object negative is 2 arccos(|q_b . q_-|) = the rotation angle between them
+    from scipy.spatial.transform import Rotation
+    qa, qb = Rotation.random(2, random_state=3).as_quat()
+    Ra, Rb = Rotation.from_quat([qa, qb]).as_matrix()
+    assert 2 * math.acos(abs(float(qa @ qb))) == pytest.approx(float(sym_angles(Ra, Rb)[0, 0]), abs=1e-7)
+
+
+# ----------------------------------------------------------------------------- symmetry
+
+def test_detect_symmetry_of_simple_shapes():
+    import trimesh
+    cyl = detect_symmetry(_mesh(trimesh.creation.cylinder(radius=0.03, height=0.08, sections=64)))
+    assert cyl["order"] == 0 and np.allclose(np.abs(cyl["axis"]), [0, 0, 1], atol=1e-6)
+    box = detect_symmetry(_mesh(trimesh.creation.box(extents=(0.10, 0.06, 0.04))))
+    assert box == {"axis": [0.0, 0.0, 1.0], "order": 2}       # a half turn about the up axis
+    assert detect_symmetry(_mesh(_l_bracket()))["axis"] is None
+
+
+def test_symmetry_aware_errors_against_brute_force():
+    from scipy.spatial.transform import Rotation
+    A = Rotation.random(4, random_state=1).as_matrix()
+    B = Rotation.random(3, random_state=2).as_matrix()
+    sym = {"axis": [0.0, 0.0, 1.0], "order": 0}
+    spins = np.linspace(0, 2 * np.pi, 2001)
+    brute = np.array([[min(np.arccos(np.clip((np.trace((a @ _rot([0, 0, 1], s)).T @ b) - 1) / 2, -1, 1))
+                           for s in spins) for b in B] for a in A])
+    np.testing.assert_allclose(sym_angles(A, B, sym), brute, atol=2e-3)
+    R = A[0]
+    half = R @ _rot([0, 0, 1], math.pi)
+    assert rotation_error_deg(half, R) == pytest.approx(180.0, abs=1e-6)
+    assert rotation_error_deg(half, R, {"axis": [0, 0, 1.0], "order": 2}) == pytest.approx(0.0, abs=1e-6)
+    tilt = R @ _rot([1, 0, 0], math.radians(7))
+    assert rotation_error_deg(tilt, R, sym) == pytest.approx(7.0, abs=1e-6)
+
+
+# ----------------------------------------------------------------------------- patches
+
+def test_patch_of_a_wall_and_invalid_pixels():
+    depth = np.full((480, 640), 0.8, np.float32)
+    depth[230:250, 310:330] = 0.0                   # a hole in the window's centre
+    # window centred on the principal point: the virtual camera is the real one, the wall is at z_ref
+    p = extract_patch(depth, INTR, (300, 220, 340, 260), PatchConfig(size=32, crop_m=0.2))
+    assert p.z_ref_m == pytest.approx(0.8, abs=1e-6) and np.allclose(p.R_ray, np.eye(3))
+    assert p.image[15, 15] == 1.0                   # holes read as "far"
+    valid = p.image < 1.0
+    assert 0.9 < valid.mean() < 1.0 and np.abs(p.image[valid]).max() < 1e-6
+    # off-centre: a wall facing the ray through the window's centre is fronto-parallel to the
+    # virtual camera: a flat patch at z_ref = its distance along that ray
+    u, v = np.meshgrid(np.arange(640), np.arange(480))
+    uc, vc = (560 + 599) / 2, (200 + 239) / 2
+    n = np.array([(uc - INTR.cx) / INTR.fx, (vc - INTR.cy) / INTR.fy, 1.0])
+    n /= np.linalg.norm(n)
+    wall = 0.8 / (n[0] * (u - INTR.cx) / INTR.fx + n[1] * (v - INTR.cy) / INTR.fy + n[2])
+    q = extract_patch(wall.astype(np.float64), INTR, (560, 200, 600, 240), PatchConfig(size=32, crop_m=0.2))
+    assert q.z_ref_m == pytest.approx(0.8, abs=1e-6)
+    inside = q.image < 1.0                       # the patch reaches past the image's right edge: +1 there
+    assert 0.5 < inside.mean() < 1.0 and np.abs(q.image[inside]).max() < 1e-5
+
+
+def test_ray_rotation_and_pose_round_trip():
+    R = ray_rotation(INTR, 500.0, 100.0)
+    ray = np.array([(500.0 - INTR.cx) / INTR.fx, (100.0 - INTR.cy) / INTR.fy, 1.0])
+    np.testing.assert_allclose(R @ [0, 0, 1.0], ray / np.linalg.norm(ray), atol=1e-12)
+    assert np.allclose(R.T @ R, np.eye(3))
+    depth = np.full((480, 640), 0.7, np.float32)
+    p = extract_patch(depth, INTR, (480, 80, 520, 120), PatchConfig())
+    from scipy.spatial.transform import Rotation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=5).as_matrix()
+    T[:3, 3] = [0.2, -0.1, 0.72]
+    R_local, off = to_ray_frame(T, p)
+    np.testing.assert_allclose(from_ray_frame(R_local, off, p), T, atol=1e-12)
+
+
+def test_patches_are_distance_invariant():
+    """The same object at two distances gives nearly the same patch (metric crop)."""
+    from data_tools.scene_spec import Material, SceneSpec
+    from synth.render.ideal import IdealRenderer
+    import trimesh
+    m = _mesh(_l_bracket(), "obj")
+    m.material = "obj"
+    r = IdealRenderer(SceneSpec([m], {"obj": Material(0.5, 0.0)}))
+    imgs = []
+    for z in (0.5, 0.8):
+        T = np.eye(4)
+        T[:3, 3] = [0, 0, -z]                     # camera looking along +z at the object
+        res = r.render(T, INTR, with_rgb=False)
+        from recog.patches import bbox_from_mask
+        imgs.append(extract_patch(res.depth, INTR, bbox_from_mask(res.hit), PatchConfig(crop_m=0.15)).image)
+    assert np.mean(np.abs(imgs[0] - imgs[1]) > 0.2) < 0.05
+
+
+# ----------------------------------------------------------------------------- database
+
+def test_exact_index_is_exact():
+    rng = np.random.default_rng(0)
+    x, q = rng.normal(size=(200, 8)), rng.normal(size=(5, 8))
+    d, i = ExactIndex(x).search(q, 3)
+    brute = ((q[:, None] - x[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(i, np.argsort(brute, 1)[:, :3])
+    np.testing.assert_allclose(d, np.sort(brute, 1)[:, :3], rtol=1e-5)
+
+
+def test_database_vote_and_round_trip(tmp_path):
+    desc = np.array([[0, 0], [0.1, 0], [5, 5], [5.1, 5]], np.float32)
+    db = DescriptorDB(desc, np.array([0, 0, 1, 1]), np.tile(np.eye(3), (4, 1, 1)), np.zeros((4, 3)), np.arange(4))
+    m = db.query(np.array([[4.9, 5.0]]), k=3)[0]
+    assert m.object_index == 1 and m.nearest == 2
+    db.save(tmp_path / "db.npz")
+    back = DescriptorDB.load(tmp_path / "db.npz")
+    assert [(x.object_index, x.nearest) for x in back.query(desc, 2)] == [(x.object_index, x.nearest)
+                                                                         for x in db.query(desc, 2)]
+
+
+# ----------------------------------------------------------------------------- ICP
+
+def test_icp_reduces_a_perturbed_pose_error(model_files):
+    from data_tools.scene_spec import Material, SceneSpec
+    from recog.objects import load_objects
+    from recog.refine import refine_pose
+    from synth.render.ideal import IdealRenderer
+    obj = load_objects(str(model_files / "bracket.ply"))[0]
+    T_true = np.eye(4)
+    T_true[:3, :3] = _rot([1, 0.3, 0.2], 2.3)
+    T_true[:3, 3] = [0.03, -0.02, 0.6]
+    m = obj.meshes[0].transformed(T_true)
+    m.material = "object"
+    res = IdealRenderer(SceneSpec([m], obj.materials)).render(np.eye(4), INTR, with_rgb=False)
+    from recog.patches import bbox_from_mask
+    box = bbox_from_mask(res.hit)
+    T0 = T_true.copy()
+    T0[:3, :3] = _rot([0.2, 1, 0], math.radians(6)) @ T_true[:3, :3]
+    T0[:3, 3] += [0.004, -0.003, 0.005]
+    r = refine_pose(obj, T0, res.depth, INTR, box)
+    e0 = rotation_error_deg(T0, T_true), np.linalg.norm(T0[:3, 3] - T_true[:3, 3])
+    e1 = rotation_error_deg(r.pose, T_true), np.linalg.norm(r.pose[:3, 3] - T_true[:3, 3])
+    assert r.accepted and e1[0] < 0.25 * e0[0] and e1[1] < 0.25 * e0[1], (e0, e1)
+
+
+# ----------------------------------------------------------------------------- training + CLI
+
+@pytest.fixture(scope="module")
+def trained(model_files, tmp_path_factory):
+    """A 2-object recogniser (box vs bracket) trained briefly on clean views, and a test set."""
+    root = tmp_path_factory.mktemp("recog")
+    objs = f"{model_files / 'box.ply'},{model_files / 'bracket.ply'}"
+    assert main(["recog", "train", "--objects", objs, "--variant", "gaussian", "--out", str(root / "m"),
+                 "--subdivisions", "0", "--iterations", "80", "--batch", "16", "--workers", "1",
+                 "--no-progress"]) == 0
+    assert main(["recog", "testset", "--objects", objs, "--out", str(root / "t"), "--per-object", "4",
+                 "--sensor", "kinect_v1", "--effects", "axial_noise", "--no-progress"]) == 0
+    return root
+
+
+def test_short_training_separates_the_classes(trained):
+    from recog.model import Recogniser
+    m = Recogniser.load(trained / "m")
+    assert m.names == ["box", "bracket"]
+    assert m.info["self_check"]["same_object"] >= 0.95
+    # leave-one-view-out nearest neighbour (the view's own other draw excluded): the same object
+    d, o, v = m.db.descriptors, m.db.obj, m.db.view
+    dist = np.linalg.norm(d[:, None] - d[None], axis=-1)
+    dist[(o[:, None] == o[None]) & (v[:, None] == v[None])] = np.inf
+    trained_acc = np.mean(o[np.argmin(dist, 1)] == o)
+    assert trained_acc >= 0.9, trained_acc
+    steps = m.info["train_log"]
+    assert len(steps) >= 2 and steps[-1]["loss"] < steps[0]["loss"], steps
+    assert m.objects[0]["symmetry"]["order"] == 2 and m.objects[1]["symmetry"]["axis"] is None
+
+
+def test_eval_and_predict_cli(trained, capsys):
+    out = trained / "e"
+    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--out", str(out), "--no-progress"]) == 0
+    r = json.loads((out / "eval.json").read_text())
+    assert r["header"]["kind"] == "recog.eval" and r["n_scans"] == 8
+    assert r["accuracy"] >= 0.75
+    assert {"median", "mean", "acc_at_10", "acc_at_20", "acc_at_40"} <= set(r["rot_err_deg"])
+    assert set(r["before_icp"]) >= {"rot_err_deg", "rot_err_deg_plain", "trans_err_m"}
+    for f in ("figures/cdf_rotation.png", "figures/cdf_translation.png", "figures/confusion.png", "predictions.jsonl"):
+        assert (out / f).is_file(), f
+    lab = json.loads((trained / "t" / "labels.json").read_text())[0]
+    capsys.readouterr()
+    assert main(["recog", "predict", str(trained / "m"), str(trained / "t" / lab["file"]), "--bbox",
+                 ",".join(map(str, lab["bbox"])), "--json"]) == 0
+    pred = json.loads(capsys.readouterr().out)
+    assert pred["object"] in ("box", "bracket") and np.asarray(pred["pose"]).shape == (4, 4)
+
+
+def test_saved_model_predicts_identically_after_reload(trained):
+    from data_tools.sequence import read_depth_png
+    from recog.model import Recogniser
+    lab = json.loads((trained / "t" / "labels.json").read_text())
+    a = Recogniser.load(trained / "m")
+    a.save(trained / "copy")
+    b = Recogniser.load(trained / "copy")
+    for it in lab[:4]:
+        depth = read_depth_png(trained / "t" / it["file"], 1000.0)
+        pa, pb = a.predict(depth, INTR, it["bbox"], icp=False), b.predict(depth, INTR, it["bbox"], icp=False)
+        assert pa.object == pb.object and np.array_equal(pa.pose, pb.pose) and pa.distance == pb.distance
+
+
+@pytest.mark.parametrize("case, words", [
+    ("bbox outside", ["--bbox", "outside"]),
+    ("empty crop", ["no depth"]),
+    ("unknown object", ["labels.json", "unknown object"]),
+    ("other version", ["recogniser.json", "version"]),
+])
+def test_bad_input_is_one_line(trained, tmp_path, capsys, case, words):
+    import shutil
+    lab = json.loads((trained / "t" / "labels.json").read_text())
+    img = trained / "t" / lab[0]["file"]
+    if case == "bbox outside":
+        argv = ["recog", "predict", str(trained / "m"), str(img), "--bbox", "700,500,800,600"]
+    elif case == "empty crop":
+        import cv2
+        z = tmp_path / "depth"
+        z.mkdir()
+        cv2.imwrite(str(z / "zero.png"), np.zeros((480, 640), np.uint16))
+        shutil.copy(trained / "t" / "camera.json", tmp_path / "camera.json")
+        argv = ["recog", "predict", str(trained / "m"), str(z / "zero.png"), "--bbox", "10,10,50,50"]
+    elif case == "unknown object":
+        t = tmp_path / "t"
+        shutil.copytree(trained / "t", t)
+        bad = [dict(lab[0], object="obj_99")] + lab[1:]
+        (t / "labels.json").write_text(json.dumps(bad))
+        argv = ["recog", "eval", str(trained / "m"), str(t), "--no-progress"]
+    else:
+        m = tmp_path / "m"
+        shutil.copytree(trained / "m", m, ignore=shutil.ignore_patterns("data"))
+        meta = json.loads((m / "recogniser.json").read_text())
+        meta["version"] = 99
+        (m / "recogniser.json").write_text(json.dumps(meta))
+        argv = ["recog", "eval", str(m), str(trained / "t"), "--no-progress"]
+    capsys.readouterr()
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("realgap: error:") and "Traceback" not in err, err
+    for w in words:
+        assert w in err, (w, err)
