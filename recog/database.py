@@ -100,6 +100,8 @@ class Match:
     """Database row of the nearest neighbour of the winning object."""
     distance: float
     """Descriptor distance (L2, not squared) to that neighbour."""
+    nearest_by_object: dict = None
+    """Object index -> (database row, distance) of its nearest entry among the searched neighbours."""
 
 
 @dataclass
@@ -130,19 +132,23 @@ class DescriptorDB:
             self._index = make_index(self.index_name, self.descriptors)
         return self._index
 
-    def query(self, q: np.ndarray, k: int = 5) -> list[Match]:
-        """Matches of (Q, d) query descriptors (see the module docstring)."""
+    def query(self, q: np.ndarray, k: int = 5, search: int = 200) -> list[Match]:
+        """Matches of (Q, d) query descriptors (see the module docstring): the ``k`` nearest vote;
+        the ``search`` nearest give each object's nearest entry (for verification)."""
         q = np.atleast_2d(np.asarray(q, np.float32))
-        d2, idx = self.index.search(q, max(int(k), 1))
+        k = max(int(k), 1)
+        d2, idx = self.index.search(q, max(k, int(search)))
         out = []
         for drow, irow in zip(d2, idx):
             w: dict[int, float] = {}
-            for dd, ii in zip(drow, irow):
+            for dd, ii in zip(drow[:k], irow[:k]):
                 o = int(self.obj[ii])
                 w[o] = w.get(o, 0.0) + 1.0 / (float(np.sqrt(max(dd, 0.0))) + 1e-6)
+            near: dict[int, tuple[int, float]] = {}
+            for dd, ii in zip(drow, irow):
+                near.setdefault(int(self.obj[ii]), (int(ii), float(np.sqrt(max(dd, 0.0)))))
             best = max(w, key=w.get)
-            j = next(jj for jj in range(len(irow)) if int(self.obj[irow[jj]]) == best)
-            out.append(Match(best, w, int(irow[j]), float(np.sqrt(max(drow[j], 0.0)))))
+            out.append(Match(best, w, near[best][0], near[best][1], near))
         return out
 
     def save(self, path: str | os.PathLike) -> None:

@@ -1,6 +1,8 @@
 """Evaluating a recogniser on a test set: accuracy, rotation and translation errors before and
 after ICP, confusion matrix, and the CDF figures of thesis Fig. 3.12.
 
+``accuracy`` is the pipeline's (with ICP: after verifying the top candidates, see
+:meth:`recog.model.Recogniser.predict`); ``accuracy_descriptor`` the descriptor vote's alone.
 Errors are computed on the scans whose object was recognised correctly (a pose of the wrong
 object has no meaningful error); ``n_pose`` says how many that is. Rotation errors are reported
 symmetry-aware (``rot_err_deg``: the minimum over the object's symmetry group, see
@@ -55,6 +57,7 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
     conf = np.zeros((len(names), len(names)), int)
     rows = []
     err = {"before": ([], [], []), "after": ([], [], [])}
+    desc_correct = 0
     bar = None
     if progress:
         from data_tools.progress import progress_bar
@@ -69,7 +72,9 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
         pred = model.predict(depth, intr, sc.bbox, icp=icp, k=k)
         gi, pi = names.index(sc.object), names.index(pred.object)
         conf[gi, pi] += 1
+        desc_correct += int(pred.descriptor_object == sc.object)
         row = {"file": sc.file, "object": sc.object, "predicted": pred.object, "correct": gi == pi,
+               "descriptor_predicted": pred.descriptor_object, "verification": pred.verification,
                "distance": pred.distance, "icp_accepted": pred.icp_accepted}
         if gi == pi:
             sym = model.objects[gi].get("symmetry") or {}
@@ -89,7 +94,7 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
     seconds = time.perf_counter() - t0
     acc = float(np.trace(conf) / max(conf.sum(), 1))
     after = summarise(*err["after"]) if icp else summarise(*err["before"])
-    result = {"accuracy": acc, **after, "before_icp": summarise(*err["before"]), "icp": bool(icp),
+    result = {"accuracy": acc, "accuracy_descriptor": desc_correct / max(len(scans), 1), **after, "before_icp": summarise(*err["before"]), "icp": bool(icp),
               "n_scans": len(scans), "n_pose": len(err["before"][0]), "objects": names,
               "confusion": conf.tolist(), "seconds": seconds,
               "per_object_accuracy": {n: float(conf[i, i] / max(conf[i].sum(), 1)) for i, n in enumerate(names)

@@ -50,10 +50,18 @@ class Prediction:
     """Object name -> vote weight of the k nearest neighbours."""
     icp_fitness: float | None = None
     icp_accepted: bool | None = None
+    verification: dict = field(default_factory=dict)
+    """Object name -> verification score of each candidate checked by ICP (empty without ICP)."""
+
+    @property
+    def descriptor_object(self) -> str:
+        """The object the descriptor vote chose (before verification)."""
+        return next(iter(self.votes)) if self.votes else self.object
 
     def to_json(self) -> dict:
         return {"object": self.object, "pose": self.pose.tolist(), "pose_initial": self.pose_initial.tolist(),
-                "distance": self.distance, "votes": self.votes, "icp_fitness": self.icp_fitness,
+                "distance": self.distance, "votes": self.votes, "descriptor_object": self.descriptor_object,
+                "verification": self.verification, "icp_fitness": self.icp_fitness,
                 "icp_accepted": self.icp_accepted}
 
 
@@ -117,22 +125,48 @@ class Recogniser:
             raise ConfigError(f"unknown object {name!r}: this recogniser knows {', '.join(self.names)}") from None
 
     # ------------------------------------------------------------------ prediction
-    def predict(self, depth_m: np.ndarray, intr: Intrinsics, bbox, icp: bool = True, k: int = 5) -> Prediction:
-        """Recognise the object in window ``bbox`` of ``depth_m`` ((H, W) metres)."""
+    def predict(self, depth_m: np.ndarray, intr: Intrinsics, bbox, icp: bool = True, k: int = 5,
+                verify: int = 6) -> Prediction:
+        """Recognise the object in window ``bbox`` of ``depth_m`` ((H, W) metres).
+
+        The k nearest descriptors vote for the object. With ``icp`` and ``verify`` > 1, the
+        ``verify`` objects whose nearest database entry is nearest to the query (the vote's winner
+        always among them) are each placed at that entry's pose, refined by ICP and scored by
+        :func:`recog.refine.verification_score` against the measurement; the best-scoring one is
+        the answer (hypothesis verification with the CAD models: look-alike objects that differ
+        in size are told apart by how their geometry fits the window)."""
         p = extract_patch(depth_m, intr, bbox, self.patch)
         m = self.db.query(self.describe(p.image[None]), k)[0]
-        j = m.nearest
-        T0 = from_ray_frame(self.db.R_local[j], self.db.offset[j], p)
-        pred = Prediction(self.names[m.object_index], T0, T0.copy(), m.distance,
-                          {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])})
-        if icp:
-            from recog.refine import ModelRaycaster, refine_pose
-            obj = self.object(m.object_index)
-            if m.object_index not in self._casters:
-                self._casters[m.object_index] = ModelRaycaster(obj)
-            r = refine_pose(obj, T0, depth_m, intr, p.bbox, self._casters[m.object_index])
-            pred.pose, pred.icp_fitness, pred.icp_accepted = r.pose, r.fitness, r.accepted
+        votes = {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])}
+
+        def initial(o: int) -> tuple[np.ndarray, float]:
+            j, dist = m.nearest_by_object[o]
+            return from_ray_frame(self.db.R_local[j], self.db.offset[j], p), dist
+
+        T0, dist0 = initial(m.object_index)
+        pred = Prediction(self.names[m.object_index], T0, T0.copy(), dist0, votes)
+        if not icp:
+            return pred
+        from recog.refine import verification_score
+        cands = [m.object_index] + [o for o in sorted(m.nearest_by_object, key=lambda o: m.nearest_by_object[o][1])
+                                    if o != m.object_index][:max(verify, 1) - 1]
+        results = []
+        for o in cands:
+            Ti, di = initial(o)
+            r = self._refine(o, Ti, depth_m, intr, p.bbox)
+            score = verification_score(self._casters[o], r.pose, depth_m, intr, p.bbox) if len(cands) > 1 else 1.0
+            results.append((score, o, Ti, di, r))
+        score, o, Ti, di, r = max(results, key=lambda t: t[0])
+        pred.object, pred.pose_initial, pred.distance = self.names[o], Ti, di
+        pred.pose, pred.icp_fitness, pred.icp_accepted = r.pose, r.fitness, r.accepted
+        pred.verification = {self.names[oo]: round(float(sc), 4) for sc, oo, *_ in results}
         return pred
+
+    def _refine(self, o: int, T0: np.ndarray, depth_m, intr, bbox):
+        from recog.refine import ModelRaycaster, refine_pose
+        if o not in self._casters:
+            self._casters[o] = ModelRaycaster(self.object(o))
+        return refine_pose(self.object(o), T0, depth_m, intr, bbox, self._casters[o])
 
     # ------------------------------------------------------------------ files
     def save(self, folder: str | os.PathLike) -> Path:

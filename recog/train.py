@@ -50,6 +50,8 @@ class TrainConfig:
     """Margin for negatives of another object (> pi)."""
     same_object_negatives: float = 0.5
     """Fraction of negatives taken from the anchor's own object (another pose)."""
+    hard_negatives: float = 0.5
+    """Fraction of negatives mined by pose (see :class:`TripletMiner`); the rest are uniform."""
     pair_weight: float = 1.0
     """Weight of the pair loss."""
     checkpoint_every: int = 250
@@ -70,6 +72,8 @@ class TrainConfig:
                 raise ConfigError(f"train option {name} must be >= 1, got {getattr(self, name)}")
         if not self.class_margin > math.pi:
             raise ConfigError(f"class_margin must exceed pi, got {self.class_margin}")
+        if not 0.0 <= self.hard_negatives <= 1.0:
+            raise ConfigError(f"hard_negatives must be in [0, 1], got {self.hard_negatives}")
         if not 0.0 <= self.same_object_negatives <= 1.0:
             raise ConfigError(f"same_object_negatives must be in [0, 1], got {self.same_object_negatives}")
         return self
@@ -96,9 +100,18 @@ class TrainLog:
 
 
 class TripletMiner:
-    """Draws (anchor, positive, negative, pair) index tuples from :class:`TrainingData` by pose."""
+    """Draws (anchor, positive, negative, pair) index tuples from :class:`TrainingData` by pose.
 
-    def __init__(self, data: TrainingData, symmetries: list[dict]):
+    A fraction ``hard`` of the negatives are *hard*: of the anchor's own object, one of the
+    ``HARD_K`` poses nearest to the anchor beyond the positive; of another object, one of its
+    ``HARD_K`` views whose pose is nearest to the anchor's (look-alike objects seen the same way,
+    the confusion that matters). The rest are drawn uniformly (same object: any pose farther
+    than the positive)."""
+
+    HARD_K = 8
+
+    def __init__(self, data: TrainingData, symmetries: list[dict], hard: float = 0.5):
+        self.hard = float(hard)
         from recog.symmetry import sym_angles
         self.data = data
         self.by_obj = [np.nonzero(data.obj == k)[0] for k in range(len(data.names))]
@@ -106,13 +119,21 @@ class TripletMiner:
             bad = [data.names[k] for k, ix in enumerate(self.by_obj) if len(ix) < 3]
             raise ConfigError(f"too few usable training views of {', '.join(bad)} (is the object visible?)")
         self.angles = []      # per object: (n, n) symmetry-aware angles between its views, radians
-        self.nearest = []     # per object: (n, 2) the two nearest other views (local indices)
+        self.nearest = []     # per object: (n, K) its other views, nearest pose first (local indices)
         for k, ix in enumerate(self.by_obj):
             A = sym_angles(data.R_local[ix], data.R_local[ix], symmetries[k]).astype(np.float32)
             np.fill_diagonal(A, np.inf)
-            self.angles.append(A)
-            self.nearest.append(np.argsort(A, axis=1)[:, :2])
+            self.nearest.append(np.argsort(A, axis=1)[:, :self.HARD_K + 2])
             np.fill_diagonal(A, 0.0)
+            self.angles.append(A)
+        # per (object, other object): for each view of the first, the views of the second with the
+        # nearest poses (plain geodesic angle): the hard negatives of look-alike objects
+        self.cross = {}
+        for k, ix in enumerate(self.by_obj):
+            for j, jx in enumerate(self.by_obj):
+                if j != k:
+                    C = sym_angles(data.R_local[ix], data.R_local[jx], None)
+                    self.cross[k, j] = np.argsort(C, axis=1)[:, :self.HARD_K]
 
     def sample(self, rng: np.random.Generator, batch: int, same_object_negatives: float):
         """Index arrays into the data (view rows) and draw columns:
@@ -127,13 +148,20 @@ class TripletMiner:
             la = int(rng.integers(len(ix)))
             lp = int(self.nearest[o][la, rng.integers(2)])
             a[i], p[i] = ix[la], ix[lp]
+            hard = rng.random() < self.hard
             if n_obj == 1 or rng.random() < same_object_negatives:
-                far = np.nonzero(self.angles[o][la] > self.angles[o][la, lp])[0]
-                ln = int(rng.choice(far)) if len(far) else int(rng.integers(len(ix)))
+                if hard:     # one of the next-nearest poses beyond the positive
+                    cand = [c for c in self.nearest[o][la] if self.angles[o][la, c] > self.angles[o][la, lp]]
+                else:
+                    cand = np.nonzero(self.angles[o][la] > self.angles[o][la, lp])[0]
+                ln = int(rng.choice(cand)) if len(cand) else int(rng.integers(len(ix)))
                 ng[i], same[i], ang[i] = ix[ln], True, self.angles[o][la, ln]
             else:
-                o2 = (o + rng.integers(1, n_obj)) % n_obj
-                ng[i] = self.by_obj[o2][rng.integers(len(self.by_obj[o2]))]
+                o2 = int((o + rng.integers(1, n_obj)) % n_obj)
+                if hard:     # another object seen from (nearly) the same pose
+                    ng[i] = self.by_obj[o2][int(rng.choice(self.cross[o, o2][la]))]
+                else:
+                    ng[i] = self.by_obj[o2][rng.integers(len(self.by_obj[o2]))]
         a_draw = rng.integers(0, D, batch)
         pair_draw = (a_draw + rng.integers(1, D, batch)) % D
         return (a, a_draw, p, rng.integers(0, D, batch), ng, rng.integers(0, D, batch), pair_draw, same, ang)
@@ -160,7 +188,7 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
     net = make_network(config.network, size, config.descriptor).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     rng = np.random.default_rng(config.seed)
-    miner = TripletMiner(data, symmetries)
+    miner = TripletMiner(data, symmetries, config.hard_negatives)
     patches = torch.from_numpy(np.ascontiguousarray(data.patches))       # (N, D, S, S) float16
     tlog = TrainLog()
     start = 0
