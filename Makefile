@@ -29,7 +29,7 @@ $(STAMP): pyproject.toml
 	@set -o pipefail; { $(VPY) -m pip install -q --upgrade pip && \
 	  $(VPY) -m pip install -q "torch==2.13.0" && \
 	  $(VPY) -m pip install -q -e ".[dev]"; } 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
-	@$(VPY) -c "import open3d, torch, cv2, trimesh, app.cli" || { echo "Python dependencies failed to install"; exit 1; }
+	@$(VPY) -c "import open3d, torch, cv2, trimesh, pyvista, app.cli" || { echo "Python dependencies failed to install"; exit 1; }
 	@touch $(STAMP)
 
 demo: setup
