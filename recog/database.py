@@ -102,6 +102,9 @@ class Match:
     """Descriptor distance (L2, not squared) to that neighbour."""
     nearest_by_object: dict = None
     """Object index -> (database row, distance) of its nearest entry among the searched neighbours."""
+    poses_by_object: dict = None
+    """Object index -> [(row, distance), ...]: its nearest entries with poses at least ``min_angle_deg``
+    apart (up to ``per_object``), nearest first: several starting poses for verification."""
 
 
 @dataclass
@@ -132,9 +135,10 @@ class DescriptorDB:
             self._index = make_index(self.index_name, self.descriptors)
         return self._index
 
-    def query(self, q: np.ndarray, k: int = 5, search: int = 200) -> list[Match]:
+    def query(self, q: np.ndarray, k: int = 5, search: int = 400, per_object: int = 1,
+              min_angle_deg: float = 10.0) -> list[Match]:
         """Matches of (Q, d) query descriptors (see the module docstring): the ``k`` nearest vote;
-        the ``search`` nearest give each object's nearest entry (for verification)."""
+        the ``search`` nearest give each object's nearest entries (for verification)."""
         q = np.atleast_2d(np.asarray(q, np.float32))
         k = max(int(k), 1)
         d2, idx = self.index.search(q, max(k, int(search)))
@@ -145,10 +149,18 @@ class DescriptorDB:
                 o = int(self.obj[ii])
                 w[o] = w.get(o, 0.0) + 1.0 / (float(np.sqrt(max(dd, 0.0))) + 1e-6)
             near: dict[int, tuple[int, float]] = {}
+            poses: dict[int, list[tuple[int, float]]] = {}
+            cos_min = np.cos(np.radians(min_angle_deg))
             for dd, ii in zip(drow, irow):
-                near.setdefault(int(self.obj[ii]), (int(ii), float(np.sqrt(max(dd, 0.0)))))
+                o, ii = int(self.obj[ii]), int(ii)
+                entry = (ii, float(np.sqrt(max(dd, 0.0))))
+                near.setdefault(o, entry)
+                lst = poses.setdefault(o, [])
+                if len(lst) < per_object and all((np.trace(self.R_local[ii].T @ self.R_local[j]) - 1) / 2 < cos_min
+                                                 for j, _ in lst):
+                    lst.append(entry)
             best = max(w, key=w.get)
-            out.append(Match(best, w, near[best][0], near[best][1], near))
+            out.append(Match(best, w, near[best][0], near[best][1], near, poses))
         return out
 
     def save(self, path: str | os.PathLike) -> None:

