@@ -85,6 +85,7 @@ def main(argv=None) -> int:
             r = evaluate(model, test, folder / "eval", progress=False)
             b = r["before_icp"]
             rows.append({"variant": variant, "network": net, "accuracy": r["accuracy"],
+                         "accuracy_descriptor": r["accuracy_descriptor"],
                          "rot_med_before": b["rot_err_deg"]["median"], "rot_med_after": r["rot_err_deg"]["median"],
                          "rot_acc20_before": b["rot_err_deg"]["acc_at_20"],
                          "rot_acc20_after": r["rot_err_deg"]["acc_at_20"],
@@ -96,7 +97,7 @@ def main(argv=None) -> int:
     base = next((r for r in rows if r["variant"] == "clean"), None)
     print()
     print(f"{'variant':10s} {'net':7s} {'acc %':>6s} {'rot med before':>15s} {'rot med after':>14s} "
-          f"{'<=20deg before':>15s} {'t med mm':>9s}  acc vs clean")
+          f"{'<=20deg before':>15s} {'t med mm':>9s} {'vote acc %':>10s}  acc vs clean")
     for r in rows:
         ratio = f"{r['accuracy'] / base['accuracy']:.2f}x" if base and base["accuracy"] else "-"
         print(_row(r) + f"  {ratio}")
@@ -108,7 +109,7 @@ def _row(r: dict) -> str:
     f = lambda x, fmt: "-" if x is None else format(x, fmt)  # noqa: E731
     return (f"{r['variant']:10s} {r['network']:7s} {100 * r['accuracy']:6.1f} {f(r['rot_med_before'], '15.1f')} "
             f"{f(r['rot_med_after'], '14.1f')} {f(100 * r['rot_acc20_before'] if r['rot_acc20_before'] is not None else None, '14.0f')}% "
-            f"{f(r['trans_med_after_mm'], '9.1f')}")
+            f"{f(r['trans_med_after_mm'], '9.1f')} {100 * r['accuracy_descriptor']:10.1f}")
 
 
 if __name__ == "__main__":
