@@ -244,6 +244,17 @@ CASES = [
     ("ate: unknown --format", ["eval", "ate", "{S}/groundtruth.txt", "{T}/traj.txt", "--format", "tum"],
      lambda t: _write(t / "traj.txt", "1 2 3\n"), ["traj.txt"]),
     ("eval run: not a run folder", ["eval", "run", "{S}", "--gt", "{S}"], _nothing, ["trajectory.txt"]),
+    # recog / view
+    ("recog train: model file missing", ["recog", "train", "--objects", "{T}/none.ply", "--out", "{T}/M"], _nothing,
+     ["none.ply"]),
+    ("recog train: empty mesh", ["recog", "train", "--objects", "{T}/empty.ply", "--out", "{T}/M"], _empty_mesh,
+     ["empty.ply", "empty"]),
+    ("recog eval: model is a file", ["recog", "eval", "{T}/traj.txt", "{S}"], _nothing, ["traj.txt", "folder"]),
+    ("recog testset: --out is a file", ["recog", "testset", "--objects", "chairs", "--out", "{T}/traj.txt"], _nothing,
+     ["traj.txt", "--out"]),
+    ("view: not a lab folder", ["view", "--lab", "{S}", "--screenshot", "{T}/v.png"], _nothing, ["lab_config.json"]),
+    ("view: existing screenshot", ["view", "{S}", "--screenshot", "{T}/traj.txt"], _nothing,
+     ["traj.txt", "--overwrite"]),
     # show / demo
     ("show: not a result", ["show", "{S}/camera.json"], _nothing, ["camera.json"]),
     ("show: corrupt JSON", ["show", "{T}/r.json"], lambda t: _write(t / "r.json", "{\"header\": "), ["r.json"]),
