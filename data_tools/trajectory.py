@@ -85,13 +85,14 @@ def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
     return rows
 
 
-def read_tum(path: str | os.PathLike, drop_duplicate_timestamps: bool = False) -> Trajectory:
+def read_tum(path: str | os.PathLike, drop_duplicate_timestamps: bool = True) -> Trajectory:
     """Read a TUM trajectory file; every problem is a FormatError naming the file and line.
 
-    With ``drop_duplicate_timestamps`` a pose whose timestamp equals the previous pose's is
-    dropped (the first one is kept) instead of being an error, and a ``UserWarning`` says how
-    many were dropped: the official TUM ``fr2/desk`` ground truth has one such repeated stamp
-    with two different poses. Every other check still applies.
+    A pose whose timestamp exactly repeats the previous pose's is dropped (the first one is
+    kept), as evo reads such files, with one ``UserWarning`` naming the file, the timestamp and
+    the line (../shared/FORMATS.md section 5): the official TUM ``fr2/desk`` ground truth has one
+    such repeated stamp with two different poses. ``drop_duplicate_timestamps=False`` makes a
+    repeat an error instead. Unsorted timestamps are always an error.
     """
     path = Path(path)
     rows = _data_lines(path)
@@ -112,11 +113,13 @@ def read_tum(path: str | os.PathLike, drop_duplicate_timestamps: bool = False) -
             raise FormatError(path, f"line {lineno}: quaternion is not unit length (|q| = {qn:.6f})")
     if drop_duplicate_timestamps and len(data) > 1:
         keep = np.concatenate([[True], np.diff(data[:, 0]) != 0])
-        dropped = int(np.count_nonzero(~keep))
-        if dropped:
+        dropped = np.flatnonzero(~keep)
+        if len(dropped):
+            first = int(dropped[0])
+            more = f" (and {len(dropped) - 1} more)" if len(dropped) > 1 else ""
+            warnings.warn(f"{path}: line {rows[first][0]}: timestamp {data[first, 0]:.6f} repeats the previous "
+                          f"pose's; kept the first, dropped this one{more}", stacklevel=2)
             data = data[keep]
-            warnings.warn(f"{path}: dropped {dropped} pose(s) with a duplicated timestamp (kept the first)",
-                          stacklevel=2)
     check_timestamps(data[:, 0], path)
     return Trajectory(data[:, 0], pose_from_tum(data[:, 1:]))
 

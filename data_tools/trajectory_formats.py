@@ -154,7 +154,7 @@ def _read_log(path: Path) -> Trajectory:
     return Trajectory(np.arange(len(poses), dtype=np.float64), poses)
 
 
-def read_trajectory(path: str | os.PathLike, fmt: str = "auto", drop_duplicate_timestamps: bool = False) -> Trajectory:
+def read_trajectory(path: str | os.PathLike, fmt: str = "auto", drop_duplicate_timestamps: bool = True) -> Trajectory:
     """Read a trajectory file in ``fmt`` (one of :data:`FORMATS`, or ``auto``: :func:`detect_format`).
 
     Every problem is a FormatError naming the file (and line). ``drop_duplicate_timestamps``
@@ -170,8 +170,6 @@ def read_trajectory(path: str | os.PathLike, fmt: str = "auto", drop_duplicate_t
         check_input_file(p, "trajectory file")
         return read_tum(p, drop_duplicate_timestamps=drop_duplicate_timestamps)
     if fmt == "euroc":
-        if drop_duplicate_timestamps:
-            warnings.warn("drop_duplicate_timestamps applies to TUM files only", stacklevel=2)
         return _read_euroc(p)
     return _read_kitti(p) if fmt == "kitti" else _read_log(p)
 

@@ -37,14 +37,13 @@ class Evaluation:
 
 def read_for_eval(path, cfg: EvalConfig, fmt: str = "auto") -> Trajectory:
     """A trajectory file in any format of :mod:`data_tools.trajectory_formats` (``fmt`` auto: from the
-    extension or content) with the evaluation's duplicate-timestamp policy; the error for
-    duplicates names the flag that keeps the first."""
+    extension or content) with the evaluation's duplicate-timestamp policy (``--strict-timestamps``)."""
     from data_tools.trajectory_formats import read_trajectory
     try:
-        return read_trajectory(path, fmt, drop_duplicate_timestamps=cfg.drop_duplicate_timestamps)
+        return read_trajectory(path, fmt, drop_duplicate_timestamps=not cfg.strict_timestamps)
     except FormatError as e:
         if "duplicated timestamp" in e.problem:
-            raise FormatError(e.path, f"{e.problem}; --drop-duplicate-timestamps keeps the first") from None
+            raise FormatError(e.path, f"{e.problem} (--strict-timestamps; without it the first is kept)") from None
         raise
 
 

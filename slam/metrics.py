@@ -62,10 +62,10 @@ class EvalConfig:
     """RPE over all pairs at distance delta instead of consecutive non-overlapping ones."""
     rel_delta_tol: float = field(default=0.1, metadata={"help": "relative tolerance of a metres delta in all-pairs mode"})
     """Relative tolerance of a path-length delta in all-pairs mode (evo's default 0.1)."""
-    drop_duplicate_timestamps: bool = field(default=False, metadata={"help": "drop poses whose timestamp repeats the previous one (keep the first) instead of failing"})
-    """Read trajectories dropping repeated timestamps (``data_tools.trajectory.read_tum(...,
-    drop_duplicate_timestamps=True)``; e.g. the official TUM fr2/desk ground truth has one)
-    instead of failing."""
+    strict_timestamps: bool = field(default=False, metadata={"help": "a pose whose timestamp repeats the previous one is an error (default: keep the first and warn, as evo does)"})
+    """Without it trajectories are read like evo reads them: of an exactly repeated timestamp the
+    first pose is kept and one warning names the file and line (:func:`data_tools.trajectory.read_tum`,
+    the one reader; the official TUM fr2/desk ground truth has one). With it such a file is an error."""
 
     def validate(self) -> "EvalConfig":
         if self.align not in ALIGNERS:

@@ -128,7 +128,7 @@ def test_tum_bad_input(tmp_path, lines, needle):
     p = tmp_path / "traj.txt"
     p.write_text("\n".join(lines) + "\n")
     with pytest.raises(FormatError) as e:
-        read_tum(p)
+        read_tum(p, drop_duplicate_timestamps=False)     # strict: a repeated timestamp is an error too
     assert needle in str(e.value) and str(p) in str(e.value)
 
 

@@ -159,10 +159,11 @@ def test_duplicate_timestamps_hint_and_flag(files, capsys):
     lines.insert(5, lines[4])                           # repeat one pose
     gt.write_text("\n".join(lines) + "\n")
     out = d / "o"
-    assert main(["eval", "ate", str(gt), str(est), "--out", str(out)]) == 1
-    _one_line_error(capsys, "gt.txt", "duplicated timestamp", "--drop-duplicate-timestamps")
-    assert main(["eval", "ate", str(gt), str(est), "--out", str(out), "--drop-duplicate-timestamps"]) == 0
-    assert "dropped 1 pose" in capsys.readouterr().err
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(out), "--strict-timestamps"]) == 1
+    _one_line_error(capsys, "gt.txt", "duplicated timestamp", "--strict-timestamps")
+    assert main(["eval", "ate", str(gt), str(est), "--out", str(out)]) == 0     # as evo: keep the first, warn
+    err = capsys.readouterr().err
+    assert "gt.txt: line" in err and "repeats the previous pose's" in err
 
 
 @pytest.mark.parametrize("case", ["missing", "malformed", "no_pairs", "two_pairs", "bad_align"])

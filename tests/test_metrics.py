@@ -246,14 +246,16 @@ def test_too_few_pairs_and_degenerate_alignment():
         M.rpe(ref, ref, delta=10)
 
 
-def test_read_tum_drops_duplicate_timestamps_on_request(tmp_path):
+def test_read_tum_drops_duplicate_timestamps_like_evo(tmp_path):
+    """FORMATS.md section 5: the first pose of a repeated timestamp is kept, one warning names the
+    file, the timestamp and the line; strict mode makes it an error."""
     p = tmp_path / "dup.txt"
     p.write_text("# c\n1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n2.0 5 0 0 0 0 0 1\n2.0 6 0 0 0 0 0 1\n"
                  "3.0 2 0 0 0 0 0 1\n")
     with pytest.raises(FormatError, match="duplicated timestamp"):
-        read_tum(p)
-    with pytest.warns(UserWarning, match=r"dup\.txt: dropped 2 pose\(s\)"):
-        t = read_tum(p, drop_duplicate_timestamps=True)
+        read_tum(p, drop_duplicate_timestamps=False)
+    with pytest.warns(UserWarning, match=r"dup\.txt: line 4: timestamp 2\.000000 repeats .* \(and 1 more\)"):
+        t = read_tum(p)
     np.testing.assert_array_equal(t.timestamps, [1, 2, 3])
     np.testing.assert_array_equal(t.positions[:, 0], [0, 1, 2])      # the first one is kept
     ok = _write(tmp_path / "ok.txt", "1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")

@@ -16,8 +16,8 @@ DESCRIPTION = (
     "the aligned estimate in TUM format and PNG plots.")
 
 _CHOICES = {"align": list(ALIGNERS), "delta_unit": list(DELTA_UNITS)}
-_ATE_FIELDS = ("align", "max_dt", "drop_duplicate_timestamps")
-_RPE_FIELDS = ("align", "max_dt", "delta", "delta_unit", "all_pairs", "rel_delta_tol", "drop_duplicate_timestamps")
+_ATE_FIELDS = ("align", "max_dt", "strict_timestamps")
+_RPE_FIELDS = ("align", "max_dt", "delta", "delta_unit", "all_pairs", "rel_delta_tol", "strict_timestamps")
 _RUN_FIELDS = _RPE_FIELDS
 
 
