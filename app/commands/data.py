@@ -22,6 +22,22 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--no-progress")
     p.set_defaults(func=_convert_7scenes, on_interrupt=RESUMES)
 
+    p = sub.add_parser("convert-kinect-raw", help="convert raw Kinect v1 captures (NNNN-d.pgm disparity) to the TUM layout",
+                       description="Convert NNNN-d.pgm (16-bit raw 11-bit disparity, 2047 = none) and optional "
+                                   "NNNN-c.ppm|png|jpg into a TUM-layout sequence with camera.json, using the "
+                                   "Herrera et al. 2012 calibration (OpenCV YAML: dK, dkc, dc, dc_alpha, dc_beta). "
+                                   "Frame N gets the timestamp N / fps. Re-running continues an interrupted run.")
+    p.add_argument("src", help="folder of raw captures")
+    add_shared(p, "--out", "the converted sequence folder (TUM layout)", required=True, metavar="DST")
+    p.add_argument("--calib", required=True, metavar="CALIB.yml", help="the depth calibration (OpenCV YAML)")
+    p.add_argument("--undistort-disparity", action="store_true",
+                   help="correct the disparity with dc_beta/dc_alpha (default: keep the raw sensor behaviour, "
+                        "which is what the sensor lab models)")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate used to make timestamps (default 30)")
+    add_shared(p, "--overwrite", "a converted sequence already in DST")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_convert_kinect_raw, on_interrupt=RESUMES)
+
     p = sub.add_parser("info", help="validate a sequence and print what it holds",
                        description="Read the index, calibration and scene files of SEQ and print what it holds "
                                    "(frames, duration, intrinsics, depth scale, poses, scene; 'incomplete' when a "
@@ -63,6 +79,15 @@ def _convert_7scenes(args) -> int:
     r = convert_7scenes(args.src, args.out, fps=args.fps, overwrite=args.overwrite)
     print(f"wrote {r.frames} frames to {r.dst} (resumed after {r.skipped_existing}; "
           f"{r.invalid_65535_frames} depth images had 65535 invalid markers)")
+    return 0
+
+
+def _convert_kinect_raw(args) -> int:
+    from data_tools.kinect_raw import convert_kinect_raw
+    r = convert_kinect_raw(args.src, args.out, args.calib, undistort_disparity=args.undistort_disparity,
+                           fps=args.fps, overwrite=args.overwrite, progress=not args.no_progress)
+    print(f"wrote {r.frames} frames to {r.dst} ({r.colour_frames} with colour; resumed after {r.skipped_existing}; "
+          f"disparity {'undistorted' if r.undistorted else 'raw'})")
     return 0
 
 
