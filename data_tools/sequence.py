@@ -137,8 +137,8 @@ class SequenceReader:
             self._check_listed(self.path / "depth.txt", d_files)
         rgb_txt = self.path / "rgb.txt"
         self.rgb_files: list[str | None]
-        if rgb_txt.exists():
-            r_ts, r_files = read_index(rgb_txt)
+        r_ts, r_files = read_index(rgb_txt) if rgb_txt.exists() else (np.zeros(0), [])
+        if len(r_ts):                  # an rgb.txt without entries (a depth-only writer's header) = no colour
             if check_files:
                 self._check_listed(rgb_txt, r_files)
             id_, ir = associate(d_ts, r_ts, max_dt)
@@ -153,6 +153,18 @@ class SequenceReader:
             self.rgb_timestamps = np.full(len(d_ts), np.nan)
         self.timestamps = d_ts
         self.depth_files = d_files
+        self.mask_files: list[str | None] = [None] * len(d_ts)
+        mask_txt = self.path / "mask.txt"
+        self.has_masks = mask_txt.exists()
+        """True when the sequence has per-frame masks (FORMATS.md section 4): only masked-in pixels
+        are compared; a frame without an associated mask compares nothing."""
+        if self.has_masks:
+            m_ts, m_files = read_index(mask_txt)
+            if check_files:
+                self._check_listed(mask_txt, m_files)
+            im, jm = associate(d_ts, m_ts, max_dt)
+            for a, b in zip(im, jm):
+                self.mask_files[a] = m_files[b]
         self.poses = np.full((len(d_ts), 4, 4), np.nan)
         gt = self.path / "groundtruth.txt"
         self.has_groundtruth = gt.exists()
@@ -199,6 +211,26 @@ class SequenceReader:
     def read_depth(self, i: int) -> np.ndarray:
         return read_depth_png(self.path / self.depth_files[i], self.camera.depth_scale,
                               self.intrinsics.shape)
+
+    def read_mask(self, i: int) -> np.ndarray | None:
+        """(H, W) bool mask of frame i (True = compare this pixel); None when the sequence has no
+        masks; all False for a frame without an associated mask."""
+        if not self.has_masks:
+            return None
+        rel = self.mask_files[i]
+        if rel is None:
+            return np.zeros(self.intrinsics.shape, bool)
+        import cv2
+        p = self.path / rel
+        m = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        if m is None:
+            raise FormatError(p, "cannot decode mask image (corrupt or not an image)")
+        if m.ndim != 2 or m.dtype != np.uint8:
+            raise FormatError(p, f"a mask is an 8-bit single-channel PNG, got {m.dtype} with shape {m.shape}")
+        if m.shape != self.intrinsics.shape:
+            raise FormatError(p, f"mask is {m.shape[1]}x{m.shape[0]}, camera.json says "
+                                 f"{self.intrinsics.width}x{self.intrinsics.height}")
+        return m > 127
 
     def read_rgb(self, i: int) -> np.ndarray | None:
         rel = self.rgb_files[i]

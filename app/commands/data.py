@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from app.commands import RESUMES, add_group, add_shared
+from data_tools.errors import ConfigError
 
 NAME = "data"
 HELP = "convert and inspect RGB-D datasets (TUM layout + camera.json/scene.json)"
@@ -69,6 +70,11 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--albedo", type=float, default=0.5, help="albedo of that material (default 0.5)")
     p.add_argument("--min-component", type=int, default=200, metavar="TRIANGLES",
                    help="drop connected pieces with fewer triangles (default 200)")
+    p.add_argument("--plane", action="store_true",
+                   help="a capture of a flat target without poses: fit the dominant plane per frame (RANSAC + "
+                        "least squares), write poses that put it on z = 0, per-frame masks of the target "
+                        "(mask.txt) and the plane as scene.json (needs --out)")
+    p.add_argument("--roi", metavar="x0,y0,x1,y1", help="with --plane: the window holding the target (pixels)")
     add_shared(p, "--overwrite", "an existing scene.json")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_make_reference)
@@ -109,7 +115,33 @@ def _info(args) -> int:
     return 0
 
 
+def _make_plane_reference(args) -> int:
+    from slam.plane_reference import PlaneReferenceConfig, make_plane_reference
+    from slam.reference import named_camera
+    if not args.out:
+        raise ConfigError("--plane writes a new sequence: give --out REF")
+    roi = None
+    if args.roi:
+        try:
+            roi = tuple(int(v) for v in args.roi.split(","))
+        except ValueError:
+            raise ConfigError(f"--roi: expected x0,y0,x1,y1 in pixels, got {args.roi!r}") from None
+        if len(roi) != 4:
+            raise ConfigError(f"--roi: expected x0,y0,x1,y1 in pixels, got {args.roi!r}")
+    cfg = PlaneReferenceConfig(roi=roi, material=args.material if args.material != "reference" else "target",
+                               albedo=args.albedo)
+    r = make_plane_reference(args.seq, args.out, cfg, camera=named_camera(args.camera) if args.camera else None,
+                             max_frames=args.max_frames, overwrite=args.overwrite, progress=not args.no_progress)
+    d = sorted(r.distances_m)
+    print(f"{r.out_dir}: target plane fitted in {r.frames_posed} of {r.frames} frames (distance "
+          f"{d[0]:.2f}-{d[-1]:.2f} m, target {100 * sum(r.mask_fraction) / len(r.mask_fraction):.0f} % of the "
+          f"image on average); poses in groundtruth.txt, masks in mask.txt, plane in scene.json")
+    return 0
+
+
 def _make_reference(args) -> int:
+    if args.plane:
+        return _make_plane_reference(args)
     from slam.reference import ReferenceConfig, make_reference, named_camera
     from slam.tsdf import TSDFConfig
     cfg = ReferenceConfig(tsdf=TSDFConfig(voxel_size_m=args.voxel, depth_max_m=args.depth_max,

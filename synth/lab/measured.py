@@ -217,6 +217,19 @@ class MeasuredSequence:
             self._depth[k] = d = d.astype(np.float32, copy=False)
         return d
 
+    def mask(self, k: int) -> np.ndarray | None:
+        """(H, W) bool mask of kept frame k (FORMATS.md section 4), None when the sequence has none.
+        Comparisons, fits and diagnoses use only masked-in pixels: :meth:`observation` sets the
+        ideal depth to 0 (no reference geometry) outside the mask; simulation ignores masks."""
+        if not self._reader.has_masks:
+            return None
+        if not hasattr(self, "_masks"):
+            self._masks = {}
+        m = self._masks.get(k)
+        if m is None:
+            m = self._masks[k] = self._reader.read_mask(self.frame_indices[k])
+        return m
+
     def render(self, k: int):
         """Cached ideal :class:`synth.render.RenderResult` of kept frame k (no colour)."""
         r = self._render.get(k)
@@ -258,7 +271,11 @@ class MeasuredSequence:
         off = None if self.preset.type == "tof" else tuple(self.preset.projector_offset_m)
         if off is not None and not any(off):
             off = None
-        return FrameObservation(self.measured_depth(k), simulated, r.depth, r.normals_cam, r.instance_ids,
+        ideal = r.depth
+        mask = self.mask(k)
+        if mask is not None:       # only the masked-in pixels take part (they alone have reference geometry)
+            ideal = np.where(mask, ideal, np.float32(0.0)).astype(ideal.dtype, copy=False)
+        return FrameObservation(self.measured_depth(k), simulated, ideal, r.normals_cam, r.instance_ids,
                                 self._material_names, self.intrinsics, off, self.frame_indices[k],
                                 float(self.timestamps[k]))
 

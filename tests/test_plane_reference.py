@@ -1,0 +1,117 @@
+"""``data make-reference --plane``: a simulated capture of a flat target in front of a far wall,
+without poses. The fitted poses put the target on z = 0, the masks hold the target and not the
+wall behind, and the sensor lab then compares only masked-in pixels: scrambling the measured depth
+outside the masks changes nothing."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from data_tools.sequence import SequenceReader
+
+
+def _capture(root: Path, frames: int = 4) -> Path:
+    """A 0.2 m square target facing the camera at 1.0-1.6 m, a back wall 1 m behind it, Kinect v1
+    (160x120 crop, direct effects); written without ground truth."""
+    from data_tools.scene_spec import Material, SceneSpec
+    from data_tools.sequence import Frame, SequenceWriter
+    from synth.sensor.config import SensorConfig
+    from synth.sensor.simulator import SensorSimulator
+    from synth.sensor.testscenes import quad_mesh
+    target = quad_mesh([0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], "target", "target", 2)
+    back = quad_mesh([0, 0, -1.0], [3, 0, 0], [0, 3, 0], "back", "back", 2)
+    scene = SceneSpec([target, back], {"target": Material(0.6, 0.0), "back": Material(0.4, 0.0)})
+    sim = SensorSimulator(SensorConfig.from_spec("kinect_v1", "axial_noise,projector_shadow", 160, 120), None, scene)
+    out = root / "capture"
+    rng = np.random.default_rng(1)
+    with SequenceWriter(out, sim.camera()) as w:
+        for k in range(frames):
+            T = np.eye(4)                       # camera looking along -z at the target (OpenCV axes)
+            T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+            from recog.symmetry import _rot
+            T[:3, :3] = _rot(rng.normal(size=3), np.radians(2)) @ T[:3, :3]
+            T[:3, 3] = [0.02 * k, -0.01 * k, 1.0 + 0.2 * k]
+            r = sim.simulate(T, seed=k, with_rgb=False)
+            w.write(Frame(k / 30.0, r.depth, None, None, k))
+    (out / "groundtruth.txt").unlink(missing_ok=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def plane_ref(tmp_path_factory):
+    root = tmp_path_factory.mktemp("plane")
+    cap = _capture(root)
+    ref = root / "ref"
+    # the back wall fills more of the image than the target: without a window RANSAC takes the wall
+    assert main(["data", "make-reference", str(cap), "--plane", "--out", str(root / "wall"), "--no-progress"]) == 0
+    wall = json.loads((root / "wall" / "plane_reference.json").read_text())
+    assert max(p["distance_m"] for p in wall["planes"]) > 2.5
+    assert main(["data", "make-reference", str(cap), "--plane", "--roi", "50,30,110,90", "--out", str(ref),
+                 "--no-progress"]) == 0
+    return cap, ref
+
+
+def test_poses_put_the_target_on_z0_and_masks_hold_it(plane_ref):
+    from data_tools.geometry import unproject
+    cap, ref = plane_ref
+    seq = SequenceReader(ref)
+    assert seq.has_masks and seq.has_groundtruth and len(seq.trajectory) == 4
+    meta = json.loads((ref / "plane_reference.json").read_text())
+    dists = [p["distance_m"] for p in meta["planes"]]
+    np.testing.assert_allclose(sorted(dists), [1.0, 1.2, 1.4, 1.6], atol=0.02)   # camera-to-target distance
+    for i in range(len(seq)):
+        m = seq.read_mask(i)
+        z = seq.read_depth(i)
+        assert 0.1 < m.mean() < 0.2 and not m[:30].any() and not m[:, :50].any()     # inside the window
+        wall = z > np.median(z[m]) + 0.5                                 # the back wall, 1 m behind
+        assert wall.any() and not (m & wall).any()
+        P = unproject(z, seq.intrinsics)[m]
+        T = seq.poses[i]
+        world_z = P @ T[2, :3] + T[2, 3]
+        assert np.abs(np.median(world_z)) < 0.002 and np.percentile(np.abs(world_z), 95) < 0.02
+
+
+def test_lab_ignores_pixels_outside_the_masks(plane_ref, tmp_path):
+    cap, ref = plane_ref
+    scrambled = tmp_path / "scrambled"
+    shutil.copytree(ref, scrambled)
+    seq = SequenceReader(scrambled)
+    from data_tools.sequence import read_depth_png, write_depth_png
+    rng = np.random.default_rng(0)
+    for i in range(len(seq)):
+        p = scrambled / seq.depth_files[i]
+        p.unlink()                                   # hard-linked to the capture: write a new file
+        z = read_depth_png(ref / seq.depth_files[i], seq.camera.depth_scale)
+        m = seq.read_mask(i)
+        z = np.where(m, z, rng.uniform(0.5, 4.0, z.shape) * (rng.random(z.shape) > 0.3)).astype(np.float32)
+        write_depth_png(p, z, seq.camera.depth_scale)
+    gaps = []
+    for s, out in ((ref, tmp_path / "a"), (scrambled, tmp_path / "b")):
+        assert main(["sensor", "compare", str(s), "--effects", "axial_noise", "--out", str(out),
+                     "--compare-preset", "fast", "--report-frames", "0", "--no-progress"]) == 0
+        gaps.append(json.loads((out / "metrics.json").read_text())["gap"])
+    assert gaps[0] == pytest.approx(gaps[1], abs=1e-12), gaps
+    # and without the masks the scrambled background does change the gap
+    (scrambled / "mask.txt").unlink()
+    assert main(["sensor", "compare", str(scrambled), "--effects", "axial_noise", "--out", str(tmp_path / "c"),
+                 "--compare-preset", "fast", "--report-frames", "0", "--no-progress"]) == 0
+    assert json.loads((tmp_path / "c" / "metrics.json").read_text())["gap"] != pytest.approx(gaps[0], abs=1e-3)
+
+
+def test_plane_reference_errors(plane_ref, tmp_path, capsys):
+    cap, ref = plane_ref
+    for argv, words in ((["data", "make-reference", str(cap), "--plane"], ["--out"]),
+                        (["data", "make-reference", str(cap), "--plane", "--out", str(tmp_path / "r"), "--roi",
+                          "5,5,2"], ["--roi"]),
+                        (["data", "make-reference", str(cap), "--plane", "--out", str(ref)], ["--overwrite"])):
+        capsys.readouterr()
+        assert main(argv) == 1
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "Traceback" not in err, err
+        for w in words:
+            assert w in err, (w, err)
