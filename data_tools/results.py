@@ -105,6 +105,15 @@ def atomic_write_image(path: str | os.PathLike, image) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
+def new_figure(width_in: float, height_in: float):
+    """A matplotlib Figure (Agg canvas, constrained layout, 100 dpi) that needs no pyplot state."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    fig = Figure(figsize=(width_in, height_in), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def atomic_save_figure(fig, path: str | os.PathLike, **kwargs) -> Path:
     """``fig.savefig`` into memory, then :func:`atomic_write_bytes` (format from the suffix)."""
     import io

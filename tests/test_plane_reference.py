@@ -96,6 +96,9 @@ def test_lab_ignores_pixels_outside_the_masks(plane_ref, tmp_path):
                      "--compare-preset", "fast", "--report-frames", "0", "--no-progress"]) == 0
         gaps.append(json.loads((out / "metrics.json").read_text())["gap"])
     assert gaps[0] == pytest.approx(gaps[1], abs=1e-12), gaps
+    page = (tmp_path / "a" / "report.html").read_text()
+    assert "Khoshelham" in page and (tmp_path / "a" / "figures" / "plane_noise.png").is_file()
+    assert (tmp_path / "a" / "figures" / "plane_residual_map.png").is_file()
     # and without the masks the scrambled background does change the gap
     (scrambled / "mask.txt").unlink()
     assert main(["sensor", "compare", str(scrambled), "--effects", "axial_noise", "--out", str(tmp_path / "c"),
@@ -115,3 +118,25 @@ def test_plane_reference_errors(plane_ref, tmp_path, capsys):
         assert "\n" not in err and "Traceback" not in err, err
         for w in words:
             assert w in err, (w, err)
+
+
+def test_calibration_numbers_by_hand():
+    """Noise table and mean residual map on hand-made observations."""
+    from types import SimpleNamespace
+
+    from synth.lab.calibration import khoshelham_sigma_m, mean_residual_maps, nguyen_sigma_m, plane_noise_table
+    assert khoshelham_sigma_m(2.0) == pytest.approx(0.0057) and nguyen_sigma_m(0.4) == pytest.approx(0.0012)
+    ideal = np.full((20, 20), 1.5, np.float32)
+    ideal[:, :5] = 0                                     # off the target
+    rng = np.random.default_rng(0)
+    obs = []
+    for k in range(3):
+        meas = (ideal + rng.normal(0, 0.004, ideal.shape) + 0.002).astype(np.float32) * (ideal > 0)
+        sim = (ideal + rng.normal(0, 0.002, ideal.shape)).astype(np.float32) * (ideal > 0)
+        obs.append(SimpleNamespace(ideal=ideal, measured=meas, simulated=sim, index=k))
+    rows = plane_noise_table(obs)
+    assert len(rows) == 3 and all(r["distance_m"] == pytest.approx(1.5) for r in rows)
+    assert np.mean([r["measured_mm"] for r in rows]) == pytest.approx(4.0, rel=0.15)
+    assert np.mean([r["simulated_mm"] for r in rows]) == pytest.approx(2.0, rel=0.15)
+    m, s = mean_residual_maps(obs)
+    assert np.isnan(m[:, :5]).all() and np.nanmean(m) == pytest.approx(2.0, abs=0.5)

@@ -217,6 +217,11 @@ class MeasuredSequence:
             self._depth[k] = d = d.astype(np.float32, copy=False)
         return d
 
+    @property
+    def has_masks(self) -> bool:
+        """The sequence has per-frame masks (e.g. a planar-target capture)."""
+        return bool(self._reader.has_masks)
+
     def mask(self, k: int) -> np.ndarray | None:
         """(H, W) bool mask of kept frame k (FORMATS.md section 4), None when the sequence has none.
         Comparisons, fits and diagnoses use only masked-in pixels: :meth:`observation` sets the

@@ -42,12 +42,9 @@ VALIDITY_COLOURS = ("#d9d9d9", "#1f77b4", "#d62728", "#252525")
 
 
 def figure(width_in: float, height_in: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width_in, height_in), dpi=100, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
+    """:func:`data_tools.results.new_figure`."""
+    from data_tools.results import new_figure
+    return new_figure(width_in, height_in)
 
 
 def save_figure(fig, path: str | os.PathLike) -> Path:
@@ -214,13 +211,16 @@ h2{border-bottom:1px solid #ccc}.gap{font-size:1.6em}"""
 def write_report(result: CompareResult, observations_subset: Sequence[FrameObservation],
                  out_dir: str | os.PathLike, history: Sequence[dict] | str | os.PathLike | None = None, *,
                  regions: Sequence[Region] | None = None, top_bins: int = 5, top_blocks: int = 5,
-                 block_px: int = 32, title: str = "Sensor lab report") -> Path:
+                 block_px: int = 32, title: str = "Sensor lab report",
+                 calibration: Sequence[FrameObservation] | None = None) -> Path:
     """Write ``out_dir/report.html`` (+ figures, metrics.json, regions.json); returns its path.
 
     observations_subset: the frames to show (error maps, worst image blocks); usually a few.
     history: entries, or a folder / history.json path to read them from; None = read
     ``out_dir/history.json`` if present. regions: precomputed worst regions (default: the
     ``top_bins`` worst bins of ``result`` and the ``top_blocks`` worst blocks of the subset).
+    calibration: every frame of a planar-target capture (masked sequence): adds noise vs distance
+    and the mean residual map (:mod:`synth.lab.calibration`).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -273,6 +273,10 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
         parts.append(html_table([(e["step"], e["timestamp"], ", ".join(e["effects"]), fmt_number(e["gap"]), e.get("label") or "")
                              for e in entries], ("step", "time (UTC)", "effects", "gap", "label")))
 
+    if calibration:
+        from synth.lab.calibration import calibration_section
+        parts.append(calibration_section(calibration, figs))
+
     parts.append("<h2>Binned statistics: measured vs simulated</h2>")
     for f, b in result.breakdowns.items():
         name = f"breakdown_{f}.png"
@@ -295,15 +299,17 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
 
 def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike, *,
             effects: Sequence[str] = (), label: str | None = None, config: CompareConfig | None = None,
-            compare_against: str | os.PathLike | None = None, report_frames: int = 4) -> CompareResult:
+            compare_against: str | os.PathLike | None = None, report_frames: int = 4,
+            planar: bool = False) -> CompareResult:
     """One lab step: compare, save metrics.json, append to the history, write the report.
 
-    report_frames: how many frames (evenly spread) get error-map figures.
+    report_frames: how many frames (evenly spread) get error-map figures. planar: the frames are
+    a planar-target capture (the report adds the calibration figures).
     """
     obs = list(observations)
     result = compare(obs, config, effects=effects, label=label)
     entries = append_history(out_dir, list(effects), result.gap, label, compare_against=compare_against)
     k = max(0, min(int(report_frames), len(obs)))
     picks = spread_indices(len(obs), k)
-    write_report(result, [obs[i] for i in picks], out_dir, entries)
+    write_report(result, [obs[i] for i in picks], out_dir, entries, calibration=obs if planar else None)
     return result
