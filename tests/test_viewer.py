@@ -95,6 +95,11 @@ def test_scripted_interaction_updates_panes(seq_and_run, offscreen_ok):
     before = v.s.virtual_pose.copy()
     v.move_virtual(forward=1)
     assert np.linalg.norm(v.s.virtual_pose[:3, 3] - before[:3, 3]) == pytest.approx(0.1)
+    target = v.s.pose(12)[:3, 3] + v.s.pose(12)[:3, 2]          # a point 1 m in front of frame 12's camera
+    v.look_at_point(target)                                          # what a right-click on the 3D pane does
+    T = v.s.virtual_pose
+    assert np.linalg.norm(T[:3, 3] - target) == pytest.approx(1.5)
+    assert np.allclose(T[:3, 2], (target - T[:3, 3]) / 1.5, atol=1e-9)
     v.toggle_help()
     img = v.p.screenshot(return_img=True)
     assert _count_colour(img, (255, 221, 102), 30) > 20              # the help overlay is drawn

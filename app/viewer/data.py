@@ -188,6 +188,9 @@ class SequenceSession:
             mesh = self._mesh(r)
             T = np.linalg.inv(r.alignment) @ pose_c2w if r.alignment is not None else pose_c2w
             out[r.name] = render_mesh(mesh, intr, T)
+        if all(isinstance(v, str) for v in out.values()) and self.reader.has_scene:
+            mesh, _ = self.reference_mesh()       # no run model: the sequence's own reference (GT frame)
+            out["scene.json reference"] = render_mesh(mesh, intr, pose_c2w)
         if not any(r.backend == "neural" for r in self.runs):
             out["neural"] = "no neural run"
         return out
@@ -201,6 +204,8 @@ class SequenceSession:
             self._meshes[key] = load_mesh(r.run_dir / "mesh.ply", validate=False)
         return self._meshes[key]
 
+    _reference = None
+
     def reference_mesh(self):
         """The world model to draw: the first run's TSDF mesh (moved into the ground-truth frame),
         else the sequence's scene.json meshes, else None (the viewer then fuses frame points)."""
@@ -209,6 +214,8 @@ class SequenceSession:
                 m = self._mesh(r)
                 return m.transformed(r.alignment) if r.alignment is not None else m, f"{r.name} TSDF mesh"
         if self.reader.has_scene:
+            if self._reference is not None:
+                return self._reference
             from data_tools.mesh import TriMesh
             sc = self.reader.scene
             v, t, off = [], [], 0
@@ -216,7 +223,8 @@ class SequenceSession:
                 v.append(m.vertices)
                 t.append(m.triangles + off)
                 off += len(m.vertices)
-            return TriMesh(np.concatenate(v), np.concatenate(t), "scene"), "scene.json"
+            self._reference = TriMesh(np.concatenate(v), np.concatenate(t), "scene"), "scene.json"
+            return self._reference
         return None, "fused frame points"
 
 

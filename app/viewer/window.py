@@ -213,7 +213,7 @@ class Viewer:
         if any(len(r.failed_timestamps) for r in s.runs):
             legend.append(["failed frames", (1.0, 0.0, 0.0)])
         legend.append(["virtual camera", TRACK_COLOURS["virtual camera"]])
-        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(0.22, 0.05 * len(legend) + 0.02),
+        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(0.32, 0.05 * len(legend) + 0.02),
                           loc="upper right", face="line")
         extent = float(np.ptp(mesh.vertices, axis=0).max()) if mesh is not None else \
             (float(np.ptp(s.gt.positions, axis=0).max()) if s.gt is not None else 1.0)
@@ -333,7 +333,8 @@ class Viewer:
             self._title("novel_0", "novel view: TSDF")
         else:
             self._clear_message("novel_0")
-            self._image("novel_0", views[tsdf].rgb, f"novel view: {tsdf} TSDF (magenta = unobserved)")
+            what = tsdf if "reference" in tsdf else f"{tsdf} TSDF"
+            self._image("novel_0", views[tsdf].rgb, f"novel view: {what} (magenta = unobserved)")
         nv = views.get("neural", "no neural run")
         if isinstance(nv, str):
             self._message("novel_1", nv + (" (hallucination on)" if self.hallucinate else ""))
@@ -510,8 +511,26 @@ class Viewer:
             raise RealgapError(f"{path}: --movie writes .gif or .mp4")
         return len(images)
 
+    def look_at_point(self, point) -> None:
+        """Put the virtual camera 1.5 m from ``point`` (world), at the current camera's height side,
+        looking at it (what a click on the 3D pane does)."""
+        from data_tools.geometry import look_at
+        s = self.s
+        cur = s.pose(self.frame)
+        eye = np.asarray(point, float) + (cur[:3, 3] - np.asarray(point, float)) / max(
+            np.linalg.norm(cur[:3, 3] - np.asarray(point, float)), 1e-6) * 1.5
+        up = -cur[:3, 1]
+        self.set_virtual_camera(look_at(eye, np.asarray(point, float), up=up))
+
     def show(self) -> None:
         """Open the interactive window (blocks until it is closed)."""
+        if self.kind == "sequence":
+            self.p.subplot(*self.panes["3d"])
+            try:
+                self.p.enable_point_picking(callback=self.look_at_point, show_message=False, left_clicking=False,
+                                            show_point=False)
+            except Exception:
+                pass
         if self.kind in ("sequence", "lab"):
             self.p.subplot(0, 0)
             self.p.add_slider_widget(lambda v: self.set_frame(int(round(v))) if int(round(v)) != self.frame else None,
