@@ -1,0 +1,64 @@
+"""``realgap neural``: the neural allocentric spatial memory (thesis chapter 4): train, evaluate."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from app.commands import RESUMES, add_group, add_shared
+
+NAME = "neural"
+HELP = "neural allocentric spatial memory (localise, memorise, recall, hallucinate): train and evaluate"
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    sub = add_group(parser)
+    p = sub.add_parser("train", help="train the neural memory (2d: agents walking on images)",
+                       description="Train encoder, localisation, LSTM memory, decoder and hallucination module "
+                                   "(phases: pre-training, memory + recall, + hallucination GAN). Resumable.")
+    p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents on images (3d: not built yet)")
+    add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
+    p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"), help="cpu: minutes on 2 cores; gpu: larger")
+    p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
+    p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
+    p.add_argument("--device", help="torch device (overrides --preset)")
+    add_shared(p, "--seed", "(default 0)", default=0)
+    add_shared(p, "--overwrite", "a model already in MODEL")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_train, on_interrupt=RESUMES)
+    p = sub.add_parser("eval", help="localisation, recall and hallucination metrics + baselines (JSON)")
+    p.add_argument("model", metavar="MODEL")
+    add_shared(p, "--out", "folder for neural_eval.json", metavar="DIR")
+    p.add_argument("--sequences", type=int, default=64, help="test walks (default 64)")
+    add_shared(p, "--overwrite", "an existing neural_eval.json")
+    add_shared(p, "--json", "(neural_eval.json's content)")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_eval)
+
+
+def _train(args) -> int:
+    import dataclasses
+
+    from slam.neural.run import train_to_folder
+    from slam.neural.train import TRAIN_PRESETS
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device") if getattr(args, k) is not None}
+    cfg = dataclasses.replace(TRAIN_PRESETS[args.preset], mode=args.mode, seed=args.seed, **over).validate()
+    _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,
+                                           log=lambda m: print(f"realgap: {m}", file=sys.stderr))
+    last = tlog.steps[-1] if tlog.steps else {}
+    print(f"{folder}: neural memory trained ({cfg.iterations} steps, {tlog.seconds:.0f} s this run); last losses "
+          + " ".join(f"{k} {v:.3f}" for k, v in last.items() if k != "step"))
+    return 0
+
+
+def _eval(args) -> int:
+    from slam.neural.run import evaluate_folder
+    r = evaluate_folder(args.model, args.out, args.sequences, overwrite=args.overwrite, progress=not args.no_progress)
+    if args.json:
+        print(json.dumps(r, indent=2))
+        return 0
+    a, h, m = r["anamnesis"], r["hallucination"], r["baseline_mosaic_inpainting"]
+    print(f"APE median {r['ape_px']['median']:.2f} px (mean {r['ape_px']['mean']:.2f}); anamnesis L1 {a['l1']:.3f} "
+          f"SSIM {a['ssim_thesis']:.2f}; hallucination L1 {h['l1']:.3f} SSIM {h['ssim_thesis']:.2f} (mosaic + "
+          f"inpainting: L1 {m['l1']:.3f} SSIM {m['ssim_thesis']:.2f})" + (f"; {args.out}/neural_eval.json" if args.out else ""))
+    return 0

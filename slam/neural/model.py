@@ -1,0 +1,315 @@
+"""The neural allocentric spatial memory of thesis chapter 4 (after MapNet, Henriques & Vedaldi 2018).
+
+For a sequence of observations x_t (C x q x q, the agent's view, heading up) and nothing else:
+
+* **encode**: a shallow ResNet (4 residual blocks, instance norm, LeakyReLU 0.2) maps x_t to an
+  egocentric feature grid o_t (n x q x q). In 2D the view *is* the ground projection (thesis:
+  crop + resize, here already q x q); 3D ground projection is :func:`ground_project`.
+* **localise**: the bank of the r = 4 rotations of o_t (``torch.rot90``: exact quarter turns) is
+  cross-correlated with the memory psi_{t-1} (n x U x U) - one grouped ``conv2d`` for the batch -
+  and a softmax (with a learned inverse temperature) turns the responses into the pose field
+  p_t (r x U x U): rotation and position of the view's centre in the first observation's frame.
+  The first observation is registered at the centre without rotation.
+* **register**: the registered features ô_t = p_t * o'_t (the transposed convolution with the same
+  bank: a soft, differentiable placement; uncertainty blurs ô_t), and the registered view mask.
+* **memorise**: psi_t = LSTM(psi_{t-1}, ô_t) with one LSTM cell shared by every memory cell (each cell
+  updated independently, as MapNet); a second shared LSTM cell updates the occupancy b_t from the
+  registered view mask.
+* **anamnesis (recall)**: for a requested pose, the q x q window of psi at that position, turned back by
+  its heading (geometric culling), masked by the view field (-1 outside, thesis Eq. 4.7), goes
+  through the decoder (a shallow ResNet) to an image.
+* **hallucination**: an auto-encoder on the memory (spectral norm, one SAGAN self-attention layer)
+  fills unobserved cells; it is trained to predict views not yet observed (L_hallu) while leaving
+  observed cells unchanged (L_corrupt, masked by the occupancy), against a spectral-normalised
+  patch discriminator on culled windows (L_disc).
+
+Deviations from the thesis, on purpose: quarter-turn rotations only (exact on the grid; the thesis'
++-45 deg agent needs resampling); the hallucination AE has one self-attention layer instead of two
+(CPU budget); memory cells are image pixels (bin = 1 px) in 2D.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "Hallucinator", "PatchDiscriminator",
+           "rotation_bank", "init_weights", "correlate", "register"]
+
+from dataclasses import dataclass
+
+
+@dataclass
+class MemoryConfig:
+    """Sizes of the model (saved with the weights)."""
+
+    channels: int = 3
+    """Image channels C (3 RGB, 4 RGB-D)."""
+    features: int = 16
+    """Feature size n of the memory cells."""
+    view: int = 15
+    """Side q of the egocentric grid (odd)."""
+    memory: int = 71
+    """Side U of the allocentric memory (odd): must hold every position the agent reaches from its start."""
+    width: int = 32
+    """Channels inside the encoder/decoder ResNets."""
+    rotations: int = 4
+    """Headings r (quarter turns)."""
+    search: int = 16
+    """Localisation searches positions within +-search cells of the previous estimate."""
+
+
+class ResBlock(nn.Module):
+    def __init__(self, c: int):
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(c, c, 3, padding=1), nn.InstanceNorm2d(c, affine=True),
+                                  nn.LeakyReLU(0.2), nn.Conv2d(c, c, 3, padding=1), nn.InstanceNorm2d(c, affine=True))
+
+    def forward(self, x):
+        return F.leaky_relu(x + self.body(x), 0.2)
+
+
+class Encoder(nn.Module):
+    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q)."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        w = cfg.width
+        self.net = nn.Sequential(nn.Conv2d(cfg.channels, w, 3, padding=1), nn.LeakyReLU(0.2),
+                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.features, 1))
+
+    def forward(self, x):
+        return self.net(x)
+
+
+class Decoder(nn.Module):
+    """culled window (B, n + 1, q, q) (features + view-field channel) -> image (B, C, q, q) in [-1, 1]."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        w = cfg.width
+        self.net = nn.Sequential(nn.Conv2d(cfg.features + 1, w, 3, padding=1), nn.LeakyReLU(0.2),
+                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.channels, 3, padding=1), nn.Tanh())
+
+    def forward(self, x):
+        return self.net(x)
+
+
+class SelfAttention(nn.Module):
+    """SAGAN self-attention: o + gamma * (W_h o) softmax((W_f o)^T (W_g o))."""
+
+    def __init__(self, c: int):
+        super().__init__()
+        k = max(c // 8, 1)
+        sn = nn.utils.spectral_norm
+        self.f, self.g, self.h = sn(nn.Conv2d(c, k, 1)), sn(nn.Conv2d(c, k, 1)), sn(nn.Conv2d(c, c, 1))
+        self.gamma = nn.Parameter(torch.zeros(1))
+
+    def forward(self, x):
+        B, C, H, W = x.shape
+        f, g, h = self.f(x).flatten(2), self.g(x).flatten(2), self.h(x).flatten(2)
+        att = torch.softmax(f.transpose(1, 2) @ g, dim=-1)          # (B, HW, HW)
+        return x + self.gamma * (h @ att.transpose(1, 2)).view(B, C, H, W)
+
+
+class Hallucinator(nn.Module):
+    """Memory (B, n + 1, U, U) (features + occupancy) -> hole-filled features (B, n, U, U)."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        sn = nn.utils.spectral_norm
+        w, n = cfg.width, cfg.features
+        self.down = nn.Sequential(sn(nn.Conv2d(n + 1, w, 4, 2, 1)), nn.LeakyReLU(0.2),
+                                  sn(nn.Conv2d(w, w, 4, 2, 1)), nn.LeakyReLU(0.2))
+        self.att = SelfAttention(w)
+        self.up = nn.Sequential(nn.ConvTranspose2d(w, w, 4, 2, 1), nn.LeakyReLU(0.2),
+                                nn.ConvTranspose2d(w, w, 4, 2, 1), nn.LeakyReLU(0.2))
+        self.out = nn.Conv2d(w + n + 1, n, 3, padding=1)
+
+    def forward(self, psi, occ):
+        x = torch.cat([psi, occ], 1)
+        U = x.shape[-1]
+        y = self.up(self.att(self.down(x)))
+        y = F.interpolate(y, size=(U, U), mode="bilinear", align_corners=False) if y.shape[-1] != U else y
+        filled = self.out(torch.cat([y, x], 1))
+        return occ * psi + (1 - occ) * filled    # observed cells pass through (L_corrupt checks the rest)
+
+
+class PatchDiscriminator(nn.Module):
+    """Culled windows (B, n, q, q) -> realism logits (B, 1, q', q')."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        sn = nn.utils.spectral_norm
+        w = cfg.width
+        self.net = nn.Sequential(sn(nn.Conv2d(cfg.features, w, 3, 1, 1)), nn.LeakyReLU(0.2),
+                                 sn(nn.Conv2d(w, w, 4, 2, 1)), nn.LeakyReLU(0.2), SelfAttention(w),
+                                 sn(nn.Conv2d(w, 1, 3, 1, 1)))
+
+    def forward(self, x):
+        return self.net(x)
+
+
+def init_weights(m: nn.Module) -> None:
+    """Weights ~ N(0, 0.02) (thesis 4.4.1)."""
+    for mod in m.modules():
+        if isinstance(mod, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+            wt = getattr(mod, "weight_orig", mod.weight)
+            nn.init.normal_(wt, 0.0, 0.02)
+            if mod.bias is not None:
+                nn.init.zeros_(mod.bias)
+
+
+def rotation_bank(o: torch.Tensor, r: int = 4) -> torch.Tensor:
+    """(B, n, q, q) -> (B, r, n, q, q): o turned by k quarter turns counter-clockwise, k = 0..r-1."""
+    return torch.stack([torch.rot90(o, k, dims=(2, 3)) for k in range(r)], 1)
+
+
+def correlate(window: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
+    """Cross-correlation of a memory window (B, n, W, W) with a rotation bank (B, r, n, q, q): (B, r, P, P)
+    responses, P = W - q + 1, response (k, i, j) = sum of window[:, i:i+q, j:j+q] * bank[k] (one grouped
+    convolution for the batch)."""
+    B, r, n, q, _ = bank.shape
+    W = window.shape[-1]
+    return F.conv2d(window.reshape(1, B * n, W, W), bank.reshape(B * r, n, q, q), groups=B).view(B, r, W - q + 1,
+                                                                                                  W - q + 1)
+
+
+def register(field: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
+    """The adjoint of :func:`correlate`: a pose field (B, r, P, P) placing the bank (B, r, c, q, q) ->
+    (B, c, P + q - 1, P + q - 1); a one-hot field pastes bank[k] at (i, j)."""
+    B, r, c, q, _ = bank.shape
+    P = field.shape[-1]
+    return F.conv_transpose2d(field.reshape(1, B * r, P, P), bank.reshape(B * r, c, q, q), groups=B).view(
+        B, c, P + q - 1, P + q - 1)
+
+
+class NeuralMemory(nn.Module):
+    """Encoder, localisation, registration, LSTM memory, culling, decoder, hallucination."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg)
+        self.decoder = Decoder(cfg)
+        self.lstm = nn.LSTMCell(cfg.features, cfg.features)
+        self.occ_lstm = nn.LSTMCell(1, 1)
+        self.hallucinator = Hallucinator(cfg)
+        self.log_beta = nn.Parameter(torch.tensor(0.0))
+        init_weights(self)
+
+    def one_hot(self, poses: torch.Tensor) -> torch.Tensor:
+        """(B, 3) allocentric poses (row offset, col offset, heading) -> (B, r, U, U) one-hot fields."""
+        B = poses.shape[0]
+        U, c = self.cfg.memory, self.cfg.memory // 2
+        f = torch.zeros(B, self.cfg.rotations, U, U, device=poses.device)
+        f[torch.arange(B), poses[:, 2] % self.cfg.rotations, poses[:, 0] + c, poses[:, 1] + c] = 1.0
+        return f
+
+    # ------------------------------------------------------------------ a sequence
+    def forward(self, obs: torch.Tensor, view_mask: torch.Tensor, teacher: torch.Tensor | None = None):
+        """Register a sequence.
+
+        obs (B, T, C, q, q) in [-1, 1]; view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at
+        these allocentric poses instead of the predicted field (training warm-up), or None.
+
+        Localisation searches a window of (2 R + 1)^2 positions (R = :attr:`MemoryConfig.search`) around the
+        previous estimate (the agent moves at most 3/4 of its view per step): a grouped convolution of
+        that memory window with the rotation bank. This local search is a deviation from the thesis'
+        whole-map correlation, for speed on a CPU (the whole 71x71 map has 5x the window's positions); the
+        LSTMs then update every memory cell, as MapNet does (cells outside the registered view get a zero
+        input).
+
+        Returns dict: psi (B, n, U, U), occ (B, 1, U, U), logits (B, T, r, P, P) local logits (t = 0 zeros),
+        fields (B, T, r, P, P), centres (B, T, 2) allocentric centre of each window, estimates (B, T, 3)."""
+        B, T = obs.shape[:2]
+        cfg = self.cfg
+        U, n, q, r, R = cfg.memory, cfg.features, cfg.view, cfg.rotations, cfg.search
+        h2 = q // 2
+        Wp = 2 * R + 1                 # positions per axis
+        Wc = Wp + 2 * h2               # memory cells per axis touched by the window
+        if Wc > U:
+            raise ValueError(f"search window {Wc} cells is larger than the memory {U}")
+        Up = U
+        feats = self.encoder(obs.flatten(0, 1)).view(B, T, n, q, q)
+        m = view_mask.to(obs.dtype)[None, None].expand(B, 1, q, q)
+        mbank = rotation_bank(m, r)                                             # (B, r, 1, q, q)
+        h = obs.new_zeros(B * Up * Up, n)
+        c = obs.new_zeros(B * Up * Up, n)
+        oh = obs.new_zeros(B * Up * Up, 1)
+        oc = obs.new_zeros(B * Up * Up, 1)
+        est = torch.zeros(B, 3, dtype=torch.long, device=obs.device)            # (row, col, heading)
+        bi = torch.arange(B, device=obs.device)[:, None, None]
+        off = torch.arange(Wc, device=obs.device)
+        logits, fields, centres, ests = [], [], [], []
+        for t in range(T):
+            bank = rotation_bank(feats[:, t] * m, r)                            # (B, r, n, q, q)
+            want = est[:, :2].clone() if teacher is None or t == 0 else teacher[:, t - 1, :2].clone()
+            # the window starts R + q//2 cells before the wanted centre, moved inside the memory at its borders;
+            # ``centre`` is the allocentric position of the window's middle (field index R, R)
+            start = (want + U // 2 - R - h2).clamp(0, U - Wc)
+            centre = start + R + h2 - U // 2
+            ri = start[:, 0][:, None, None] + off[None, :, None]                # (B, Wc, 1)
+            ci = start[:, 1][:, None, None] + off[None, None, :]                # (B, 1, Wc)
+            if t == 0:       # the first view: at the origin, unrotated
+                field = self._local_one_hot(torch.zeros(B, 3, dtype=torch.long, device=obs.device), centre, Wp)
+                lg = obs.new_zeros(B, r, Wp, Wp)
+            else:
+                hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
+                lg = correlate(hw, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
+                field = torch.softmax(lg.flatten(1), 1).view_as(lg)
+                if teacher is not None:
+                    field = self._local_one_hot(teacher[:, t], centre, Wp)
+            reg = register(field, bank)                                         # (B, n, Wc, Wc)
+            regm = register(field, mbank).clamp(0, 1)
+            x = obs.new_zeros(B, Up, Up, n).index_put((bi, ri, ci), reg.permute(0, 2, 3, 1))
+            xm = obs.new_zeros(B, Up, Up, 1).index_put((bi, ri, ci), regm.permute(0, 2, 3, 1))
+            h, c = self.lstm(x.view(-1, n), (h, c))                             # every cell, shared weights
+            oh, oc = self.occ_lstm(xm.view(-1, 1), (oh, oc))
+            idx = field.flatten(1).argmax(1)
+            k, rem = idx // (Wp * Wp), idx % (Wp * Wp)
+            est = torch.stack([centre[:, 0] + rem // Wp - R, centre[:, 1] + rem % Wp - R, k], 1).detach()
+            logits.append(lg)
+            fields.append(field)
+            centres.append(centre)
+            ests.append(est)
+        psi = h.view(B, U, U, n).permute(0, 3, 1, 2)
+        occ = torch.sigmoid(oh.view(B, U, U, 1).permute(0, 3, 1, 2))
+        return {"psi": psi, "occ": occ, "logits": torch.stack(logits, 1), "fields": torch.stack(fields, 1),
+                "centres": torch.stack(centres, 1), "estimates": torch.stack(ests, 1), "features": feats}
+
+    def _local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
+        """(B, r, Wp, Wp) one-hot of allocentric ``poses`` in windows centred on ``centre`` (all zero when
+        the pose is outside its window)."""
+        B = poses.shape[0]
+        R = Wp // 2
+        f = torch.zeros(B, self.cfg.rotations, Wp, Wp, device=poses.device)
+        d = poses[:, :2] - centre + R
+        ok = ((d >= 0) & (d < Wp)).all(1)
+        b = torch.nonzero(ok).flatten()
+        f[b, poses[b, 2] % self.cfg.rotations, d[b, 0], d[b, 1]] = 1.0
+        return f
+
+    # ------------------------------------------------------------------ recall
+    def cull(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
+        """(B, n, U, U) memory, (B, 3) allocentric poses -> (B, n + 1, q, q) culled windows: the window at the
+        pose, turned back to the agent's heading, -1 outside the view field, plus the view-field channel."""
+        q, c = self.cfg.view, self.cfg.memory // 2
+        pad = q // 2
+        P = F.pad(psi, (pad, pad, pad, pad))
+        wins = []
+        for b in range(psi.shape[0]):
+            r0, c0 = int(poses[b, 0]) + c, int(poses[b, 1]) + c
+            win = P[b, :, r0:r0 + q, c0:c0 + q]
+            wins.append(torch.rot90(win, -int(poses[b, 2]), dims=(1, 2)))
+        w = torch.stack(wins)
+        m = view_mask.to(psi.dtype)[None, None]
+        return torch.cat([w * m - (1 - m), m.expand(w.shape[0], 1, q, q)], 1)
+
+    def recall(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
+        """(B, C, q, q) decoded views of the memory at the allocentric ``poses``."""
+        return self.decoder(self.cull(psi, poses, view_mask))
+
+    def hallucinate(self, psi: torch.Tensor, occ: torch.Tensor) -> torch.Tensor:
+        return self.hallucinator(psi, occ)
+

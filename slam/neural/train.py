@@ -1,0 +1,314 @@
+"""Training the neural memory (thesis 4.3-4.4.1), in three phases, resumable.
+
+1. ``pretrain`` (``pretrain_steps``): encoder and decoder as an auto-encoder of single views.
+2. ``memory``: encoder, LSTMs, decoder on whole sequences: L_loc (binary cross-entropy between the
+   pose field and the one-hot true pose, thesis Eq. 4.6) + L_anam (L1 of the recalled views at
+   the true poses). Registration uses the predicted field; during the first ``teacher_steps`` it
+   uses the true pose with a probability falling linearly from 1 to 0 (teacher forcing: without
+   it the memory is noise while localisation is still random, and neither learns - a deviation
+   from the thesis, which does not describe how it starts).
+3. ``hallucination`` (after ``hallucination_from``): the hallucination AE on the final memory,
+   L_hallu (L1 of views at the poses the agent visits *after* the first ``observe`` steps,
+   decoded from the hole-filled memory of those first steps) + L_corrupt (masked by occupancy) +
+   the non-saturating GAN loss against the patch discriminator (trained on culled windows of the
+   full memory as real, of the hole-filled partial memory at unvisited poses as fake).
+
+Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every
+``checkpoint_every`` steps (models, optimisers, step, random states): a re-run continues there.
+"""
+from __future__ import annotations
+
+import io
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from data_tools.errors import ConfigError, FormatError
+
+__all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
+           "load_model"]
+
+CKPT_FORMAT = "realgap-neural-memory"
+CKPT_VERSION = 1
+
+
+@dataclass
+class NeuralTrainConfig:
+    """How the memory is trained (saved with the weights)."""
+
+    mode: str = "2d"
+    """2d (agents on images) or 3d (RGB-D sequences)."""
+    agent: str = "front"
+    """2D agent: square (360 deg view, translates) or front (180 deg view, turns by 90 deg)."""
+    image: int = 43
+    """Side of the 2D environments, pixels."""
+    steps: int = 10
+    """Observations per training sequence."""
+    observe: int = 5
+    """Hallucination: the first ``observe`` steps are memorised, the rest are to be predicted."""
+    batch: int = 8
+    """Sequences per step."""
+    iterations: int = 3000
+    """Optimiser steps in all (pretraining included)."""
+    pretrain_steps: int = 300
+    teacher_steps: int = 800
+    """Steps (after pretraining) over which teacher-forced registration fades out."""
+    hallucination_from: int = 2000
+    """Step at which the hallucination module joins."""
+    lr: float = 2e-4
+    loc_weight: float = 1.0
+    checkpoint_every: int = 200
+    log_every: int = 50
+    seed: int = 0
+    device: str = "cpu"
+    features: int = 16
+    width: int = 32
+
+    def validate(self) -> "NeuralTrainConfig":
+        if self.mode not in ("2d", "3d"):
+            raise ConfigError(f"--mode must be 2d or 3d, got {self.mode!r}")
+        from slam.neural.data2d import AGENTS
+        if self.agent not in AGENTS:
+            raise ConfigError(f"unknown agent {self.agent!r}; choose {', '.join(AGENTS)}")
+        for k in ("steps", "batch", "iterations", "checkpoint_every", "log_every", "features", "width"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        if not 1 <= self.observe < self.steps:
+            raise ConfigError(f"observe must be in 1..steps-1, got {self.observe}")
+        return self
+
+
+TRAIN_PRESETS = {
+    "cpu": NeuralTrainConfig(),
+    "gpu": NeuralTrainConfig(batch=32, iterations=30000, pretrain_steps=2000, teacher_steps=5000,
+                             hallucination_from=15000, features=32, width=64, device="cuda"),
+}
+
+
+def memory_config(cfg: NeuralTrainConfig):
+    from slam.neural.data2d import AGENTS
+    from slam.neural.model import MemoryConfig
+    q = AGENTS[cfg.agent].view
+    reach = cfg.image - q                  # the largest offset from the start the agent can reach
+    U = 2 * reach + q
+    return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
+                        search=min(3 * q // 4 + 5, (U - q) // 2))
+
+
+@dataclass
+class TrainLog:
+    steps: list = field(default_factory=list)
+    seconds: float = 0.0
+    resumed_from: int = 0
+
+
+def _loc_loss(logits, truth_field):
+    """Thesis Eq. 4.6 per step: -[p log p~ + (1 - p) log(1 - p~)] summed over the field, averaged over t >= 1."""
+    import torch
+    B, T = logits.shape[:2]
+    lg = logits[:, 1:].flatten(2)
+    logp = torch.log_softmax(lg, -1)
+    p = truth_field[:, 1:].flatten(2)
+    inside = p.sum(-1) > 0                  # the true pose lies in the searched window
+    pos = -(p * logp).sum(-1)
+    neg = -((1 - p) * torch.log1p(-logp.exp().clamp(max=1 - 1e-6))).sum(-1)
+    return ((pos + neg) * inside).sum() / inside.sum().clamp(min=1)
+
+
+def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, progress: bool = True,
+                 log: Callable[[str], None] | None = None):
+    """Train; returns (model, discriminator, TrainLog)."""
+    import torch
+
+    from slam.neural.data2d import AGENTS, make_batch, view_mask
+    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights
+    cfg.validate()
+    if cfg.mode != "2d":
+        raise ConfigError("--mode 3d training is not built yet (2d works; see the issue notes)")
+    dev = torch.device(cfg.device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
+    torch.manual_seed(cfg.seed)
+    mcfg = memory_config(cfg)
+    model = NeuralMemory(mcfg).to(dev)
+    disc = PatchDiscriminator(mcfg).to(dev)
+    init_weights(disc)
+    main_params = [p for n, p in model.named_parameters() if not n.startswith("hallucinator")]
+    opt = torch.optim.Adam(main_params, lr=cfg.lr, betas=(0.5, 0.999))
+    opt_h = torch.optim.Adam(model.hallucinator.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
+    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
+    rng = np.random.default_rng(cfg.seed)
+    agent = AGENTS[cfg.agent]
+    vm = torch.from_numpy(view_mask(agent).astype(np.float32)).to(dev)
+    tlog = TrainLog()
+    start = 0
+    ck = Path(checkpoint) if checkpoint else None
+    if ck is not None and ck.is_file():
+        try:
+            st = torch.load(ck, map_location=dev, weights_only=False)
+            model.load_state_dict(st["model"])
+            disc.load_state_dict(st["disc"])
+            opt.load_state_dict(st["opt"])
+            opt_h.load_state_dict(st["opt_h"])
+            opt_d.load_state_dict(st["opt_d"])
+            rng.bit_generator.state = st["rng"]
+            torch.set_rng_state(st["torch_rng"])
+            start = int(st["step"])
+            tlog.steps = list(st.get("log", []))
+        except Exception as e:
+            raise FormatError(ck, f"unreadable training checkpoint ({type(e).__name__}); delete it to start again") \
+                from None
+        tlog.resumed_from = start
+        if log is not None:
+            log(f"resuming training at step {start} of {cfg.iterations} from {ck}")
+
+    def save(step: int) -> None:
+        if ck is None:
+            return
+        from data_tools.results import atomic_write_bytes
+        buf = io.BytesIO()
+        torch.save({"model": model.state_dict(), "disc": disc.state_dict(), "opt": opt.state_dict(),
+                    "opt_h": opt_h.state_dict(), "opt_d": opt_d.state_dict(), "rng": rng.bit_generator.state,
+                    "torch_rng": torch.get_rng_state(), "step": step, "log": tlog.steps}, buf)
+        atomic_write_bytes(ck, buf.getvalue())
+
+    bar = None
+    if progress:
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=cfg.iterations, initial=start, desc="training neural memory", unit="step")
+    acc: dict[str, float] = {}
+    t0 = time.perf_counter()
+    model.train()
+    for step in range(start, cfg.iterations):
+        imgs, obs, poses, allo = make_batch(rng, cfg.batch, agent, cfg.steps, cfg.image)
+        obs_t = torch.from_numpy(obs).to(dev)
+        allo_t = torch.from_numpy(allo).to(dev)
+        losses = {}
+        if step < cfg.pretrain_steps:
+            x = obs_t.flatten(0, 1)
+            f = model.encoder(x) * vm
+            rec = model.decoder(torch.cat([f - (1 - vm), vm.expand(len(x), 1, *vm.shape)], 1))
+            loss = (torch.abs(rec - x) * vm).mean()
+            losses["anam"] = float(loss)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        else:
+            s = step - cfg.pretrain_steps
+            p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
+            teacher = allo_t if rng.random() < p_teacher else None
+            out = model(obs_t, vm, teacher)
+            Wp = out["logits"].shape[-1]
+            truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+                                 for t in range(cfg.steps)], 1)
+            l_loc = _loc_loss(out["logits"], truth)
+            B, T = obs.shape[:2]
+            rec = model.recall(out["psi"].repeat_interleave(T, 0), allo_t.flatten(0, 1), vm)
+            l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * vm).mean()
+            loss = cfg.loc_weight * l_loc + l_anam
+            losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if step >= cfg.hallucination_from:
+                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg))
+        for k, v in losses.items():
+            acc[k] = acc.get(k, 0.0) + v
+        acc["n"] = acc.get("n", 0) + 1
+        if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.iterations:
+            rec_ = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
+            tlog.steps.append(rec_)
+            acc = {}
+            if bar is not None:
+                bar.set_postfix_str(" ".join(f"{k} {v:.3f}" for k, v in rec_.items() if k != "step"))
+        if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
+            save(step + 1)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    tlog.seconds = time.perf_counter() - t0
+    save(cfg.iterations)
+    model.eval()
+    return model, disc, tlog
+
+
+def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg) -> dict:
+    """One hallucination update: memorise the first ``observe`` steps (no gradient into the memory
+    path), fill the holes, predict the later views; discriminator on culled windows."""
+    import torch
+    import torch.nn.functional as F
+    B, T = obs_t.shape[:2]
+    k = cfg.observe
+    with torch.no_grad():
+        part = model(obs_t[:, :k], vm, allo_t[:, :k])
+        full = model(obs_t, vm, allo_t)
+    filled = model.hallucinate(part["psi"], part["occ"])
+    later = allo_t[:, k:].flatten(0, 1)
+    rec = model.recall(filled.repeat_interleave(T - k, 0), later, vm)
+    l_hallu = (torch.abs(rec - obs_t[:, k:].flatten(0, 1)) * vm).mean()
+    l_corrupt = (torch.abs(filled - part["psi"]) * part["occ"]).mean()
+    fake = model.cull(filled.repeat_interleave(T - k, 0), later, vm)[:, :-1]
+    real = model.cull(full["psi"].repeat_interleave(T - k, 0), later, vm)[:, :-1]
+    l_gan = F.softplus(-disc(fake)).mean()
+    loss = l_hallu + l_corrupt + 0.05 * l_gan
+    opt_h.zero_grad(set_to_none=True)
+    loss.backward()
+    opt_h.step()
+    d_loss = F.softplus(-disc(real.detach())).mean() + F.softplus(disc(fake.detach())).mean()
+    opt_d.zero_grad(set_to_none=True)
+    d_loss.backward()
+    opt_d.step()
+    return {"hallu": float(l_hallu), "corrupt": float(l_corrupt), "disc": float(d_loss)}
+
+
+def save_model(folder: str | Path, model, cfg: NeuralTrainConfig, info: dict | None = None) -> Path:
+    """MODEL/weights.pt (state dict) + MODEL/neural.json (format, version, configs, info)."""
+    import torch
+
+    from data_tools.results import atomic_write_bytes, atomic_write_json
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    buf = io.BytesIO()
+    torch.save(model.state_dict(), buf)
+    atomic_write_bytes(folder / "weights.pt", buf.getvalue())
+    atomic_write_json(folder / "neural.json", {"format": CKPT_FORMAT, "version": CKPT_VERSION, "train": asdict(cfg),
+                                               "memory": asdict(model.cfg), "info": info or {}})
+    return folder
+
+
+def load_model(folder: str | Path):
+    """(NeuralMemory in eval mode, NeuralTrainConfig, info) of a saved model; one-line errors."""
+    import json
+
+    import torch
+
+    from data_tools.config import config_from_dict
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    folder = Path(folder)
+    meta_p = folder / "neural.json"
+    if folder.is_file() or not meta_p.is_file():
+        raise FormatError(folder, "not a neural-memory model folder (neural.json missing; made by 'realgap neural train')")
+    try:
+        meta = json.loads(meta_p.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise FormatError(meta_p, f"not valid JSON ({e})") from None
+    if meta.get("format") != CKPT_FORMAT:
+        raise FormatError(meta_p, f"not a {CKPT_FORMAT} file")
+    if meta.get("version") != CKPT_VERSION:
+        raise FormatError(meta_p, f"model format version {meta.get('version')!r}, this realgap reads {CKPT_VERSION}")
+    cfg = config_from_dict(NeuralTrainConfig, meta["train"], str(meta_p))
+    mcfg = config_from_dict(MemoryConfig, meta["memory"], str(meta_p))
+    model = NeuralMemory(mcfg)
+    try:
+        model.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
+    except FileNotFoundError:
+        raise FormatError(folder / "weights.pt", "file not found") from None
+    except Exception as e:
+        raise FormatError(folder / "weights.pt", f"weights do not fit the model ({type(e).__name__}: "
+                                                 f"{str(e).splitlines()[0][:80]})") from None
+    model.eval()
+    return model, cfg, meta.get("info", {})

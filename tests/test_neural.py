@@ -1,0 +1,124 @@
+"""The neural memory (slam/neural): 2D walk geometry, correlation/registration round trip (the pose
+field of a view against a memory built from it peaks at the true shift and rotation), culling,
+save -> load, a short training that lowers L_loc, thesis SSIM by hand, bad checkpoints."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from slam.neural.data2d import AGENTS, allocentric, environment, make_batch, view_mask, walk  # noqa: E402
+from slam.neural.model import MemoryConfig, NeuralMemory, correlate, register, rotation_bank  # noqa: E402
+
+
+@pytest.mark.parametrize("agent", ["square", "front"])
+def test_walk_views_agree_in_the_allocentric_frame(agent):
+    """Observations pasted at their allocentric poses form one consistent picture: every view equals
+    the crop of the final mosaic at its pose (the geometry of walk/allocentric/rot90 is right)."""
+    from slam.neural.evaluate import _mosaic_views
+    rng = np.random.default_rng(3)
+    a = AGENTS[agent]
+    img = environment(rng, 43)
+    obs, poses = walk(img, a, 10, rng)
+    allo = allocentric(poses)
+    assert (allo[0] == 0).all() and len(set(map(tuple, poses[:, :2]))) > 3
+    if agent == "front":
+        assert len(set(poses[:, 2])) > 1                     # it turns
+    mask = view_mask(a)
+    crops = _mosaic_views(obs, allo, mask, 2 * (43 - a.view) + a.view, 10, allo)
+    for t in range(10):
+        np.testing.assert_allclose(crops[t][:, mask], obs[t][:, mask], atol=1.5 / 127.5)
+
+
+def test_pose_field_peaks_at_the_true_shift_and_rotation():
+    rng = np.random.default_rng(0)
+    B, n, q, W = 2, 3, 7, 25
+    view = torch.from_numpy(rng.normal(size=(B, n, q, q)).astype(np.float32))
+    P = W - q + 1
+    field = torch.zeros(B, 4, P, P)
+    field[0, 1, 5, 9] = 1.0           # rotation 1, at (5, 9)
+    field[1, 3, 12, 2] = 1.0
+    memory = register(field, rotation_bank(view))     # a memory holding the view at those poses
+    resp = correlate(memory, rotation_bank(view))
+    for b, (k, i, j) in enumerate(((1, 5, 9), (3, 12, 2))):
+        flat = int(resp[b].flatten().argmax())
+        assert (flat // (P * P), (flat % (P * P)) // P, flat % P) == (k, i, j)
+    # register is the adjoint of correlate: <register(f, b), m> == <f, correlate(m, b)>
+    m = torch.randn(B, n, W, W)
+    f = torch.randn(B, 4, P, P)
+    lhs = (register(f, rotation_bank(view)) * m).sum()
+    rhs = (f * correlate(m, rotation_bank(view))).sum()
+    assert float(lhs) == pytest.approx(float(rhs), rel=1e-4)
+
+
+def test_culling_masks_outside_the_view_and_recalls_what_was_registered():
+    cfg = MemoryConfig(channels=3, features=2, view=5, memory=11, width=4, search=3)
+    model = NeuralMemory(cfg)
+    psi = torch.arange(2 * 11 * 11, dtype=torch.float32).view(1, 2, 11, 11)
+    vm = torch.from_numpy(view_mask(AGENTS["front"])[:5, :5] if False else np.r_[np.ones((3, 5)), np.zeros((2, 5))]
+                          .astype(np.float32))
+    win = model.cull(psi, torch.tensor([[1, -2, 0]]), vm)
+    assert win.shape == (1, 3, 5, 5)
+    np.testing.assert_array_equal(win[0, 0, :3].numpy(), psi[0, 0, 4:7, 1:6].numpy())   # centre (6, 3)
+    assert (win[0, :2, 3:] == -1).all() and (win[0, 2, 3:] == 0).all() and (win[0, 2, :3] == 1).all()
+    turned = model.cull(psi, torch.tensor([[1, -2, 1]]), torch.ones(5, 5))
+    np.testing.assert_array_equal(turned[0, 0].numpy(), torch.rot90(psi[0, 0, 4:9, 1:6], -1).numpy())
+
+
+def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
+    from slam.neural.train import NeuralTrainConfig, _loc_loss, load_model, memory_config, save_model
+    torch.manual_seed(0)
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=8, width=8)
+    model = NeuralMemory(memory_config(cfg))
+    rng = np.random.default_rng(1)
+    _, obs, _, allo = make_batch(rng, 4, AGENTS[cfg.agent], 4, 23)
+    o, a = torch.from_numpy(obs), torch.from_numpy(allo)
+    vm = torch.from_numpy(view_mask(AGENTS[cfg.agent]).astype(np.float32))
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+
+    def loss():
+        out = model(o, vm, a)                                   # teacher registration: a fixed target
+        Wp = out["logits"].shape[-1]
+        truth = torch.stack([model._local_one_hot(a[:, t], out["centres"][:, t], Wp) for t in range(4)], 1)
+        return _loc_loss(out["logits"], truth)
+    first = float(loss().detach())
+    for _ in range(25):
+        opt.zero_grad()
+        lv = loss()
+        lv.backward()
+        opt.step()
+    assert float(loss().detach()) < 0.7 * first
+    save_model(tmp_path / "m", model, cfg)
+    back, cfg2, _ = load_model(tmp_path / "m")
+    with torch.no_grad():
+        x, y = model.eval()(o, vm, None), back(o, vm, None)
+    assert torch.equal(x["psi"], y["psi"]) and torch.equal(x["estimates"], y["estimates"])
+    # bad checkpoints: another version, another shape -> one line naming the file
+    from data_tools.errors import FormatError
+    meta = json.loads((tmp_path / "m" / "neural.json").read_text())
+    meta["version"] = 7
+    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    with pytest.raises(FormatError, match="version"):
+        load_model(tmp_path / "m")
+    meta["version"] = 1
+    meta["memory"]["features"] = 16
+    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    with pytest.raises(FormatError, match="weights.pt.*do not fit"):
+        load_model(tmp_path / "m")
+
+
+def test_thesis_ssim_by_hand():
+    from slam.neural.evaluate import rigid_ate, ssim_thesis
+    a = np.random.default_rng(0).random((10, 10))
+    assert ssim_thesis(a, a) == pytest.approx(1.0)
+    assert ssim_thesis(a, 1 - a) < 0
+    # a constant shift of the means only: per window (2 mu mu' + c1) / (mu^2 + mu'^2 + c1)
+    b = np.full((5, 5), 0.2)
+    assert ssim_thesis(b, b + 0.1) == pytest.approx((2 * 0.2 * 0.3 + 0.001) / (0.04 + 0.09 + 0.001))
+    # ATE is invariant to a rigid motion of the estimate
+    gt = np.random.default_rng(1).normal(size=(8, 2))
+    R = np.array([[0.6, -0.8], [0.8, 0.6]])
+    assert rigid_ate(gt @ R.T + [3, -1], gt) == pytest.approx(0.0, abs=1e-9)
