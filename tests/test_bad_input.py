@@ -255,6 +255,9 @@ CASES = [
     ("view: not a lab folder", ["view", "--lab", "{S}", "--screenshot", "{T}/v.png"], _nothing, ["lab_config.json"]),
     ("view: existing screenshot", ["view", "{S}", "--screenshot", "{T}/traj.txt"], _nothing,
      ["traj.txt", "--overwrite"]),
+    ("neural eval: not a model", ["neural", "eval", "{S}"], _nothing, ["neural.json"]),
+    ("neural train: existing model", ["neural", "train", "--out", "{T}/N"],
+     lambda t: (t / "N").mkdir() or _write(t / "N" / "neural.json", "{}"), ["--overwrite"]),
     # show / demo
     ("show: not a result", ["show", "{S}/camera.json"], _nothing, ["camera.json"]),
     ("show: corrupt JSON", ["show", "{T}/r.json"], lambda t: _write(t / "r.json", "{\"header\": "), ["r.json"]),
