@@ -86,6 +86,11 @@ def test_scripted_interaction_updates_panes(seq_and_run, offscreen_ok):
     rgb0, depth0 = v.pane_images["rgb"].copy(), v.pane_images["depth"].copy()
     v.set_frame(10)
     assert v.frame == 10
+    grown = len(v._cloud_frames)
+    assert grown >= 2 and v._cloud_frames == list(range(0, 11, v._cloud_stride))     # the map grew
+    v.set_frame(2)
+    assert v._cloud_frames == list(range(0, 3, v._cloud_stride))                      # and shrinks going back
+    v.set_frame(10)
     assert not np.array_equal(v.pane_images["rgb"], rgb0)
     assert not np.array_equal(np.nan_to_num(v.pane_images["depth"]), np.nan_to_num(depth0))
     novel0 = v.pane_images["novel_0"].copy()

@@ -361,7 +361,10 @@ def load_session(paths: list[str], lab: str | None = None, recog: list[str] | No
     if lab:
         return LabSession(check_input_dir(lab, "lab folder", "--lab"))
     if recog:
-        return RecogSession(check_input_dir(recog[0], "evaluation folder", "--recog"),
+        ev = Path(recog[0])
+        if ev.is_file() and ev.name.endswith(".json"):      # the eval.json itself
+            ev = ev.parent
+        return RecogSession(check_input_dir(ev, "evaluation folder", "--recog"),
                             check_input_dir(recog[1], "test set folder", "--recog"))
     if not paths:
         raise RealgapError("give a sequence and/or run folders (or --lab LABDIR, --recog EVAL TESTSET)")

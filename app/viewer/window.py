@@ -32,6 +32,7 @@ __all__ = ["Viewer", "check_offscreen"]
 
 HELP = {
     "sequence": ["Right / Left  next / previous frame", "space         play / pause", "Home / End    first / last",
+                 "m             final mesh on/off (the frame points grow with the frames)",
                  "v             virtual camera at this frame", "i / k         virtual camera forward / back",
                  "j / l         turn it left / right", "u / o         raise / lower it",
                  "b             hallucination on/off (neural pane)", "h             this help"],
@@ -180,10 +181,11 @@ class Viewer:
         mesh, what = s.reference_mesh()
         if mesh is not None:
             faces = np.hstack([np.full((len(mesh.triangles), 1), 3), mesh.triangles]).ravel()
-            self.p.add_mesh(pv.PolyData(mesh.vertices, faces), color="#9a9a9a", opacity=0.55, smooth_shading=False)
-            self._cloud_points = None
-        else:
-            self._cloud_points = []     # fused frame points, added as frames are shown
+            self._actors["mesh"] = self.p.add_mesh(pv.PolyData(mesh.vertices, faces), color="#9a9a9a", opacity=0.35,
+                                                   smooth_shading=False)
+        # the map grows with the frames: decimated points of every k-th frame up to the current one
+        self._cloud_stride = max(1, len(s) // 60)
+        self._cloud_frames: list[int] = []
         self._model_label = what
         legend = []
         if s.gt is not None:
@@ -267,6 +269,28 @@ class Viewer:
         self._actors["frusta"] = self.p.add_mesh(poly, scalars="colour", rgb=True, line_width=2,
                                                  show_scalar_bar=False)
 
+    def _grow_cloud(self) -> None:
+        """Show the points of every k-th frame up to the current one (added incrementally going
+        forward, rebuilt going back): the map as it was when this frame arrived."""
+        s, pv = self.s, self.pv
+        want = list(range(0, self.frame + 1, self._cloud_stride))
+        if want[:len(self._cloud_frames)] != self._cloud_frames:      # went back: start again
+            for k in [k for k in self._actors if k.startswith("cloud:")]:
+                self.p.remove_actor(self._actors.pop(k))
+            self._cloud_frames = []
+        self.p.subplot(*self.panes["3d"])
+        for i in want[len(self._cloud_frames):]:
+            pts, col = s.frame_points(i, step=8)
+            self._cloud_frames.append(i)
+            if not len(pts):
+                continue
+            cloud = pv.PolyData(pts)
+            if col is not None:
+                cloud["rgb"] = col
+                self._actors[f"cloud:{i}"] = self.p.add_mesh(cloud, scalars="rgb", rgb=True, point_size=2)
+            else:
+                self._actors[f"cloud:{i}"] = self.p.add_mesh(cloud, color="#aaaaaa", point_size=2)
+
     def _status(self) -> str:
         s = self.s
         ts = s.reader.timestamps[self.frame]
@@ -302,17 +326,7 @@ class Viewer:
         d = np.where(depth > 0, depth, np.nan)
         hi = float(np.nanpercentile(d, 99)) if np.isfinite(d).any() else 1.0
         self._image("depth", d, "measured depth", "turbo", (0.0, max(hi, 0.5)), "depth (m)")
-        if self._cloud_points is not None and (self.frame % max(1, len(s) // 60) == 0):
-            pts, col = s.frame_points(self.frame, step=8)
-            self._cloud_points.append((pts, col))
-            self.p.subplot(*self.panes["3d"])
-            if len(pts):
-                cloud = self.pv.PolyData(pts)
-                if col is not None:
-                    cloud["rgb"] = col
-                    self.p.add_mesh(cloud, scalars="rgb", rgb=True, point_size=2)
-                else:
-                    self.p.add_mesh(cloud, color="#aaaaaa", point_size=2)
+        self._grow_cloud()
         self._frusta()
         self.p.subplot(*self.panes["3d"])
         if "status" in self._actors:
@@ -422,6 +436,12 @@ class Viewer:
         self.pane_images["3d"] = None
 
     # ------------------------------------------------------------------ keys, help, output
+    def toggle_mesh(self) -> None:
+        """Show / hide the final model mesh (the growing frame points stay)."""
+        a = self._actors.get("mesh")
+        if a is not None:
+            a.SetVisibility(not a.GetVisibility())
+
     def toggle_help(self) -> None:
         self.p.subplot(0, 0)
         if self._help_actor is None:
@@ -437,6 +457,7 @@ class Viewer:
         p.add_key_event("Home", lambda: self.set_frame(0))
         p.add_key_event("End", lambda: self.set_frame(len(self.s) - 1))
         p.add_key_event("h", self.toggle_help)
+        p.add_key_event("m", self.toggle_mesh)
         p.add_key_event("space", self._toggle_play)
         if self.kind == "sequence":
             p.add_key_event("v", lambda: self.set_virtual_camera(self.s.pose(self.frame)))
