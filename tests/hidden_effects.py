@@ -261,3 +261,69 @@ def generate(out_dir, effect: str | None, seed: int = 0, n_frames: int = 8, widt
             z = sense(effect, params, renderer, r, T, intr, albedo_of_id, np.random.default_rng([seed, i]))
             w.write(Frame(1.0 + i / 30.0, z, r.rgb, T, i))
     return {"effect": effect, "seed": seed, "scene": scene_name, **params}
+
+
+# ------------------------------------------------------------------------------------------
+# Planar-target captures with a Herrera-style per-pixel disparity distortion
+# ------------------------------------------------------------------------------------------
+
+HERRERA_C0, HERRERA_C1 = 3.1121, -0.0028525
+"""z = 1 / (c1 k + c0) for the raw disparity code k (Kinect-like values, 1/m and 1/m per code)."""
+
+
+def herrera_beta(width: int = WIDTH, height: int = HEIGHT, amplitude: float = 4.0, stripes: float = 1.5,
+                 period_px: float | None = None) -> np.ndarray:
+    """(H, W) beta map in RAW CODES (Herrera's units): a bowl growing to ``amplitude`` codes in the
+    corners plus vertical stripes of ``stripes`` codes (Smisek et al.'s columns)."""
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float64)
+    r2 = ((uu - (width - 1) / 2) ** 2 + (vv - (height - 1) / 2) ** 2) / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
+    period = period_px or width / 5.0
+    return amplitude * r2 + stripes * np.sin(2 * np.pi * uu / period)
+
+
+def herrera_beta_px_at(beta_raw: np.ndarray, z_m: float, alpha: tuple[float, float], fb: float) -> np.ndarray:
+    """The disparity error in PIXELS (measured - true, realgap's d = f b / z) that ``beta_raw`` with
+    Herrera's ``alpha = (a0, a1)`` causes on a surface at depth ``z_m``."""
+    k = (1.0 / z_m - HERRERA_C0) / HERRERA_C1
+    codes_per_px = 1.0 / (fb * HERRERA_C1)                 # dk/dd (negative: codes fall as d rises)
+    return -beta_raw * np.exp(alpha[0] - alpha[1] * k) / codes_per_px
+
+
+def generate_plane_capture(out_dir, distances, beta_raw: np.ndarray | None, alpha=(2.22, 0.003), seed: int = 0,
+                           sigma_k: float = 0.6, width: int = WIDTH, height: int = HEIGHT, tilt_deg: float = 12.0) -> dict:
+    """A hand-held capture of a large flat wall (6 x 6 m) at ``distances`` (m, one frame each, the
+    camera tilted up to ``tilt_deg``), measured through Herrera et al.'s RAW-CODE model, which
+    shares no code with ``synth.sensor``: the true raw code k of each pixel gets Gaussian noise of
+    ``sigma_k`` codes, the distortion makes the device report ``k_meas = k - beta(u, v) exp(a0 -
+    a1 k)`` (the inverse of Herrera's correction ``k + beta exp(a0 - a1 k)``), the code is rounded
+    to an integer (11-bit device) and converted with ``z = 1 / (c1 k + c0)`` (Kinect-like c0, c1).
+    The default alpha makes exp(a0 - a1 k) = 1 at 1 m (k = 740), 0.59 at 2 m, 1.57 at 0.7 m.
+    Writes the TUM layout with poses and scene.json; returns the parameters."""
+    from synth.render import IdealRenderer
+    cam = camera(width, height)
+    intr = cam.intrinsics
+    fb = intr.fx * BASELINE
+    scene = SceneSpec([_quad("wall", "wall", [[-3, 3, -1.5], [3, 3, -1.5], [3, 3, 4.5], [-3, 3, 4.5]],
+                             (0.7, 0.7, 0.7))], {"wall": Material(0.6, 0.0)})
+    renderer = IdealRenderer(scene)
+    rng = np.random.default_rng([seed, 4242])
+    out_dir = Path(out_dir)
+    with SequenceWriter(out_dir, cam, scene, overwrite=True) as w:
+        for i, dist in enumerate(distances):
+            yaw, pitch = np.radians(rng.uniform(-tilt_deg, tilt_deg, size=2))
+            eye = np.array([rng.uniform(-0.3, 0.3), 3.0 - dist, 1.4 + rng.uniform(-0.2, 0.2)])
+            target = eye + np.array([np.sin(yaw), np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
+            T = look_at(eye, target)
+            r = renderer.render(T, intr, with_rgb=True)
+            z = np.where(r.hit, r.depth, 0.0).astype(np.float64)
+            with np.errstate(divide="ignore"):
+                k = np.where(z > 0, (1.0 / np.maximum(z, 1e-9) - HERRERA_C0) / HERRERA_C1, 0.0)
+            k = k + sigma_k * rng.standard_normal(z.shape)
+            if beta_raw is not None:
+                k = k - beta_raw * np.exp(alpha[0] - alpha[1] * k)
+            k = np.round(k)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                zm = np.where(z > 0, 1.0 / (HERRERA_C1 * k + HERRERA_C0), 0.0)
+            zm[(zm < 0.4) | (zm > 6.0) | ~np.isfinite(zm)] = 0.0
+            w.write(Frame(1.0 + i / 30.0, zm.astype(np.float32), r.rgb, T, i))
+    return {"distances": list(map(float, distances)), "alpha": list(alpha), "sigma_k": sigma_k, "fb": fb}

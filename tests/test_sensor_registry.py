@@ -67,6 +67,11 @@ def test_every_parameter_declares_unit_and_plausible_range(name):
                 make_effect({"name": name, "params": {spec.name: int(bad) if spec.type == "int" else bad}})
             msg = str(ei.value)
             assert name in msg and spec.name in msg and "bounds" in msg and "\n" not in msg
+        elif spec.type == "str" and spec.name in effect_class(name).FILE_PARAMS:
+            with pytest.raises(ConfigError) as ei:       # a data file that is not there
+                make_effect({"name": name, "params": {spec.name: "/nonexistent/map.npy"}})
+            msg = str(ei.value)
+            assert name in msg and "/nonexistent/map.npy" in msg and "not found" in msg and "\n" not in msg
         elif spec.type == "str":
             assert spec.choices and spec.default in spec.choices, f"{where}: declare its choices"
             with pytest.raises(ConfigError, match=f"{spec.name}='nope' is not one of"):

@@ -64,6 +64,9 @@ def _common(p: argparse.ArgumentParser, cmd: str, fit_flag: bool = True) -> None
         p.add_argument("--fit", action="store_true", help="fit the model's parameters to SEQ first")
     n = DEFAULT_FRAMES[cmd]
     add_shared(p, "--max-frames", f"evenly spread (default {'all' if n is None else n})", default=n)
+    p.add_argument("--frame-slice", metavar="START:STOP:STEP",
+                   help="only these frames (Python slice over the frames with a pose, before --max-frames), "
+                        "e.g. fit on 0::2 and compare on 1::2 to test on frames held out from the fit")
     p.add_argument("--preset", help="sensor preset to start from (default from camera.json's sensor type: "
                                     "kinect_v1, realsense_d435, kinect_v2; 'realgap sensor presets' lists them)")
     add_shared(p, "--seed", "of the simulation and of the pixel samples (default 0)", default=0)
@@ -157,6 +160,7 @@ def _add_catalog(sub) -> None:
 def _request(args) -> LabRequest:
     return LabRequest(seq=args.seq, effects=args.effects, model=args.model, fit=bool(getattr(args, "fit", False)),
                       max_frames=args.max_frames, preset=args.preset, seed=args.seed,
+                      frame_slice=getattr(args, "frame_slice", None),
                       fit_options=list(getattr(args, "fit_option", []) or []))
 
 

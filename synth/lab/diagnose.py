@@ -226,10 +226,12 @@ def _applicability(config, name: str) -> str | None:
     return None
 
 
-def _changes_depth(measured, base_depth: np.ndarray, cand_cfg, name: str, frame: int, seed: int) -> bool:
+def _changes_depth(measured, base_depth: np.ndarray, cand_cfg, name: str, frame: int, seed: int,
+                   data_start: dict | None = None) -> bool:
     """Does the candidate change the simulated depth of ``frame`` (``base_depth``: the base
-    model's simulation of it with the same seed) at its defaults or at any parameter bound?"""
-    trials = [{}]
+    model's simulation of it with the same seed) at its defaults, at its data-driven start (an
+    effect whose strength is a learned map does nothing without one) or at any parameter bound?"""
+    trials = [{}] + ([data_start] if data_start else [])
     for s in param_specs(cand_cfg, [name]):
         trials += [{s.key: s.low}, {s.key: s.high}]
     for t in trials:
@@ -309,8 +311,9 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
                 cand_cfg = _with_effect(base_cfg, name)
             except ConfigError as e:
                 why = f"cannot be added to this model ({e})"
+        data_start = start_values(measured, cand_cfg, [name], frames) if why is None else {}
         if why is None and dc.probe and not _changes_depth(measured, base_sims[len(frames) // 2], cand_cfg, name,
-                                                           frames[len(frames) // 2], fc.seed):
+                                                           frames[len(frames) // 2], fc.seed, data_start):
             why = "leaves the simulated depth unchanged here (tried its defaults and every parameter at its bounds)"
         if why is not None:
             skipped[name] = why
@@ -319,7 +322,6 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             continue
         n0 = obj.evaluations
         g_def = obj(cand_cfg)
-        data_start = start_values(measured, cand_cfg, [name], frames)
         if data_start:
             # the refitted model may have absorbed part of the effect (e.g. disparity steps seen
             # as extra noise): from the data-driven start, the model's parameters are re-fitted

@@ -221,12 +221,14 @@ def config_parameters(config, effect) -> dict:
 
 def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
     """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
-    ``config``, restricted to the parameters that are fitted for this sensor."""
+    ``config``, restricted to the parameters that are fitted for this sensor and the effects' data
+    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str)."""
     out = {}
     for n in names:
         start = _effect(config, n).fit_start(measured, config, frames)
         if start:
             known = {s.key for s in param_specs(config, [n])}
+            known |= {f"{n}.{k}" for k in _effect(config, n).FILE_PARAMS}     # e.g. a learned map
             out.update({k: v for k, v in start.items() if k in known})
     return out
 

@@ -83,6 +83,21 @@ def preset_from_camera(camera: Camera, preset: str | None = None, path: str | os
         raise FormatError(path, f"cannot derive a sensor preset ({e})") from None
 
 
+def parse_frame_slice(text: str) -> slice:
+    """``START:STOP:STEP`` (Python slice syntax, each part optional, STEP > 0) -> slice; a one-line
+    ConfigError naming ``--frame-slice`` otherwise."""
+    parts = str(text).split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        vals = [int(x) if x.strip() else None for x in parts]
+    except ValueError:
+        raise ConfigError(f"--frame-slice {text!r}: expected START:STOP[:STEP] with integers, e.g. 0::2") from None
+    if len(vals) == 3 and vals[2] is not None and vals[2] < 1:
+        raise ConfigError(f"--frame-slice {text!r}: STEP must be >= 1")
+    return slice(*vals)
+
+
 class MeasuredSequence:
     """A measured RGB-D sequence (TUM layout + camera.json + scene.json, ../shared/FORMATS.md)
     with the ideal geometry rendered at its ground-truth poses (cached: one ray cast per frame,
@@ -137,10 +152,12 @@ class MeasuredSequence:
     # ------------------------------------------------------------------ loading
     @classmethod
     def load(cls, seq_dir: str | os.PathLike, *, max_frames: int | None = None,
-             preset: str | None = None) -> "MeasuredSequence":
+             preset: str | None = None, frame_slice: str | None = None) -> "MeasuredSequence":
         """Open a measured sequence (see the module docstring).
 
-        max_frames: keep at most this many frames, evenly spread over those with a pose.
+        frame_slice: ``START:STOP:STEP`` (Python slice syntax) over the frames with a pose, applied
+        first, e.g. ``0::2`` / ``1::2`` to fit on half of the frames and test on the other half.
+        max_frames: keep at most this many frames, evenly spread over those (with a pose, in the slice).
         FormatError (naming the file) when the folder, depth index, camera.json, scene.json
         or the ground-truth poses are missing or bad.
         """
@@ -165,6 +182,10 @@ class MeasuredSequence:
         if not ok.any():
             raise FormatError(gt, "no ground-truth pose lies within 0.02 s of a depth frame")
         with_pose = np.flatnonzero(ok)
+        if frame_slice:
+            with_pose = with_pose[parse_frame_slice(frame_slice)]
+            if not len(with_pose):
+                raise ConfigError(f"--frame-slice {frame_slice}: selects none of the {int(ok.sum())} frames with a pose")
         if max_frames is not None:
             if int(max_frames) < 1:
                 raise ConfigError(f"max_frames must be >= 1, got {max_frames}")

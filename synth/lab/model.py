@@ -38,7 +38,7 @@ def load_model(path: str | os.PathLike):
     d = _read(path)
     d = {k: v for k, v in d.items() if k not in ("fit", "header")}
     try:
-        return SensorConfig.from_json(d)
+        return SensorConfig.from_json(d, base_dir=path.parent)
     except ConfigError as e:
         raise FormatError(path, str(e)) from None
     except (TypeError, ValueError) as e:
@@ -54,7 +54,7 @@ def save_model(config, path: str | os.PathLike, fit_info: dict | None = None, he
     """Write ``config`` (+ ``fit_info`` under ``"fit"``, + the result ``header`` of
     :mod:`data_tools.results` when given) to ``path`` atomically (folders created); returns the path."""
     from data_tools.results import atomic_write_json
-    d = config.to_json()
+    d = config.to_json(base_dir=Path(path).parent)
     if fit_info is not None:
         d["fit"] = fit_info
     if header is not None:

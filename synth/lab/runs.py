@@ -91,6 +91,9 @@ class LabRequest:
     """Use at most this many frames, evenly spread (None = all)."""
     preset: str | None = None
     """Sensor preset to start from (default from camera.json's sensor type)."""
+    frame_slice: str | None = None
+    """``START:STOP:STEP`` over the frames with a pose, before ``max_frames`` (e.g. fit on ``0::2``,
+    compare on ``1::2``); None = all."""
     seed: int = 0
     """Seed of the simulation and of the pixel samples."""
     fit_options: list[str] = field(default_factory=list)
@@ -116,7 +119,8 @@ class LabRequest:
         progress bar starts."""
         from synth.lab.measured import MeasuredSequence
         _quiet_opencv()
-        m = MeasuredSequence.load(self.seq, max_frames=self.max_frames, preset=self.preset)
+        m = MeasuredSequence.load(self.seq, max_frames=self.max_frames, preset=self.preset,
+                                  frame_slice=self.frame_slice)
         if preload:
             for k in range(len(m)):
                 m.measured_depth(k)
@@ -126,7 +130,7 @@ class LabRequest:
         """The effective configuration of a run (``lab_config.json``)."""
         d = {"command": f"sensor {cmd}", "sequence": str(Path(self.seq).resolve()),
              "effects": self.effects, "model": self.model, "fit": bool(self.fit),
-             "frames": self.max_frames, "preset": self.preset, "seed": self.seed,
+             "frames": self.max_frames, "frame_slice": self.frame_slice, "preset": self.preset, "seed": self.seed,
              "fit_options": list(self.fit_options or []),
              "measured": measured.describe(), "effects_used": config.names(enabled_only=True)}
         d.update(extra or {})

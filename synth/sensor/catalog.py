@@ -35,7 +35,8 @@ def effect_catalog(name: str | None = None) -> list[dict]:
                           if s.name in pre.effect_params.get(n, {})}
             params.append({"name": s.name, "type": s.type, "unit": s.unit, "default": _plain(s.default),
                            "presets": per_preset, "bounds": _plain(s.bounds), "choices": _plain(s.choices),
-                           "fit_range": _plain(s.fit_range), "doc": s.doc})
+                           "fit_range": _plain(s.fit_range), "doc": s.doc,
+                           "data_file": s.name in cls.FILE_PARAMS})
         for key, cp in sorted(getattr(cls, "CONFIG_PARAMETERS", {}).items()):
             params.append({"name": key, "type": "float", "unit": cp.unit, "default": None, "presets": {},
                            "bounds": [cp.low, cp.high], "choices": None, "fit_range": [cp.low, cp.high],
@@ -109,7 +110,8 @@ def format_effects(entries: list[dict], detail: bool) -> str:
             rng = _num(p["bounds"]) if p["bounds"] is not None else ("|".join(p["choices"]) if p["choices"] else "-")
             per = ", ".join(f"{k} {_num(v)}" for k, v in p["presets"].items())
             rows.append([p["name"], _num(p["unit"]) if p["unit"] not in (None, "") else "-", _num(p["default"]),
-                         per or "-", rng, _num(p["fit_range"]) if p["fit_range"] else "no"])
+                         per or "-", rng, _num(p["fit_range"]) if p["fit_range"] else
+                         ("from data" if p.get("data_file") else "no")])
         lines += ["  " + ln for ln in _table(["parameter", "unit", "default", "presets", "range", "fit"], rows)]
         lines += [""] + [f"  {p['name']}: {p['doc']}" for p in e["parameters"]] + [""]
     return "\n".join(lines).rstrip()

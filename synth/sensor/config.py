@@ -111,15 +111,28 @@ class SensorConfig:
             seen.add(e.name)
         return cls(pre, built, motion if motion is not None else MotionLimits())
 
-    def to_json(self) -> dict:
-        return {"preset": self.preset.to_json(), "effects": [e.to_json() for e in self.effects],
+    def to_json(self, base_dir: str | os.PathLike | None = None) -> dict:
+        """The model as JSON. ``base_dir``: the folder the JSON is written to; data files of the
+        effects (``Effect.FILE_PARAMS``, e.g. a learned map) are then copied there and referenced by
+        their file name, so the folder is self-contained. Without it the paths are kept as they are."""
+        effects = [e.to_json() for e in self.effects]
+        if base_dir is not None:
+            for e, d in zip(self.effects, effects):
+                for k in e.FILE_PARAMS:
+                    if d["params"].get(k):
+                        d["params"][k] = _copy_beside(Path(d["params"][k]), Path(base_dir))
+        return {"preset": self.preset.to_json(), "effects": effects,
                 "motion": {"max_speed_m_s": self.motion.max_speed_m_s,
                            "max_angular_speed_rad_s": self.motion.max_angular_speed_rad_s}}
 
     @classmethod
-    def from_json(cls, d: dict) -> "SensorConfig":
+    def from_json(cls, d: dict, base_dir: str | os.PathLike | None = None) -> "SensorConfig":
+        """The model of a JSON object; ``base_dir``: the JSON file's folder, against which relative
+        data-file parameters (``Effect.FILE_PARAMS``) are resolved."""
         if not isinstance(d, dict) or "effects" not in d or "preset" not in d:
             raise ConfigError("sensor config must be a JSON object with 'preset' and 'effects'")
+        if base_dir is not None and isinstance(d["effects"], list):
+            d = dict(d, effects=[_resolve_files(e, Path(base_dir)) for e in d["effects"]])
         p = d["preset"]
         pre = get_preset(p) if isinstance(p, str) else SensorPreset.from_json(p)
         if not isinstance(d["effects"], list):
@@ -151,7 +164,7 @@ class SensorConfig:
 
     def save(self, path: str | os.PathLike) -> Path:
         from data_tools.results import atomic_write_json
-        return atomic_write_json(path, self.to_json())
+        return atomic_write_json(path, self.to_json(base_dir=Path(path).parent))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "SensorConfig":
@@ -163,7 +176,7 @@ class SensorConfig:
         except json.JSONDecodeError as e:
             raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
         try:
-            return cls.from_json(d)
+            return cls.from_json(d, base_dir=path.parent)
         except ConfigError as e:
             raise FormatError(path, str(e)) from None
 
@@ -206,6 +219,9 @@ class SensorConfig:
             en, pn = key.split(".", 1)
             for i, e in enumerate(effects):
                 if e.name == en:
+                    if pn in e.FILE_PARAMS:
+                        effects[i] = e.replace(**{pn: str(val)})
+                        break
                     if pn not in e.FITTABLE:
                         raise ConfigError(f"{key}: not a fittable parameter of {en!r} ({', '.join(e.FITTABLE)})")
                     cur = getattr(e.params, pn)
@@ -214,3 +230,41 @@ class SensorConfig:
             else:
                 raise ConfigError(f"{key}: effect {en!r} is not in this sensor model")
         return replace(self, effects=effects)
+
+
+def _resolve_files(spec, base: Path):
+    """An effect entry of a model JSON with its relative data-file parameters made absolute."""
+    if not isinstance(spec, dict) or not isinstance(spec.get("params"), dict) or "name" not in spec:
+        return spec
+    try:
+        files = effect_class(spec["name"]).FILE_PARAMS
+    except ConfigError:
+        return spec
+    params = dict(spec["params"])
+    for k in files:
+        v = params.get(k)
+        if isinstance(v, str) and v and not os.path.isabs(v):
+            params[k] = str(base / v)
+    return dict(spec, params=params)
+
+
+def _copy_beside(src: Path, folder: Path) -> str:
+    """Copy the data file ``src`` into ``folder`` (atomically; kept when the same bytes are there
+    already, renamed with a content hash when another file has its name) and return its name."""
+    import hashlib
+    import shutil
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        if src.parent.resolve() == folder.resolve():
+            return src.name
+        data = src.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{src}: data file of the sensor model not found") from None
+    dst = folder / src.name
+    if dst.exists() and dst.read_bytes() != data:
+        dst = folder / f"{src.stem}-{hashlib.sha1(data).hexdigest()[:8]}{src.suffix}"
+    if not dst.exists():
+        tmp = dst.with_name(dst.name + f".tmp{os.getpid()}")
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    return dst.name
