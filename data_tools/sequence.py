@@ -45,6 +45,10 @@ class Frame:
     """Position of the frame in its sequence."""
     extra: dict = field(default_factory=dict)
     """Optional per-frame arrays (ideal depth, normals, instance ids, IR image...)."""
+    encoded: dict = field(default_factory=dict)
+    """Optional images already encoded as PNG files (e.g. by a worker process): ``"depth"`` (bytes
+    of :func:`encode_depth_png` with ``"depth_scale"``) and/or ``"rgb"`` (:func:`encode_rgb_png`);
+    :class:`SequenceWriter` writes them as they are instead of encoding ``depth`` / ``rgb`` again."""
 
 
 def read_index(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -313,6 +317,39 @@ def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     return d.astype(np.uint16)
 
 
+def encode_depth_png(depth_m: np.ndarray, depth_scale: float) -> bytes:
+    """The bytes of the 16-bit PNG file :class:`SequenceWriter` writes for ``depth_m``."""
+    import cv2
+    ok, buf = cv2.imencode(".png", encode_depth(depth_m, depth_scale))
+    if not ok:
+        raise RealgapError("cannot encode a depth image as PNG")
+    return buf.tobytes()
+
+
+def encode_rgb_png(rgb: np.ndarray) -> bytes:
+    """The bytes of the PNG file :class:`SequenceWriter` writes for an (H, W, 3) RGB image
+    (zlib's run-length strategy: the same size as OpenCV's default for rendered images, at half
+    the encoding time)."""
+    import cv2
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]),
+                           [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])
+    if not ok:
+        raise RealgapError("cannot encode a colour image as PNG")
+    return buf.tobytes()
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """Hard-link ``src`` to ``dst`` (replacing it), copying where the file system cannot link."""
+    import shutil
+    tmp = dst.with_name(f".{dst.name}.tmp{os.getpid()}")
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(src, tmp)
+    except OSError:
+        shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
 def write_depth_png(path: str | os.PathLike, depth_m: np.ndarray, depth_scale: float) -> None:
     """Write depth (metres) as a 16-bit PNG (:func:`encode_depth`; the inverse of
     :func:`read_depth_png`); RealgapError naming the file when it cannot be written."""
@@ -364,14 +401,20 @@ class SequenceWriter:
         self._gt_path = self.path / "groundtruth.txt"
         self._update_marker()
 
+    MARKER_INTERVAL_S = 0.5
+    """The unfinished marker's frame count is rewritten at most this often (it is for people and
+    ``data info``; resuming reads the index files)."""
+
     def _update_marker(self) -> None:
         if self.expected_frames is None:
             return
+        import time
         from data_tools.outputs import clear_incomplete, mark_incomplete
         if len(self._timestamps) >= self.expected_frames:
             clear_incomplete(self.path)
-        else:
+        elif time.monotonic() - getattr(self, "_marker_t", -1e9) >= self.MARKER_INTERVAL_S:
             mark_incomplete(self.path, self.command, len(self._timestamps), self.expected_frames)
+            self._marker_t = time.monotonic()
 
     def _truncate_to_complete(self) -> None:
         """After an interruption rgb.txt/groundtruth.txt may hold one entry more than depth.txt
@@ -398,8 +441,15 @@ class SequenceWriter:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def write(self, frame: Frame) -> None:
-        """Append one frame (images first, then index lines, so the index never lists a missing file)."""
+    last_rgb_path: Path | None = None
+    """The colour file of the last frame written (None: it had no colour)."""
+
+    def write(self, frame: Frame, rgb_link: str | os.PathLike | None = None) -> None:
+        """Append one frame (images first, then index lines, so the index never lists a missing file).
+
+        ``rgb_link``: an existing file holding exactly ``frame.rgb`` encoded the same way (e.g. the
+        same frame of another sequence): it is hard-linked (copied where links are not possible)
+        instead of encoding the image again."""
         t = float(frame.timestamp)
         if self._timestamps and t <= self._timestamps[-1]:
             raise RealgapError(f"{self.path}: frame timestamp {t:.6f} is not after the previous one "
@@ -409,12 +459,25 @@ class SequenceWriter:
             raise RealgapError(f"{self.path}: frame depth is {frame.depth.shape}, camera is {(h, w)}")
         name = f"{t:.6f}"
         depth_rel = f"depth/{name}.png"
-        write_depth_png(self.path / depth_rel, frame.depth, self.camera.depth_scale)
+        enc = frame.encoded or {}
+        from data_tools.results import atomic_write_bytes
+        if enc.get("depth") is not None and enc.get("depth_scale") == self.camera.depth_scale:
+            atomic_write_bytes(self.path / depth_rel, enc["depth"])
+        else:
+            write_depth_png(self.path / depth_rel, frame.depth, self.camera.depth_scale)
         rgb_rel = None
+        self.last_rgb_path = None
         if frame.rgb is not None:
             rgb_rel = f"rgb/{name}.{self.rgb_ext}"
-            from data_tools.results import atomic_write_image
-            atomic_write_image(self.path / rgb_rel, frame.rgb[:, :, ::-1])
+            if rgb_link is not None and Path(rgb_link).suffix == Path(rgb_rel).suffix:
+                _link_or_copy(Path(rgb_link), self.path / rgb_rel)
+            elif self.rgb_ext == "png":
+                atomic_write_bytes(self.path / rgb_rel, enc["rgb"] if enc.get("rgb") is not None else
+                                   encode_rgb_png(frame.rgb))
+            else:
+                from data_tools.results import atomic_write_image
+                atomic_write_image(self.path / rgb_rel, frame.rgb[:, :, ::-1])
+            self.last_rgb_path = self.path / rgb_rel
         if frame.pose is not None:
             from data_tools.geometry import pose_to_tum
             if not np.all(np.isfinite(frame.pose)):

@@ -173,20 +173,7 @@ def make_sequence_trajectory(config: SequenceConfig, scene):
     return traj
 
 
-def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool = False,
-                      overwrite: bool = False, progress: bool = True) -> GenerateResult:
-    """Render ``config`` into the sequence folder ``out_dir`` (see the module docstring).
-
-    ``resume`` keeps the frames already written and continues after them (the saved
-    config.json must match ``config``); ``overwrite`` starts again in an existing folder;
-    with neither, an existing sequence is an error. Frames whose view holds no geometry are
-    written too (all-zero depth) and counted in ``empty_frames``.
-    """
-    from data_tools.progress import progress_bar
-    from synth.render import IdealRenderer
-    from synth.scenes import build_scene
-
-    t_start = time.perf_counter()
+def _check_ideal_dir(config: SequenceConfig, out_dir: str | Path, resume: bool, overwrite: bool) -> Path:
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise RealgapError(f"{out_dir}: exists and is not a folder")
@@ -194,11 +181,20 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
         raise ConfigError("choose either resume or overwrite, not both")
     if resume:
         _check_resume_config(out_dir, config)
-    scene = build_scene(config.scene, seed=config.seed, **config.scene_params)
+    return out_dir
+
+
+def _open_ideal(config: SequenceConfig, out_dir: str | Path, resume: bool, overwrite: bool, camera=None,
+                scene=None):
+    """Checks, scene, trajectory and the ideal sequence's writer (config.json written); returns
+    (out_dir, scene, trajectory, writer, frames already there). ``camera``: that of the folder
+    (default the configuration's)."""
+    from synth.scenes import build_scene
+    out_dir = _check_ideal_dir(config, out_dir, resume, overwrite)
+    if scene is None:
+        scene = build_scene(config.scene, seed=config.seed, **config.scene_params)
     traj = make_sequence_trajectory(config, scene)
-    renderer = IdealRenderer(scene)
-    intr = config.intrinsics()
-    writer = SequenceWriter(out_dir, config.camera(), scene=scene, resume=resume, overwrite=overwrite,
+    writer = SequenceWriter(out_dir, camera or config.camera(), scene=scene, resume=resume, overwrite=overwrite,
                             expected_frames=len(traj), command="realgap synth sequence")
     from data_tools.results import atomic_write_json
     atomic_write_json(out_dir / CONFIG_FILE, config.to_json())
@@ -210,6 +206,25 @@ def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool 
         if not np.isclose(last, traj.timestamps[start - 1], atol=1e-6):
             raise ConfigError(f"{out_dir}: last written timestamp {last:.6f} does not match frame {start} "
                               f"of the configured trajectory ({traj.timestamps[start - 1]:.6f})")
+    return out_dir, scene, traj, writer, start
+
+
+def generate_sequence(config: SequenceConfig, out_dir: str | Path, resume: bool = False,
+                      overwrite: bool = False, progress: bool = True) -> GenerateResult:
+    """Render ``config`` into the sequence folder ``out_dir`` (see the module docstring).
+
+    ``resume`` keeps the frames already written and continues after them (the saved
+    config.json must match ``config``); ``overwrite`` starts again in an existing folder;
+    with neither, an existing sequence is an error. Frames whose view holds no geometry are
+    written too (all-zero depth) and counted in ``empty_frames``.
+    """
+    from data_tools.progress import progress_bar
+    from synth.render import IdealRenderer
+
+    t_start = time.perf_counter()
+    out_dir, scene, traj, writer, start = _open_ideal(config, out_dir, resume, overwrite)
+    renderer = IdealRenderer(scene)
+    intr = config.intrinsics()
     empty = 0
     render_s = 0.0
     with progress_bar(total=len(traj), initial=start, desc=f"synth {config.scene}", unit="frame",
@@ -232,27 +247,55 @@ def generate_sensor_sequence(config: SequenceConfig, ideal_dir: str | Path, sim_
                              sensor="kinect_v1", effects=None, *, resume: bool = False,
                              overwrite: bool = False, progress: bool = True,
                              workers: int = 1) -> tuple[GenerateResult, int]:
-    """Render ``config`` into ``ideal_dir`` (:func:`generate_sequence`: ground truth and ideal
-    depth) and simulate the depth sensor on the same poses into ``sim_dir`` (TUM layout with
-    ``sensor_config.json``; frame i uses seed ``config.seed + i``, see
+    """Render ``config`` into ``ideal_dir`` (ground truth, ideal depth and colour, as
+    :func:`generate_sequence` writes them) and simulate the depth sensor on the same poses into
+    ``sim_dir`` (TUM layout with ``sensor_config.json``; frame i uses seed ``config.seed + i``, see
     :func:`synth.sensor.simulate_trajectory`). ``sensor`` and ``effects`` are those of
     :class:`synth.sensor.SensorSimulator` (a preset name or a SensorConfig, 'physical',
     'direct' or effect names); ``resume`` / ``overwrite`` apply to both folders; ``workers`` > 1
-    simulates frames in parallel processes (same frames). Returns (the ideal sequence's
-    :class:`GenerateResult`, frames simulated now)."""
-    from data_tools.sequence import SequenceReader
+    simulates frames in parallel processes (same frames).
+
+    One pass: the simulator's own ideal render of each frame (depth and colour, in the sensor's
+    image grid, whatever the configuration's size) is the ideal sequence's frame, so every view is
+    rendered once and the colour image is encoded once (the
+    simulated sequence's ``rgb/`` files are hard links to the ideal ones, copies where the file
+    system has no links). Each folder continues from its own last frame. Returns (the ideal
+    sequence's :class:`GenerateResult`, frames simulated now)."""
+    from data_tools.camera import Camera
+    from synth.scenes import build_scene
     from synth.sensor import SensorSimulator, simulate_trajectory
+    t_start = time.perf_counter()
     ideal_dir, sim_dir = Path(ideal_dir), Path(sim_dir)
-    ideal_res = generate_sequence(config, ideal_dir, resume=resume and (ideal_dir / "depth.txt").exists(),
-                                  overwrite=overwrite, progress=progress)
-    ideal = SequenceReader(ideal_dir)
-    traj = ideal.trajectory
-    sim = SensorSimulator(sensor, effects, ideal.scene)
-    with SequenceWriter(sim_dir, sim.camera(), ideal.scene, resume=resume, overwrite=overwrite,
+    resume_ideal = resume and (ideal_dir / "depth.txt").exists()
+    _check_ideal_dir(config, ideal_dir, resume_ideal, overwrite)
+    scene = build_scene(config.scene, seed=config.seed, **config.scene_params)
+    sim = SensorSimulator(sensor, effects, scene)
+    # the ideal frames are the simulator's renders: the sensor's image grid (pixel-aligned with
+    # the simulated depth), no sensor block
+    ideal_cam = Camera(sim.preset.intrinsics, sim.camera().depth_scale)
+    ideal_dir, scene, traj, iw, i_start = _open_ideal(config, ideal_dir, resume_ideal, overwrite, ideal_cam, scene)
+    stats = {"empty": 0, "render_ms": 0.0}
+
+    def write_ideal(i: int, res) -> Path | None:
+        """The ideal frame i from the simulation result; returns its colour file (to link)."""
+        if not res.ideal_depth.any():
+            stats["empty"] += 1
+        stats["render_ms"] += float(res.log.get("timings_ms", {}).get("render", float("nan")))
+        enc = res.encoded or {}
+        iw.write(Frame(float(traj.timestamps[i]), res.ideal_depth, res.rgb, traj.poses[i], i,
+                       encoded={"depth": enc.get("ideal_depth"), "rgb": enc.get("rgb"),
+                                "depth_scale": enc.get("depth_scale")}))
+        return iw.last_rgb_path
+
+    with SequenceWriter(sim_dir, sim.camera(), scene, resume=resume, overwrite=overwrite,
                         expected_frames=len(traj), command="realgap synth sequence --sensor") as w:
         sim.config.save(sim_dir / "sensor_config.json")
         n = simulate_trajectory(sim, traj.poses, traj.timestamps, w, seed=config.seed, progress=progress,
-                                workers=workers)
+                                workers=workers, ideal=(i_start, write_ideal))
+    n_ideal = len(traj) - i_start
+    ideal_res = GenerateResult(ideal_dir, len(iw), n_ideal, i_start, stats["empty"],
+                               stats["render_ms"] / n_ideal if n_ideal else float("nan"),
+                               time.perf_counter() - t_start, config)
     return ideal_res, n
 
 

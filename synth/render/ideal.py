@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.jit import n_threads
+from synth.jit import kernel, n_threads
 
 from data_tools.camera import Intrinsics
 from data_tools.errors import RealgapError
@@ -189,6 +189,7 @@ class IdealRenderer:
         self._tri_colors = np.concatenate(cols)
         # the same as contiguous per-channel columns: corner-0 colour and corner differences
         tc = self._tri_colors
+        self._col_stack = None
         self._col_c0 = [np.ascontiguousarray(tc[:, 0, ch]) for ch in range(3)]
         self._col_d1 = [np.ascontiguousarray(tc[:, 1, ch] - tc[:, 0, ch]) for ch in range(3)]
         self._col_d2 = [np.ascontiguousarray(tc[:, 2, ch] - tc[:, 0, ch]) for ch in range(3)]
@@ -311,6 +312,16 @@ class IdealRenderer:
         1 and 2; ``cos`` the cosine between normal and reversed ray; black where not ``hit``."""
         # Lambert factor (0..255 scale) per pixel, then per channel:
         # colour = c0 + u (c1 - c0) + v (c2 - c0) (barycentric vertex-colour interpolation)
+        from synth.jit import available
+        if self._col_stack is None:
+            self._col_stack = (np.ascontiguousarray(np.stack(self._col_c0)), np.ascontiguousarray(np.stack(self._col_d1)),
+                               np.ascontiguousarray(np.stack(self._col_d2)))
+        c0, d1, d2 = self._col_stack
+        if available() and c0.dtype == np.float32 and u.dtype == np.float32 and cos.dtype == np.float32:
+            rgb = np.empty((len(tri), 3), dtype=np.uint8)      # compiled: one pass, the same float32 steps
+            _vertex_colour_kernel(np.ascontiguousarray(tri), u, v, np.ascontiguousarray(cos), np.ascontiguousarray(hit),
+                                  c0, d1, d2, np.float32(255.0 * (1.0 - AMBIENT)), np.float32(255.0 * AMBIENT), rgb)
+            return rgb
         f = np.minimum(np.abs(cos), np.float32(1.0))
         f *= np.float32(255.0 * (1.0 - AMBIENT))
         f += np.float32(255.0 * AMBIENT)
@@ -420,3 +431,31 @@ class IdealRenderer:
         if check and ids.size and (ids.min() < 0 or ids.max() > self.n_meshes):
             raise RealgapError(f"albedo_specular: instance ids must be in [0, {self.n_meshes}]")
         return self._albedo[ids], self._specular[ids]
+
+
+@kernel
+def _vertex_colour_kernel(tri, u, v, cos, hit, c0, d1, d2, a, b, out):
+    """:meth:`IdealRenderer._vertex_colour_rgb` in one compiled pass (float32 steps in the numpy
+    version's order, so the bytes are identical)."""
+    for i in range(tri.shape[0]):
+        if not hit[i]:
+            out[i, 0] = 0
+            out[i, 1] = 0
+            out[i, 2] = 0
+            continue
+        f = min(abs(cos[i]), np.float32(1.0))
+        f = f * a
+        f = f + b
+        t = tri[i]
+        for ch in range(3):
+            x = d1[ch, t] * u[i]
+            y = d2[ch, t] * v[i]
+            x = x + y
+            x = x + c0[ch, t]
+            x = x * f
+            x = x + np.float32(0.5)
+            if x < np.float32(0.0):
+                x = np.float32(0.0)
+            elif x > np.float32(255.0):
+                x = np.float32(255.0)
+            out[i, ch] = np.uint8(x)

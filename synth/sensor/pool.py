@@ -15,7 +15,7 @@ __all__ = ["simulate_trajectory", "SimulationPool"]
 
 def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps: np.ndarray, writer,
                         seed: int = 0, motion: bool = True, with_rgb: bool = True, progress: bool = True,
-                        workers: int = 1) -> int:
+                        workers: int = 1, ideal=None) -> int:
     """Simulate every pose and append the frames to a :class:`data_tools.sequence.SequenceWriter`
     (open it with ``camera=sim.camera()``); frames already in the writer (``len(writer)``, a
     resumed run) are skipped, so the result is identical to an uninterrupted run (frame i
@@ -24,6 +24,10 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     it). Returns the number of frames written now. ``workers`` > 1 simulates that many frames
     at once in worker processes (:class:`SimulationPool`: more frames per second when cores are
     free, identical frames, a few seconds of start-up); frames are still written in order.
+    ``ideal = (start, write)``: also hand every result of frame i >= start to ``write(i, result)``
+    (the ideal sequence of ``synth sequence --sensor``), which returns the colour file it wrote
+    (linked, not encoded again, into this writer's sequence) or None; simulation starts at the
+    first frame either sequence lacks.
 
         with SequenceWriter(out, sim.camera(), scene, resume=resume) as w:
             sim.config.save(out / "sensor_config.json")
@@ -35,7 +39,9 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
         raise RealgapError(f"simulate_trajectory: {len(poses)} poses but {len(ts)} timestamps")
     if int(workers) < 1:
         raise ConfigError(f"simulate_trajectory: workers must be >= 1, got {workers}")
-    start = len(writer)
+    sim_start = len(writer)
+    ideal_start, write_ideal = ideal if ideal is not None else (len(poses), None)
+    start = min(sim_start, ideal_start)
     idx = range(start, len(poses))
     if progress:
         from data_tools.progress import progress_bar
@@ -43,17 +49,23 @@ def simulate_trajectory(sim: SensorSimulator, poses_c2w: np.ndarray, timestamps:
     prevs = [poses[i - 1] if (motion and i > 0) else None for i in range(len(poses))]
     n_workers = min(int(workers), len(poses) - start)   # no more processes than frames left
     pool = SimulationPool(sim, workers=n_workers) if n_workers > 1 else None
+    from data_tools.workers import keep_freed_memory
+    keep_freed_memory()     # this process copies every frame out of the pool / simulates it: no page faults
     if pool is None:
         results = (sim.simulate(poses[i], seed=seed + i, prev_pose=prevs[i], with_rgb=with_rgb, frame_index=i,
                                 timestamp_s=float(ts[i])) for i in range(start, len(poses)))
     else:
         results = pool.map(poses[start:], [seed + i for i in range(start, len(poses))], prevs[start:],
                            with_rgb=with_rgb, keep_draws=False,  # frames are written, draws not kept
-                           frame_indices=range(start, len(poses)), timestamps=ts[start:])
+                           frame_indices=range(start, len(poses)), timestamps=ts[start:],
+                           encode_depth_scale=float(writer.camera.depth_scale))  # PNGs made in the workers
     n = cuts = 0
     try:
         for i, res in zip(idx, results):
-            writer.write(res.to_frame(ts[i], i))
+            rgb_file = write_ideal(i, res) if write_ideal is not None and i >= ideal_start else None
+            if i < sim_start:
+                continue
+            writer.write(res.to_frame(ts[i], i), rgb_link=rgb_file)
             n += 1
             if res.log.get("motion", {}).get("cut"):
                 cuts += 1
@@ -106,11 +118,16 @@ class SimulationPool:
         list(self._ex.map(_pool_ready, range(self.workers)))
 
     def map(self, poses_c2w, seeds, prev_poses=None, max_in_flight: int | None = None,
-            with_rgb: bool = False, keep_draws: bool = True, frame_indices=None, timestamps=None):
+            with_rgb: bool = False, keep_draws: bool = True, frame_indices=None, timestamps=None,
+            encode_depth_scale: float | None = None):
         """Yield ``simulate(poses_c2w[i], seed=seeds[i], prev_pose=prev_poses[i], with_rgb=with_rgb,
         frame_index=frame_indices[i], timestamp_s=timestamps[i])`` in order, with at most ``max_in_flight`` (default 2 x workers) frames submitted ahead.
         ``keep_draws=False`` returns results with empty ``draws`` (a caller that only writes the
-        frames saves shipping them: ~20 % of each VGA result)."""
+        frames saves shipping them: ~20 % of each VGA result). ``encode_depth_scale``: the workers
+        also encode the result's images as the PNG files of a sequence with that depth scale
+        (:meth:`SimResult.encode`), so the writing process only copies bytes; then only ``depth``,
+        ``valid``, ``ideal_depth`` and ``rgb`` of the arrays come back (``normals``,
+        ``instance_ids``, ``ir`` and ``disparity`` are None: what a sequence writer needs)."""
         from collections import deque
         poses = list(poses_c2w)
         seeds = list(seeds)
@@ -137,7 +154,8 @@ class SimulationPool:
         for i in range(len(poses)):
             slot = free.popleft()
             pending.append((self._ex.submit(_pool_simulate, poses[i], seeds[i], prevs[i], slot.name,
-                                            self.slot_bytes, with_rgb, keep_draws, idx[i], ts[i]), slot))
+                                            self.slot_bytes, with_rgb, keep_draws, idx[i], ts[i],
+                                            encode_depth_scale), slot))
             if len(pending) >= ahead:
                 yield collect()
         while pending:
@@ -168,8 +186,9 @@ def _pool_init(config_json: dict, scene, pattern) -> None:
     global _POOL_SIM
     import cv2
     import synth.jit
-    from data_tools.workers import exit_with_parent
+    from data_tools.workers import exit_with_parent, keep_freed_memory
     exit_with_parent()
+    keep_freed_memory()
     cv2.setNumThreads(1)
     synth.jit.THREADS = 1
     sim = SensorSimulator(SensorConfig.from_json(config_json), scene=scene if scene is not None and
@@ -215,7 +234,8 @@ def _set_result_array(res: SimResult, key: tuple, value) -> None:
 
 
 def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: bool = False,
-                   keep_draws: bool = True, frame_index: int | None = None, timestamp_s: float | None = None):
+                   keep_draws: bool = True, frame_index: int | None = None, timestamp_s: float | None = None,
+                   encode_depth_scale: float | None = None):
     """Simulate one frame (its draws dropped unless ``keep_draws``); its arrays go into the
     shared-memory slot when they fit: ("shm", result without them, [(key, dtype, shape,
     offset)]), else ("pickle", result)."""
@@ -223,6 +243,9 @@ def _pool_simulate(pose, seed, prev, slot_name: str, slot_size: int, with_rgb: b
                              timestamp_s=timestamp_s)
     if not keep_draws:
         res.draws = {}
+    if encode_depth_scale is not None:    # a sequence writer's frame: the PNGs, depth, ideal depth and colour
+        res.encode(float(encode_depth_scale))
+        res.normals = res.instance_ids = res.ir = res.disparity = None
     arrays = _result_arrays(res)
     need = sum(-(-a.nbytes // 64) * 64 for _, a in arrays)
     if need > slot_size:

@@ -66,6 +66,9 @@ class SimResult:
     """Human-readable notes (e.g. 'no geometry in view')."""
     rgb: np.ndarray | None = None
     """(H, W, 3) uint8 ideal shaded colour when requested, else None."""
+    encoded: dict = field(default_factory=dict)
+    """PNG bytes of ``depth``, ``ideal_depth`` and ``rgb`` (and their ``depth_scale``) when
+    :meth:`encode` ran (``SimulationPool.map(..., encode_depth_scale=...)``), else empty."""
 
     @property
     def valid_fraction(self) -> float:
@@ -79,7 +82,18 @@ class SimResult:
                  "instance_ids": self.instance_ids}
         if self.ir is not None:
             extra["ir"] = self.ir
-        return Frame(float(timestamp), self.depth, self.rgb, self.pose_c2w, index, extra)
+        enc = self.encoded or {}
+        encoded = {"depth": enc.get("depth"), "rgb": enc.get("rgb"), "depth_scale": enc.get("depth_scale")}
+        return Frame(float(timestamp), self.depth, self.rgb, self.pose_c2w, index, extra, encoded)
+
+    def encode(self, depth_scale: float) -> None:
+        """Encode ``depth``, ``ideal_depth`` and ``rgb`` as the PNG files a sequence writer writes
+        (into ``encoded``; a worker process does it so that the writing process only copies bytes)."""
+        from data_tools.sequence import encode_depth_png, encode_rgb_png
+        self.encoded = {"depth": encode_depth_png(self.depth, depth_scale),
+                        "ideal_depth": encode_depth_png(self.ideal_depth, depth_scale),
+                        "rgb": encode_rgb_png(self.rgb) if self.rgb is not None else None,
+                        "depth_scale": float(depth_scale)}
 
 
 # ------------------------------------------------------------------------------------------

@@ -292,6 +292,8 @@ PRODUCTS = {
                        "(rolling_shutter); absent = every row at 0",
     "projector": "ProjectorProduct: the blurred pattern and the projection parameters (pattern_projection), "
                  "for effects that re-compute the radiance at other poses (motion_blur)",
+    "projector_shadow": "(H, W) bool pixels whose surface the projector does not light (pattern_projection's "
+                        "shadow test), for effects that re-compute the radiance of nearby sub-exposure views",
     "ambient": "(H, W) float32 ambient radiance reaching the IR camera (ambient_light); optics warp it",
     "ambient_second": "(H, W) float32 ambient radiance reaching the second camera (ambient_light)",
 }

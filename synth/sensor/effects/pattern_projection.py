@@ -225,7 +225,8 @@ def scanline_shadow(up: np.ndarray, valid: np.ndarray, side: float, tol_px: floa
 
 
 def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray, params: PatternProjectionParams,
-                     renderer=None, ray_dirs_cam: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                     renderer=None, ray_dirs_cam: np.ndarray | None = None, shadow_mask: np.ndarray | None = None,
+                     out: dict | None = None) -> tuple[np.ndarray, dict]:
     """Radiance (H, W) float32 the camera at ``camera_offset_m`` (rig frame) receives from the
     projected pattern, and statistics.
 
@@ -238,6 +239,9 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
     of the projector ray and the direction to the camera (s = material specular weight). A
     shiny surface therefore sends the pattern away (dark, no match) except where the mirror
     direction hits the camera (saturation). Irradiance = pattern cos_i / r^2 (point source).
+    ``shadow_mask``: (H, W) bool projector shadows to use instead of testing them (a nearby view's,
+    carried over); ``out``: a dict that receives the shadow mask used (``"shadow"``, None when
+    shadows are off).
     """
     H, W = view.shape
     if ray_dirs_cam is None:
@@ -259,8 +263,12 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
         r0, r1, Z, hit, xn, yn, nrm, pattern_blurred, proj[0], proj[1], proj[2], fp, (wp - 1) / 2.0,
         (hp - 1) / 2.0, Lx, Ly, Lz, r, up, ok, pat, mndl, lit), H, nthreads)
     stats = {"lit_px": int(np.count_nonzero(lit))}
-    if params.shadow_rays and stats["lit_px"]:
-        sh = None
+    sh = None
+    if params.shadow_rays and shadow_mask is not None:
+        sh = np.asarray(shadow_mask, bool) & lit
+        lit &= ~sh
+        stats["shadowed_px"] = int(np.count_nonzero(sh))
+    elif params.shadow_rays and stats["lit_px"]:
         if params.shadow_method == "scanline":
             sh = scanline_shadow(up, ok, 1.0 if proj[0] >= 0 else -1.0) & lit
         elif params.shadow_method == "hybrid" and renderer is not None:
@@ -271,6 +279,8 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
         if sh is not None:
             lit &= ~sh
             stats["shadowed_px"] = int(np.count_nonzero(sh))
+    if out is not None:
+        out["shadow"] = sh
     E = np.empty((H, W), np.float32)
     k = float(params.specular_exponent)
     run_row_bands(lambda r0, r1: _radiance_rows(
@@ -435,9 +445,12 @@ class PatternProjection(Effect):
         pb = blurred_pattern(state.pattern, self.params.dot_sigma_px, self._cache)
         from synth.sensor.state import ProjectorProduct
         state.publish("projector", ProjectorProduct(pb, self.params))
+        sh: dict = {}
         rad, stats = compute_radiance(state.view, (0.0, 0.0, 0.0), state.preset, pb, self.params,
-                                      state.renderer, state.ray_dirs_cam)
+                                      state.renderer, state.ray_dirs_cam, out=sh)
         state.radiance = rad
+        if sh.get("shadow") is not None:
+            state.publish("projector_shadow", sh["shadow"])
         if state.preset.type == "active_stereo" and not state.is_reference:
             off = (state.preset.projector_side * state.preset.baseline_m, 0.0, 0.0)
             if state.second_view is None:
