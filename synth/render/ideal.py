@@ -298,18 +298,19 @@ class IdealRenderer:
             tri = np.where(hit, o["triangle"].reshape(-1), 0)
             uv = o["uv"].reshape(-1, 2)
             nc = o["normals_cam"].reshape(-1, 3)
-            cos = -(nc[:, 0] * d[0] + nc[:, 1] * d[1] + nc[:, 2] * d[2])  # normals face the camera
             rgb = self._vertex_colour_rgb(tri, np.ascontiguousarray(uv[:, 0]), np.ascontiguousarray(uv[:, 1]),
-                                          cos, hit).reshape(H, W, 3)
+                                          None, hit, nc, d).reshape(H, W, 3)
         return RenderResult(depth=o["depth"], hit=o["hit"], points_world=o["points_world"],
                             normals_cam=o["normals_cam"], instance_ids=o["instance_ids"], ray_dirs_cam=dirs_img,
                             t_hit=o["t_hit"], rgb=rgb, points_cam_data=o["points_cam"])
 
-    def _vertex_colour_rgb(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, cos: np.ndarray,
-                           hit: np.ndarray) -> np.ndarray:
+    def _vertex_colour_rgb(self, tri: np.ndarray, u: np.ndarray, v: np.ndarray, cos: np.ndarray | None,
+                           hit: np.ndarray, normals: np.ndarray | None = None, dirs=None) -> np.ndarray:
         """(N, 3) uint8 head-light shaded vertex colours (see :func:`shade_rgb`) of triangles
         ``tri`` (global index, all meshes concatenated) at barycentric weights (u, v) of corners
-        1 and 2; ``cos`` the cosine between normal and reversed ray; black where not ``hit``."""
+        1 and 2; ``cos`` the cosine between normal and reversed ray, or None to compute it from
+        ``normals`` (N, 3) (facing the camera) and the ray components ``dirs`` = (dx, dy, dz);
+        black where not ``hit``."""
         # Lambert factor (0..255 scale) per pixel, then per channel:
         # colour = c0 + u (c1 - c0) + v (c2 - c0) (barycentric vertex-colour interpolation)
         from synth.jit import available
@@ -317,10 +318,19 @@ class IdealRenderer:
             self._col_stack = (np.ascontiguousarray(np.stack(self._col_c0)), np.ascontiguousarray(np.stack(self._col_d1)),
                                np.ascontiguousarray(np.stack(self._col_d2)))
         c0, d1, d2 = self._col_stack
-        if available() and c0.dtype == np.float32 and u.dtype == np.float32 and cos.dtype == np.float32:
+        if cos is None and not (available() and normals.dtype == np.float32 and all(x.dtype == np.float32 for x in dirs)):
+            cos = -(normals[:, 0] * dirs[0] + normals[:, 1] * dirs[1] + normals[:, 2] * dirs[2])
+        if available() and c0.dtype == np.float32 and u.dtype == np.float32 and (cos is None or cos.dtype == np.float32):
             rgb = np.empty((len(tri), 3), dtype=np.uint8)      # compiled: one pass, the same float32 steps
-            _vertex_colour_kernel(np.ascontiguousarray(tri), u, v, np.ascontiguousarray(cos), np.ascontiguousarray(hit),
-                                  c0, d1, d2, np.float32(255.0 * (1.0 - AMBIENT)), np.float32(255.0 * AMBIENT), rgb)
+            a, b = np.float32(255.0 * (1.0 - AMBIENT)), np.float32(255.0 * AMBIENT)
+            if cos is None:
+                _vertex_colour_normals_kernel(np.ascontiguousarray(tri), u, v, np.ascontiguousarray(normals),
+                                              np.ascontiguousarray(dirs[0]), np.ascontiguousarray(dirs[1]),
+                                              np.ascontiguousarray(dirs[2]), np.ascontiguousarray(hit), c0, d1, d2, a, b,
+                                              rgb)
+            else:
+                _vertex_colour_kernel(np.ascontiguousarray(tri), u, v, np.ascontiguousarray(cos),
+                                      np.ascontiguousarray(hit), c0, d1, d2, a, b, rgb)
             return rgb
         f = np.minimum(np.abs(cos), np.float32(1.0))
         f *= np.float32(255.0 * (1.0 - AMBIENT))
@@ -430,7 +440,7 @@ class IdealRenderer:
         ids = np.asarray(instance_ids)
         if check and ids.size and (ids.min() < 0 or ids.max() > self.n_meshes):
             raise RealgapError(f"albedo_specular: instance ids must be in [0, {self.n_meshes}]")
-        return self._albedo[ids], self._specular[ids]
+        return np.take(self._albedo, ids), np.take(self._specular, ids)
 
 
 @kernel
@@ -444,6 +454,38 @@ def _vertex_colour_kernel(tri, u, v, cos, hit, c0, d1, d2, a, b, out):
             out[i, 2] = 0
             continue
         f = min(abs(cos[i]), np.float32(1.0))
+        f = f * a
+        f = f + b
+        t = tri[i]
+        for ch in range(3):
+            x = d1[ch, t] * u[i]
+            y = d2[ch, t] * v[i]
+            x = x + y
+            x = x + c0[ch, t]
+            x = x * f
+            x = x + np.float32(0.5)
+            if x < np.float32(0.0):
+                x = np.float32(0.0)
+            elif x > np.float32(255.0):
+                x = np.float32(255.0)
+            out[i, ch] = np.uint8(x)
+
+
+@kernel
+def _vertex_colour_normals_kernel(tri, u, v, nc, dx, dy, dz, hit, c0, d1, d2, a, b, out):
+    """:func:`_vertex_colour_kernel` with the cosine computed here, as numpy computes
+    ``-(n_x d_x + n_y d_y + n_z d_z)`` in float32."""
+    cos = np.empty(1, np.float32)
+    for i in range(tri.shape[0]):
+        if not hit[i]:
+            out[i, 0] = 0
+            out[i, 1] = 0
+            out[i, 2] = 0
+            continue
+        c = nc[i, 0] * dx[i] + nc[i, 1] * dy[i]
+        c = c + nc[i, 2] * dz[i]
+        cos[0] = -c
+        f = min(abs(cos[0]), np.float32(1.0))
         f = f * a
         f = f + b
         t = tri[i]
