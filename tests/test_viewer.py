@@ -31,7 +31,8 @@ def offscreen_ok():
 
 @pytest.fixture(scope="module")
 def seq_and_run(tmp_path_factory):
-    """A 24-frame simulated Kinect v1 sequence (320x240) and an icp run on it."""
+    """A 24-frame simulated Kinect v1 sequence (the sensor's 640x480; the ideal one in seq/ideal) and an icp
+    run on it."""
     root = tmp_path_factory.mktemp("view")
     assert main(["synth", "sequence", "--preset", "small", "--frames", "24", "--sensor", "kinect_v1",
                  "--out", str(root / "seq"), "--no-progress"]) == 0
@@ -109,6 +110,31 @@ def test_scripted_interaction_updates_panes(seq_and_run, offscreen_ok):
     img = v.p.screenshot(return_img=True)
     assert _count_colour(img, (255, 221, 102), 30) > 20              # the help overlay is drawn
     v.p.close()
+
+
+def test_a_second_sequence_is_shown_as_the_simulation(seq_and_run, offscreen_ok, tmp_path, capsys):
+    """``realgap view SEQ SIMSEQ``: the second sequence's depth at the same timestamp and the
+    residual (mm) beside the measured depth; a second sequence of other frames is a one-line error."""
+    from app.viewer.data import load_session
+    from app.viewer.window import Viewer
+    seq, sim = seq_and_run / "seq" / "ideal", seq_and_run / "seq"
+    v = Viewer(load_session([str(seq), str(sim)]), off_screen=True, window_size=(900, 450))
+    v.set_frame(7)
+    meas, simd, res = v.pane_images["depth"], v.pane_images["simulated"], v.pane_images["residual"]
+    from data_tools.sequence import SequenceReader
+    expect = SequenceReader(sim).read_depth(7)
+    np.testing.assert_array_equal(np.nan_to_num(simd), expect)
+    both = np.isfinite(meas) & np.isfinite(simd)
+    np.testing.assert_allclose(res[both], (simd[both] - meas[both]) * 1000.0, rtol=1e-5, atol=1e-3)
+    assert 0 < np.nanmedian(np.abs(res)) < 50                       # sensor noise: millimetres
+    v.p.close()
+    other = tmp_path / "other"
+    assert main(["synth", "sequence", "--frames", "3", "--fps", "7", "--out", str(other),
+                 "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["view", str(seq), str(other), "--screenshot", str(tmp_path / "x.png")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "shares no timestamp" in err and "\n" not in err and not (tmp_path / "x.png").exists()
 
 
 def test_lab_mode_effect_toggle_resimulates(seq_and_run, offscreen_ok, tmp_path):

@@ -9,14 +9,18 @@ from app.commands import add_shared
 NAME = "view"
 HELP = "PyVista viewer: a sequence with its runs, a sensor-lab folder (--lab) or recognition results (--recog)"
 DESCRIPTION = ("Explore a sequence and its registrations (trajectories coloured by error, failed frames, "
-               "TSDF mesh, RGB and depth panes, novel views of a virtual camera), a sensor-lab folder "
+               "TSDF mesh, RGB and depth panes - measured, and simulated when a simulation of the sequence is "
+               "given too - novel views of a virtual camera), a sensor-lab folder "
                "(measured vs simulated depth, residual map, effects switched on/off) or a recognition "
                "evaluation (CAD model at the estimated pose over the measured points). Press h in the "
                "window for the keys. --screenshot/--movie render off-screen and exit.")
 
 
 def register(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("paths", nargs="*", metavar="SEQ_OR_RUN", help="a sequence folder and/or SLAM run folders")
+    parser.add_argument("paths", nargs="*", metavar="SEQ_OR_RUN",
+                        help="a sequence folder and/or SLAM run folders; a second sequence folder is a simulation "
+                             "of the first (sensor simulate / synth sequence --sensor): its depth and the residual "
+                             "are shown beside the measured depth")
     parser.add_argument("--lab", metavar="LABDIR", help="a sensor-lab folder (realgap sensor compare --out)")
     parser.add_argument("--recog", nargs=2, metavar=("EVAL_DIR", "TESTSET"),
                         help="a recognition evaluation (realgap recog eval --out) and its test set")

@@ -64,9 +64,13 @@ def _is_run(p: Path) -> bool:
 class SequenceSession:
     """A sequence, its ground truth and the runs on it."""
 
-    def __init__(self, sequence: Path | None, runs: list[Path]):
+    def __init__(self, sequence: Path | None, runs: list[Path], simulated: Path | None = None):
         from data_tools.sequence import SequenceReader
         self.runs: list[RunTrack] = []
+        self.simulated = SequenceReader(simulated) if simulated is not None else None
+        """A second sequence of the same frames (e.g. ``sensor simulate`` or ``synth sequence
+        --sensor`` output): its depth is shown beside the measured one, with the residual."""
+        self.simulated_path = Path(simulated) if simulated is not None else None
         seq = sequence
         for r in runs:
             meta = json.loads((r / "config.json").read_text())
@@ -138,6 +142,20 @@ class SequenceSession:
         """(rgb (H, W, 3) uint8 or None, depth (H, W) float32 metres) of frame i."""
         f = self.reader[i]
         return f.rgb, f.depth
+
+    def simulated_depth(self, i: int) -> np.ndarray | None:
+        """(H, W) float32 depth (metres) of the second sequence's frame with frame i's timestamp
+        (within SAME_FRAME_S: simulations keep the timestamps), None when there is no second sequence or no such frame."""
+        if self.simulated is None:
+            return None
+        ts = np.asarray(self.simulated.timestamps)
+        if not len(ts):
+            return None
+        j = int(np.argmin(np.abs(ts - self.reader.timestamps[i])))
+        if abs(ts[j] - self.reader.timestamps[i]) > SAME_FRAME_S:
+            return None
+        d = self.simulated.read_depth(j)
+        return d if d.shape == self.intrinsics.shape else None
 
     def frame_points(self, i: int, step: int = 4, max_depth: float = 6.0):
         """(points (N, 3) world metres, colours (N, 3) uint8 or None) of frame i, every ``step``-th pixel."""
@@ -355,6 +373,10 @@ class RecogSession:
                 "correct": pred.object == sc.object, "file": sc.file, "pose_true": sc.pose, "pose": pred.pose}
 
 
+SAME_FRAME_S = 1e-3
+"""Timestamps of a sequence and of its simulation closer than this are the same frame."""
+
+
 def load_session(paths: list[str], lab: str | None = None, recog: list[str] | None = None):
     """The session the arguments of ``realgap view`` describe (RealgapError naming a bad path)."""
     from data_tools.outputs import check_input_dir
@@ -368,15 +390,31 @@ def load_session(paths: list[str], lab: str | None = None, recog: list[str] | No
                             check_input_dir(recog[1], "test set folder", "--recog"))
     if not paths:
         raise RealgapError("give a sequence and/or run folders (or --lab LABDIR, --recog EVAL TESTSET)")
-    seq, runs = None, []
+    seq, sim, runs = None, None, []
     for p in paths:
         d = check_input_dir(p, "sequence or run folder")
         if _is_run(d):
             runs.append(d)
         elif _is_sequence(d):
-            if seq is not None:
-                raise RealgapError(f"{d}: a second sequence (view one sequence with its runs at a time)")
-            seq = d
+            if seq is None:
+                seq = d
+            elif sim is None:
+                sim = d
+            else:
+                raise RealgapError(f"{d}: a third sequence (view a sequence, optionally its simulation, and runs)")
         else:
             raise FormatError(d, "neither a sequence (depth.txt) nor a SLAM run (config.json + trajectory.txt)")
-    return SequenceSession(seq, runs)
+    if sim is not None:
+        from data_tools.sequence import SequenceReader
+        a, b = SequenceReader(seq), SequenceReader(sim)
+        if tuple(a.intrinsics.shape) != tuple(b.intrinsics.shape):
+            raise FormatError(sim, f"its images are {b.intrinsics.width}x{b.intrinsics.height} px, the sequence's "
+                                   f"{a.intrinsics.width}x{a.intrinsics.height} px (the second sequence must be a "
+                                   f"simulation of the first)")
+        ta, tb = np.asarray(a.timestamps, float), np.asarray(b.timestamps, float)
+        j = np.clip(np.searchsorted(ta, tb), 1, max(len(ta) - 1, 1)) if len(ta) > 1 else np.zeros(len(tb), int)
+        near = np.minimum(np.abs(ta[j] - tb), np.abs(ta[j - 1] - tb)) if len(ta) > 1 else np.abs(ta[0] - tb)
+        if not len(tb) or np.mean(near < SAME_FRAME_S) < 0.5:
+            raise FormatError(sim, f"shares no timestamp with the sequence for {np.mean(near >= SAME_FRAME_S):.0%} "
+                                   f"of its frames (the second sequence must be a simulation of the same frames)")
+    return SequenceSession(seq, runs, sim)

@@ -93,9 +93,15 @@ class Viewer:
         self._help_actor = None
         if isinstance(session, SequenceSession):
             self.kind = "sequence"
-            self.p = pv.Plotter(shape=(2, 4), groups=[(np.s_[:], np.s_[:2])], off_screen=off_screen,
-                                window_size=window_size, border=False)
-            self.panes = {"3d": (0, 0), "rgb": (0, 2), "depth": (0, 3), "novel_0": (1, 2), "novel_1": (1, 3)}
+            if session.simulated is None:
+                self.p = pv.Plotter(shape=(2, 4), groups=[(np.s_[:], np.s_[:2])], off_screen=off_screen,
+                                    window_size=window_size, border=False)
+                self.panes = {"3d": (0, 0), "rgb": (0, 2), "depth": (0, 3), "novel_0": (1, 2), "novel_1": (1, 3)}
+            else:       # with a simulation of the sequence: its depth and the residual beside the measured
+                self.p = pv.Plotter(shape=(2, 5), groups=[(np.s_[:], np.s_[:2])], off_screen=off_screen,
+                                    window_size=(int(window_size[0] * 1.2), window_size[1]), border=False)
+                self.panes = {"3d": (0, 0), "rgb": (0, 2), "depth": (0, 3), "simulated": (0, 4),
+                              "novel_0": (1, 2), "novel_1": (1, 3), "residual": (1, 4)}
             self._build_sequence()
         elif isinstance(session, LabSession):
             self.kind = "lab"
@@ -215,8 +221,9 @@ class Viewer:
         if any(len(r.failed_timestamps) for r in s.runs):
             legend.append(["failed frames", (1.0, 0.0, 0.0)])
         legend.append(["virtual camera", TRACK_COLOURS["virtual camera"]])
-        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(0.32, 0.05 * len(legend) + 0.02),
-                          loc="upper right", face="line")
+        wide = 0.32 if "simulated" not in self.panes else 0.26      # the 3D pane is narrower beside 3 columns
+        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(wide, 0.05 * len(legend) + 0.02),
+                          loc="upper right" if "simulated" not in self.panes else "center left", face="line")
         extent = float(np.ptp(mesh.vertices, axis=0).max()) if mesh is not None else \
             (float(np.ptp(s.gt.positions, axis=0).max()) if s.gt is not None else 1.0)
         self._frustum_size = max(0.04 * extent, 0.08)
@@ -326,6 +333,21 @@ class Viewer:
         d = np.where(depth > 0, depth, np.nan)
         hi = float(np.nanpercentile(d, 99)) if np.isfinite(d).any() else 1.0
         self._image("depth", d, "measured depth", "turbo", (0.0, max(hi, 0.5)), "depth (m)")
+        if "simulated" in self.panes:
+            sim = s.simulated_depth(self.frame)
+            if sim is None:
+                self._message("simulated", f"no frame at this timestamp in {s.simulated_path.name}")
+                self._message("residual", "")
+            else:
+                self._clear_message("simulated")
+                self._clear_message("residual")
+                ds = np.where(sim > 0, sim, np.nan)
+                self._image("simulated", ds, f"simulated depth ({s.simulated_path.name})", "turbo",
+                            (0.0, max(hi, 0.5)), "depth (m)")
+                res = np.where((sim > 0) & (depth > 0), (sim - depth) * 1000.0, np.nan)
+                lim = float(np.nanpercentile(np.abs(res), 95)) if np.isfinite(res).any() else 1.0
+                self._image("residual", res, "simulated - measured", "RdBu_r", (-max(lim, 1.0), max(lim, 1.0)),
+                            "residual (mm)")
         self._grow_cloud()
         self._frusta()
         self.p.subplot(*self.panes["3d"])
