@@ -208,8 +208,10 @@ def _cmd_fit(args) -> int:
     only = effect_names_option(args.only, "--only") if args.only else None
     res, path = fit_sequence(req, args.out, only=only, overwrite=args.overwrite, log=_log)
     params = ", ".join(f"{k}={v:.4g}" for k, v in res.params.items())
+    bound = "".join(f"; AT BOUND {k}={res.params[k]:.4g} ({note.split(': ', 1)[1]})"
+                    for k, note in res.at_bound.items())
     print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {res.evaluations} evaluations "
-          f"({res.seconds:.1f} s); {params}")
+          f"({res.seconds:.1f} s); {params}{bound}")
     return 0
 
 

@@ -190,6 +190,24 @@ class FitResult:
     time_capped: bool = False
     """True when the wall-clock guard ``FitConfig.max_seconds`` stopped the search (the result
     then depends on the machine's speed)."""
+    bounds: dict = field(default_factory=dict)
+    """{"effect.param": (low, high)} search bounds of the fitted parameters."""
+
+    @property
+    def at_bound(self) -> dict[str, str]:
+        """Fitted parameters that ended on a search bound other than 0 (0 switches a term off,
+        a normal outcome), with a note: ``{"effect.param": "at upper bound 2.0: the effect may be
+        the wrong one"}``. A parameter pinned to its bound explains more than the effect can: a
+        user should not read it as a fact about the sensor."""
+        out = {}
+        for k, v in self.params.items():
+            b = self.bounds.get(k)
+            if b is None:
+                continue
+            for side, x in (("lower", b[0]), ("upper", b[1])):
+                if x != 0 and math.isclose(float(v), float(x), rel_tol=1e-9, abs_tol=1e-12):
+                    out[k] = f"at {side} bound {x:g}: the effect may be the wrong one"
+        return out
 
     @property
     def gain(self) -> float:
@@ -202,7 +220,8 @@ class FitResult:
                 "seconds": self.seconds, "search_gap_before": self.search_gap_before,
                 "search_gap": self.search_gap, "kept_start": self.kept_start,
                 "search_frames": list(self.frames), "eval_frames": list(self.eval_frames),
-                "time_capped": self.time_capped, "effects": self.config.names(enabled_only=True)}
+                "time_capped": self.time_capped, "effects": self.config.names(enabled_only=True),
+                "bounds": {k: list(v) for k, v in self.bounds.items()}, "at_bound": self.at_bound}
 
 
 # ------------------------------------------------------------------------------------------
@@ -221,14 +240,16 @@ def config_parameters(config, effect) -> dict:
 
 def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
     """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
-    ``config``, restricted to the parameters that are fitted for this sensor and the effects' data
-    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str)."""
+    ``config``, restricted to the parameters that are fitted for this sensor, the effects' data
+    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str) and the
+    choices made from the data (``Effect.START_ONLY_PARAMS``, e.g. a window shape)."""
     out = {}
     for n in names:
         start = _effect(config, n).fit_start(measured, config, frames)
         if start:
             known = {s.key for s in param_specs(config, [n])}
-            known |= {f"{n}.{k}" for k in _effect(config, n).FILE_PARAMS}     # e.g. a learned map
+            e = _effect(config, n)
+            known |= {f"{n}.{k}" for k in (*e.FILE_PARAMS, *e.START_ONLY_PARAMS)}   # a learned map, a shape
             out.update({k: v for k, v in start.items() if k in known})
     return out
 
@@ -602,4 +623,5 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      {s.key: s.value for s in specs}, obj.evaluations + ev.evaluations,
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
                      [measured.frame_indices[k] for k in frames],
-                     [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)))
+                     [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
+                     {sp.key: (sp.low, sp.high) for sp in specs})

@@ -219,7 +219,7 @@ class SensorConfig:
             en, pn = key.split(".", 1)
             for i, e in enumerate(effects):
                 if e.name == en:
-                    if pn in e.FILE_PARAMS:
+                    if pn in e.FILE_PARAMS or pn in e.START_ONLY_PARAMS:
                         effects[i] = e.replace(**{pn: str(val)})
                         break
                     if pn not in e.FITTABLE:

@@ -180,6 +180,9 @@ class Effect(ABC):
     """How the sensor lab shows the effect in measured data (None: a generic distance breakdown)."""
     CONFIG_PARAMETERS: ClassVar[dict[str, ConfigParameter]] = {}
     """Fittable numbers of the effect that are not numeric Params fields (see ConfigParameter)."""
+    START_ONLY_PARAMS: ClassVar[tuple[str, ...]] = ()
+    """Non-numeric parameters (choices) that ``fit_start`` chooses from the data (e.g. a window
+    shape); the search keeps them fixed."""
     FILE_PARAMS: ClassVar[tuple[str, ...]] = ()
     """String parameters that name a data file of the model (e.g. a learned ``.npy`` map): a
     relative path is relative to the model JSON's folder when the model is loaded, and saving a
@@ -333,9 +336,10 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k in (cls.IDENTITY_PARAMS or {}):
         if k not in fields:
             raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")
-    for k in cls.FILE_PARAMS:
-        if k not in fields or not isinstance(getattr(cls.Params(), k), str):
-            raise TypeError(f"{cls.__name__}.FILE_PARAMS: {k!r} is not a str parameter")
+    for attr in ("FILE_PARAMS", "START_ONLY_PARAMS"):
+        for k in getattr(cls, attr):
+            if k not in fields or not isinstance(getattr(cls.Params(), k), str):
+                raise TypeError(f"{cls.__name__}.{attr}: {k!r} is not a str parameter")
     if cls.SIGNATURE is not None and not isinstance(cls.SIGNATURE, Signature):
         raise TypeError(f"{cls.__name__}.SIGNATURE must be a Signature")
     for k in cls.CONFIG_PARAMETERS:

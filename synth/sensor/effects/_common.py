@@ -60,3 +60,27 @@ def drop_with_probability(state, p: np.ndarray, u: np.ndarray, name: str) -> Non
     """Invalidate pixels whose uniform variate falls below their drop probability."""
     state.invalidate(u < p, name)
     state.log[name]["mean_drop_probability"] = float(p[state.ideal.hit].mean()) if state.ideal.hit.any() else 0.0
+
+
+def measured_samples(measured, frames=None, max_per_frame: int = 40000, seed: int = 0):
+    """Yield, per frame of a :class:`synth.lab.measured.MeasuredSequence` (default every loaded
+    frame), ``(k, measured depth, ideal RenderResult, usable)`` with ``usable`` (H, W) bool: the
+    ideal geometry is there and, when the sequence has masks, inside the mask (what the lab
+    compares). For the effects' closed-form ``fit_start`` estimates."""
+    ks = range(len(measured)) if frames is None else frames
+    for k in ks:
+        m = measured.measured_depth(k)
+        r = measured.render(k)
+        ok = r.hit & (r.depth > 0)
+        mask = measured.mask(k)
+        if mask is not None:
+            ok &= mask
+        yield k, m, r, ok
+
+
+def robust_std(x: np.ndarray) -> float:
+    """1.4826 x the median absolute deviation (the std of a normal sample, outliers ignored)."""
+    x = np.asarray(x, np.float64)
+    if not x.size:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(x - np.median(x))))

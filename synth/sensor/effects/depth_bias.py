@@ -64,6 +64,53 @@ class DepthBias(Effect):
         state.valid &= state.depth > 0
 
     @classmethod
+    def fit_start(cls, measured, config, frames) -> dict[str, float]:
+        """Offset, scale and disparity errors by least squares on the measured pixels.
+
+        Triangulation (f b > 0): to first order the model gives y = f b (1/z' - 1/z) =
+        e + e_r r^2 - s f b / z - o f b / z^2 (e the disparity offset, e_r the radial term at the
+        corner, s the scale, o the offset; r the normalised image radius), linear in the four
+        unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
+        ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
+        (mismatches, flying pixels). Values are clipped into the fit ranges."""
+        from synth.sensor.effects._common import measured_samples
+        fb = float(config.preset.fb)
+        rows, ys = [], []
+        rng = np.random.default_rng(0)
+        for _, m, r, ok in measured_samples(measured):
+            vv, uu = np.nonzero(ok & (m > 0))
+            if vv.size > 20000:
+                keep = rng.choice(vv.size, 20000, replace=False)
+                vv, uu = vv[keep], uu[keep]
+            z = r.depth[vv, uu].astype(np.float64)
+            zm = m[vv, uu].astype(np.float64)
+            intr = measured.intrinsics
+            r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2) / (intr.cx ** 2 + intr.cy ** 2)
+            if fb > 0:
+                y = fb * (1.0 / zm - 1.0 / z)
+                good = np.abs(y) < 3.0
+                rows.append(np.stack([np.ones_like(z), r2, -fb / z, -fb / z ** 2], 1)[good])
+            else:
+                y = zm - z
+                good = np.abs(y) < 0.05
+                rows.append(np.stack([np.ones_like(z), z], 1)[good])
+            ys.append(y[good])
+        if not rows or sum(len(y) for y in ys) < 100:
+            return {}
+        A, y = np.concatenate(rows), np.concatenate(ys)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        lim = cls.FITTABLE
+        clip = (lambda k, v: float(np.clip(v, *lim[k])))
+        n = cls.name
+        if fb > 0:
+            e, er, s, o = coef
+            return {f"{n}.disparity_offset_px": clip("disparity_offset_px", e),
+                    f"{n}.radial_disparity_px": clip("radial_disparity_px", er),
+                    f"{n}.scale": clip("scale", s), f"{n}.offset_m": clip("offset_m", o)}
+        o, s = coef
+        return {f"{n}.offset_m": clip("offset_m", o), f"{n}.scale": clip("scale", s)}
+
+    @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
         """Median error (measured - ideal) in the near, middle and far third of the measured pixels,
         against the current model's.

@@ -14,6 +14,21 @@ class EdgeFatteningParams:
     """How far foreground depth spreads, pixels; 0 = half the preset's matching window."""
     min_jump_rel: float = param(0.03, "1")
     """A neighbour counts as foreground when it is nearer by more than this fraction of depth."""
+    window: str = param("square", "", choices=("square", "disk"))
+    """Shape of the neighbourhood the foreground spreads over: ``square`` ((2r+1)^2, a block
+    matcher's window: Kinect v1, StereoBM) or ``disk`` (Euclidean radius r: matchers with
+    circular or weighted windows, and filtering that spreads isotropically). ``sensor fit``
+    picks the shape from the data (see ``fit_start``)."""
+
+
+def window_kernel(radius: int, shape: str) -> np.ndarray:
+    """uint8 (2r+1)^2 structuring element: all ones (``square``) or the pixels with
+    dx^2 + dy^2 <= r^2 (``disk``)."""
+    r = int(radius)
+    if shape == "disk":
+        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+        return ((xx * xx + yy * yy) <= r * r).astype(np.uint8)
+    return np.ones((2 * r + 1, 2 * r + 1), np.uint8)
 
 
 def depth_discontinuities(view, ray_dirs_cam: np.ndarray, rel: float) -> np.ndarray:
@@ -71,6 +86,7 @@ class EdgeFattening(Effect):
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = EdgeFatteningParams
     FITTABLE = {"radius_px": (0, 20), "min_jump_rel": (0.0, 1.0)}
+    START_ONLY_PARAMS = ("window",)
     stage = STAGE_DROPOUT + 5
 
     def apply(self, state, draw) -> None:
@@ -80,7 +96,7 @@ class EdgeFattening(Effect):
             return
         big = np.float32(1e6)
         z = np.where(state.valid, state.depth, big).astype(np.float32)
-        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        k = window_kernel(r, self.params.window)
         near = cv2.erode(z, k)
         # compare with the pixel's own depth (its ideal depth where it is a hole): only a truly
         # nearer surface fattens, holes on flat surfaces stay holes
@@ -95,6 +111,58 @@ class EdgeFattening(Effect):
         state.depth = np.where(fat, near, state.depth).astype(np.float32)
         state.valid = state.valid | fat
         state.log[self.name] = {"fattened_px": int(fat.sum()), "radius_px": r}
+
+    @classmethod
+    def fit_start(cls, measured, config, frames) -> dict:
+        """The radius and the window shape from the measured depth beside depth edges: for each
+        shape and each ring k = 1..15 (pixels whose nearest nearer surface, by min_jump_rel, first
+        appears in the radius-k window of that shape), the share of measured depths nearer to that
+        foreground depth than to their own ideal depth (edges of at least twice min_jump_rel, >= 6 %:
+        on weaker edges noise blurs the test). Per shape the radius is the largest k
+        before the first ring whose share is < 0.5 (or < half the share of ring 1); the shape whose profile drops
+        most sharply after its radius (share(r) - share(r + 1)) wins. Nothing (the preset's
+        default) when ring 1 is not fattened."""
+        import cv2
+        from synth.sensor.effects._common import measured_samples
+        rel = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
+        rel = max(2.0 * rel, 0.06)      # clear edges only: the radius does not depend on which edges
+        K = 15
+        shapes = ("square", "disk")
+        fat = {sh: np.zeros(K + 2) for sh in shapes}
+        cnt = {sh: np.zeros(K + 2) for sh in shapes}
+        for _, m, r, ok in measured_samples(measured):
+            z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
+            for sh in shapes:
+                prev = z
+                for k in range(1, K + 2):
+                    near = cv2.erode(z, window_kernel(k, sh))
+                    # a clear edge first within k px, and nothing nearer at all (by 1 %) within k - 1 px
+                    # (a weaker edge there would have fattened the pixel by itself)
+                    ring = ok & (near < z * (1 - rel)) & ~(prev < z * 0.99)
+                    prev = near
+                    sel = ring & (m > 0)
+                    if sel.any():
+                        mm, zz, nn = m[sel], z[sel], near[sel]
+                        fat[sh][k] += np.count_nonzero(np.abs(mm - nn) < np.abs(mm - zz))
+                        cnt[sh][k] += sel.sum()
+        best = None
+        for sh in shapes:
+            share = np.where(cnt[sh] >= 30, fat[sh] / np.maximum(cnt[sh], 1), np.nan)
+            if not np.isfinite(share[1]) or share[1] < 0.5:
+                return {}
+            r = 0
+            for k in range(1, K + 1):          # the rings up to the first one that is not fattened
+                if not (np.isfinite(share[k]) and share[k] >= max(0.5, 0.5 * share[1])):
+                    break
+                r = k
+            if r == 0:
+                continue
+            drop = share[r] - (share[r + 1] if np.isfinite(share[r + 1]) else 0.0)
+            if best is None or drop > best[0]:
+                best = (drop, r, sh)
+        if best is None:
+            return {}
+        return {f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]}
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:

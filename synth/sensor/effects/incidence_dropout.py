@@ -51,6 +51,55 @@ class IncidenceDropout(Effect):
         drop_with_probability(state, p, u, self.name)
 
     @classmethod
+    def fit_start(cls, measured, config, frames) -> dict[str, float]:
+        """The 50 % angle and the width from the measured hole rate vs incidence angle (the angle
+        between the IDEAL geometry's normal and the viewing ray, as the effect uses): per 1° bin
+        (>= 40 pixels) the excess hole rate over the rate below 40° (other holes), normalised to
+        [0, 1]; angle50 is where it first reaches 0.5, the width (theta75 - theta25) / (2 ln 3)
+        (the logistic's quartiles), at least 0.1° - a hard cut gives the smallest width. Nothing
+        when the excess never reaches 0.5 (no dropout, or no data at grazing angles)."""
+        from synth.sensor.effects._common import measured_samples
+        edges = np.arange(0.0, 91.0, 1.0)
+        holes = np.zeros(len(edges) - 1)
+        total = np.zeros(len(edges) - 1)
+        for _, m, r, ok in measured_samples(measured):
+            c = np.abs(np.einsum("hwk,hwk->hw", r.normals_cam, r.ray_dirs_cam))
+            th = np.degrees(np.arccos(np.clip(c[ok], 0.0, 1.0)))
+            h = (m[ok] <= 0)
+            total += np.histogram(th, edges)[0]
+            holes += np.histogram(th[h], edges)[0]
+        have = total >= 40
+        if have[:40].sum() < 3 or not have[40:].any():
+            return {}
+        rate = np.where(have, holes / np.maximum(total, 1), np.nan)
+        base = float(np.nanmedian(rate[:40]))
+        if base >= 0.95:
+            return {}
+        ex = (rate - base) / (1.0 - base)
+        centres = 0.5 * (edges[:-1] + edges[1:])
+
+        def crossing(level):
+            idx = np.flatnonzero(have & (ex >= level) & (centres >= 40))
+            if not idx.size:
+                return None
+            i = int(idx[0])
+            j = i - 1
+            while j >= 0 and not have[j]:
+                j -= 1
+            if j < 0 or ex[j] >= level:
+                return float(centres[i])
+            return float(centres[j] + (level - ex[j]) / (ex[i] - ex[j]) * (centres[i] - centres[j]))
+
+        a50 = crossing(0.5)
+        if a50 is None:
+            return {}
+        a25, a75 = crossing(0.25), crossing(0.75)
+        width = (a75 - a25) / (2 * np.log(3.0)) if a25 is not None and a75 is not None else 2.0
+        lo, hi = cls.FITTABLE["width_deg"]
+        return {f"{cls.name}.angle50_deg": float(np.clip(a50, *cls.FITTABLE["angle50_deg"])),
+                f"{cls.name}.width_deg": float(np.clip(width, lo, hi))}
+
+    @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
         """Measured hole rate per incidence-angle band (bands with >= 50 pixels).
 
