@@ -158,3 +158,26 @@ def test_edge_window_shape_and_radius_of_our_own_simulator(tmp_path, window, rad
     from synth.sensor.effects.edge_fattening import EdgeFattening
     st = EdgeFattening.fit_start(ms, ms.default_config(["axial_noise", "edge_fattening"]), None)
     assert st == {"edge_fattening.radius_px": float(radius), "edge_fattening.window": window}
+
+
+@pytest.mark.parametrize("reference", ["camera", "projector"])
+def test_incidence_reference_ray_of_our_own_simulator(tmp_path, reference):
+    """Dropout at 60° (hard, 0.5° wide) against the camera ray or the projector ray, simulated by
+    OUR incidence_dropout: the closed-form start finds the angle and the reference."""
+    from data_tools.sequence import Frame, SequenceWriter
+    from synth.sensor import SensorConfig, SensorSimulator
+    scene = he.studio_scene()
+    wide = SensorConfig.build("kinect_v1").preset.replace(width=320, height=240, fx=290.0, fy=290.0, cx=159.5,
+                                                           cy=119.5)      # the generator's wide view: every angle
+    cfg = SensorConfig.build(wide, [{"name": "incidence_dropout",
+                                     "params": {"angle50_deg": 60.0, "width_deg": 0.5, "reference": reference}}])
+    sim = SensorSimulator(cfg, None, scene)
+    with SequenceWriter(tmp_path / "seq", sim.camera(), scene) as w:
+        for i, T in enumerate(he.trajectory(6)):
+            w.write(Frame(1.0 + i, sim.simulate(T, seed=i).depth, None, T, i))
+    ms = MeasuredSequence.load(tmp_path / "seq")
+    from synth.sensor.effects.incidence_dropout import IncidenceDropout
+    st = IncidenceDropout.fit_start(ms, ms.default_config(["incidence_dropout"]), None)
+    assert st["incidence_dropout.reference"] == reference
+    assert st["incidence_dropout.angle50_deg"] == pytest.approx(60.0, abs=1.0)
+    assert st["incidence_dropout.width_deg"] < 1.5

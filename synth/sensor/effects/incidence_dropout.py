@@ -14,7 +14,28 @@ class IncidenceDropoutParams:
     angle50_deg: float = param(78.0, "deg")
     """Angle between the surface normal and the viewing ray at which half the pixels drop."""
     width_deg: float = param(2.5, "deg")
-    """Width of the transition (logistic scale), degrees."""
+    """Width of the transition (logistic scale), degrees; small = a hard cut (0.1° is a step at
+    the pixel level)."""
+    reference: str = param("camera", "", choices=("camera", "projector", "both"))
+    """The ray the incidence angle is measured against: the camera's viewing ray (matching fails
+    on surfaces seen at grazing angles), the projector's ray (structured light: dots are lost where
+    the pattern arrives at grazing angles) or ``both`` (the larger of the two angles). Measured on
+    the IDEAL geometry's normals, never noisy ones. ``sensor fit`` picks it from the data."""
+
+
+def incidence_angles_deg(normals_cam: np.ndarray, ray_dirs_cam: np.ndarray, points_cam: np.ndarray | None,
+                         projector_offset_m, reference: str) -> np.ndarray:
+    """(H, W) incidence angle in degrees against the camera ray, the projector ray or the larger
+    of the two (``reference``); surface normals facing the camera."""
+    c = np.abs(np.einsum("hwk,hwk->hw", normals_cam, ray_dirs_cam))
+    th_cam = np.degrees(np.arccos(np.clip(c, 0.0, 1.0)))
+    if reference == "camera" or points_cam is None:
+        return th_cam
+    L = points_cam - np.asarray(projector_offset_m, np.float32)
+    r = np.maximum(np.linalg.norm(L, axis=-1), 1e-9)
+    cp = np.abs(np.einsum("hwk,hwk->hw", normals_cam, L)) / r
+    th_proj = np.degrees(np.arccos(np.clip(cp, 0.0, 1.0)))
+    return th_proj if reference == "projector" else np.maximum(th_cam, th_proj)
 
 
 @register_effect
@@ -37,6 +58,7 @@ class IncidenceDropout(Effect):
     DRAW_FROM_SHAPE = True
     Params = IncidenceDropoutParams
     FITTABLE = {"angle50_deg": (30.0, 90.0), "width_deg": (0.1, 30.0)}
+    START_ONLY_PARAMS = ("reference",)
     stage = STAGE_DROPOUT
 
     def sample(self, rng, state):
@@ -44,39 +66,65 @@ class IncidenceDropout(Effect):
 
     def apply(self, state, draw) -> None:
         u = check_draw(draw, "u", state.shape, self.name)
-        c = cos_view(state.view, state.ray_dirs_cam)
-        theta = np.degrees(np.arccos(np.clip(c, 0, 1)))
+        if self.params.reference == "camera":          # (the original code path, bit for bit)
+            c = cos_view(state.view, state.ray_dirs_cam)
+            theta = np.degrees(np.arccos(np.clip(c, 0, 1)))
+        else:
+            theta = incidence_angles_deg(state.view.normals_cam, state.ray_dirs_cam, state.view.points_cam,
+                                         state.preset.projector_offset_m, self.params.reference)
         p = sigmoid((theta - self.params.angle50_deg) / self.params.width_deg)
         p[~state.view.hit] = 0
         drop_with_probability(state, p, u, self.name)
 
     @classmethod
     def fit_start(cls, measured, config, frames) -> dict[str, float]:
-        """The 50 % angle and the width from the measured hole rate vs incidence angle (the angle
-        between the IDEAL geometry's normal and the viewing ray, as the effect uses): per 1° bin
-        (>= 40 pixels) the excess hole rate over the rate below 40° (other holes), normalised to
+        """The 50 % angle, the width and the reference ray from the measured hole rate vs incidence
+        angle (the angle between the IDEAL geometry's normal and the camera ray, the projector ray,
+        or the larger of both; the reference with the sharpest transition wins, since measuring
+        against another ray blurs it): per 0.25° bin (>= 40 pixels) the excess hole rate over the rate below 40° (other holes), normalised to
         [0, 1]; angle50 is where it first reaches 0.5, the width (theta75 - theta25) / (2 ln 3)
         (the logistic's quartiles), at least 0.1° - a hard cut gives the smallest width. Nothing
         when the excess never reaches 0.5 (no dropout, or no data at grazing angles)."""
         from synth.sensor.effects._common import measured_samples
-        edges = np.arange(0.0, 91.0, 1.0)
-        holes = np.zeros(len(edges) - 1)
-        total = np.zeros(len(edges) - 1)
+        refs = ("camera",) if config.preset.type == "tof" else ("camera", "projector", "both")
+        edges = np.arange(0.0, 90.01, 0.25)
+        curves = {ref: (np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)) for ref in refs}
         for _, m, r, ok in measured_samples(measured):
-            c = np.abs(np.einsum("hwk,hwk->hw", r.normals_cam, r.ray_dirs_cam))
-            th = np.degrees(np.arccos(np.clip(c[ok], 0.0, 1.0)))
-            h = (m[ok] <= 0)
-            total += np.histogram(th, edges)[0]
-            holes += np.histogram(th[h], edges)[0]
+            pts = getattr(r, "points_cam", None)
+            for ref in refs:
+                th = incidence_angles_deg(r.normals_cam, r.ray_dirs_cam, pts, config.preset.projector_offset_m,
+                                          ref)[ok]
+                h = (m[ok] <= 0)
+                curves[ref][0][:] += np.histogram(th[h], edges)[0]
+                curves[ref][1][:] += np.histogram(th, edges)[0]
+        best = None
+        for ref in refs:   # the true reference gives the sharpest transition (any other blurs it)
+            est = cls._from_curve(*curves[ref], edges)
+            if est is not None and (best is None or (est[1], est[2]) < (best[1][1] - 0.05, best[1][2])):
+                best = (ref, est)
+        if best is None:
+            return {}
+        ref, (a50, width, _) = best
+        lo, hi = cls.FITTABLE["width_deg"]
+        out = {f"{cls.name}.angle50_deg": float(np.clip(a50, *cls.FITTABLE["angle50_deg"])),
+               f"{cls.name}.width_deg": float(np.clip(width, lo, hi))}
+        if len(refs) > 1:
+            out[f"{cls.name}.reference"] = ref
+        return out
+
+    @staticmethod
+    def _from_curve(holes, total, edges):
+        """(angle50, width, misfit) of one hole-rate curve, None when it never reaches 0.5."""
         have = total >= 40
-        if have[:40].sum() < 3 or not have[40:].any():
-            return {}
-        rate = np.where(have, holes / np.maximum(total, 1), np.nan)
-        base = float(np.nanmedian(rate[:40]))
-        if base >= 0.95:
-            return {}
-        ex = (rate - base) / (1.0 - base)
         centres = 0.5 * (edges[:-1] + edges[1:])
+        low = centres < 40
+        if have[low].sum() < 3 or not have[~low].any():
+            return None
+        rate = np.where(have, holes / np.maximum(total, 1), np.nan)
+        base = float(np.nanmedian(rate[low]))
+        if base >= 0.95:
+            return None
+        ex = (rate - base) / (1.0 - base)
 
         def crossing(level):
             idx = np.flatnonzero(have & (ex >= level) & (centres >= 40))
@@ -92,12 +140,16 @@ class IncidenceDropout(Effect):
 
         a50 = crossing(0.5)
         if a50 is None:
-            return {}
+            return None
         a25, a75 = crossing(0.25), crossing(0.75)
         width = (a75 - a25) / (2 * np.log(3.0)) if a25 is not None and a75 is not None else 2.0
-        lo, hi = cls.FITTABLE["width_deg"]
-        return {f"{cls.name}.angle50_deg": float(np.clip(a50, *cls.FITTABLE["angle50_deg"])),
-                f"{cls.name}.width_deg": float(np.clip(width, lo, hi))}
+        width = max(width, 0.1)
+        # misfit of the logistic to the normalised excess curve (pixel-weighted): the reference whose
+        # curve a logistic explains best is the one the sensor uses
+        pred = 1.0 / (1.0 + np.exp(-np.clip((centres - a50) / width, -50, 50)))
+        w = np.where(have, total, 0.0)
+        misfit = float(np.nansum(w * (np.nan_to_num(ex) - pred) ** 2) / max(w.sum(), 1.0))
+        return a50, width, misfit
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
