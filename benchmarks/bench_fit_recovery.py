@@ -95,11 +95,15 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--no-starts", action="store_true", help="without the closed-form fit_start estimates")
+    ap.add_argument("--method", default="coordinate", help="FitConfig.method: coordinate, powell, "
+                    "differential_evolution, or a comma list to compare them on the same sequences")
     args = ap.parse_args(argv)
     from synth.lab import FitConfig, MeasuredSequence, fit_model
     from tests import hidden_effects as he
     w, h = (int(x) for x in args.size.split("x"))
     rows, runs = [], []
+    methods = [m for m in args.method.split(",") if m]
     tmp = Path(tempfile.mkdtemp(prefix="bench_recovery_"))
     for effect in [e for e in args.effects.split(",") if e]:
         for seed in [int(s) for s in args.seeds.split(",")]:
@@ -107,25 +111,33 @@ def main(argv=None) -> int:
             truth = he.generate(path, effect, seed=seed, n_frames=args.frames, width=w, height=h)
             ms = MeasuredSequence.load(path)
             cfg = ms.default_config(["axial_noise", "range_limits", effect])
-            t0 = time.perf_counter()
-            res = fit_model(ms, cfg, fit_config=FitConfig())
-            secs = time.perf_counter() - t0
-            at_bound = set(res.at_bound)
-            r = compare(effect, truth, res.config, ms.preset.fb, at_bound)
-            rows += r
-            runs.append({"effect": effect, "seed": seed, "gap_before": res.gap_before, "gap": res.gap,
-                         "seconds": secs, "params": res.params, "truth": truth, "at_bound": sorted(at_bound)})
-            print(f"{effect} seed {seed}: gap {res.gap_before:.3f} -> {res.gap:.3f} in {secs:.0f} s"
-                  + (f"; at bound: {', '.join(sorted(at_bound))}" if at_bound else ""), flush=True)
+            for method in methods:
+                t0 = time.perf_counter()
+                res = fit_model(ms, cfg, fit_config=FitConfig(method=method, data_starts=not args.no_starts))
+                secs = time.perf_counter() - t0
+                at_bound = set(res.at_bound)
+                r = compare(effect, truth, res.config, ms.preset.fb, at_bound)
+                for x in r:
+                    x["method"] = method
+                rows += r
+                runs.append({"effect": effect, "seed": seed, "method": method, "gap_before": res.gap_before,
+                             "gap": res.gap, "seconds": secs, "evaluations": res.evaluations, "params": res.params,
+                             "truth": truth, "at_bound": sorted(at_bound)})
+                print(f"{effect} seed {seed} {method}: gap {res.gap_before:.3f} -> {res.gap:.3f} in {secs:.0f} s, "
+                      f"{res.evaluations} evaluations" + (f"; at bound: {', '.join(sorted(at_bound))}" if at_bound else ""),
+                      flush=True)
     print()
-    print(f"{'effect':24s} {'quantity':22s} {'true':>10s} {'fitted':>10s} {'error':>9s} {'tol':>7s}  within  bound")
+    print(f"{'method':11s} {'effect':24s} {'quantity':22s} {'true':>10s} {'fitted':>10s} {'error':>9s} {'tol':>7s}  within  bound")
     for r in rows:
         err = f"{100 * r['error']:+.1f}%" if r["relative"] else f"{r['error']:+.4f}"
         tol = f"{100 * r['tolerance']:.0f}%" if r["relative"] else f"{r['tolerance']:g}"
-        print(f"{r['effect']:24s} {r['quantity']:22s} {r['true']:10.4f} {r['fitted']:10.4f} {err:>9s} {tol:>7s}  "
+        print(f"{r['method'][:11]:11s} {r['effect']:24s} {r['quantity']:22s} {r['true']:10.4f} {r['fitted']:10.4f} {err:>9s} {tol:>7s}  "
               f"{'yes' if r['within'] else 'NO':6s}  {'AT BOUND' if r['at_bound'] else ''}")
-    n_ok = sum(r["within"] for r in rows)
-    print(f"\n{n_ok} of {len(rows)} recovered within tolerance")
+    for method in methods:
+        mr = [r for r in rows if r["method"] == method]
+        runs_m = [r for r in runs if r["method"] == method]
+        print(f"\n{method}: {sum(r['within'] for r in mr)} of {len(mr)} recovered within tolerance; median gap "
+              f"after {np.median([r['gap'] for r in runs_m]):.4f}, median {np.median([r['seconds'] for r in runs_m]):.1f} s")
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "runs": runs}, indent=1, default=float))
     return 0

@@ -87,6 +87,9 @@ __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "s
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
+SEARCH_METHODS = ("coordinate", "powell", "differential_evolution")
+"""The searches :class:`FitConfig` ``method`` may name."""
+
 
 # ------------------------------------------------------------------------------------------
 # Configuration and result
@@ -123,6 +126,15 @@ class FitConfig:
     """A sweep that lowers the gap by less than this fraction ends the search."""
     seed: int = 0
     """Simulation seed (frame k uses seed + its index: common random numbers)."""
+    data_starts: bool = True
+    """Try the effects' closed-form ``fit_start`` estimates as the starting point (kept when they
+    score better than the given values)."""
+    method: str = "coordinate"
+    """Search: ``coordinate`` (the bounded coordinate descent of the module docstring), ``powell``
+    (``scipy.optimize.minimize(method="Powell")`` with bounds, on the same search coordinates) or
+    ``differential_evolution`` (``scipy.optimize.differential_evolution``, seeded, the start in
+    its initial population, no polishing). All three share the budget, the cache and the start;
+    ``benchmarks/bench_fit_recovery.py --method`` compares them."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -143,6 +155,8 @@ class FitConfig:
             raise ConfigError("fit: need grid_points >= 2, refine_iterations >= 0, sweeps >= 1")
         if not self.tolerance >= 0:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
+        if self.method not in SEARCH_METHODS:
+            raise ConfigError(f"fit: method must be one of {', '.join(SEARCH_METHODS)}, got {self.method!r}")
         self.compare.validate()
         return self
 
@@ -445,11 +459,63 @@ def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: 
     fc = fit_config
     budget = _Budget(fc.max_evaluations, fc.max_seconds)
     try:
+        if getattr(fc, "method", "coordinate") != "coordinate" and specs:
+            return _scipy_search(objective, config, specs, fc, budget, progress, start_gap)
         return _search(objective, config, specs, fc, budget, progress, start_gap, refine_below, local)
     finally:
         if stats is not None:
             stats["time_capped"] = bool(stats.get("time_capped", False) or budget.time_capped)
             stats["evaluations"] = int(stats.get("evaluations", 0)) + budget.used
+
+
+def _scipy_search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap
+                  ) -> tuple[dict[str, float], float, int]:
+    """``method`` powell / differential_evolution on the search coordinates t of ``specs``
+    (bounded; integers rounded by ``from_t``), under the same budget and cache as the coordinate
+    descent. Returns (best values, best gap, evaluations)."""
+    from scipy import optimize
+    cache: dict[tuple, float] = {}
+    best = {"g": float("inf"), "x": {s.key: s.from_t(s.to_t(s.value)) for s in specs}}
+
+    class _Out(Exception):
+        pass
+
+    def vals_of(t) -> dict[str, float]:
+        return {s.key: s.from_t(float(np.clip(ti, *s.t_bounds))) for s, ti in zip(specs, t)}
+
+    def f(t) -> float:
+        vals = vals_of(t)
+        key = tuple(round(vals[s.key], 12) for s in specs)
+        if key in cache:
+            return cache[key]
+        if not budget.left:
+            raise _Out
+        budget.used += 1
+        g = float(objective(set_params(config, vals)))
+        cache[key] = g
+        if progress is not None:
+            progress(1)
+        if g < best["g"]:
+            best["g"], best["x"] = g, vals
+        return g
+
+    t0 = np.array([s.to_t(s.value) for s in specs])
+    if start_gap is not None:
+        cache[tuple(round(best["x"][s.key], 12) for s in specs)] = float(start_gap)
+        best["g"] = float(start_gap)
+    bounds = [s.t_bounds for s in specs]
+    try:
+        if fc.method == "powell":
+            optimize.minimize(f, t0, method="Powell", bounds=bounds,
+                              options={"maxfev": int(fc.max_evaluations), "xtol": 1e-3, "ftol": fc.tolerance})
+        else:
+            pop = 5
+            iters = max(1, int(fc.max_evaluations) // (pop * len(specs)) - 1)
+            optimize.differential_evolution(f, bounds, x0=t0, popsize=pop, maxiter=iters, seed=int(fc.seed),
+                                            polish=False, tol=fc.tolerance, init="latinhypercube")
+    except _Out:
+        pass
+    return best["x"], best["g"], budget.used
 
 
 def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap, refine_below,
@@ -596,7 +662,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     try:
         start_cfg = config
         g_start = obj(config)
-        data_start = start_values(measured, config, list(dict.fromkeys(s.key.split(".", 1)[0] for s in specs)), frames)
+        data_start = start_values(measured, config, list(dict.fromkeys(s.key.split(".", 1)[0] for s in specs)),
+                                  frames) if fc.data_starts else {}
         if data_start:
             cand = set_params(config, data_start)
             g = obj(cand)
