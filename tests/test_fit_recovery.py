@@ -138,6 +138,13 @@ def test_fit_recovers_the_independent_generators_parameters(tmp_path, effect, se
     assert not bad, [(r["quantity"], r["true"], r["fitted"]) for r in rows]
     assert res.gap < 0.5 * res.gap_before
     assert not any(k.startswith(effect) for k in res.at_bound), res.at_bound
+    # every fitted parameter has a profile interval around its value, within its search bounds
+    assert set(res.intervals) == set(res.params) and res.gap_noise > 0
+    for k, (lo, hi) in res.intervals.items():
+        b = res.bounds[k]
+        assert b[0] - 1e-12 <= lo <= res.params[k] <= hi <= b[1] + 1e-12, (k, lo, res.params[k], hi)
+    j = res.to_json()
+    assert j["intervals"] and j["gap_noise"] == res.gap_noise
 
 
 @pytest.mark.parametrize("window,radius", [("square", 3), ("disk", 5)])

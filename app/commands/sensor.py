@@ -207,7 +207,9 @@ def _cmd_fit(args) -> int:
     req = _request(args)
     only = effect_names_option(args.only, "--only") if args.only else None
     res, path = fit_sequence(req, args.out, only=only, overwrite=args.overwrite, log=_log)
-    params = ", ".join(f"{k}={v:.4g}" for k, v in res.params.items())
+    iv = res.intervals
+    params = ", ".join(f"{k}={v:.4g}" + (f" [{iv[k][0]:.4g}, {iv[k][1]:.4g}]" if k in iv else "")
+                       for k, v in res.params.items())
     bound = "".join(f"; AT BOUND {k}={res.params[k]:.4g} ({note.split(': ', 1)[1]})"
                     for k, note in res.at_bound.items())
     print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {res.evaluations} evaluations "

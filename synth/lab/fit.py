@@ -83,7 +83,7 @@ from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
-           "Objective", "search", "config_parameters", "start_values"]
+           "Objective", "search", "config_parameters", "start_values", "profile_intervals"]
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -126,6 +126,10 @@ class FitConfig:
     """A sweep that lowers the gap by less than this fraction ends the search."""
     seed: int = 0
     """Simulation seed (frame k uses seed + its index: common random numbers)."""
+    intervals: bool = True
+    """Compute a profile interval per fitted parameter (see :func:`profile_intervals`)."""
+    interval_steps: int = 4
+    """Profile steps outward on each side of each parameter (doubling in size)."""
     data_starts: bool = True
     """Try the effects' closed-form ``fit_start`` estimates as the starting point (kept when they
     score better than the given values)."""
@@ -206,6 +210,14 @@ class FitResult:
     then depends on the machine's speed)."""
     bounds: dict = field(default_factory=dict)
     """{"effect.param": (low, high)} search bounds of the fitted parameters."""
+    intervals: dict = field(default_factory=dict)
+    """{"effect.param": (low, high)}: the profile interval of each fitted parameter - the values
+    whose gap (the others kept at the fit) stays within the gap's own noise of the best one
+    (:func:`profile_intervals`); an end equal to the search bound means the data does not bound
+    the parameter on that side."""
+    gap_noise: float = float("nan")
+    """The gap's noise level used for the intervals (twice the std of the best model's gap over
+    three simulation seeds, at least 2 % of it)."""
 
     @property
     def at_bound(self) -> dict[str, str]:
@@ -235,7 +247,8 @@ class FitResult:
                 "search_gap": self.search_gap, "kept_start": self.kept_start,
                 "search_frames": list(self.frames), "eval_frames": list(self.eval_frames),
                 "time_capped": self.time_capped, "effects": self.config.names(enabled_only=True),
-                "bounds": {k: list(v) for k, v in self.bounds.items()}, "at_bound": self.at_bound}
+                "bounds": {k: list(v) for k, v in self.bounds.items()}, "at_bound": self.at_bound,
+                "intervals": {k: list(v) for k, v in self.intervals.items()}, "gap_noise": self.gap_noise}
 
 
 # ------------------------------------------------------------------------------------------
@@ -680,6 +693,9 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         if bar is not None:
             bar.close()
     best_cfg = set_params(start_cfg, best_x) if specs else config
+    intervals, noise = ({}, float("nan"))
+    if fc.intervals and specs and best_x:
+        intervals, noise = profile_intervals(measured, frames, fc, start_cfg, specs, best_x, g_best, obj)
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
     before = ev(config)
     after = ev(best_cfg) if specs else before
@@ -691,4 +707,52 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
                      [measured.frame_indices[k] for k in frames],
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
-                     {sp.key: (sp.low, sp.high) for sp in specs})
+                     {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise)
+
+
+def profile_intervals(measured, frames, fc: FitConfig, config, specs, best_x: dict, g_best: float,
+                      objective) -> tuple[dict, float]:
+    """Profile interval of every fitted parameter: how far it can move (the others at the fit)
+    before the gap rises by more than its own noise.
+
+    The noise tau is twice the standard deviation of the best model's gap over three simulation
+    seeds (the search's and two others, same frames and pixels), at least 2 % of the gap: the
+    gap of one parameter set varies that much with the random draws alone, so values whose gap
+    is within tau of the best cannot be told apart by the data. From the best value, steps of
+    1/32 of the search range (in the search coordinate: logarithmic / asinh where the search is;
+    one unit for integers) doubling ``interval_steps`` times go outward on each side until the
+    gap exceeds g_best + tau; the end is interpolated linearly between the last step inside and
+    the first outside, or is the search bound when none is outside. Costs about
+    2 + 2 x interval_steps evaluations per parameter. Approximate: one parameter at a time (a
+    coupled pair gets a narrower interval than its joint confidence region)."""
+    gaps = [float(g_best)]
+    for extra in (1009, 2027):
+        o = Objective(measured, frames, objective.compare_config, fc.seed + extra)
+        gaps.append(float(o(set_params(config, best_x))))
+    tau = max(2.0 * float(np.std(gaps)), 0.02 * abs(float(g_best)), 1e-6)
+    out = {}
+    for sp in specs:
+        v0 = float(best_x[sp.key])
+        t0 = sp.to_t(v0)
+        tlo, thi = sp.t_bounds
+        ends = []
+        for sign in (-1.0, 1.0):
+            step = 1.0 if sp.integer else (thi - tlo) / 32.0
+            t_in, g_in, end = t0, float(g_best), None
+            for _ in range(int(fc.interval_steps)):
+                t = min(max(t0 + sign * step, tlo), thi)
+                if t == t_in:
+                    break                                   # already on the bound
+                vals = dict(best_x)
+                vals[sp.key] = sp.from_t(t)
+                g = float(objective(set_params(config, vals)))
+                if g > g_best + tau:
+                    frac = 0.0 if sp.integer else min(1.0, max(0.0, (g_best + tau - g_in) / max(g - g_in, 1e-12)))
+                    end = sp.from_t(t_in + (t - t_in) * frac)
+                    break
+                t_in, g_in = t, g
+                step *= 2.0
+            ends.append(end if end is not None else sp.from_t(t_in))
+        lo, hi = sorted((float(ends[0]), float(ends[1])))
+        out[sp.key] = (min(lo, v0), max(hi, v0))
+    return out, tau

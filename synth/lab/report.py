@@ -212,7 +212,7 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
                  out_dir: str | os.PathLike, history: Sequence[dict] | str | os.PathLike | None = None, *,
                  regions: Sequence[Region] | None = None, top_bins: int = 5, top_blocks: int = 5,
                  block_px: int = 32, title: str = "Sensor lab report",
-                 calibration: Sequence[FrameObservation] | None = None) -> Path:
+                 calibration: Sequence[FrameObservation] | None = None, fit: dict | None = None) -> Path:
     """Write ``out_dir/report.html`` (+ figures, metrics.json, regions.json); returns its path.
 
     observations_subset: the frames to show (error maps, worst image blocks); usually a few.
@@ -220,7 +220,9 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
     ``out_dir/history.json`` if present. regions: precomputed worst regions (default: the
     ``top_bins`` worst bins of ``result`` and the ``top_blocks`` worst blocks of the subset).
     calibration: every frame of a planar-target capture (masked sequence): adds noise vs distance
-    and the mean residual map (:mod:`synth.lab.calibration`).
+    and the mean residual map (:mod:`synth.lab.calibration`). fit: the fit record
+    (``FitResult.to_json()``) of the model being compared: adds the fitted parameters with their
+    profile intervals and the ones that ended on a bound.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -276,6 +278,8 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
     if calibration:
         from synth.lab.calibration import calibration_section
         parts.append(calibration_section(calibration, figs))
+    if fit:
+        parts.append(fit_section(fit))
 
     parts.append("<h2>Binned statistics: measured vs simulated</h2>")
     for f, b in result.breakdowns.items():
@@ -297,10 +301,25 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
     return atomic_write_text(out / REPORT_FILE, "\n".join(parts))
 
 
+def fit_section(fit: dict) -> str:
+    """HTML: the fitted parameters, their profile intervals and bound warnings of a fit record."""
+    iv, ab = fit.get("intervals") or {}, fit.get("at_bound") or {}
+    rows = []
+    for k, v in (fit.get("params") or {}).items():
+        lo_hi = iv.get(k)
+        rows.append([k, f"{v:.5g}", f"[{lo_hi[0]:.5g}, {lo_hi[1]:.5g}]" if lo_hi else "-",
+                     f"AT BOUND - {ab[k]}" if k in ab else ""])
+    note = (f"Gap {fit.get('gap_before', float('nan')):.4f} -> {fit.get('gap', float('nan')):.4f}. Interval: the "
+            f"values whose gap stays within the gap's noise ({fit.get('gap_noise', float('nan')):.4f}) of the best, "
+            f"the other parameters at the fit; an end on the search bound means the data does not bound it there.")
+    return (f"<h2>Fitted parameters</h2><p>{html.escape(note)}</p>"
+            + html_table(rows, ["parameter", "fitted", "profile interval", "note"]))
+
+
 def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike, *,
             effects: Sequence[str] = (), label: str | None = None, config: CompareConfig | None = None,
             compare_against: str | os.PathLike | None = None, report_frames: int = 4,
-            planar: bool = False) -> CompareResult:
+            planar: bool = False, fit: dict | None = None) -> CompareResult:
     """One lab step: compare, save metrics.json, append to the history, write the report.
 
     report_frames: how many frames (evenly spread) get error-map figures. planar: the frames are
@@ -311,5 +330,5 @@ def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike
     entries = append_history(out_dir, list(effects), result.gap, label, compare_against=compare_against)
     k = max(0, min(int(report_frames), len(obs)))
     picks = spread_indices(len(obs), k)
-    write_report(result, [obs[i] for i in picks], out_dir, entries, calibration=obs if planar else None)
+    write_report(result, [obs[i] for i in picks], out_dir, entries, calibration=obs if planar else None, fit=fit)
     return result

@@ -459,7 +459,7 @@ def compare_sequence(req: LabRequest, out: str | Path, *, compare_against: str |
         effects = config.names(enabled_only=True)
         result = run_lab(obs, out, effects=effects, label=_step_label(req, label, config, fit), config=ccfg,
                          compare_against=compare_against, report_frames=report_frames,
-                         planar=measured.has_masks)
+                         planar=measured.has_masks, fit=fit.to_json() if fit is not None else None)
     config.save(out / "sensor_config.json")
     extra = {"compare_preset": compare_preset, "compare_against": compare_against,
              "label": label, "gap": result.gap, "timings_s": {k: round(v, 3) for k, v in timings.items()}}
