@@ -88,6 +88,75 @@ def compare(effect: str, truth: dict, cfg, fb: float, at_bound: set) -> list[dic
     return rows
 
 
+def independent_statistic(measured_depths, other_depths, ideal_depths, block: int = 16) -> float:
+    """The issue's simple statistic between two depth sequences of the same frames, independent of
+    the lab's gap: the mean |difference| of the invalid fraction per 16x16 block, plus, per 0.25 m
+    bin of the ideal depth (>= 200 pixels valid in both), |difference of the median error| +
+    |difference of the robust spread| of depth minus ideal depth, in units of 10 mm, averaged over
+    the bins. 0 for identical statistics."""
+    inv, bias_spread = [], []
+    ea, eb, za, zb = [], [], [], []
+    for a, b, z in zip(measured_depths, other_depths, ideal_depths):
+        H, W = z.shape
+        hh, ww = H // block * block, W // block * block
+        geo = z[:hh, :ww] > 0
+        ia = ((a[:hh, :ww] <= 0) & geo).reshape(hh // block, block, ww // block, block).sum((1, 3))
+        ib = ((b[:hh, :ww] <= 0) & geo).reshape(hh // block, block, ww // block, block).sum((1, 3))
+        n = geo.reshape(hh // block, block, ww // block, block).sum((1, 3))
+        ok = n > 0
+        inv.append(np.abs(ia[ok] - ib[ok]) / n[ok])
+        va, vb = (a > 0) & (z > 0), (b > 0) & (z > 0)
+        ea.append((a - z)[va]); za.append(z[va])
+        eb.append((b - z)[vb]); zb.append(z[vb])
+    ea, eb, za, zb = map(np.concatenate, (ea, eb, za, zb))
+
+    def stats(e, zz, lo):
+        sel = (zz >= lo) & (zz < lo + 0.25)
+        if sel.sum() < 200:
+            return None
+        x = e[sel]
+        med = float(np.median(x))
+        return med, 1.4826 * float(np.median(np.abs(x - med)))
+
+    for lo in np.arange(0.0, 10.0, 0.25):
+        sa, sb = stats(ea, za, lo), stats(eb, zb, lo)
+        if sa is not None and sb is not None:
+            bias_spread.append((abs(sa[0] - sb[0]) + abs(sa[1] - sb[1])) / 0.010)
+    return float(np.mean(np.concatenate(inv))) + (float(np.mean(bias_spread)) if bias_spread else 0.0)
+
+
+def closure(effect: str, seed: int, path: Path, frames: int, w: int, h: int) -> dict:
+    """How much of the closable gap the fitted effect closes, by the lab's gap and by the
+    independent statistic: (without - with) / (without - floor), ``without`` the base model
+    (axial_noise, range_limits) fitted, ``with`` the base model + the effect fitted, ``floor`` the
+    measurement against the generator's own re-run with a new noise seed (the same sensor
+    measuring again: what no model can beat)."""
+    from synth.lab import FitConfig, MeasuredSequence, fit_model
+    from synth.lab.compare import CompareConfig, compare
+    from tests import hidden_effects as he
+    he.generate(path.with_name(path.name + "_again"), effect, seed=seed, n_frames=frames, width=w, height=h,
+                noise_seed=seed + 1000)
+    ms = MeasuredSequence.load(path)
+    again = MeasuredSequence.load(path.with_name(path.name + "_again"))
+    ks = range(len(ms))
+    meas = [ms.measured_depth(k) for k in ks]
+    ideal = [ms.render(k).depth for k in ks]
+    rerun = [again.measured_depth(k) for k in ks]
+    cc = CompareConfig()
+    floor_gap = compare(ms.observations(rerun), cc).gap
+    floor_stat = independent_statistic(meas, rerun, ideal)
+    out = {"floor_gap": floor_gap, "floor_stat": floor_stat}
+    for name, effects in (("without", ["axial_noise", "range_limits"]), ("with", ["axial_noise", "range_limits", effect])):
+        res = fit_model(ms, ms.default_config(effects), fit_config=FitConfig())
+        sims = ms.simulate(res.config, 0)
+        out[f"{name}_gap"] = compare(ms.observations(sims), cc).gap
+        out[f"{name}_stat"] = independent_statistic(meas, sims, ideal)
+    for m in ("gap", "stat"):
+        den = out[f"without_{m}"] - out[f"floor_{m}"]
+        out[f"closed_{m}"] = (out[f"without_{m}"] - out[f"with_{m}"]) / den if den > 0 else float("nan")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--effects", default=",".join(EFFECTS))
@@ -96,6 +165,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--no-starts", action="store_true", help="without the closed-form fit_start estimates")
+    ap.add_argument("--closure", action="store_true", help="also measure the share of the closable gap the fitted "
+                    "effect closes (lab gap and the independent statistic, floor = the generator re-run)")
     ap.add_argument("--method", default="coordinate", help="FitConfig.method: coordinate, powell, "
                     "differential_evolution, or a comma list to compare them on the same sequences")
     args = ap.parse_args(argv)
@@ -111,6 +182,13 @@ def main(argv=None) -> int:
             truth = he.generate(path, effect, seed=seed, n_frames=args.frames, width=w, height=h)
             ms = MeasuredSequence.load(path)
             cfg = ms.default_config(["axial_noise", "range_limits", effect])
+            if args.closure:
+                c = closure(effect, seed, path, args.frames, w, h)
+                runs.append({"effect": effect, "seed": seed, "method": "closure", **c})
+                print(f"{effect} seed {seed} closure: gap without {c['without_gap']:.3f} with {c['with_gap']:.3f} "
+                      f"floor {c['floor_gap']:.3f} -> closed {100 * c['closed_gap']:.0f} %; statistic without "
+                      f"{c['without_stat']:.3f} with {c['with_stat']:.3f} floor {c['floor_stat']:.3f} -> closed "
+                      f"{100 * c['closed_stat']:.0f} %", flush=True)
             for method in methods:
                 t0 = time.perf_counter()
                 res = fit_model(ms, cfg, fit_config=FitConfig(method=method, data_starts=not args.no_starts))
@@ -135,7 +213,7 @@ def main(argv=None) -> int:
               f"{'yes' if r['within'] else 'NO':6s}  {'AT BOUND' if r['at_bound'] else ''}")
     for method in methods:
         mr = [r for r in rows if r["method"] == method]
-        runs_m = [r for r in runs if r["method"] == method]
+        runs_m = [r for r in runs if r.get("method") == method]
         print(f"\n{method}: {sum(r['within'] for r in mr)} of {len(mr)} recovered within tolerance; median gap "
               f"after {np.median([r['gap'] for r in runs_m]):.4f}, median {np.median([r['seconds'] for r in runs_m]):.1f} s")
     if args.json:

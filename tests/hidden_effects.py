@@ -239,9 +239,11 @@ def sense(effect: str | None, params: dict, renderer, r, pose, intr: Intrinsics,
 
 
 def generate(out_dir, effect: str | None, seed: int = 0, n_frames: int = 8, width: int = WIDTH,
-             height: int = HEIGHT, sweep: float = 1.0, scene: str = "studio") -> dict:
+             height: int = HEIGHT, sweep: float = 1.0, scene: str = "studio", noise_seed: int | None = None) -> dict:
     """Write a measured sequence with ``effect`` hidden (None: base effects only) to ``out_dir``.
 
+    ``noise_seed``: draw the noise (and random dropouts) of the frames from this seed instead of
+    ``seed`` - the same sensor (parameters from ``seed``) measuring the same scene again.
     Returns the drawn parameters (``{"effect", "seed", ...}``).
     """
     from synth.render import IdealRenderer
@@ -258,7 +260,8 @@ def generate(out_dir, effect: str | None, seed: int = 0, n_frames: int = 8, widt
     with SequenceWriter(out_dir, cam, scene, overwrite=True) as w:
         for i, T in enumerate(poses):
             r = renderer.render(T, intr, with_rgb=True)
-            z = sense(effect, params, renderer, r, T, intr, albedo_of_id, np.random.default_rng([seed, i]))
+            z = sense(effect, params, renderer, r, T, intr, albedo_of_id,
+                      np.random.default_rng([seed if noise_seed is None else noise_seed, i]))
             w.write(Frame(1.0 + i / 30.0, z, r.rgb, T, i))
     return {"effect": effect, "seed": seed, "scene": scene_name, **params}
 

@@ -343,7 +343,9 @@ def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
         e = _effect(config, n)
         if not e.enabled:
             raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
-        items = [(k, lo, hi, getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()]
+        types = getattr(e, "FITTABLE_FOR", {})
+        items = [(k, lo, hi, getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
+                 if k not in types or config.preset.type in types[k]]
         items += [(k, x.low, x.high, x.get(config, e)) for k, x in config_parameters(config, e).items()]
         for k, lo, hi, v in items:
             integer = isinstance(v, (int, np.integer)) and not isinstance(v, bool)

@@ -180,6 +180,10 @@ class Effect(ABC):
     """How the sensor lab shows the effect in measured data (None: a generic distance breakdown)."""
     CONFIG_PARAMETERS: ClassVar[dict[str, ConfigParameter]] = {}
     """Fittable numbers of the effect that are not numeric Params fields (see ConfigParameter)."""
+    FITTABLE_FOR: ClassVar[dict[str, tuple[str, ...]]] = {}
+    """FITTABLE parameters that the lab fits only for some sensor types (``SensorPreset.type``):
+    a parameter whose physics another sensor does not have stays at its value there, so a fit
+    cannot use it to explain what another effect should."""
     START_ONLY_PARAMS: ClassVar[tuple[str, ...]] = ()
     """Non-numeric parameters (choices) that ``fit_start`` chooses from the data (e.g. a window
     shape); the search keeps them fixed."""
@@ -333,6 +337,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k in cls.FITTABLE:
         if k not in fields:
             raise TypeError(f"{cls.__name__}.FITTABLE names unknown parameter {k!r}")
+    for k in cls.FITTABLE_FOR:
+        if k not in cls.FITTABLE:
+            raise TypeError(f"{cls.__name__}.FITTABLE_FOR names {k!r}, which is not FITTABLE")
     for k in (cls.IDENTITY_PARAMS or {}):
         if k not in fields:
             raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")

@@ -47,6 +47,7 @@ class AxialNoise(Effect):
     Params = AxialNoiseParams
     FITTABLE = {"sigma0_m": (0.0, 0.1), "sigma1": (0.0, 0.1), "sigma2_per_m": (0.0, 0.05),
                 "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0)}
+    FITTABLE_FOR = {"reflectance_exponent": ("tof",)}   # triangulation noise does not scale with the amplitude
     stage = STAGE_DEPTH
 
     def sample(self, rng, state):

@@ -17,6 +17,20 @@ class LowReflectanceParams:
     cos(incidence) / r^2 with r in metres (a white wall facing the sensor at 1 m = 1)."""
     width_decades: float = param(0.25, "decades")
     """Width of the transition in decades of signal (logistic scale)."""
+    signal: str = param("irradiance", "", choices=("irradiance", "albedo"))
+    """What decides: ``irradiance`` - the returned light, albedo (1 - specular) cos(incidence) /
+    r^2 (a sensor near its noise floor: far and oblique surfaces drop too); ``albedo`` - the
+    material alone, albedo (1 - specular) (IR-absorbing materials lost at any distance inside
+    the working range; then signal50 is an albedo). ``sensor fit`` picks it from the data."""
+
+
+def returned_signal(view, preset, form: str) -> np.ndarray:
+    """(H, W) the signal of :class:`LowReflectanceParams` (``form`` irradiance or albedo)."""
+    base = view.albedo * (1 - view.specular)
+    if form == "albedo":
+        return base
+    cos_i, r = cos_incidence(view, preset.projector_offset_m)
+    return base * cos_i / np.maximum(r * r, 1e-9)
 
 
 @register_effect
@@ -46,13 +60,65 @@ class LowReflectance(Effect):
     def apply(self, state, draw) -> None:
         u = check_draw(draw, "u", state.shape, self.name)
         v = state.view
-        cos_i, r = cos_incidence(v, state.preset.projector_offset_m)
-        s = v.albedo * (1 - v.specular) * cos_i / np.maximum(r * r, 1e-9)
+        s = returned_signal(v, state.preset, self.params.signal)
         with np.errstate(divide="ignore"):
             x = np.log10(self.params.signal50) - np.log10(np.maximum(s, 1e-12))
         p = sigmoid(x / self.params.width_decades)
         p[~v.hit] = 0
         drop_with_probability(state, p, u, self.name)
+
+    START_ONLY_PARAMS = ("signal",)
+
+    @classmethod
+    def fit_start(cls, measured, config, frames) -> dict:
+        """signal50, width and the signal form from the measured holes: for each form, the pixels'
+        signal (ideal geometry, the materials' albedos) is binned in 0.05-decade bins; the hole
+        rate per bin, less the rate of the brightest quarter of the pixels (other holes),
+        normalised, gives signal50 where it crosses 0.5 (scanning from bright to dark) and the
+        width from its 0.25 and 0.75 crossings (the logistic's quartiles: width = (x75 - x25) /
+        (2 ln 3) decades). The form whose logistic predicts the holes of every pixel best (Brier
+        score) wins. Nothing when no form's excess reaches 0.5."""
+        from synth.sensor.effects._common import measured_samples
+        from synth.sensor.state import ViewGeometry
+        rng = np.random.default_rng(0)
+        renderer = measured.renderer
+        logs = {"irradiance": [], "albedo": []}
+        holes = []
+        for _, m, r, ok in measured_samples(measured):
+            idx = np.flatnonzero(ok)
+            if idx.size > 40000:
+                idx = np.sort(rng.choice(idx, 40000, replace=False))
+            if not idx.size:
+                continue
+            alb, spec = renderer.albedo_specular(r.instance_ids, check=False)
+            H, W = r.depth.shape
+            view = ViewGeometry(r.points_cam, r.normals_cam, r.hit, r.instance_ids, np.asarray(alb, np.float32),
+                                np.asarray(spec, np.float32), r.points_world, np.broadcast_to(np.eye(4), (H, 4, 4)))
+            for form in logs:
+                sig = returned_signal(view, config.preset, form).ravel()[idx]
+                logs[form].append(np.log10(np.maximum(sig, 1e-12)))
+            holes.append(m.ravel()[idx] <= 0)
+        if not holes:
+            return {}
+        h = np.concatenate(holes).astype(float)
+        best = None
+        for form, parts in logs.items():
+            x = np.concatenate(parts)
+            est = _logistic_from_rates(x, h)
+            if est is None:
+                continue
+            x50, w, base = est
+            p = base + (1 - base) / (1.0 + np.exp(np.clip((x - x50) / w, -50, 50)))
+            brier = float(np.mean((p - h) ** 2))
+            if best is None or brier < best[0]:
+                best = (brier, form, x50, w)
+        if best is None:
+            return {}
+        _, form, x50, w = best
+        lo, hi = cls.FITTABLE["signal50"]
+        wl, wh = cls.FITTABLE["width_decades"]
+        return {f"{cls.name}.signal50": float(np.clip(10.0 ** x50, lo, hi)),
+                f"{cls.name}.width_decades": float(np.clip(w, wl, wh)), f"{cls.name}.signal": form}
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
@@ -84,3 +150,39 @@ class LowReflectance(Effect):
             return ctx.weak("reflectance signature", gain, numbers)
         return (f"dark materials (albedo < {cut}: {', '.join(dark_names[:4])}) lose {ctx.pct(r_d)} of their pixels, "
                 f"more than brighter ones ({ctx.pct(r_b)}) and than the current model on the dark ones ({ctx.pct(r_mod)}).")
+
+
+def _logistic_from_rates(x: np.ndarray, hole: np.ndarray, bin_w: float = 0.05):
+    """(x50, width, base rate) of a hole rate falling from 1 (low x) to ``base`` (high x), from
+    per-bin rates (>= 30 pixels); None when the normalised excess never reaches 0.5."""
+    if x.size < 200:
+        return None
+    base = float(hole[x >= np.quantile(x, 0.75)].mean())
+    if base >= 0.95:
+        return None
+    lo, hi = np.floor(x.min() / bin_w) * bin_w, np.ceil(x.max() / bin_w) * bin_w + bin_w
+    edges = np.arange(lo, hi + 1e-9, bin_w)
+    tot = np.histogram(x, edges)[0]
+    hol = np.histogram(x[hole > 0], edges)[0]
+    have = tot >= 30
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    ex = np.where(have, (hol / np.maximum(tot, 1) - base) / (1 - base), np.nan)
+
+    def crossing(level):
+        # from bright (high x) towards dark: the first bin at or above the level
+        for i in range(len(centres) - 1, -1, -1):
+            if have[i] and ex[i] >= level:
+                j = i + 1
+                while j < len(centres) and not have[j]:
+                    j += 1
+                if j >= len(centres) or ex[j] >= level:
+                    return float(centres[i])
+                return float(centres[i] + (ex[i] - level) / (ex[i] - ex[j]) * (centres[j] - centres[i]))
+        return None
+
+    x50 = crossing(0.5)
+    if x50 is None:
+        return None
+    x25, x75 = crossing(0.25), crossing(0.75)
+    w = abs(x25 - x75) / (2 * np.log(3.0)) if x25 is not None and x75 is not None else 0.25
+    return x50, max(w, 0.01), base
