@@ -157,6 +157,70 @@ def closure(effect: str, seed: int, path: Path, frames: int, w: int, h: int) -> 
     return out
 
 
+SIM_CASES = {
+    "depth_bias (disparity offset)": {"depth_bias": {"disparity_offset_px": -0.4}},
+    "depth_bias (offset + scale)": {"depth_bias": {"offset_m": 0.015, "scale": 0.006}},
+    "lens_distortion": {"lens_distortion": {"k1": 0.15}},
+    "incidence_dropout": {"incidence_dropout": {"angle50_deg": 65.0, "width_deg": 1.5}},
+    "disparity_quantization": {"disparity_quantization": {"step_px": 0.25}},
+    "edge_fattening": {"edge_fattening": {"radius_px": 3}},
+    "low_reflectance": {"low_reflectance": {"signal50": 0.02, "width_decades": 0.2}},
+    "pair: depth_bias + lens_distortion": {"depth_bias": {"disparity_offset_px": 0.3},
+                                           "lens_distortion": {"k1": -0.12}},
+    "pair: incidence_dropout + edge_fattening": {"incidence_dropout": {"angle50_deg": 70.0, "width_deg": 1.0},
+                                                 "edge_fattening": {"radius_px": 4}},
+    "pair: disparity_quantization + depth_bias": {"disparity_quantization": {"step_px": 0.3},
+                                                  "depth_bias": {"offset_m": -0.01}},
+}
+"""Sequences made by OUR simulator (direct model, base noise sigma2 = 0.0025 /m) with these true
+parameters: the fit must give them back in the model's own terms (``--source simulator``)."""
+
+SIM_TOLERANCE = {"depth_bias.disparity_offset_px": (0.1, False), "depth_bias.offset_m": (0.002, False),
+                 "depth_bias.scale": (0.003, False), "lens_distortion.k1": (0.02, False),
+                 "incidence_dropout.angle50_deg": (2.0, False), "disparity_quantization.step_px": (0.03, True),
+                 "edge_fattening.radius_px": (0.0, False), "low_reflectance.signal50": (0.25, True),
+                 "axial_noise.sigma2_per_m": (0.10, True)}
+"""Tolerance (absolute, or relative when True) of each compared parameter."""
+
+
+def simulator_case(name: str, truth: dict, path: Path, frames: int, w: int, h: int) -> list[dict]:
+    """Simulate ``truth`` (plus axial noise) through our own simulator on the generator's studio
+    scene and camera, fit ``axial_noise, range_limits`` + the true effects at the preset's
+    defaults, and compare every parameter of :data:`SIM_TOLERANCE` the truth sets."""
+    from data_tools.sequence import Frame, SequenceWriter
+    from synth.lab import FitConfig, MeasuredSequence, fit_model
+    from synth.sensor import SensorConfig, SensorSimulator
+    from tests import hidden_effects as he
+    f = he.FOCAL * w / he.WIDTH
+    pre = SensorConfig.build("kinect_v1").preset.replace(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    true_all = {"axial_noise": {"sigma2_per_m": 0.0025}, **truth}
+    cfg = SensorConfig.build(pre, [{"name": k, "params": v} for k, v in true_all.items()])
+    scene = he.studio_scene()
+    sim = SensorSimulator(cfg, None, scene)
+    import dataclasses
+    cam = sim.camera()      # the measured camera.json must not tell the fit the lens distortion it simulated
+    cam = dataclasses.replace(cam, intrinsics=dataclasses.replace(cam.intrinsics, distortion=None))
+    with SequenceWriter(path, cam, scene, overwrite=True) as wr:
+        for i, T in enumerate(he.trajectory(frames)):
+            wr.write(Frame(1.0 + i / 30.0, sim.simulate(T, seed=100 + i).depth, None, T, i))
+    ms = MeasuredSequence.load(path)
+    res = fit_model(ms, ms.default_config(["axial_noise", "range_limits", *truth]), fit_config=FitConfig())
+    rows = []
+    for eff, params in true_all.items():
+        for k, t in params.items():
+            key = f"{eff}.{k}"
+            if key not in SIM_TOLERANCE:
+                continue
+            tol, rel = SIM_TOLERANCE[key]
+            fv = float(getattr(res.config.effect(eff).params, k))
+            err = (fv - t) / t if rel else fv - t
+            rows.append({"effect": name, "quantity": key, "true": float(t), "fitted": fv, "error": err,
+                         "tolerance": tol, "relative": rel, "within": abs(err) <= tol + 1e-12,
+                         "at_bound": key in res.at_bound, "method": "simulator",
+                         "interval": list(res.intervals.get(key, ()))})
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--effects", default=",".join(EFFECTS))
@@ -165,6 +229,9 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="320x240")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--no-starts", action="store_true", help="without the closed-form fit_start estimates")
+    ap.add_argument("--source", default="generator", choices=("generator", "simulator"),
+                    help="generator: the independent generator's hidden effects; simulator: our own simulator "
+                         "with known parameters, single effects and pairs (SIM_CASES)")
     ap.add_argument("--closure", action="store_true", help="also measure the share of the closable gap the fitted "
                     "effect closes (lab gap and the independent statistic, floor = the generator re-run)")
     ap.add_argument("--method", default="coordinate", help="FitConfig.method: coordinate, powell, "
@@ -176,6 +243,25 @@ def main(argv=None) -> int:
     rows, runs = [], []
     methods = [m for m in args.method.split(",") if m]
     tmp = Path(tempfile.mkdtemp(prefix="bench_recovery_"))
+    if args.source == "simulator":
+        for i, (name, truth) in enumerate(SIM_CASES.items()):
+            t0 = time.perf_counter()
+            r = simulator_case(name, truth, tmp / f"sim{i}", args.frames, w, h)
+            rows += r
+            print(f"{name}: {sum(x['within'] for x in r)} of {len(r)} within tolerance "
+                  f"({time.perf_counter() - t0:.0f} s)", flush=True)
+        print()
+        print(f"{'case':42s} {'parameter':32s} {'true':>9s} {'fitted':>9s} {'error':>9s} {'tol':>7s}  within  interval")
+        for r in rows:
+            err = f"{100 * r['error']:+.1f}%" if r["relative"] else f"{r['error']:+.4f}"
+            tol = f"{100 * r['tolerance']:.0f}%" if r["relative"] else f"{r['tolerance']:g}"
+            iv = "[" + ", ".join(f"{x:.4g}" for x in r["interval"]) + "]" if r["interval"] else ""
+            print(f"{r['effect'][:42]:42s} {r['quantity']:32s} {r['true']:9.4f} {r['fitted']:9.4f} {err:>9s} "
+                  f"{tol:>7s}  {'yes' if r['within'] else 'NO':6s}  {iv}{' AT BOUND' if r['at_bound'] else ''}")
+        print(f"\n{sum(r['within'] for r in rows)} of {len(rows)} parameters recovered within tolerance")
+        if args.json:
+            Path(args.json).write_text(json.dumps({"rows": rows}, indent=1, default=float))
+        return 0
     for effect in [e for e in args.effects.split(",") if e]:
         for seed in [int(s) for s in args.seeds.split(",")]:
             path = tmp / f"{effect}_{seed}"

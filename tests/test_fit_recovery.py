@@ -188,3 +188,13 @@ def test_incidence_reference_ray_of_our_own_simulator(tmp_path, reference):
     assert st["incidence_dropout.reference"] == reference
     assert st["incidence_dropout.angle50_deg"] == pytest.approx(60.0, abs=1.0)
     assert st["incidence_dropout.width_deg"] < 1.5
+
+
+@pytest.mark.parametrize("case", ["lens_distortion", "pair: incidence_dropout + edge_fattening"])
+def test_fit_recovers_our_own_simulators_parameters(tmp_path, case):
+    """One effect, and two at once, simulated by our own simulator with known parameters: every true
+    parameter comes back within its tolerance (benchmarks/bench_fit_recovery.py --source simulator
+    runs every single effect and pair)."""
+    from benchmarks.bench_fit_recovery import SIM_CASES, simulator_case
+    rows = simulator_case(case, SIM_CASES[case], tmp_path / "seq", 5, 320, 240)
+    assert rows and all(r["within"] for r in rows), [(r["quantity"], r["true"], r["fitted"]) for r in rows]

@@ -56,18 +56,26 @@ class AxialNoise(Effect):
     @classmethod
     def fit_start(cls, measured, config, frames) -> dict[str, float]:
         """The noise level from local residuals: the robust std of the difference of horizontally
-        adjacent residuals (measured - ideal) on one surface (ideal depths within 1 %), divided
-        by sqrt(2), per depth bin of 0.25 m (>= 200 pixel pairs) - differences remove every bias
-        that is smooth across the image (offsets, distortion bowls, a wrong scale). Then
-        sigma(z) = sigma2 z^2 (triangulation: constant disparity noise) or sigma0 + sigma1 z (ToF)
-        by weighted least squares over the bins; the other terms start at 0. Spatially
+        adjacent residuals on one surface (ideal depths within 1 %), divided by sqrt(2), per depth
+        bin of 0.25 m (>= 200 pixel pairs) - differences remove every bias that is smooth across
+        the image (offsets, distortion bowls, a wrong scale). Triangulation: the residual is taken
+        in disparity, f b / z_measured - f b / z_ideal, whose noise sigma_d is the same at every
+        depth (and unchanged by a disparity offset applied after the noise), so sigma2 = mean
+        sigma_d / (f b) and sigma(z) = sigma2 z^2; ToF: sigma0 + sigma1 z by weighted least
+        squares over the bins. The other terms start at 0. Heavy disparity quantisation (a step
+        several times the noise) hides the noise from differences: the estimate is then low. Spatially
         correlated noise (a matching window) makes the estimate low: the search refines it.
         Nothing when fewer than two bins have data."""
         zs, ss, ws = [], [], []
         pairs_z, pairs_d = [], []
+        fb = float(config.preset.fb)
         for _, m, r, ok in measured_samples(measured):
             z = r.depth.astype(np.float64)
-            res = np.where(ok & (m > 0), m - z, np.nan)
+            if fb > 0:     # triangulation: the residual in disparity (a disparity offset leaves its noise alone)
+                with np.errstate(divide="ignore"):
+                    res = np.where(ok & (m > 0), fb / np.maximum(m, 1e-9) - fb / np.maximum(z, 1e-9), np.nan)
+            else:
+                res = np.where(ok & (m > 0), m - z, np.nan)
             a, b = res[:, :-1], res[:, 1:]
             same = np.abs(z[:, 1:] - z[:, :-1]) < 0.01 * z[:, :-1]
             sel = np.isfinite(a) & np.isfinite(b) & same
@@ -86,8 +94,8 @@ class AxialNoise(Effect):
             return {}
         z, s, w = np.asarray(zs), np.asarray(ss), np.asarray(ws)
         name = cls.name
-        if config.preset.fb > 0:
-            s2 = float(np.sum(w * s * z ** 2) / np.sum(w * z ** 4))
+        if fb > 0:          # constant disparity noise sigma_d: sigma_z = z^2 sigma_d / fb, sigma2 = sigma_d / fb
+            s2 = float(np.sum(w * s) / np.sum(w)) / fb
             return {f"{name}.sigma2_per_m": s2, f"{name}.sigma0_m": 0.0, f"{name}.sigma1": 0.0,
                     f"{name}.z_offset_m": 0.0}
         A = np.stack([np.ones_like(z), z], 1) * w[:, None]
