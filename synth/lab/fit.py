@@ -83,7 +83,7 @@ from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
-           "Objective", "search", "config_parameters", "start_values", "profile_intervals"]
+           "Objective", "search", "config_parameters", "start_values"]
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
@@ -127,7 +127,7 @@ class FitConfig:
     seed: int = 0
     """Simulation seed (frame k uses seed + its index: common random numbers)."""
     intervals: bool = True
-    """Compute a profile interval per fitted parameter (see :func:`profile_intervals`)."""
+    """Compute a profile interval per fitted parameter (:func:`synth.lab.intervals.profile_intervals`)."""
     interval_steps: int = 4
     """Profile steps outward on each side of each parameter (doubling in size)."""
     data_starts: bool = True
@@ -213,7 +213,7 @@ class FitResult:
     intervals: dict = field(default_factory=dict)
     """{"effect.param": (low, high)}: the profile interval of each fitted parameter - the values
     whose gap (the others kept at the fit) stays within the gap's own noise of the best one
-    (:func:`profile_intervals`); an end equal to the search bound means the data does not bound
+    (:func:`synth.lab.intervals.profile_intervals`); an end equal to the search bound means the data does not bound
     the parameter on that side."""
     gap_noise: float = float("nan")
     """The gap's noise level used for the intervals (twice the std of the best model's gap over
@@ -475,62 +475,14 @@ def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: 
     budget = _Budget(fc.max_evaluations, fc.max_seconds)
     try:
         if getattr(fc, "method", "coordinate") != "coordinate" and specs:
-            return _scipy_search(objective, config, specs, fc, budget, progress, start_gap)
+            from synth.lab.scipy_search import scipy_search
+            return scipy_search(lambda vals: objective(set_params(config, vals)), specs, fc, budget, progress,
+                                start_gap)
         return _search(objective, config, specs, fc, budget, progress, start_gap, refine_below, local)
     finally:
         if stats is not None:
             stats["time_capped"] = bool(stats.get("time_capped", False) or budget.time_capped)
             stats["evaluations"] = int(stats.get("evaluations", 0)) + budget.used
-
-
-def _scipy_search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap
-                  ) -> tuple[dict[str, float], float, int]:
-    """``method`` powell / differential_evolution on the search coordinates t of ``specs``
-    (bounded; integers rounded by ``from_t``), under the same budget and cache as the coordinate
-    descent. Returns (best values, best gap, evaluations)."""
-    from scipy import optimize
-    cache: dict[tuple, float] = {}
-    best = {"g": float("inf"), "x": {s.key: s.from_t(s.to_t(s.value)) for s in specs}}
-
-    class _Out(Exception):
-        pass
-
-    def vals_of(t) -> dict[str, float]:
-        return {s.key: s.from_t(float(np.clip(ti, *s.t_bounds))) for s, ti in zip(specs, t)}
-
-    def f(t) -> float:
-        vals = vals_of(t)
-        key = tuple(round(vals[s.key], 12) for s in specs)
-        if key in cache:
-            return cache[key]
-        if not budget.left:
-            raise _Out
-        budget.used += 1
-        g = float(objective(set_params(config, vals)))
-        cache[key] = g
-        if progress is not None:
-            progress(1)
-        if g < best["g"]:
-            best["g"], best["x"] = g, vals
-        return g
-
-    t0 = np.array([s.to_t(s.value) for s in specs])
-    if start_gap is not None:
-        cache[tuple(round(best["x"][s.key], 12) for s in specs)] = float(start_gap)
-        best["g"] = float(start_gap)
-    bounds = [s.t_bounds for s in specs]
-    try:
-        if fc.method == "powell":
-            optimize.minimize(f, t0, method="Powell", bounds=bounds,
-                              options={"maxfev": int(fc.max_evaluations), "xtol": 1e-3, "ftol": fc.tolerance})
-        else:
-            pop = 5
-            iters = max(1, int(fc.max_evaluations) // (pop * len(specs)) - 1)
-            optimize.differential_evolution(f, bounds, x0=t0, popsize=pop, maxiter=iters, seed=int(fc.seed),
-                                            polish=False, tol=fc.tolerance, init="latinhypercube")
-    except _Out:
-        pass
-    return best["x"], best["g"], budget.used
 
 
 def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap, refine_below,
@@ -697,7 +649,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     best_cfg = set_params(start_cfg, best_x) if specs else config
     intervals, noise = ({}, float("nan"))
     if fc.intervals and specs and best_x:
-        intervals, noise = profile_intervals(measured, frames, fc, start_cfg, specs, best_x, g_best, obj)
+        from synth.lab.intervals import profile_intervals
+
+        def gap_of(vals, seed_offset: int = 0) -> float:
+            o = obj if not seed_offset else Objective(measured, frames, obj.compare_config, fc.seed + seed_offset)
+            return o(set_params(start_cfg, vals))
+        intervals, noise = profile_intervals(gap_of, specs, best_x, g_best, fc.interval_steps)
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
     before = ev(config)
     after = ev(best_cfg) if specs else before
@@ -711,50 +668,3 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise)
 
-
-def profile_intervals(measured, frames, fc: FitConfig, config, specs, best_x: dict, g_best: float,
-                      objective) -> tuple[dict, float]:
-    """Profile interval of every fitted parameter: how far it can move (the others at the fit)
-    before the gap rises by more than its own noise.
-
-    The noise tau is twice the standard deviation of the best model's gap over three simulation
-    seeds (the search's and two others, same frames and pixels), at least 2 % of the gap: the
-    gap of one parameter set varies that much with the random draws alone, so values whose gap
-    is within tau of the best cannot be told apart by the data. From the best value, steps of
-    1/32 of the search range (in the search coordinate: logarithmic / asinh where the search is;
-    one unit for integers) doubling ``interval_steps`` times go outward on each side until the
-    gap exceeds g_best + tau; the end is interpolated linearly between the last step inside and
-    the first outside, or is the search bound when none is outside. Costs about
-    2 + 2 x interval_steps evaluations per parameter. Approximate: one parameter at a time (a
-    coupled pair gets a narrower interval than its joint confidence region)."""
-    gaps = [float(g_best)]
-    for extra in (1009, 2027):
-        o = Objective(measured, frames, objective.compare_config, fc.seed + extra)
-        gaps.append(float(o(set_params(config, best_x))))
-    tau = max(2.0 * float(np.std(gaps)), 0.02 * abs(float(g_best)), 1e-6)
-    out = {}
-    for sp in specs:
-        v0 = float(best_x[sp.key])
-        t0 = sp.to_t(v0)
-        tlo, thi = sp.t_bounds
-        ends = []
-        for sign in (-1.0, 1.0):
-            step = 1.0 if sp.integer else (thi - tlo) / 32.0
-            t_in, g_in, end = t0, float(g_best), None
-            for _ in range(int(fc.interval_steps)):
-                t = min(max(t0 + sign * step, tlo), thi)
-                if t == t_in:
-                    break                                   # already on the bound
-                vals = dict(best_x)
-                vals[sp.key] = sp.from_t(t)
-                g = float(objective(set_params(config, vals)))
-                if g > g_best + tau:
-                    frac = 0.0 if sp.integer else min(1.0, max(0.0, (g_best + tau - g_in) / max(g - g_in, 1e-12)))
-                    end = sp.from_t(t_in + (t - t_in) * frac)
-                    break
-                t_in, g_in = t, g
-                step *= 2.0
-            ends.append(end if end is not None else sp.from_t(t_in))
-        lo, hi = sorted((float(ends[0]), float(ends[1])))
-        out[sp.key] = (min(lo, v0), max(hi, v0))
-    return out, tau
