@@ -62,7 +62,7 @@ def drop_with_probability(state, p: np.ndarray, u: np.ndarray, name: str) -> Non
     state.log[name]["mean_drop_probability"] = float(p[state.ideal.hit].mean()) if state.ideal.hit.any() else 0.0
 
 
-def measured_samples(measured, frames=None, max_per_frame: int = 40000, seed: int = 0):
+def measured_samples(measured, frames=None):
     """Yield, per frame of a :class:`synth.lab.measured.MeasuredSequence` (default every loaded
     frame), ``(k, measured depth, ideal RenderResult, usable)`` with ``usable`` (H, W) bool: the
     ideal geometry is there and, when the sequence has masks, inside the mask (what the lab

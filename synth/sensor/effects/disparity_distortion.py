@@ -262,15 +262,12 @@ class DisparityDistortion(Effect):
         H, W = measured.intrinsics.height, measured.intrinsics.width
         rng = np.random.default_rng(0)
 
+        from synth.sensor.effects._common import measured_samples
+
         def samples():
-            for k in range(len(measured)):
-                m = measured.measured_depth(k)
-                z = measured.render(k).depth
-                ok = (m > 0) & (z > 0)
-                mask = measured.mask(k)
-                if mask is not None:
-                    ok &= mask
-                vv, uu = np.nonzero(ok)
+            for _, m, render, ok in measured_samples(measured):
+                z = render.depth
+                vv, uu = np.nonzero(ok & (m > 0))
                 if vv.size > 60000:
                     keep = rng.choice(vv.size, 60000, replace=False)
                     vv, uu = vv[keep], uu[keep]
