@@ -355,6 +355,9 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     if not backend_cls.online:
         if pos < len(indices):
             _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, intr, progress)
+            save = getattr(backend, "save_outputs", None)
+            if save is not None:        # backend-specific outputs (the neural memory's snapshots)
+                save(out)
             pos = len(indices)
             checkpoint(pos)
     else:

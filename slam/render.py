@@ -165,12 +165,30 @@ def run_pose(run_dir: str | os.PathLike, pose: str | None = None, frame: int = 0
 
 
 def render_run_to_png(run_dir: str | os.PathLike, png: str | os.PathLike, pose: str | None = None, frame: int = 0,
-                      scale: float = 1.0, source: str = "auto") -> tuple[RenderedView, dict[str, str], float]:
+                      scale: float = 1.0, source: str = "auto",
+                      hallucinate: bool = False) -> tuple[RenderedView, dict[str, str], float]:
     """``slam render``: render RUN from ``pose`` or trajectory pose ``frame`` (:func:`run_pose`)
     and save it (:func:`save_view`, depth in the run camera's depth scale). Returns (view,
-    written paths, depth scale)."""
+    written paths, depth scale).
+
+    ``source`` ``neural`` (``auto`` for a run of the neural backend): the view the run's neural memory
+    recalls (:func:`slam.neural.run.recall_view`; ``hallucinate``: after its hallucination module
+    filled the unobserved cells); the decoder's small image is resized to the camera x ``scale``."""
     from data_tools.camera import read_camera_json
-    view = render_run(run_dir, run_pose(run_dir, pose, frame), scale=scale, source=source)
+    T = run_pose(run_dir, pose, frame)
+    neural = source == "neural" or (source == "auto" and (Path(run_dir) / "memory" / "memory.json").is_file())
+    if hallucinate and not neural:
+        raise RealgapError(f"{run_dir}: --hallucinate needs a run of the neural backend (it has no memory/)")
+    if neural:
+        from slam.neural.run import recall_view
+        cam = read_camera_json(Path(run_dir) / "camera.json")
+        if not (0 < scale <= 8):
+            raise RealgapError(f"scale must be in (0, 8], got {scale}")
+        intr = cam.intrinsics.scaled(scale) if scale != 1.0 else cam.intrinsics
+        rgb, depth = recall_view(run_dir, T, hallucinate, size=(intr.width, intr.height))
+        view = RenderedView(rgb, depth, T, intr)
+        return view, save_view(view, png, cam.depth_scale), cam.depth_scale
+    view = render_run(run_dir, T, scale=scale, source=source)
     depth_scale = read_camera_json(Path(run_dir) / "camera.json").depth_scale
     return view, save_view(view, png, depth_scale), depth_scale
 

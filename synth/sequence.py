@@ -168,9 +168,28 @@ def make_sequence_trajectory(config: SequenceConfig, scene):
     from synth.trajectories import handheld_jitter, make_trajectory
     traj = make_trajectory(config.trajectory, scene, config.frames, seed=config.seed, fps=config.fps)
     if config.jitter_trans_m > 0 or config.jitter_rot_rad > 0:
-        traj = handheld_jitter(traj, seed=config.seed + 1, trans_sigma_m=config.jitter_trans_m,
-                               rot_sigma_rad=config.jitter_rot_rad)
+        shaken = handheld_jitter(traj, seed=config.seed + 1, trans_sigma_m=config.jitter_trans_m,
+                                 rot_sigma_rad=config.jitter_rot_rad)
+        if config.trajectory == "planar":       # a ground robot shakes in x, y and yaw only
+            shaken = _keep_planar(traj, shaken)
+        traj = shaken
     return traj
+
+
+def _keep_planar(ref, shaken):
+    """``shaken`` with the height, pitch and roll of ``ref`` (its x, y and yaw kept)."""
+    import math
+
+    from data_tools.geometry import look_at
+    from data_tools.trajectory import Trajectory
+    poses = shaken.poses.copy()
+    for i, (a, b) in enumerate(zip(ref.poses, shaken.poses)):
+        f_ref, f_new = a[:3, 2], b[:3, 2]
+        yaw = math.atan2(f_new[1], f_new[0])
+        h = math.hypot(f_ref[0], f_ref[1])
+        eye = np.array([b[0, 3], b[1, 3], a[2, 3]])
+        poses[i] = look_at(eye, eye + np.array([h * math.cos(yaw), h * math.sin(yaw), f_ref[2]]))
+    return Trajectory(shaken.timestamps.copy(), poses)
 
 
 def _check_ideal_dir(config: SequenceConfig, out_dir: str | Path, resume: bool, overwrite: bool) -> Path:

@@ -8,6 +8,8 @@ from its arguments.
 * :func:`walkthrough` - a smooth hand-held-like path through a room at eye height that stays
   clear of all geometry and keeps looking at furniture/objects.
 * :func:`orbit` - a circle (or arc) around a point, always looking at it.
+* :func:`planar` - a ground robot's path: the camera at a fixed height and pitch, moving on the
+  floor plane with yaw turns (the setting of the neural memory, thesis 4.4.3).
 * :func:`handheld_jitter` - smooth, temporally correlated pose noise added to a trajectory.
 
 :data:`TRAJECTORY_KINDS` is the registry used by ``realgap synth sequence --trajectory``:
@@ -136,6 +138,12 @@ class _Clearance:
         t = self.rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().reshape(-1, 5)
         return np.all(np.isfinite(t), axis=1)
 
+    def ray_length(self, eye: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(N,) distance from ``eye`` to the first hit along unit ``dirs`` (N, 3), inf when none."""
+        import open3d as o3d
+        rays = np.concatenate([np.broadcast_to(eye, dirs.shape), dirs], axis=1).astype(np.float32)
+        return self.rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+
     def visible(self, eye: np.ndarray, pts: np.ndarray, eps: float = 0.02) -> np.ndarray:
         """(N,) bool: nothing lies between ``eye`` and each point (bar the last ``eps`` m)."""
         import open3d as o3d
@@ -260,6 +268,95 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
                        f"(try another seed or a smaller clearance)")
 
 
+def planar(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEFAULT_FPS, height_m: float = 1.0,
+           pitch_deg: float = -10.0, speed_mps: float = 0.3, clearance_m: float = 0.4, segment_s: float = 2.0,
+           look_around_deg: float = 40.0, t0: float = 0.0, max_attempts: int = 30) -> Trajectory:
+    """A ground robot's path: the camera ``height_m`` above the floor (the lowest scene point) with a
+    fixed ``pitch_deg`` (negative = looking down) and no roll, moving on the floor plane.
+
+    The position follows a natural cubic spline through control points ``segment_s`` seconds apart,
+    a random walk of steps ~``speed_mps * segment_s`` metres that keeps ``clearance_m`` from all
+    geometry (as :func:`walkthrough`). The yaw is the direction of travel plus a smooth look-around
+    offset (a spline through one offset per control point: the most open of 8 drawn uniformly in
+    +-``look_around_deg``, i.e. the longest free view); where the robot stands still it turns by the
+    offsets only. Poses differ from frame to frame only in x, y and yaw:
+    height, pitch and roll are those of the first frame (what the neural backend assumes).
+    """
+    ts = _timestamps(n_frames, fps, t0)
+    if not -89.0 < pitch_deg < 89.0:
+        raise ConfigError(f"planar: pitch_deg must be within +-89, got {pitch_deg}")
+    rng = np.random.default_rng(seed)
+    clear = _Clearance(scene)
+    lo, hi = _scene_bounds(scene)
+    z = lo[2] + height_m
+    if not lo[2] < z < hi[2] - 0.05 and hi[2] - lo[2] > 0.5:
+        raise ConfigError(f"planar: camera height {height_m} m is outside the scene ({hi[2] - lo[2]:.2f} m tall)")
+    xy_lo, xy_hi = lo[:2] + clearance_m, hi[:2] - clearance_m
+    if np.any(xy_hi <= xy_lo):
+        raise ConfigError("scene is too small for a planar path with this clearance")
+    duration = ts[-1] - ts[0]
+    n_ctrl = max(2, int(math.ceil(duration / segment_s)) + 1) if n_frames > 1 else 1
+    step = speed_mps * (duration / max(n_ctrl - 1, 1))
+
+    def free(p: np.ndarray) -> np.ndarray:
+        p = np.atleast_2d(p)
+        inside = np.all((p[:, :2] >= xy_lo) & (p[:, :2] <= xy_hi), axis=1)
+        return inside & (clear.distance(p) >= clearance_m)
+
+    for _attempt in range(max_attempts):
+        cand = np.column_stack([rng.uniform(xy_lo[0], xy_hi[0], 400), rng.uniform(xy_lo[1], xy_hi[1], 400),
+                                np.full(400, z)])
+        ok = free(cand)
+        if not ok.any():
+            raise RealgapError(f"planar: no free space {height_m} m above the floor in this scene")
+        cand = cand[ok]
+        ctrl = [cand[np.argmax(clear.distance(cand))] if _attempt == 0 else cand[rng.integers(len(cand))]]
+        heading = rng.uniform(0, 2 * math.pi)
+        for _ in range(n_ctrl - 1):
+            for trial in range(60):
+                h = heading + rng.normal(0.0, 0.8 if trial < 30 else 2.0)
+                L = step * rng.uniform(0.7, 1.3) * (1.0 if trial < 40 else 0.5)
+                p = np.array([ctrl[-1][0] + L * math.cos(h), ctrl[-1][1] + L * math.sin(h), z])
+                n_s = max(2, int(np.linalg.norm(p - ctrl[-1]) / 0.05) + 1)
+                seg = ctrl[-1] + np.linspace(0, 1, n_s)[:, None] * (p - ctrl[-1])
+                if np.all(free(seg)):
+                    ctrl.append(p)
+                    heading = h
+                    break
+            else:       # boxed in: stand still for this segment, turn around
+                ctrl.append(ctrl[-1].copy())
+                heading += math.pi
+        ctrl = np.asarray(ctrl)
+        eyes = _spline(ctrl, ts)
+        eyes[:, 2] = z
+        if not np.all(free(eyes)):
+            continue
+        # yaw: direction of travel (kept while standing) + look-around offsets
+        vel = np.gradient(eyes[:, :2], axis=0) if n_frames > 1 else np.zeros((1, 2))
+        travel = np.full(n_frames, heading)
+        moving = np.linalg.norm(vel, axis=1) > 1e-4
+        if moving.any():
+            yaw_m = np.unwrap(np.arctan2(vel[moving, 1], vel[moving, 0]))
+            travel = np.interp(np.arange(n_frames), np.flatnonzero(moving), yaw_m)
+        # look-around: at each control point the most open of 8 random offsets (the longest free
+        # view along the camera's pitch, up to 4 m), so the robot looks into the room more than at walls
+        pitch = math.radians(pitch_deg)
+        knots = np.linspace(ts[0], ts[-1], len(ctrl)) if len(ctrl) > 1 else ts[:1]
+        look = []
+        for e, tk in zip(ctrl, knots):
+            base = float(np.interp(tk, ts, travel))
+            cand = np.radians(rng.uniform(-look_around_deg, look_around_deg, 8))
+            a = base + cand
+            dirs = np.stack([np.cos(a) * math.cos(pitch), np.sin(a) * math.cos(pitch), np.full(8, math.sin(pitch))], 1)
+            look.append(cand[int(np.argmax(np.minimum(clear.ray_length(e, dirs), 4.0)))])
+        yaw = travel + _spline(np.asarray(look)[:, None], ts)[:, 0]
+        fwd = np.stack([np.cos(yaw) * math.cos(pitch), np.sin(yaw) * math.cos(pitch),
+                        np.full(n_frames, math.sin(pitch))], axis=1)
+        poses = np.stack([look_at(e, e + f) for e, f in zip(eyes, fwd)])
+        return Trajectory(ts, poses)
+    raise RealgapError(f"planar: no collision-free path found in {max_attempts} attempts (try another seed)")
+
+
 def _turn_towards(a: np.ndarray, b: np.ndarray, max_angle_rad: float) -> np.ndarray:
     """Unit vector from unit ``a`` towards direction ``b``, turned by at most ``max_angle_rad``
     (in the plane of the two; ``b`` itself, normalised, when it is within the limit)."""
@@ -348,6 +445,11 @@ def make_trajectory(kind: str, scene: SceneSpec, n_frames: int, seed: int = 0,
 @register_trajectory_kind("walkthrough")
 def _walkthrough_kind(scene: SceneSpec, n_frames: int, seed: int, fps: float) -> Trajectory:
     return walkthrough(scene, n_frames, seed=seed, fps=fps)
+
+
+@register_trajectory_kind("planar")
+def _planar_kind(scene: SceneSpec, n_frames: int, seed: int, fps: float) -> Trajectory:
+    return planar(scene, n_frames, seed=seed, fps=fps)
 
 
 @register_trajectory_kind("orbit")

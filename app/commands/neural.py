@@ -13,14 +13,17 @@ HELP = "neural allocentric spatial memory (localise, memorise, recall, hallucina
 
 def register(parser: argparse.ArgumentParser) -> None:
     sub = add_group(parser)
-    p = sub.add_parser("train", help="train the neural memory (2d: agents walking on images)",
+    p = sub.add_parser("train", help="train the neural memory (2d: agents on images; 3d: RGB-D robot in rooms)",
                        description="Train encoder, localisation, LSTM memory, decoder and hallucination module "
                                    "(phases: pre-training, memory + recall, + hallucination GAN). Resumable.")
-    p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents on images (3d: not built yet)")
+    p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents walking on images; 3d: a ground robot's simulated "
+                        "kinect_v1 RGB-D sequences in procedural rooms")
     add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"), help="cpu: minutes on 2 cores; gpu: larger")
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
+    p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
+                                                   "first use, reused after; default MODEL/worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
     add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in MODEL")
@@ -40,9 +43,12 @@ def _train(args) -> int:
     import dataclasses
 
     from slam.neural.run import train_to_folder
-    from slam.neural.train import TRAIN_PRESETS
+    from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
     over = {k: getattr(args, k) for k in ("agent", "iterations", "device") if getattr(args, k) is not None}
-    cfg = dataclasses.replace(TRAIN_PRESETS[args.preset], mode=args.mode, seed=args.seed, **over).validate()
+    if args.worlds:
+        over["worlds_dir"] = str(args.worlds)
+    presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
+    cfg = dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over).validate()
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,
                                            log=lambda m: print(f"realgap: {m}", file=sys.stderr))
     last = tlog.steps[-1] if tlog.steps else {}

@@ -171,7 +171,8 @@ def _run(args) -> int:
 def _render(args) -> int:
     from slam.render import render_run_to_png
     view, paths, depth_scale = render_run_to_png(args.run, args.out, pose=args.pose, frame=args.frame,
-                                                 scale=args.scale, source=args.source)
+                                                 scale=args.scale, source=args.source,
+                                                 hallucinate=args.hallucinate)
     print(f"{paths['colour']}: colour; {paths['depth']}: depth (x{depth_scale:g} per metre); "
           f"{view.coverage:.1%} of the pixels see the model (unobserved = magenta)")
     return 0
@@ -209,6 +210,9 @@ def register(parser: argparse.ArgumentParser) -> None:
                required=True, metavar="PNG")
     add_shared(p, "--overwrite", "existing images of that name")
     p.add_argument("--scale", type=float, default=1.0, help="image size relative to the run's camera (default 1)")
-    p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume"),
-                   help="render the mesh or the saved TSDF volume (auto: volume when saved)")
+    p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume", "neural"),
+                   help="render the mesh, the saved TSDF volume or decode the neural memory's recalled view "
+                        "(auto: neural for a run of the neural backend, else the volume when saved)")
+    p.add_argument("--hallucinate", action="store_true",
+                   help="neural runs: decode the view after the hallucination module filled the unobserved memory")
     p.set_defaults(func=_render)

@@ -11,7 +11,8 @@ turned to its heading (``torch.rot90``: headings are multiples of 90 deg, so the
 exact on the pixel grid - a deviation from the thesis' +-45 deg agent, whose rotations need
 interpolation), masked by its view field (``square``: the whole patch, 360 deg, translation
 only - thesis agent A^s; ``front``: the front half of the patch, 180 deg, the agent turns by
-+-90 deg - thesis agent A^c), then moves forward 1/4..3/4 of its view field (turning agents) or
++-90 deg - thesis agent A^c), then moves forward 1/4..3/4 of its view field's depth (thesis 4.4.2: 2..6 px for the 8 px deep
+front view, 3..11 px for the 15 px square view) (turning agents) or
 in one of four directions (square agents), staying inside the image.
 
 Poses are (row, col, k): the patch centre in image pixels and the heading k (k x 90 deg, counter-
@@ -154,11 +155,12 @@ def walk(img: np.ndarray, agent: Agent2D, steps: int, rng: np.random.Generator):
     mask = view_mask(agent).astype(np.float32)
     obs, poses = [], []
     dirs = [(-1, 0), (0, -1), (1, 0), (0, 1)]       # heading k: up, left, down, right (k x 90 deg CCW)
+    reach = q // 2 + 1 if agent.field == "front" else q      # depth of the view field, pixels
     for t in range(steps):
         obs.append(_patch(img, r, c, k, q) * mask)
         poses.append((r, c, k))
         for _ in range(20):
-            d = int(rng.integers(max(1, q // 4), 3 * q // 4 + 1))
+            d = int(rng.integers(max(1, reach // 4), 3 * reach // 4 + 1))
             if agent.turns:
                 k2 = (k + int(rng.choice([-1, 0, 0, 1]))) % 4
                 dr, dc = dirs[k2]

@@ -33,8 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "Hallucinator", "PatchDiscriminator",
-           "rotation_bank", "init_weights", "correlate", "register"]
+__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "Hallucinator",
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
 
@@ -57,6 +57,17 @@ class MemoryConfig:
     """Headings r (quarter turns)."""
     search: int = 16
     """Localisation searches positions within +-search cells of the previous estimate."""
+    input: str = "grid"
+    """``grid``: observations are egocentric grids already (2D, B x T x C x q x q); ``image``: they are
+    images (3D, B x T x C x H x W) whose per-pixel encoder features are ground-projected into the grid
+    by the pixels' cell indices (:func:`slam.neural.geometry3d.project_max`)."""
+    image_size: tuple = (0, 0)
+    """3D: (H, W) of the decoded images, pixels (the decoder back-projects the culled window)."""
+    correlation: str = "dot"
+    """Localisation score: ``dot`` (MapNet's plain cross-correlation of features and memory) or ``cosine``
+    (each cell's feature vector and memory vector unit-normalised first, the sum divided by the view's cell
+    count: a score in [-1, 1] whatever the scale of the LSTM's output, times a learned inverse temperature
+    starting at 20 - a deviation that lets localisation learn from the first memory steps)."""
 
 
 class ResBlock(nn.Module):
@@ -93,6 +104,32 @@ class Decoder(nn.Module):
 
     def forward(self, x):
         return self.net(x)
+
+
+class ImageDecoder(nn.Module):
+    """3D: culled window (B, n + 1, q, q) -> image (B, C, H, W) in [-1, 1]. Two strided convolutions and a
+    learned linear map take the top view to a coarse (H / 5, W / 5) image-plane grid (the back-projection
+    is learned, not geometric: a deviation that keeps the decoder small), then a ResNet refines it."""
+
+    def __init__(self, cfg: MemoryConfig):
+        super().__init__()
+        w = cfg.width
+        H, W = cfg.image_size
+        self.coarse = (max(H // 5, 1), max(W // 5, 1))
+        s1 = (cfg.view + 1) // 2
+        s2 = (s1 + 1) // 2
+        self.top = nn.Sequential(nn.Conv2d(cfg.features + 1, w, 3, padding=1), nn.LeakyReLU(0.2), ResBlock(w),
+                                 nn.Conv2d(w, w, 3, 2, 1), nn.LeakyReLU(0.2), nn.Conv2d(w, w, 3, 2, 1),
+                                 nn.LeakyReLU(0.2), nn.Conv2d(w, 8, 1))
+        self.fc = nn.Linear(8 * s2 * s2, w * self.coarse[0] * self.coarse[1])
+        self.img = nn.Sequential(ResBlock(w), ResBlock(w), nn.Conv2d(w, cfg.channels, 3, padding=1), nn.Tanh())
+        self.size = (H, W)
+        self.w = w
+
+    def forward(self, x):
+        B = x.shape[0]
+        y = F.leaky_relu(self.fc(self.top(x).flatten(1)), 0.2).view(B, self.w, *self.coarse)
+        return self.img(F.interpolate(y, size=self.size, mode="bilinear", align_corners=False))
 
 
 class SelfAttention(nn.Module):
@@ -160,9 +197,21 @@ def init_weights(m: nn.Module) -> None:
                 nn.init.zeros_(mod.bias)
 
 
+def rotate_grid(x: torch.Tensor, k: int, r: int) -> torch.Tensor:
+    """(B, c, q, q) turned counter-clockwise (seen from above) by k / r of a full turn: exact
+    ``torch.rot90`` for multiples of 90 deg, else bilinear resampling about the centre cell
+    (``kornia.geometry.transform.rotate``)."""
+    if (4 * k) % r == 0:
+        return torch.rot90(x, (4 * k) // r, dims=(-2, -1))
+    from kornia.geometry.transform import rotate
+    ang = torch.full((x.shape[0],), 360.0 * k / r, dtype=x.dtype, device=x.device)
+    return rotate(x, ang, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
 def rotation_bank(o: torch.Tensor, r: int = 4) -> torch.Tensor:
-    """(B, n, q, q) -> (B, r, n, q, q): o turned by k quarter turns counter-clockwise, k = 0..r-1."""
-    return torch.stack([torch.rot90(o, k, dims=(2, 3)) for k in range(r)], 1)
+    """(B, n, q, q) -> (B, r, n, q, q): o turned counter-clockwise by k / r of a full turn, k = 0..r-1
+    (quarter turns exact; see :func:`rotate_grid`)."""
+    return torch.stack([rotate_grid(o, k, r) for k in range(r)], 1)
 
 
 def correlate(window: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
@@ -191,7 +240,7 @@ class NeuralMemory(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
-        self.decoder = Decoder(cfg)
+        self.decoder = ImageDecoder(cfg) if cfg.input == "image" else Decoder(cfg)
         self.lstm = nn.LSTMCell(cfg.features, cfg.features)
         self.occ_lstm = nn.LSTMCell(1, 1)
         self.hallucinator = Hallucinator(cfg)
@@ -207,11 +256,37 @@ class NeuralMemory(nn.Module):
         return f
 
     # ------------------------------------------------------------------ a sequence
-    def forward(self, obs: torch.Tensor, view_mask: torch.Tensor, teacher: torch.Tensor | None = None):
+    def encode(self, obs: torch.Tensor, cells: torch.Tensor | None = None) -> torch.Tensor:
+        """Egocentric feature grids (B, T, n, q, q) of observations (B, T, C, q, q) (``input`` grid) or of
+        images (B, T, C, H, W) with the flat egocentric cell of every pixel ``cells`` (B, T, H * W)."""
+        B, T = obs.shape[:2]
+        n, q = self.cfg.features, self.cfg.view
+        f = self.encoder(obs.flatten(0, 1))
+        if self.cfg.input == "image":
+            if cells is None:
+                raise ValueError("an image-input memory needs the pixels' egocentric cells")
+            from slam.neural.geometry3d import project_max
+            c = cells[:, :, 0] if cells.dim() == 4 else cells         # the unturned grid
+            f = project_max(f, c.flatten(0, 1), q)
+        return f.view(B, T, n, q, q)
+
+    def _image_bank(self, f_img: torch.Tensor, cells: torch.Tensor) -> torch.Tensor:
+        """3D rotation bank (B, r, n, q, q): per-pixel features (B, n, H, W) ground-projected into the r turned
+        grids by their cells (B, r, H * W) - exact, no resampling."""
+        from slam.neural.geometry3d import project_max
+        B, n, H, W = f_img.shape
+        r, q = self.cfg.rotations, self.cfg.view
+        f = f_img[:, None].expand(B, r, n, H, W).reshape(B * r, n, H, W)
+        return project_max(f, cells.reshape(B * r, H * W), q).view(B, r, n, q, q)
+
+    def forward(self, obs: torch.Tensor, view_mask: torch.Tensor, teacher: torch.Tensor | None = None,
+                cells: torch.Tensor | None = None, memory: int | None = None):
         """Register a sequence.
 
-        obs (B, T, C, q, q) in [-1, 1]; view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at
-        these allocentric poses instead of the predicted field (training warm-up), or None.
+        obs (B, T, C, q, q) in [-1, 1] (3D: images (B, T, C, H, W) with ``cells`` (B, T, H * W), see
+        :meth:`encode`); view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at these
+        allocentric poses instead of the predicted field (training warm-up), or None; ``memory``: side
+        U of the memory for this call (default the configuration's; the model is the same for any U).
 
         Localisation searches a window of (2 R + 1)^2 positions (R = :attr:`MemoryConfig.search`) around the
         previous estimate (the agent moves at most 3/4 of its view per step): a grouped convolution of
@@ -224,14 +299,22 @@ class NeuralMemory(nn.Module):
         fields (B, T, r, P, P), centres (B, T, 2) allocentric centre of each window, estimates (B, T, 3)."""
         B, T = obs.shape[:2]
         cfg = self.cfg
-        U, n, q, r, R = cfg.memory, cfg.features, cfg.view, cfg.rotations, cfg.search
+        U, n, q, r, R = memory or cfg.memory, cfg.features, cfg.view, cfg.rotations, cfg.search
         h2 = q // 2
         Wp = 2 * R + 1                 # positions per axis
         Wc = Wp + 2 * h2               # memory cells per axis touched by the window
         if Wc > U:
             raise ValueError(f"search window {Wc} cells is larger than the memory {U}")
         Up = U
-        feats = self.encoder(obs.flatten(0, 1)).view(B, T, n, q, q)
+        image = cfg.input == "image"
+        if image:
+            if cells is None or cells.dim() != 4 or cells.shape[2] != r:
+                raise ValueError(f"an image-input memory needs cells (B, T, {r}, H*W) for its {r} headings")
+            f_img = self.encoder(obs.flatten(0, 1)).view(B, T, n, *obs.shape[-2:])
+            from slam.neural.geometry3d import project_max
+            feats = project_max(f_img.flatten(0, 1), cells[:, :, 0].flatten(0, 1), q).view(B, T, n, q, q)
+        else:
+            feats = self.encode(obs, cells)
         m = view_mask.to(obs.dtype)[None, None].expand(B, 1, q, q)
         mbank = rotation_bank(m, r)                                             # (B, r, 1, q, q)
         h = obs.new_zeros(B * Up * Up, n)
@@ -243,7 +326,10 @@ class NeuralMemory(nn.Module):
         off = torch.arange(Wc, device=obs.device)
         logits, fields, centres, ests = [], [], [], []
         for t in range(T):
-            bank = rotation_bank(feats[:, t] * m, r)                            # (B, r, n, q, q)
+            if image:
+                bank = self._image_bank(f_img[:, t], cells[:, t]) * mbank         # (B, r, n, q, q)
+            else:
+                bank = rotation_bank(feats[:, t] * m, r)                        # (B, r, n, q, q)
             want = est[:, :2].clone() if teacher is None or t == 0 else teacher[:, t - 1, :2].clone()
             # the window starts R + q//2 cells before the wanted centre, moved inside the memory at its borders;
             # ``centre`` is the allocentric position of the window's middle (field index R, R)
@@ -256,7 +342,7 @@ class NeuralMemory(nn.Module):
                 lg = obs.new_zeros(B, r, Wp, Wp)
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
-                lg = correlate(hw, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
+                lg = self._score(hw, bank, m)
                 field = torch.softmax(lg.flatten(1), 1).view_as(lg)
                 if teacher is not None:
                     field = self._local_one_hot(teacher[:, t], centre, Wp)
@@ -278,6 +364,15 @@ class NeuralMemory(nn.Module):
         return {"psi": psi, "occ": occ, "logits": torch.stack(logits, 1), "fields": torch.stack(fields, 1),
                 "centres": torch.stack(centres, 1), "estimates": torch.stack(ests, 1), "features": feats}
 
+    def _score(self, window: torch.Tensor, bank: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        """Localisation logits (B, r, P, P) of a memory window (B, n, W, W) and a rotation bank (B, r, n, q, q)."""
+        n, q = self.cfg.features, self.cfg.view
+        if self.cfg.correlation == "cosine":
+            w = F.normalize(window, dim=1, eps=1e-6)
+            b = F.normalize(bank, dim=2, eps=1e-6)
+            return correlate(w, b) * (20.0 * torch.exp(self.log_beta) / m[0].sum().clamp(min=1))
+        return correlate(window, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
+
     def _local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
         """(B, r, Wp, Wp) one-hot of allocentric ``poses`` in windows centred on ``centre`` (all zero when
         the pose is outside its window)."""
@@ -291,24 +386,32 @@ class NeuralMemory(nn.Module):
         return f
 
     # ------------------------------------------------------------------ recall
-    def cull(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
-        """(B, n, U, U) memory, (B, 3) allocentric poses -> (B, n + 1, q, q) culled windows: the window at the
-        pose, turned back to the agent's heading, -1 outside the view field, plus the view-field channel."""
-        q, c = self.cfg.view, self.cfg.memory // 2
+    def cull(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor,
+             index: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, n, U, U) memories, (N, 3) allocentric poses -> (N, n + 1, q, q) culled windows: the window at
+        the pose, turned back to the agent's heading, -1 outside the view field, plus the view-field
+        channel. ``index`` (N,): the memory of each pose (default: pose i reads memory i, N = B)."""
+        q, c, r = self.cfg.view, psi.shape[-1] // 2, self.cfg.rotations
         pad = q // 2
         P = F.pad(psi, (pad, pad, pad, pad))
-        wins = []
-        for b in range(psi.shape[0]):
-            r0, c0 = int(poses[b, 0]) + c, int(poses[b, 1]) + c
-            win = P[b, :, r0:r0 + q, c0:c0 + q]
-            wins.append(torch.rot90(win, -int(poses[b, 2]), dims=(1, 2)))
-        w = torch.stack(wins)
+        N = poses.shape[0]
+        idx = torch.arange(N, device=psi.device) if index is None else index.to(psi.device)
+        ar = torch.arange(q, device=psi.device)
+        rows = (poses[:, 0].long() + c)[:, None, None] + ar[None, :, None]
+        cols = (poses[:, 1].long() + c)[:, None, None] + ar[None, None, :]
+        w = P.permute(0, 2, 3, 1)[idx[:, None, None], rows, cols].permute(0, 3, 1, 2)      # (N, n, q, q)
+        ks = poses[:, 2].long() % r
+        out = torch.empty_like(w)
+        for k in torch.unique(ks).tolist():
+            sel = torch.nonzero(ks == k).flatten()
+            out[sel] = rotate_grid(w[sel], -int(k), r)
         m = view_mask.to(psi.dtype)[None, None]
-        return torch.cat([w * m - (1 - m), m.expand(w.shape[0], 1, q, q)], 1)
+        return torch.cat([out * m - (1 - m), m.expand(N, 1, q, q)], 1)
 
-    def recall(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
-        """(B, C, q, q) decoded views of the memory at the allocentric ``poses``."""
-        return self.decoder(self.cull(psi, poses, view_mask))
+    def recall(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor,
+               index: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, C, q, q) decoded views (3D: (N, C, H, W) images) of the memories at the allocentric ``poses``."""
+        return self.decoder(self.cull(psi, poses, view_mask, index))
 
     def hallucinate(self, psi: torch.Tensor, occ: torch.Tensor) -> torch.Tensor:
         return self.hallucinator(psi, occ)

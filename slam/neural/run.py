@@ -45,3 +45,60 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 6
         from data_tools.results import atomic_write_json
         atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})
     return res
+
+
+def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):
+    """The view a neural run's memory recalls at camera-to-world ``pose_c2w`` (4, 4): RUN/memory's
+    features culled at the pose (rounded to the memory's cell and heading grid) and decoded by the
+    run's model; with ``hallucinate`` the hallucination module fills the memory's unobserved cells
+    first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
+    image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""
+    import json
+    import math
+
+    import cv2
+    import numpy as np
+    import torch
+
+    from data_tools.errors import FormatError
+    from slam.neural.geometry3d import planar_relative
+    from slam.neural.train import load_model
+    d = Path(run_dir) / "memory"
+    meta_p = d / "memory.json"
+    if not meta_p.is_file():
+        raise FormatError(run_dir, "not a neural run (memory/memory.json missing; made by 'slam run --backend neural')")
+    meta = json.loads(meta_p.read_text())
+    model, tcfg, _ = load_model(meta["model"])
+    try:
+        psi = torch.from_numpy(np.load(d / "memory.npy"))[None]
+        occ = torch.from_numpy(np.load(d / "occupancy.npy"))[None, None]
+    except (OSError, ValueError) as e:
+        raise FormatError(d, f"unreadable memory snapshot ({e})") from None
+    if psi.shape[1] != model.cfg.features:
+        raise FormatError(d / "memory.npy", f"{psi.shape[1]} features per cell, the model {meta['model']} has "
+                                            f"{model.cfg.features}")
+    cell, r = float(meta["cell_m"]), model.cfg.rotations
+    row, col, yaw = planar_relative(np.asarray(meta["T0"]), np.asarray(pose_c2w, float), cell)
+    k = int(round(yaw / (2 * math.pi / r))) % r
+    U = psi.shape[-1]
+    if max(abs(row), abs(col)) > U // 2:
+        raise FormatError(meta_p, f"the pose is {max(abs(row), abs(col)) * cell:.1f} m from the first frame, "
+                                  f"outside the memory ({U // 2 * cell:.1f} m)")
+    w = tcfg.world
+    from slam.neural.data3d import World3DConfig  # noqa: F401  (the config type of tcfg.world)
+    from slam.neural.geometry3d import downsample_intrinsics, level_rotation, view_wedge
+    from data_tools.camera import read_camera_json
+    cam = read_camera_json(Path(run_dir) / "camera.json")
+    small = downsample_intrinsics(cam.intrinsics, w.image_w, w.image_h)
+    wedge = view_wedge(small, level_rotation(np.asarray(meta["T0"])), w.cell_m, w.view, w.max_range_m)
+    vm = torch.from_numpy(wedge.astype(np.float32))
+    with torch.no_grad():
+        mem = model.hallucinate(psi, occ) if hallucinate else psi
+        img = model.recall(mem, torch.tensor([[int(round(row)), int(round(col)), k]]), vm)[0].numpy()
+    rgb = np.clip((np.transpose(img[:3], (1, 2, 0)) + 1) / 2, 0, 1)
+    depth = (img[3] + 1) / 2 * w.max_range_m
+    depth = np.where(img[3] > -0.95, depth, 0.0).astype(np.float32)
+    if size is not None:
+        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR)
+        depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+    return (rgb * 255).round().astype(np.uint8), depth

@@ -27,8 +27,15 @@ from typing import Callable
 import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
+from slam.neural.data3d import World3DConfig
 
-__all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
+def _rep(psi, n: int):
+    """Memory index of each of n consecutive poses per memory: 0 x n, 1 x n, ..."""
+    import torch
+    return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
+
+
+__all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
            "load_model"]
 
 CKPT_FORMAT = "realgap-neural-memory"
@@ -68,6 +75,12 @@ class NeuralTrainConfig:
     """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step at 0.77 s)."""
     width: int = 16
     """Channels of the encoder/decoder ResNets."""
+    correlation: str = "dot"
+    """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
+    world: World3DConfig = field(default_factory=World3DConfig)
+    """3D mode: grid, images and simulated rooms (:class:`slam.neural.data3d.World3DConfig`)."""
+    worlds_dir: str = ""
+    """3D mode: folder of the simulated room sequences (made on first use; default MODEL/worlds)."""
 
     def validate(self) -> "NeuralTrainConfig":
         if self.mode not in ("2d", "3d"):
@@ -90,13 +103,31 @@ TRAIN_PRESETS = {
 }
 
 
+TRAIN_PRESETS_3D = {
+    "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1400, pretrain_steps=150, teacher_steps=450,
+                             hallucination_from=1000, features=16, width=16),
+    "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
+                             hallucination_from=10000, features=32, width=64, device="cuda",
+                             world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
+}
+"""3D (``--mode 3d``) presets: ``cpu`` trains in about 30 min on 2 cores after the 12 training rooms are
+simulated (about 10 min, once)."""
+
+
 def memory_config(cfg: NeuralTrainConfig):
     from slam.neural.data2d import AGENTS
     from slam.neural.model import MemoryConfig
+    if cfg.mode == "3d":
+        w = cfg.world
+        reach = int(np.ceil(0.45 * w.stride_max / 30.0 * (cfg.steps - 1) / w.cell_m)) + 4
+        return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
+                            width=cfg.width, rotations=w.rotations, search=4, input="image",
+                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
+                        correlation=cfg.correlation,
                         search=min(3 * q // 4 + 5, (U - q) // 2))
 
 
@@ -128,8 +159,6 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     from slam.neural.data2d import AGENTS, make_batch, view_mask
     from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights
     cfg.validate()
-    if cfg.mode != "2d":
-        raise ConfigError("--mode 3d training is not built yet (2d works; see the issue notes)")
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
@@ -143,8 +172,20 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     opt_h = torch.optim.Adam(model.hallucinator.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(cfg.seed)
-    agent = AGENTS[cfg.agent]
-    vm = torch.from_numpy(view_mask(agent).astype(np.float32)).to(dev)
+    if cfg.mode == "3d":
+        bank = worlds_3d(cfg, checkpoint, progress, log)
+        vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
+
+        def batch():
+            imgs, cells, allo, _ = bank.sample(rng, cfg.batch, cfg.steps)
+            return torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev)
+    else:
+        agent = AGENTS[cfg.agent]
+        vm = torch.from_numpy(view_mask(agent).astype(np.float32)).to(dev)
+
+        def batch():
+            _, obs, _, allo = make_batch(rng, cfg.batch, agent, cfg.steps, cfg.image)
+            return torch.from_numpy(obs).to(dev), None, torch.from_numpy(allo).to(dev)
     tlog = TrainLog()
     start = 0
     ck = Path(checkpoint) if checkpoint else None
@@ -185,15 +226,15 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     t0 = time.perf_counter()
     model.train()
     for step in range(start, cfg.iterations):
-        imgs, obs, poses, allo = make_batch(rng, cfg.batch, agent, cfg.steps, cfg.image)
-        obs_t = torch.from_numpy(obs).to(dev)
-        allo_t = torch.from_numpy(allo).to(dev)
+        obs_t, cells_t, allo_t = batch()
+        B, T = obs_t.shape[:2]
+        img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
         losses = {}
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
-            f = model.encoder(x) * vm
+            f = model.encode(obs_t, cells_t).flatten(0, 1) * vm
             rec = model.decoder(torch.cat([f - (1 - vm), vm.expand(len(x), 1, *vm.shape)], 1))
-            loss = (torch.abs(rec - x) * vm).mean()
+            loss = (torch.abs(rec - x) * img_mask).mean()
             losses["anam"] = float(loss.detach())
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -202,21 +243,20 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             s = step - cfg.pretrain_steps
             p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
             teacher = allo_t if rng.random() < p_teacher else None
-            out = model(obs_t, vm, teacher)
+            out = model(obs_t, vm, teacher, cells=cells_t)
             Wp = out["logits"].shape[-1]
             truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
                                  for t in range(cfg.steps)], 1)
             l_loc = _loc_loss(out["logits"], truth)
-            B, T = obs.shape[:2]
-            rec = model.recall(out["psi"].repeat_interleave(T, 0), allo_t.flatten(0, 1), vm)
-            l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * vm).mean()
+            rec = model.recall(out["psi"], allo_t.flatten(0, 1), vm, _rep(out["psi"], T))
+            l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
             loss = cfg.loc_weight * l_loc + l_anam
             losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             if step >= cfg.hallucination_from:
-                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg))
+                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask))
         for k, v in losses.items():
             acc[k] = acc.get(k, 0.0) + v
         acc["n"] = acc.get("n", 0) + 1
@@ -238,23 +278,24 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     return model, disc, tlog
 
 
-def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg) -> dict:
+def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None) -> dict:
     """One hallucination update: memorise the first ``observe`` steps (no gradient into the memory
     path), fill the holes, predict the later views; discriminator on culled windows."""
     import torch
     import torch.nn.functional as F
     B, T = obs_t.shape[:2]
     k = cfg.observe
+    img_mask = vm if img_mask is None else img_mask
     with torch.no_grad():
-        part = model(obs_t[:, :k], vm, allo_t[:, :k])
-        full = model(obs_t, vm, allo_t)
+        part = model(obs_t[:, :k], vm, allo_t[:, :k], cells=None if cells_t is None else cells_t[:, :k])
+        full = model(obs_t, vm, allo_t, cells=cells_t)
     filled = model.hallucinate(part["psi"], part["occ"])
     later = allo_t[:, k:].flatten(0, 1)
-    rec = model.recall(filled.repeat_interleave(T - k, 0), later, vm)
-    l_hallu = (torch.abs(rec - obs_t[:, k:].flatten(0, 1)) * vm).mean()
+    rec = model.recall(filled, later, vm, _rep(filled, T - k))
+    l_hallu = (torch.abs(rec - obs_t[:, k:].flatten(0, 1)) * img_mask).mean()
     l_corrupt = (torch.abs(filled - part["psi"]) * part["occ"]).mean()
-    fake = model.cull(filled.repeat_interleave(T - k, 0), later, vm)[:, :-1]
-    real = model.cull(full["psi"].repeat_interleave(T - k, 0), later, vm)[:, :-1]
+    fake = model.cull(filled, later, vm, _rep(filled, T - k))[:, :-1]
+    real = model.cull(full["psi"], later, vm, _rep(full["psi"], T - k))[:, :-1]
     l_gan = F.softplus(-disc(fake)).mean()
     loss = l_hallu + l_corrupt + 0.05 * l_gan
     opt_h.zero_grad(set_to_none=True)
@@ -265,6 +306,19 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg) -> di
     d_loss.backward()
     opt_d.step()
     return {"hallu": float(l_hallu.detach()), "corrupt": float(l_corrupt.detach()), "disc": float(d_loss.detach())}
+
+
+def worlds_3d(cfg: NeuralTrainConfig, checkpoint, progress: bool, log, split: str = "train"):
+    """The prepared 3D worlds of ``split`` (:class:`slam.neural.data3d.WorldBank`): simulated on first use
+    into ``cfg.worlds_dir`` (default: beside the checkpoint, ``worlds/``), cached as .npz."""
+    from slam.neural.data3d import WorldBank, build_worlds, load_sequence_arrays
+    root = Path(cfg.worlds_dir) if cfg.worlds_dir else (Path(checkpoint).parent / "worlds" if checkpoint
+                                                        else Path("worlds"))
+    seqs = build_worlds(root, cfg.world, split, progress=progress, log=log)
+    w = cfg.world
+    tag = f"{w.image_w}x{w.image_h}_q{w.view}_c{w.cell_m:g}_m{w.max_range_m:g}_r{w.rotations}"
+    arrays = [load_sequence_arrays(s, cfg.world, s / f"neural_{tag}.npz", progress=progress) for s in seqs]
+    return WorldBank(arrays, cfg.world)
 
 
 def save_model(folder: str | Path, model, cfg: NeuralTrainConfig, info: dict | None = None) -> Path:

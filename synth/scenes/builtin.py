@@ -513,3 +513,115 @@ def build_room(seed: int = 0) -> SceneSpec:
     meshes.append(_poster("poster_2", (hx - 0.001, 0.6, 1.5), "-x", (0.8, 0.6), rng))
     meshes.append(_poster("poster_3", (-hx + 0.001, -0.7, 1.5), "+x", (0.7, 0.9), rng))
     return SceneSpec(meshes, _materials(*sorted({m.material for m in meshes})))
+
+
+# --------------------------------------------------------------------------- procedural rooms
+
+@register_scene("procedural_room")
+def build_procedural_room(seed: int = 0) -> SceneSpec:
+    """A random furnished room, one per seed (training worlds of the neural memory, thesis 4.4.3).
+
+    The seed draws everything: the inner size (3.5 - 6.5 m x 3 - 5.5 m, 2.4 - 2.8 m high; floor at
+    z = 0, centred on the origin), wall colours (one accent wall), a parquet floor, 1 - 3 posters,
+    and 5 - 10 pieces of furniture against the walls or free-standing (cabinets, shelves with
+    books, tables, cardboard boxes, bins, poufs, office chairs) in random sizes, colours and
+    orientations. Free-standing pieces keep 1.2 m around the room's centre clear so that a robot
+    started there can move.
+    """
+    rng = np.random.default_rng(seed)
+    sx, sy, sz = rng.uniform(3.5, 6.5), rng.uniform(3.0, 5.5), rng.uniform(2.4, 2.8)
+    hx, hy = sx / 2, sy / 2
+    meshes: list[TriMesh] = [_parquet(sx, sy, rng)]
+    walls = {
+        "wall_south": ([[-hx, -hy, 0], [hx, -hy, 0], [hx, -hy, sz], [-hx, -hy, sz]], "+y"),
+        "wall_east": ([[hx, -hy, 0], [hx, hy, 0], [hx, hy, sz], [hx, -hy, sz]], "-x"),
+        "wall_north": ([[hx, hy, 0], [-hx, hy, 0], [-hx, hy, sz], [hx, hy, sz]], "-y"),
+        "wall_west": ([[-hx, hy, 0], [-hx, -hy, 0], [-hx, -hy, sz], [-hx, hy, sz]], "+x"),
+    }
+    base = rng.uniform(0.7, 0.95, 3)
+    accent = list(walls)[int(rng.integers(4))]
+    for wname, (corners, _n) in walls.items():
+        color = rng.uniform(0.2, 0.8, 3) if wname == accent else base
+        shade = np.array([1.0, 1.0, 0.93, 0.93])[:, None]
+        meshes.append(merge_parts([quad(np.array(corners, float), colors=np.asarray(color) * shade)], wname,
+                                  "accent_wall" if wname == accent else "white_wall"))
+    meshes.append(merge_parts([quad([[-hx, -hy, sz], [-hx, hy, sz], [hx, hy, sz], [hx, -hy, sz]], (0.93, 0.93, 0.92))],
+                              "ceiling", "ceiling"))
+    for k in range(int(rng.integers(1, 4))):
+        wname = list(walls)[int(rng.integers(4))]
+        n = walls[wname][1]
+        along = hx if n in ("+y", "-y") else hy
+        u = rng.uniform(-along + 0.6, along - 0.6)
+        off = {"+y": (u, -hy + 0.001), "-y": (u, hy - 0.001), "+x": (-hx + 0.001, u), "-x": (hx - 0.001, u)}[n]
+        meshes.append(_poster(f"poster_{k + 1}", (off[0], off[1], rng.uniform(1.2, 1.7)), n,
+                              (rng.uniform(0.5, 1.1), rng.uniform(0.4, 0.9)), rng))
+    kinds = ["cabinet", "shelf", "table", "box", "bin", "pouf", "chair"]
+    placed: list[tuple[float, float, float]] = []     # (x, y, radius) footprints
+    for k in range(int(rng.integers(5, 11))):
+        kind = kinds[int(rng.integers(len(kinds)))]
+        for _try in range(40):
+            against = kind in ("cabinet", "shelf") or rng.random() < 0.4
+            w, d = {"cabinet": (rng.uniform(0.6, 1.6), rng.uniform(0.35, 0.6)),
+                    "shelf": (rng.uniform(0.6, 1.2), rng.uniform(0.25, 0.4)),
+                    "table": (rng.uniform(0.8, 1.6), rng.uniform(0.6, 0.9)),
+                    "box": (rng.uniform(0.25, 0.6), rng.uniform(0.25, 0.5)),
+                    "bin": (0.3, 0.3), "pouf": (0.5, 0.5), "chair": (0.65, 0.65)}[kind]
+            rad = 0.5 * math.hypot(w, d)
+            if against:
+                side = int(rng.integers(4))
+                a = side * math.pi / 2
+                if side % 2 == 0:
+                    x, y = rng.uniform(-hx + rad, hx - rad), (-hy + d / 2 + 0.02) * (1 if side == 0 else -1)
+                else:
+                    x, y = (hx - d / 2 - 0.02) * (1 if side == 1 else -1), rng.uniform(-hy + rad, hy - rad)
+                yaw = a
+            else:
+                x, y = rng.uniform(-hx + rad, hx - rad), rng.uniform(-hy + rad, hy - rad)
+                yaw = rng.uniform(-math.pi, math.pi)
+                if math.hypot(x, y) < 1.2 + rad:
+                    continue
+            if any(math.hypot(x - px, y - py) < rad + pr + 0.05 for px, py, pr in placed):
+                continue
+            placed.append((x, y, rad))
+            R = _rot_z(yaw)
+            col = rng.uniform(0.1, 0.9, 3)
+            name = f"{kind}_{k + 1}"
+            if kind == "cabinet":
+                h = rng.uniform(0.7, 1.9)
+                meshes.append(merge_parts([box((w, d, h), pose_matrix(R, (x, y, h / 2)), col)], name, "white_laminate"))
+            elif kind == "shelf":
+                h, parts = rng.uniform(1.2, 2.0), []
+                for z in np.linspace(0.02, h - 0.02, int(rng.integers(3, 6))):
+                    parts.append(box((w, d, 0.03), pose_matrix(R, (x, y, z)), col))
+                    bx = -w / 2 + 0.05
+                    while bx < w / 2 - 0.08 and z + 0.3 < h:
+                        bw, bh = rng.uniform(0.02, 0.06), rng.uniform(0.15, 0.26)
+                        off = R @ np.array([bx + bw / 2, 0.0, 0.0])
+                        parts.append(box((bw, d * 0.8, bh), pose_matrix(R, (x + off[0], y + off[1], z + 0.015 + bh / 2)),
+                                         rng.uniform(0.1, 0.9, 3)))
+                        bx += bw + rng.uniform(0.0, 0.08)
+                meshes.append(merge_parts(parts, name, "wood_light"))
+            elif kind == "table":
+                h = rng.uniform(0.65, 0.8)
+                parts = [box((w, d, 0.04), pose_matrix(R, (x, y, h - 0.02)), col)]
+                for sxl in (-1, 1):
+                    for syl in (-1, 1):
+                        off = R @ np.array([sxl * (w / 2 - 0.05), syl * (d / 2 - 0.05), 0.0])
+                        parts.append(box((0.05, 0.05, h - 0.04), pose_matrix(R, (x + off[0], y + off[1], (h - 0.04) / 2)),
+                                         (0.5, 0.5, 0.52)))
+                meshes.append(merge_parts(parts, name, "wood_light"))
+            elif kind == "box":
+                h = rng.uniform(0.2, 0.6)
+                meshes.append(merge_parts([box((w, d, h), pose_matrix(R, (x, y, h / 2)),
+                                               np.array([0.6, 0.44, 0.28]) * rng.uniform(0.8, 1.2))], name, "cardboard"))
+            elif kind == "bin":
+                meshes.append(merge_parts([cylinder(0.14, rng.uniform(0.3, 0.5), pose_matrix(None, (x, y, 0)), col,
+                                                    radius_top=0.16)], name, "dark_plastic"))
+            elif kind == "pouf":
+                meshes.append(merge_parts([cylinder(0.25, 0.4, pose_matrix(None, (x, y, 0)), col * 0.3, sections=32)],
+                                          name, "black_fabric"))
+            else:
+                meshes += chair_meshes(["chair_a", "chair_b", "chair_c"][int(rng.integers(3))], name,
+                                       pose_matrix(R, (x, y, 0)))
+            break
+    return SceneSpec(meshes, _materials(*sorted({m.material for m in meshes})))

@@ -1,0 +1,210 @@
+"""``neural``: registration by the neural allocentric spatial memory (thesis chapter 4, MapNet-style).
+
+Only observations are used - no odometry, no poses beyond the first frame's. The first frame's
+ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height, pitch and roll
+(a ground robot: they stay fixed); the memory estimates x, y and yaw of the others:
+
+1. every ``stride``-th processed frame is a *memory step*: its RGB-D image is reduced to the
+   network's size, its pixels are ground-projected into the r turned egocentric grids
+   (:mod:`slam.neural.data3d`, :mod:`slam.neural.geometry3d`);
+2. the trained model (``model``, default the project's shipped ``slam/neural/weights/planar_3d``)
+   registers the steps one after the other: the pose field of each step against the memory so far
+   (searched around the previous estimate), then the LSTM memory update;
+3. the pose of a step is the field's maximum refined to sub-cell / sub-heading precision by the
+   centroid of the field over its 3 x 3 neighbours and the two neighbouring headings (the grid
+   itself is ``cell_m`` = 15 cm and 30 deg coarse);
+4. frames between memory steps get poses interpolated in time (linear x, y; shortest-arc yaw) and
+   say so in their ``reason`` (the last processed frame is always a memory step).
+
+``fitness`` of a step is the pose field's maximum probability (1 = certain). The memory (features
+and occupancy, ``.npy``) and PNG pictures of the occupancy and of the memory's three principal
+feature components are written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import ConfigError, FormatError
+from slam.registration import RegistrationBackend, TrackResult, register_backend
+
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "neural" / "weights" / "planar_3d"
+"""The project's own 3D weights (``realgap neural train --mode 3d``; see their README)."""
+
+
+@dataclass
+class NeuralConfig:
+    """Options of the neural registration backend."""
+
+    model: str = ""
+    """Model folder made by ``realgap neural train --mode 3d`` (empty: the shipped planar_3d weights)."""
+    stride: int = 10
+    """Processed frames between two memory steps (training used 5-15 frames at 30 fps)."""
+    max_reach_m: float = 12.0
+    """The memory covers this distance from the first frame in every direction, metres."""
+    refine: bool = True
+    """Refine the field's maximum to sub-cell / sub-heading precision (centroid of its neighbours)."""
+
+    def validate(self) -> "NeuralConfig":
+        if int(self.stride) < 1:
+            raise ConfigError(f"neural.stride must be >= 1, got {self.stride}")
+        if not self.max_reach_m > 0:
+            raise ConfigError(f"neural.max_reach_m must be > 0, got {self.max_reach_m}")
+        return self
+
+
+def refine_peak(field: np.ndarray, centre: np.ndarray, refine: bool = True) -> tuple[float, float, float, float]:
+    """(row, col, heading index (fractional), peak probability) of a local pose field (r, P, P) whose
+    middle is the allocentric ``centre`` (2,)."""
+    r, P, _ = field.shape
+    k, i, j = np.unravel_index(int(np.argmax(field)), field.shape)
+    p = float(field[k, i, j])
+    R = P // 2
+    row, col, kk = float(centre[0] + i - R), float(centre[1] + j - R), float(k)
+    if refine:
+        i0, i1, j0, j1 = max(i - 1, 0), min(i + 2, P), max(j - 1, 0), min(j + 2, P)
+        w = field[k, i0:i1, j0:j1]
+        ii, jj = np.mgrid[i0:i1, j0:j1]
+        if w.sum() > 0:
+            row = float(centre[0] + (w * ii).sum() / w.sum() - R)
+            col = float(centre[1] + (w * jj).sum() / w.sum() - R)
+        wm, w0, wp = field[(k - 1) % r, i0:i1, j0:j1].sum(), w.sum(), field[(k + 1) % r, i0:i1, j0:j1].sum()
+        if wm + w0 + wp > 0:
+            kk = k + float((wp - wm) / (wm + w0 + wp))
+    return row, col, kk, p
+
+
+@register_backend
+class NeuralBackend(RegistrationBackend):
+    name = "neural"
+    Config = NeuralConfig
+    online = False
+    uses_color = True
+
+    def __init__(self, config, intrinsics, tsdf_config, sensor=None):
+        super().__init__(config, intrinsics, tsdf_config, sensor)
+        self._snap: dict | None = None
+
+    def _load(self):
+        from slam.neural.train import load_model
+        folder = Path(self.config.model) if self.config.model else DEFAULT_MODEL
+        model, tcfg, info = load_model(folder)
+        if tcfg.mode != "3d":
+            raise FormatError(folder / "neural.json", f"a {tcfg.mode} model; the neural backend needs a 3d one "
+                                                      "(realgap neural train --mode 3d)")
+        return model, tcfg, folder
+
+    def run_offline(self, reader, indices, progress=True):
+        import torch
+
+        from slam.neural.data3d import frame_arrays, sequence_geometry
+        from slam.neural.geometry3d import allocentric_to_world
+        self.config.validate()
+        model, tcfg, folder = self._load()
+        w = tcfg.world
+        R_c_L, wedge, T0 = sequence_geometry(reader, w)
+        if T0 is None or not np.all(np.isfinite(reader.poses[indices[0]])):
+            raise FormatError(reader.path, "the neural backend needs the first frame's pose (groundtruth.txt): it "
+                                           "fixes the world frame, the camera height, pitch and roll")
+        T0 = reader.poses[indices[0]]
+        from slam.neural.geometry3d import level_rotation
+        R_c_L = level_rotation(T0)
+        steps = list(range(0, len(indices), int(self.config.stride)))
+        if steps[-1] != len(indices) - 1:
+            steps.append(len(indices) - 1)
+        imgs, cells = [], []
+        bar = None
+        if progress:
+            from data_tools.progress import progress_bar
+            bar = progress_bar(total=len(steps), desc="neural: encoding frames", unit="frame")
+        for s in steps:
+            f = reader[indices[s]]
+            if f.rgb is None:
+                raise FormatError(reader.path, f"frame {indices[s]} has no colour image: the neural model reads RGB-D")
+            img, c = frame_arrays(f.rgb, f.depth, reader.intrinsics, R_c_L, w)
+            imgs.append(img)
+            cells.append(c)
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+        reach = int(math.ceil(self.config.max_reach_m / w.cell_m))
+        U = w.view + 2 * reach
+        vm = torch.from_numpy(wedge.astype(np.float32))
+        with torch.no_grad():
+            out = model(torch.from_numpy(np.stack(imgs))[None], vm, None,
+                        cells=torch.from_numpy(np.stack(cells).astype(np.int64))[None], memory=U)
+        fields = out["fields"][0].numpy()
+        centres = out["centres"][0].numpy()
+        r = model.cfg.rotations
+        est, conf = [], []
+        for t in range(len(steps)):
+            if t == 0:
+                est.append((0.0, 0.0, 0.0))
+                conf.append(None)
+                continue
+            row, col, kk, p = refine_peak(fields[t], centres[t], self.config.refine)
+            est.append((row, col, kk * 2 * math.pi / r))
+            conf.append(p)
+        key_poses = [allocentric_to_world(T0, a, b, y, w.cell_m) for a, b, y in est]
+        self._snap = {"psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy(), "cell_m": w.cell_m,
+                      "T0": T0, "model": str(folder), "steps": [int(indices[s]) for s in steps],
+                      "estimates": [list(map(float, e)) for e in est]}
+        return self._all_frames(reader, indices, steps, key_poses, est, conf, T0, w.cell_m)
+
+    def _all_frames(self, reader, indices, steps, key_poses, est, conf, T0, cell_m):
+        from slam.neural.geometry3d import allocentric_to_world
+        results = [None] * len(indices)
+        for t, s in enumerate(steps):
+            results[s] = TrackResult(key_poses[t], conf[t], None, False, "memory step" if t else "first frame")
+        ts = reader.timestamps[np.asarray(indices)]
+        for t in range(len(steps) - 1):
+            a, b = steps[t], steps[t + 1]
+            ea, eb = np.asarray(est[t]), np.asarray(est[t + 1])
+            dyaw = (eb[2] - ea[2] + math.pi) % (2 * math.pi) - math.pi
+            for s in range(a + 1, b):
+                al = (ts[s] - ts[a]) / max(ts[b] - ts[a], 1e-12)
+                row, col = ea[:2] + al * (eb[:2] - ea[:2])
+                results[s] = TrackResult(allocentric_to_world(T0, row, col, ea[2] + al * dyaw, cell_m), None, None,
+                                         False, "interpolated between memory steps")
+        return results
+
+    def save_outputs(self, out: Path) -> None:
+        """RUN/memory/: memory.npy (n, U, U) features, occupancy.npy (U, U), memory.json (cell size, first
+        pose, model, memory steps and their allocentric estimates), occupancy.png, features.png."""
+        if self._snap is None:
+            return
+        import cv2
+
+        from data_tools.results import atomic_write_bytes, atomic_write_json
+        d = Path(out) / "memory"
+        d.mkdir(parents=True, exist_ok=True)
+        import io
+        for name in ("psi", "occ"):
+            buf = io.BytesIO()
+            np.save(buf, self._snap[name].astype(np.float32))
+            atomic_write_bytes(d / ("memory.npy" if name == "psi" else "occupancy.npy"), buf.getvalue())
+        atomic_write_json(d / "memory.json", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                                              for k, v in self._snap.items() if k not in ("psi", "occ")})
+        occ = np.clip(self._snap["occ"], 0, 1)
+        atomic_write_bytes(d / "occupancy.png", cv2.imencode(".png", (occ * 255).astype(np.uint8))[1].tobytes())
+        atomic_write_bytes(d / "features.png", cv2.imencode(".png", memory_picture(self._snap["psi"], occ))[1].tobytes())
+
+
+def memory_picture(psi: np.ndarray, occ: np.ndarray) -> np.ndarray:
+    """(U, U, 3) uint8 BGR top view of a memory (n, U, U): its three principal feature components as
+    colours where the occupancy exceeds 0.5, black elsewhere (row 0 = ahead of the first frame)."""
+    n, U, _ = psi.shape
+    X = psi.reshape(n, -1).T
+    seen = occ.reshape(-1) > 0.5
+    out = np.zeros((U * U, 3))
+    if seen.sum() >= 3:
+        Y = X[seen] - X[seen].mean(0)
+        _, _, Vt = np.linalg.svd(Y, full_matrices=False)
+        C = Y @ Vt[:3].T
+        lo, hi = np.percentile(C, 2, axis=0), np.percentile(C, 98, axis=0)
+        out[seen, :C.shape[1]] = np.clip((C - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
+    return (out.reshape(U, U, 3) * 255).astype(np.uint8)

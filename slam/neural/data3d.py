@@ -1,0 +1,218 @@
+"""3D worlds for the neural memory (thesis 4.4.3): RGB-D sequences of a ground robot in simulated rooms.
+
+Training and test worlds are ``procedural_room`` scenes (a random furnished room per seed; test
+seeds start at :data:`TEST_SEED0`, never used in training) explored along ``planar`` trajectories
+(camera 1 m above the floor, pitch -10 deg, moving on the floor with yaw turns) and measured by
+the full ``kinect_v1`` simulator (``synth sequence --sensor kinect_v1``): the memory is trained on
+depth with the sensor's holes, noise and quantisation, never on ideal depth.
+
+Each frame becomes (:func:`frame_arrays`):
+
+* an image (4, H, W) in [-1, 1]: RGB and depth (0 .. ``max_range_m`` -> -1 .. 1; no measurement
+  = -1), resized from 640 x 480 by block averaging (depth: the median of the valid pixels of each
+  block, holes where fewer than a quarter are valid);
+* the flat egocentric cell of each of its pixels (:func:`slam.neural.geometry3d.egocentric_cells`),
+  using the level frame of the sequence's first pose (height, pitch, roll are fixed).
+
+A training sample is ``steps`` frames ``stride`` apart (``stride`` drawn in ``stride_range``) of one
+sequence; its allocentric poses (cells, heading index) are those of the frames in the first
+frame's egocentric grid, rounded to the grid (the memory's resolution, as MapNet).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from data_tools.errors import ConfigError, FormatError
+
+__all__ = ["World3DConfig", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
+           "sequence_geometry"]
+
+TEST_SEED0 = 100_000
+"""First ``procedural_room`` seed of the test worlds (training uses seeds 0 .. rooms - 1)."""
+
+
+@dataclass
+class World3DConfig:
+    """Grid, image and data settings of the 3D memory (saved with the weights)."""
+
+    cell_m: float = 0.15
+    """Side of a memory cell, metres."""
+    view: int = 33
+    """Side q of the egocentric grid, cells (odd): the view reaches (q // 2) x cell_m ahead."""
+    max_range_m: float = 2.4
+    """Depth beyond this is not projected (and the depth channel saturates), metres."""
+    image_h: int = 30
+    """Height of the network's images, pixels."""
+    image_w: int = 40
+    """Width of the network's images, pixels."""
+    rotations: int = 12
+    """Headings r (360 / r degrees apart)."""
+    rooms: int = 12
+    """Training rooms (sequences), seeds 0 .. rooms - 1."""
+    test_rooms: int = 3
+    """Test rooms, seeds TEST_SEED0 ..."""
+    frames: int = 200
+    """Frames per room sequence (30 fps)."""
+    stride_min: int = 5
+    """Fewest frames between two steps of a training sample."""
+    stride_max: int = 15
+    """Most frames between two steps of a training sample."""
+
+    def validate(self) -> "World3DConfig":
+        if self.view % 2 == 0 or self.view < 5:
+            raise ConfigError(f"view must be odd and >= 5, got {self.view}")
+        if not (self.cell_m > 0 and self.max_range_m > 0):
+            raise ConfigError("cell_m and max_range_m must be positive")
+        if not 1 <= self.stride_min <= self.stride_max:
+            raise ConfigError("need 1 <= stride_min <= stride_max")
+        return self
+
+
+def _block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
+    import cv2
+    h0, w0 = depth.shape
+    by, bx = h0 // H, w0 // W
+    d = depth[:by * H, :bx * W].reshape(H, by, W, bx).transpose(0, 2, 1, 3).reshape(H, W, by * bx).astype(np.float32)
+    valid = d > 0
+    dn = np.where(valid, d, np.nan)
+    with np.errstate(all="ignore"):
+        import warnings
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(dn, axis=2)
+    med = np.where(valid.mean(2) >= 0.25, med, 0.0)
+    med = np.nan_to_num(med, nan=0.0)
+    if rgb is None:
+        col = np.zeros((H, W, 3), np.float32)
+    else:
+        col = cv2.resize(rgb, (W, H), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+    return col, med
+
+
+def frame_arrays(rgb: np.ndarray | None, depth_m: np.ndarray, intr, R_c_L: np.ndarray, cfg: World3DConfig):
+    """(image (4, H, W) float32 in [-1, 1], cells (r, H * W) int64: the pixels' cells in the egocentric grid
+    turned by k / r of a turn, k = 0 .. r - 1) of one frame (see the module docstring)."""
+    from slam.neural.geometry3d import downsample_intrinsics, egocentric_cells
+    col, d = _block_resize(rgb, depth_m, cfg.image_h, cfg.image_w)
+    small = downsample_intrinsics(intr, cfg.image_w, cfg.image_h)
+    cells = egocentric_cells(d, small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m, rotations=cfg.rotations)
+    dch = np.where(d > 0, np.clip(d / cfg.max_range_m, 0, 1) * 2 - 1, -1.0)
+    img = np.concatenate([np.transpose(col, (2, 0, 1)) * 2 - 1, dch[None]], 0).astype(np.float32)
+    return img, cells
+
+
+def sequence_geometry(reader, cfg: World3DConfig):
+    """(R_c_L, view wedge (q, q) bool, first pose or None) of a sequence: the level frame of its first
+    ground-truth pose (or of an upright camera when it has none)."""
+    from slam.neural.geometry3d import downsample_intrinsics, level_rotation, view_wedge
+    poses = reader.poses
+    ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
+    T0 = poses[int(np.argmax(ok))] if ok.any() else None
+    R_c_L = level_rotation(T0) if T0 is not None else np.eye(3)
+    small = downsample_intrinsics(reader.intrinsics, cfg.image_w, cfg.image_h)
+    return R_c_L, view_wedge(small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m), T0
+
+
+def load_sequence_arrays(seq_dir: str | Path, cfg: World3DConfig, cache: str | Path | None = None,
+                         progress: bool = False) -> dict:
+    """{images (N, 4, H, W) float16, cells (N, r, H*W) int16, poses (N, 4, 4), timestamps (N,), wedge (q, q)}
+    of a sequence folder, cached in ``cache`` (an .npz, rebuilt when missing)."""
+    from data_tools.sequence import SequenceReader
+    if cache is not None and Path(cache).is_file():
+        with np.load(cache) as z:
+            return {k: z[k] for k in z.files}
+    reader = SequenceReader(seq_dir)
+    R_c_L, wedge, _ = sequence_geometry(reader, cfg)
+    imgs, cells = [], []
+    it = range(len(reader))
+    if progress:
+        from data_tools.progress import progress_bar
+        it = progress_bar(it, desc=f"preparing {Path(seq_dir).name}", unit="frame")
+    for i in it:
+        img, c = frame_arrays(reader.read_rgb(i), reader.read_depth(i), reader.intrinsics, R_c_L, cfg)
+        imgs.append(img.astype(np.float16))
+        cells.append(c.astype(np.int16 if cfg.view ** 2 < 32767 else np.int32))
+    out = {"images": np.stack(imgs), "cells": np.stack(cells), "poses": reader.poses.copy(),
+           "timestamps": reader.timestamps.copy(), "wedge": wedge}
+    if cache is not None:
+        from data_tools.results import atomic_write_bytes
+        import io
+        buf = io.BytesIO()
+        np.savez(buf, **out)
+        atomic_write_bytes(Path(cache), buf.getvalue())
+    return out
+
+
+def build_worlds(folder: str | Path, cfg: World3DConfig, split: str = "train", progress: bool = True,
+                 log: Callable[[str], None] | None = None) -> list[Path]:
+    """Simulate (or reuse) the ``split`` rooms' sequences in ``folder`` (``train_NNN`` / ``test_NNN``:
+    ``synth sequence --scene procedural_room --trajectory planar --sensor kinect_v1``); an unfinished
+    sequence resumes. Returns the sequence folders."""
+    from synth.sequence import SequenceConfig, generate_simulated_sequence
+    folder = Path(folder)
+    n = cfg.rooms if split == "train" else cfg.test_rooms
+    seed0 = 0 if split == "train" else TEST_SEED0
+    out = []
+    for i in range(n):
+        seq = folder / f"{split}_{i:03d}"
+        scfg = SequenceConfig(scene="procedural_room", frames=cfg.frames, trajectory="planar", seed=seed0 + i)
+        done = (seq / "groundtruth.txt").is_file() and not (seq / "incomplete.json").exists() and \
+            (seq / "depth.txt").is_file()
+        if not done:
+            if log is not None:
+                log(f"simulating {split} room {i + 1}/{n} (kinect_v1, {cfg.frames} frames) in {seq}")
+            generate_simulated_sequence(scfg, seq, "kinect_v1", resume=seq.exists(), progress=progress)
+        out.append(seq)
+    return out
+
+
+class WorldBank:
+    """The prepared sequences of one split and the sampler of training/test samples."""
+
+    def __init__(self, seqs: list[dict], cfg: World3DConfig):
+        if not seqs:
+            raise FormatError("worlds", "no sequences to sample from")
+        self.seqs = seqs
+        self.cfg = cfg
+        self.wedge = seqs[0]["wedge"].astype(bool)
+
+    def allocentric(self, poses: np.ndarray) -> np.ndarray:
+        """(T, 3) int64 allocentric (row, col, heading index) of (T, 4, 4) poses, rounded to the grid."""
+        from slam.neural.geometry3d import planar_relative
+        r = self.cfg.rotations
+        out = np.zeros((len(poses), 3), np.int64)
+        for t, P in enumerate(poses):
+            row, col, yaw = planar_relative(poses[0], P, self.cfg.cell_m)
+            out[t] = (int(round(row)), int(round(col)), int(round(yaw / (2 * math.pi / r))) % r)
+        return out
+
+    def sample(self, rng: np.random.Generator, batch: int, steps: int):
+        """(images (B, T, 4, H, W) float32, cells (B, T, r, H*W) int64, allocentric (B, T, 3) int64,
+        poses (B, T, 4, 4))."""
+        imgs, cells, allo, poses = [], [], [], []
+        for _ in range(batch):
+            s = self.seqs[int(rng.integers(len(self.seqs)))]
+            stride = int(rng.integers(self.cfg.stride_min, self.cfg.stride_max + 1))
+            N = len(s["images"])
+            span = stride * (steps - 1)
+            if span >= N:
+                stride = max(1, (N - 1) // max(steps - 1, 1))
+                span = stride * (steps - 1)
+            a = int(rng.integers(0, N - span))
+            idx = a + stride * np.arange(steps)
+            if rng.random() < 0.5:          # walk the path backwards too
+                idx = idx[::-1]
+            imgs.append(s["images"][idx].astype(np.float32))
+            cells.append(s["cells"][idx].astype(np.int64))
+            poses.append(s["poses"][idx])
+            allo.append(self.allocentric(s["poses"][idx]))
+        return np.stack(imgs), np.stack(cells), np.stack(allo), np.stack(poses)
+
+
+def config_dict(cfg: World3DConfig) -> dict:
+    return asdict(cfg)
