@@ -1,6 +1,7 @@
 """The neural memory's 3D geometry: ground projection, level frame, planar poses, grid rotations."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -113,3 +114,112 @@ def test_level_rotation_drops_pitch(pitch):
     R_w_L = T[:3, :3] @ R
     np.testing.assert_allclose(R_w_L[:, 1], [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(R_w_L[:, 2], [math.cos(0.4), math.sin(0.4), 0], atol=1e-12)
+
+
+def test_image_bank_turns_the_projection_exactly():
+    """The 3D rotation bank (pixels turned, then binned) at a quarter turn equals torch.rot90 of the
+    unturned ground projection."""
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    rng = np.random.default_rng(1)
+    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    depth = rng.uniform(0.5, 2.3, (30, 40))
+    cells = egocentric_cells(depth, intr, level_rotation(_cam(0, 0, 0.3)), 0.15, 33, 2.4, rotations=12)
+    assert cells.shape == (12, 1200)
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
+                                      input="image", image_size=(30, 40)))
+    f = torch.from_numpy(rng.normal(size=(1, 3, 30, 40)).astype(np.float32))
+    bank = model._image_bank(f, torch.from_numpy(cells)[None])
+    np.testing.assert_allclose(bank[0, 3].numpy(), torch.rot90(bank[0, 0], 1, (1, 2)).numpy())
+    np.testing.assert_allclose(bank[0, 6].numpy(), torch.rot90(bank[0, 0], 2, (1, 2)).numpy())
+
+
+def test_planar_trajectory_keeps_height_pitch_and_clearance():
+    from synth.scenes import build_scene
+    from synth.sequence import SequenceConfig, make_sequence_trajectory
+    scene = build_scene("procedural_room", seed=4)
+    traj = make_sequence_trajectory(SequenceConfig(scene="procedural_room", seed=4, frames=90, trajectory="planar"),
+                                    scene)                                      # jitter on: x, y, yaw only
+    P = traj.poses
+    np.testing.assert_allclose(P[:, 2, 3], 1.0, atol=1e-9)                     # height above the floor
+    np.testing.assert_allclose(P[:, 2, 2], math.sin(math.radians(-10.0)), atol=1e-9)   # pitch
+    np.testing.assert_allclose(P[:, 2, 0], 0.0, atol=1e-9)                     # no roll
+    yaw = np.unwrap(np.arctan2(P[:, 1, 2], P[:, 0, 2]))
+    assert np.ptp(yaw) > math.radians(5) and np.linalg.norm(np.diff(P[:, :2, 3], axis=0), axis=1).sum() > 0.2
+    from synth.trajectories import _Clearance
+    assert _Clearance(scene).distance(P[:, :3, 3]).min() > 0.3
+    # the procedural room differs by seed
+    other = build_scene("procedural_room", seed=5)
+    assert [m.name for m in other.meshes] != [m.name for m in scene.meshes] or \
+        not np.allclose(other.meshes[1].vertices, scene.meshes[1].vertices)
+
+
+@pytest.fixture(scope="module")
+def planar_seq(tmp_path_factory):
+    """A 24-frame simulated kinect_v1 planar sequence of a procedural room and a tiny
+    untrained 3D model (the backend's plumbing, not its accuracy, is tested here)."""
+    from slam.neural.data3d import World3DConfig
+    from slam.neural.train import NeuralTrainConfig, memory_config, save_model
+    from slam.neural.model import NeuralMemory
+    from synth.sequence import SequenceConfig, generate_simulated_sequence
+    root = tmp_path_factory.mktemp("neural3d")
+    cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
+    generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20))
+    import torch
+    torch.manual_seed(0)
+    save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
+    return root
+
+
+def test_neural_backend_run_snapshots_and_render(planar_seq):
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import read_tum
+    from slam.pipeline import make_config, run_slam
+    from slam.render import render_run_to_png
+    root = planar_seq
+    cfg = make_config("neural", overrides={"backend_config.model": str(root / "model"), "backend_config.stride": 5,
+                                           "backend_config.max_reach_m": 3.0})
+    res = run_slam(root / "seq", root / "run", cfg, progress=False)
+    reader = SequenceReader(root / "seq")
+    traj = read_tum(root / "run" / "trajectory.txt")
+    assert len(traj) == len(reader) == 24
+    np.testing.assert_allclose(traj.poses[0], reader.poses[0], atol=1e-9)       # the world frame of the first pose
+    np.testing.assert_allclose(traj.poses[:, 2, 3], reader.poses[0][2, 3], atol=1e-9)   # height kept
+    np.testing.assert_allclose(traj.poses[:, 2, 2], reader.poses[0][2, 2], atol=1e-9)   # pitch kept
+    reasons = [r["reason"] for r in res.stats["per_frame"]]
+    # steps at frames 0, 5, 10, 15, 20 and the last one, 23
+    assert reasons[0] == "first frame" and reasons.count("memory step") == 5 and \
+        reasons.count("interpolated between memory steps") == 24 - 6
+    mem = root / "run" / "memory"
+    psi, occ = np.load(mem / "memory.npy"), np.load(mem / "occupancy.npy")
+    assert psi.shape[0] == 4 and psi.shape[1:] == occ.shape == (33 + 2 * 20,) * 2
+    for name in ("occupancy.png", "features.png", "memory.json"):
+        assert (mem / name).stat().st_size > 0
+    for hall in (False, True):
+        view, paths, _ = render_run_to_png(root / "run", root / f"v{hall}.png", frame=10, hallucinate=hall)
+        H, W = reader.intrinsics.shape
+        assert view.rgb.shape == (H, W, 3) and view.depth.shape == (H, W) and view.depth.max() > 0
+
+
+def test_neural_backend_bad_input(planar_seq, tmp_path):
+    import shutil
+
+    from data_tools.errors import RealgapError
+    from slam.pipeline import make_config, run_slam
+    root = planar_seq
+    seq = tmp_path / "nogt"
+    shutil.copytree(root / "seq", seq, ignore=shutil.ignore_patterns("ideal"))
+    (seq / "groundtruth.txt").unlink()
+    cfg = make_config("neural", overrides={"backend_config.model": str(root / "model")})
+    with pytest.raises(RealgapError, match="first frame's pose"):
+        run_slam(seq, tmp_path / "r1", cfg, progress=False)
+    two_d = tmp_path / "m2d"
+    shutil.copytree(root / "model", two_d)
+    meta = json.loads((two_d / "neural.json").read_text())
+    meta["train"]["mode"] = "2d"
+    (two_d / "neural.json").write_text(json.dumps(meta))
+    cfg = make_config("neural", overrides={"backend_config.model": str(two_d)})
+    with pytest.raises(RealgapError):
+        run_slam(root / "seq", tmp_path / "r2", cfg, progress=False)

@@ -23,7 +23,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
-                                                   "first use, reused after; default MODEL/worlds)")
+                                                   "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
     add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in MODEL")
@@ -32,7 +32,11 @@ def register(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("eval", help="localisation, recall and hallucination metrics + baselines (JSON)")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "folder for neural_eval.json", metavar="DIR")
-    p.add_argument("--sequences", type=int, default=64, help="test walks (default 64)")
+    p.add_argument("--mode", choices=("2d", "3d"), help="check that MODEL is of this mode (default: MODEL's)")
+    p.add_argument("--sequences", type=int, default=None,
+                   help="2d: test walks (default 64); 3d: 10-step image samples of the test rooms (default 24)")
+    p.add_argument("--planar", action="append", default=[], metavar="SEQ",
+                   help="3d: also localise on this planar sequence (neural vs icp), repeatable")
     add_shared(p, "--overwrite", "an existing neural_eval.json")
     add_shared(p, "--json", "(neural_eval.json's content)")
     add_shared(p, "--no-progress")
@@ -59,9 +63,22 @@ def _train(args) -> int:
 
 def _eval(args) -> int:
     from slam.neural.run import evaluate_folder
-    r = evaluate_folder(args.model, args.out, args.sequences, overwrite=args.overwrite, progress=not args.no_progress)
+    from slam.neural.train import load_model
+    mode = args.mode or load_model(args.model)[1].mode
+    n = args.sequences if args.sequences is not None else (24 if mode == "3d" else 64)
+    r = evaluate_folder(args.model, args.out, n, overwrite=args.overwrite, progress=not args.no_progress,
+                        mode=args.mode, extra_sequences=args.planar,
+                        log=lambda m: print(f"realgap: {m}", file=sys.stderr))
     if args.json:
         print(json.dumps(r, indent=2))
+        return 0
+    if mode == "3d":
+        loc, h, b = r["localisation"], r["hallucination"], r["baseline_tsdf_inpainting"]
+        print(f"ATE RMSE neural {loc['neural']['ate_rmse_m_mean']:.3f} m vs icp {loc['icp']['ate_rmse_m_mean']:.3f} m "
+              f"(cell {r['cell_m']:g} m; within 2 cells: {loc['within_2_cells_of_icp']}); anamnesis L1 "
+              f"{r['anamnesis']['l1']:.3f} SSIM {r['anamnesis']['ssim_thesis']:.2f}; hallucination L1 {h['l1']:.3f} "
+              f"SSIM {h['ssim_thesis']:.2f} (TSDF + inpainting: L1 {b['l1']:.3f} SSIM {b['ssim_thesis']:.2f}); "
+              f"{args.out}/neural_eval.json")
         return 0
     a, h, m = r["anamnesis"], r["hallucination"], r["baseline_mosaic_inpainting"]
     print(f"APE median {r['ape_px']['median']:.2f} px (mean {r['ape_px']['mean']:.2f}); anamnesis L1 {a['l1']:.3f} "

@@ -29,7 +29,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 
-__all__ = ["World3DConfig", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
+__all__ = ["World3DConfig", "default_worlds_dir", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
            "sequence_geometry"]
 
 TEST_SEED0 = 100_000
@@ -169,6 +169,14 @@ def build_worlds(folder: str | Path, cfg: World3DConfig, split: str = "train", p
             generate_simulated_sequence(scfg, seq, "kinect_v1", resume=seq.exists(), progress=progress)
         out.append(seq)
     return out
+
+
+def default_worlds_dir(cfg: World3DConfig) -> Path:
+    """Where the simulated rooms live unless a folder is given: ``$REALGAP_CACHE`` (default
+    ``~/.cache/realgap``) ``/neural_worlds/f<frames>`` - shared by training and evaluation (the rooms
+    depend only on the seeds and the frame count)."""
+    import os
+    return Path(os.environ.get("REALGAP_CACHE", "~/.cache/realgap")).expanduser() / "neural_worlds" / f"f{cfg.frames}"
 
 
 class WorldBank:

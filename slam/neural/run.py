@@ -30,7 +30,7 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
 
 
 def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 64, overwrite: bool = False,
-                    progress: bool = True) -> dict:
+                    progress: bool = True, mode: str | None = None, extra_sequences=(), log=None) -> dict:
     from data_tools.outputs import check_output_dir
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
@@ -38,9 +38,18 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 6
         raise ConfigError(f"--sequences must be >= 1, got {sequences}")
     folder = check_output_dir(out, finished="neural_eval.json", overwrite=overwrite) if out else None
     model, cfg, _info = load_model(model_dir)
-    if cfg.mode != "2d":
-        raise ConfigError("only 2d models can be evaluated so far")
-    res = evaluate_2d(model, cfg, sequences, progress=progress)
+    if mode is not None and mode != cfg.mode:
+        raise ConfigError(f"--mode {mode}: {model_dir} is a {cfg.mode} model")
+    if cfg.mode == "3d":
+        if folder is None:
+            raise ConfigError("--mode 3d evaluation runs SLAM on the test rooms: give --out DIR for its runs")
+        from slam.neural.evaluate3d import evaluate_3d
+        res = evaluate_3d(model, cfg, folder, model_dir, extra_sequences, samples=sequences, progress=progress,
+                          log=log)
+    else:
+        if extra_sequences:
+            raise ConfigError("--planar sequences are for 3d models")
+        res = evaluate_2d(model, cfg, sequences, progress=progress)
     if folder is not None:
         from data_tools.results import atomic_write_json
         atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})

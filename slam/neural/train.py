@@ -80,7 +80,7 @@ class NeuralTrainConfig:
     world: World3DConfig = field(default_factory=World3DConfig)
     """3D mode: grid, images and simulated rooms (:class:`slam.neural.data3d.World3DConfig`)."""
     worlds_dir: str = ""
-    """3D mode: folder of the simulated room sequences (made on first use; default MODEL/worlds)."""
+    """3D mode: folder of the simulated room sequences (made on first use; default ~/.cache/realgap/neural_worlds)."""
 
     def validate(self) -> "NeuralTrainConfig":
         if self.mode not in ("2d", "3d"):
@@ -310,10 +310,10 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
 
 def worlds_3d(cfg: NeuralTrainConfig, checkpoint, progress: bool, log, split: str = "train"):
     """The prepared 3D worlds of ``split`` (:class:`slam.neural.data3d.WorldBank`): simulated on first use
-    into ``cfg.worlds_dir`` (default: beside the checkpoint, ``worlds/``), cached as .npz."""
+    into ``cfg.worlds_dir`` (default :func:`slam.neural.data3d.default_worlds_dir`), cached as .npz."""
     from slam.neural.data3d import WorldBank, build_worlds, load_sequence_arrays
-    root = Path(cfg.worlds_dir) if cfg.worlds_dir else (Path(checkpoint).parent / "worlds" if checkpoint
-                                                        else Path("worlds"))
+    from slam.neural.data3d import default_worlds_dir
+    root = Path(cfg.worlds_dir) if cfg.worlds_dir else default_worlds_dir(cfg.world)
     seqs = build_worlds(root, cfg.world, split, progress=progress, log=log)
     w = cfg.world
     tag = f"{w.image_w}x{w.image_h}_q{w.view}_c{w.cell_m:g}_m{w.max_range_m:g}_r{w.rotations}"
