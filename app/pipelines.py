@@ -1,5 +1,5 @@
 """Pipelines that span packages (synth and slam meet only here, since neither may import the
-other): the main demo. Commands in :mod:`app.commands` call these; a script can too."""
+other): the main demo and the worlds of the 3D neural memory. Commands in :mod:`app.commands` call these; a script can too."""
 from __future__ import annotations
 
 import time
@@ -51,3 +51,13 @@ def run_demo(out: str | Path = "demo_out", frames: int = 60, sensor: str = "kine
                "slam_run": str(run_dir), "mesh": str(run_dir / "mesh.ply")}
     atomic_write_json(out / "summary.json", summary)
     return summary
+
+
+def simulate_planar_room(seed: int, frames: int, out: str | Path, progress: bool = True) -> None:
+    """A world of the 3D neural memory (:data:`slam.neural.data3d.Simulator`): ``procedural_room`` ``seed``
+    explored along a ``planar`` trajectory, measured by the full ``kinect_v1`` simulator, into ``out``
+    (the ideal sequence in ``out/ideal``); an unfinished one resumes."""
+    from synth.sequence import SequenceConfig, generate_simulated_sequence
+    out = Path(out)
+    cfg = SequenceConfig(scene="procedural_room", frames=frames, trajectory="planar", seed=seed)
+    generate_simulated_sequence(cfg, out, "kinect_v1", resume=out.exists(), progress=progress)

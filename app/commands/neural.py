@@ -53,8 +53,10 @@ def _train(args) -> int:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
     cfg = dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over).validate()
+    from app.pipelines import simulate_planar_room
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,
-                                           log=lambda m: print(f"realgap: {m}", file=sys.stderr))
+                                           log=lambda m: print(f"realgap: {m}", file=sys.stderr),
+                                           simulate=simulate_planar_room)
     last = tlog.steps[-1] if tlog.steps else {}
     print(f"{folder}: neural memory trained ({cfg.iterations} steps, {tlog.seconds:.0f} s this run); last losses "
           + " ".join(f"{k} {v:.3f}" for k, v in last.items() if k != "step"))
@@ -63,12 +65,13 @@ def _train(args) -> int:
 
 def _eval(args) -> int:
     from slam.neural.run import evaluate_folder
+    from app.pipelines import simulate_planar_room
     from slam.neural.train import load_model
     mode = args.mode or load_model(args.model)[1].mode
     n = args.sequences if args.sequences is not None else (24 if mode == "3d" else 64)
     r = evaluate_folder(args.model, args.out, n, overwrite=args.overwrite, progress=not args.no_progress,
                         mode=args.mode, extra_sequences=args.planar,
-                        log=lambda m: print(f"realgap: {m}", file=sys.stderr))
+                        log=lambda m: print(f"realgap: {m}", file=sys.stderr), simulate=simulate_planar_room)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0

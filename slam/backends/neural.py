@@ -98,8 +98,6 @@ class NeuralBackend(RegistrationBackend):
         return model, tcfg, folder
 
     def run_offline(self, reader, indices, progress=True):
-        import torch
-
         from slam.neural.data3d import frame_arrays, sequence_geometry
         from slam.neural.geometry3d import allocentric_to_world
         self.config.validate()
@@ -132,13 +130,9 @@ class NeuralBackend(RegistrationBackend):
         if bar is not None:
             bar.close()
         reach = int(math.ceil(self.config.max_reach_m / w.cell_m))
-        U = w.view + 2 * reach
-        vm = torch.from_numpy(wedge.astype(np.float32))
-        with torch.no_grad():
-            out = model(torch.from_numpy(np.stack(imgs))[None], vm, None,
-                        cells=torch.from_numpy(np.stack(cells).astype(np.int64))[None], memory=U)
-        fields = out["fields"][0].numpy()
-        centres = out["centres"][0].numpy()
+        from slam.neural.run import register_sequence
+        out = register_sequence(model, np.stack(imgs), np.stack(cells), wedge, w.view + 2 * reach)
+        fields, centres = out["fields"], out["centres"]
         r = model.cfg.rotations
         est, conf = [], []
         for t in range(len(steps)):
@@ -150,7 +144,7 @@ class NeuralBackend(RegistrationBackend):
             est.append((row, col, kk * 2 * math.pi / r))
             conf.append(p)
         key_poses = [allocentric_to_world(T0, a, b, y, w.cell_m) for a, b, y in est]
-        self._snap = {"psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy(), "cell_m": w.cell_m,
+        self._snap = {"psi": out["psi"], "occ": out["occ"], "cell_m": w.cell_m,
                       "T0": T0, "model": str(folder), "steps": [int(indices[s]) for s in steps],
                       "estimates": [list(map(float, e)) for e in est]}
         return self._all_frames(reader, indices, steps, key_poses, est, conf, T0, w.cell_m)

@@ -148,25 +148,31 @@ def load_sequence_arrays(seq_dir: str | Path, cfg: World3DConfig, cache: str | P
     return out
 
 
-def build_worlds(folder: str | Path, cfg: World3DConfig, split: str = "train", progress: bool = True,
+Simulator = Callable[[int, int, Path], None]
+"""``simulate(seed, frames, out)``: write the planar kinect_v1 sequence of ``procedural_room`` ``seed`` with
+``frames`` frames into ``out`` (resuming an unfinished one). ``slam`` does not import ``synth``: the
+application passes :func:`app.pipelines.simulate_planar_room`."""
+
+
+def build_worlds(folder: str | Path, cfg: World3DConfig, split: str = "train", simulate: Simulator | None = None,
                  log: Callable[[str], None] | None = None) -> list[Path]:
-    """Simulate (or reuse) the ``split`` rooms' sequences in ``folder`` (``train_NNN`` / ``test_NNN``:
-    ``synth sequence --scene procedural_room --trajectory planar --sensor kinect_v1``); an unfinished
-    sequence resumes. Returns the sequence folders."""
-    from synth.sequence import SequenceConfig, generate_simulated_sequence
+    """The ``split`` rooms' sequences in ``folder`` (``train_NNN`` / ``test_NNN``), simulated by ``simulate``
+    where missing or unfinished. Returns the sequence folders."""
     folder = Path(folder)
     n = cfg.rooms if split == "train" else cfg.test_rooms
     seed0 = 0 if split == "train" else TEST_SEED0
     out = []
     for i in range(n):
         seq = folder / f"{split}_{i:03d}"
-        scfg = SequenceConfig(scene="procedural_room", frames=cfg.frames, trajectory="planar", seed=seed0 + i)
         done = (seq / "groundtruth.txt").is_file() and not (seq / "incomplete.json").exists() and \
             (seq / "depth.txt").is_file()
         if not done:
+            if simulate is None:
+                raise FormatError(seq, f"{split} room {i} is not simulated yet (run 'realgap neural train --mode 3d' "
+                                       "or pass --worlds to a folder that has them)")
             if log is not None:
                 log(f"simulating {split} room {i + 1}/{n} (kinect_v1, {cfg.frames} frames) in {seq}")
-            generate_simulated_sequence(scfg, seq, "kinect_v1", resume=seq.exists(), progress=progress)
+            simulate(seed0 + i, cfg.frames, seq)
         out.append(seq)
     return out
 

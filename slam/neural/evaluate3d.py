@@ -71,7 +71,7 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w, R_c_L) -> list[np.ndarray]:
 
 
 def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_sequences=(), samples: int = 24,
-                seed: int = 12345, progress: bool = True, log=None) -> dict:
+                seed: int = 12345, progress: bool = True, log=None, simulate=None) -> dict:
     import torch
 
     from data_tools.sequence import SequenceReader
@@ -82,7 +82,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     w = tcfg.world
     from slam.neural.data3d import default_worlds_dir
     root = Path(tcfg.worlds_dir) if tcfg.worlds_dir and Path(tcfg.worlds_dir).is_dir() else default_worlds_dir(w)
-    tests = build_worlds(root, w, "test", progress=progress, log=log)
+    tests = build_worlds(root, w, "test", simulate=simulate, log=log)
     res: dict = {"cell_m": w.cell_m, "sequences": {}}
     # ---------------------------------------------------------------- localisation on whole sequences
     for seq in list(tests) + [Path(s) for s in extra_sequences]:

@@ -11,7 +11,7 @@ __all__ = ["train_to_folder", "evaluate_folder"]
 
 
 def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progress: bool = True,
-                    log: Callable[[str], None] | None = None):
+                    log: Callable[[str], None] | None = None, simulate=None):
     """Train into ``out`` (MODEL/weights.pt, neural.json; checkpoint.pt while training)."""
     from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
     from slam.neural.train import save_model, train_memory
@@ -21,7 +21,7 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
     mark_incomplete(folder, "realgap neural train", 0, cfg.iterations, unit="steps")
-    model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log)
+    model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate)
     save_model(folder, model, cfg, {"train_log": tlog.steps[-20:], "train_seconds": round(tlog.seconds, 1),
                                     "resumed_from_step": tlog.resumed_from})
     (folder / "checkpoint.pt").unlink(missing_ok=True)
@@ -30,7 +30,8 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
 
 
 def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 64, overwrite: bool = False,
-                    progress: bool = True, mode: str | None = None, extra_sequences=(), log=None) -> dict:
+                    progress: bool = True, mode: str | None = None, extra_sequences=(), log=None,
+                    simulate=None) -> dict:
     from data_tools.outputs import check_output_dir
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
@@ -45,7 +46,7 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 6
             raise ConfigError("--mode 3d evaluation runs SLAM on the test rooms: give --out DIR for its runs")
         from slam.neural.evaluate3d import evaluate_3d
         res = evaluate_3d(model, cfg, folder, model_dir, extra_sequences, samples=sequences, progress=progress,
-                          log=log)
+                          log=log, simulate=simulate)
     else:
         if extra_sequences:
             raise ConfigError("--planar sequences are for 3d models")
@@ -54,6 +55,20 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 6
         from data_tools.results import atomic_write_json
         atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})
     return res
+
+
+def register_sequence(model, images, cells, wedge, memory: int) -> dict:
+    """Run a 3D model over one sequence of memory steps: images (T, 4, H, W), cells (T, r, H * W), the view
+    wedge (q, q) bool, a memory of side ``memory`` cells. Returns numpy arrays: fields (T, r, P, P) local
+    pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U) and occ (U, U)."""
+    import numpy as np
+    import torch
+    vm = torch.from_numpy(np.asarray(wedge, np.float32))
+    with torch.no_grad():
+        out = model(torch.from_numpy(np.asarray(images, np.float32))[None], vm, None,
+                    cells=torch.from_numpy(np.asarray(cells, np.int64))[None], memory=int(memory))
+    return {"fields": out["fields"][0].numpy(), "centres": out["centres"][0].numpy(),
+            "psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy()}
 
 
 def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):

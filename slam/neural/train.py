@@ -152,8 +152,9 @@ def _loc_loss(logits, truth_field):
 
 
 def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, progress: bool = True,
-                 log: Callable[[str], None] | None = None):
-    """Train; returns (model, discriminator, TrainLog)."""
+                 log: Callable[[str], None] | None = None, simulate=None):
+    """Train; returns (model, discriminator, TrainLog). 3D: ``simulate`` makes missing training rooms
+    (:data:`slam.neural.data3d.Simulator`)."""
     import torch
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
@@ -173,7 +174,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(cfg.seed)
     if cfg.mode == "3d":
-        bank = worlds_3d(cfg, checkpoint, progress, log)
+        bank = worlds_3d(cfg, simulate, progress, log)
         vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
 
         def batch():
@@ -308,13 +309,13 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
     return {"hallu": float(l_hallu.detach()), "corrupt": float(l_corrupt.detach()), "disc": float(d_loss.detach())}
 
 
-def worlds_3d(cfg: NeuralTrainConfig, checkpoint, progress: bool, log, split: str = "train"):
+def worlds_3d(cfg: NeuralTrainConfig, simulate, progress: bool, log, split: str = "train"):
     """The prepared 3D worlds of ``split`` (:class:`slam.neural.data3d.WorldBank`): simulated on first use
     into ``cfg.worlds_dir`` (default :func:`slam.neural.data3d.default_worlds_dir`), cached as .npz."""
     from slam.neural.data3d import WorldBank, build_worlds, load_sequence_arrays
     from slam.neural.data3d import default_worlds_dir
     root = Path(cfg.worlds_dir) if cfg.worlds_dir else default_worlds_dir(cfg.world)
-    seqs = build_worlds(root, cfg.world, split, progress=progress, log=log)
+    seqs = build_worlds(root, cfg.world, split, simulate=simulate, log=log)
     w = cfg.world
     tag = f"{w.image_w}x{w.image_h}_q{w.view}_c{w.cell_m:g}_m{w.max_range_m:g}_r{w.rotations}"
     arrays = [load_sequence_arrays(s, cfg.world, s / f"neural_{tag}.npz", progress=progress) for s in seqs]
