@@ -37,7 +37,7 @@ def _run(args) -> int:
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     if not backends:
         raise ConfigError("--backends: give at least one backend, e.g. icp,rgbd_odometry")
-    configs = {b: config_from_args(args, b) for b in backends}
+    configs = {b: config_from_args(args, b, tuple(backends)) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
                     executor=args.executor, workers=args.workers, progress=not args.no_progress)
     from data_tools.results import format_table

@@ -78,8 +78,9 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
         _add_fields(g, cls, f"{name}.", f"{name}.")
 
 
-def config_from_args(args, backend: str):
-    """SlamConfig from --config/--preset and the generated flags (values checked and typed)."""
+def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
+    """SlamConfig from --config/--preset and the generated flags (values checked and typed).
+    ``siblings``: other backends of the same command (``batch``), whose options are skipped here."""
     import dataclasses
     from slam.pipeline import SlamConfig, make_config
     from slam.registration import backend_names, get_backend, parse_value
@@ -94,6 +95,8 @@ def config_from_args(args, backend: str):
         dotted = key[4:]
         section, _, name = dotted.rpartition(".")
         if section in backends:
+            if section != backend and section in siblings:
+                continue
             if section != backend:
                 raise ConfigError(f"--{dotted} is an option of backend {section}, not of {backend}")
             cls = get_backend(section).Config

@@ -189,16 +189,24 @@ class SequenceSession:
         return out
 
     # ---------------------------------------------------------------- novel views
-    def novel_views(self, pose_c2w: np.ndarray, scale: float = 0.5) -> dict[str, object]:
+    def novel_views(self, pose_c2w: np.ndarray, scale: float = 0.5, hallucinate: bool = False) -> dict[str, object]:
         """Name -> :class:`slam.render.RenderedView` (or a one-line reason string) of the virtual
         camera ``pose_c2w`` (ground-truth frame) from every run's model: a run's mesh is in the
-        run's own frame, so the pose is moved by the inverse of the run's alignment."""
-        from slam.render import render_mesh
+        run's own frame, so the pose is moved by the inverse of the run's alignment. A neural run's
+        memory (in the ground-truth frame of the sequence's first pose) gives ``"neural"``: the view
+        it recalls (``hallucinate``: after its hallucination module), decoded and resized."""
+        from slam.render import RenderedView, render_mesh
         out: dict[str, object] = {}
         intr = self.intrinsics.scaled(scale)
         for r in self.runs:
             if r.backend == "neural":
-                out[r.name] = "neural memory view: not available in this build"
+                from data_tools.errors import RealgapError
+                from slam.neural.run import recall_view
+                try:
+                    rgb, depth = recall_view(r.run_dir, pose_c2w, hallucinate, size=(intr.width, intr.height))
+                    out["neural"] = RenderedView(rgb, depth, pose_c2w, intr)
+                except RealgapError as e:
+                    out["neural"] = str(e)
                 continue
             if not r.has_mesh:
                 out[r.name] = f"{r.name}: no mesh.ply in {r.run_dir.name}"

@@ -362,7 +362,7 @@ class Viewer:
         """Place the virtual camera (camera-to-world, ground-truth frame) and render the novel views."""
         s = self.s
         s.virtual_pose = np.asarray(pose_c2w, float).copy()
-        views = s.novel_views(s.virtual_pose)
+        views = s.novel_views(s.virtual_pose, hallucinate=self.hallucinate)
         tsdf = next((n for n, v in views.items() if n != "neural" and not isinstance(v, str)), None)
         if tsdf is None:
             self._message("novel_0", next((v for n, v in views.items() if n != "neural"), "no run with a TSDF mesh"))
@@ -377,7 +377,7 @@ class Viewer:
             self._title("novel_1", "novel view: neural memory" + (" + hallucination" if self.hallucinate else ""))
         else:
             self._clear_message("novel_1")
-            self._image("novel_1", nv.rgb, "novel view: neural memory")
+            self._image("novel_1", nv.rgb, "novel view: neural memory" + (" + hallucination" if self.hallucinate else ""))
         self._frusta()
 
     def move_virtual(self, forward: float = 0.0, yaw_deg: float = 0.0, up: float = 0.0) -> None:

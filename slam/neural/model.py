@@ -23,9 +23,19 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   observed cells unchanged (L_corrupt, masked by the occupancy), against a spectral-normalised
   patch discriminator on culled windows (L_disc).
 
-Deviations from the thesis, on purpose: quarter-turn rotations only (exact on the grid; the thesis'
-+-45 deg agent needs resampling); the hallucination AE has one self-attention layer instead of two
-(CPU budget); memory cells are image pixels (bin = 1 px) in 2D.
+Deviations from the thesis, on purpose: in 2D quarter-turn rotations only (exact on the grid; the
+thesis' +-45 deg agent needs resampling); the hallucination AE has one self-attention layer instead of
+two (CPU budget); memory cells are image pixels (bin = 1 px) in 2D.
+
+3D (``input = "image"``, thesis 4.4.3): the encoder runs on the RGB-D image (4 x 30 x 40) and its
+per-pixel features are ground-projected (max-pool per cell, :func:`slam.neural.geometry3d.project_max`)
+into the egocentric grid (15 cm cells, 33 x 33, the camera at the centre looking up the grid). The
+rotation bank of r = 12 headings (30 deg, the thesis' Doom turn) is made by projecting the pixels into
+each turned grid (points turned, then binned): exact, unlike resampling a grid - a deviation that also
+keeps the bank cheap. Recall culls the memory window (turned by ``kornia.geometry.transform.rotate``
+for headings that are not quarter turns) and an :class:`ImageDecoder` learns the back-projection to a
+4 x 30 x 40 image. Poses are estimated on the 15 cm / 30 deg grid; the ``neural`` registration
+backend refines the field's maximum to sub-cell precision.
 """
 from __future__ import annotations
 

@@ -104,7 +104,7 @@ TRAIN_PRESETS = {
 
 
 TRAIN_PRESETS_3D = {
-    "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1400, pretrain_steps=150, teacher_steps=450,
+    "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1800, pretrain_steps=150, teacher_steps=450,
                              hallucination_from=1000, features=16, width=16),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
                              hallucination_from=10000, features=32, width=64, device="cuda",
