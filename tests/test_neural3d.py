@@ -223,3 +223,11 @@ def test_neural_backend_bad_input(planar_seq, tmp_path):
     cfg = make_config("neural", overrides={"backend_config.model": str(two_d)})
     with pytest.raises(RealgapError):
         run_slam(root / "seq", tmp_path / "r2", cfg, progress=False)
+
+
+def test_eval_mode_mismatch_is_one_line(tmp_path):
+    from data_tools.errors import ConfigError
+    from slam.neural.run import evaluate_folder
+    shipped = __import__("pathlib").Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    with pytest.raises(ConfigError, match="is a 2d model"):
+        evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
