@@ -134,7 +134,7 @@ def test_orbit_kind_stays_inside_the_room():
     tr = traj_mod.make_trajectory("orbit", scene, 20, seed=0)
     p = tr.positions
     assert np.all((np.abs(p[:, 0]) < 2.5) & (np.abs(p[:, 1]) < 2.0) & (p[:, 2] < 2.6))
-    with pytest.raises(ConfigError, match="known: orbit, walkthrough"):
+    with pytest.raises(ConfigError, match="known: orbit, planar, walkthrough"):
         traj_mod.make_trajectory("spiral", scene, 5)
 
 
