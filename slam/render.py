@@ -125,11 +125,13 @@ def parse_pose(text: str) -> np.ndarray:
 
 
 def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 1.0,
-               source: str = "auto") -> RenderedView:
+               source: str = "auto", hallucinate: bool = False) -> RenderedView:
     """Render a RUN folder from ``pose_c2w`` with the run's camera (``scale`` resizes it).
 
-    ``source``: ``mesh`` (RUN/mesh.ply), ``volume`` (RUN/volume.npz) or ``auto`` (the volume
-    when saved, else the mesh).
+    ``source``: ``mesh`` (RUN/mesh.ply), ``volume`` (RUN/volume.npz), ``neural`` (the view the run's
+    neural memory recalls, :func:`slam.neural.run.recall_view`, resized from the decoder's small image;
+    ``hallucinate``: after its hallucination module filled the unobserved cells) or ``auto`` (neural for
+    a run of the neural backend, else the volume when saved, else the mesh).
     """
     from data_tools.camera import read_camera_json
     from data_tools.mesh import load_mesh
@@ -141,8 +143,15 @@ def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 
         if not (0 < scale <= 8):
             raise RealgapError(f"scale must be in (0, 8], got {scale}")
         intr = intr.scaled(scale)
-    if source not in ("auto", "mesh", "volume"):
-        raise RealgapError(f"unknown render source {source!r}; choose auto, mesh or volume")
+    if source not in ("auto", "mesh", "volume", "neural"):
+        raise RealgapError(f"unknown render source {source!r}; choose auto, mesh, volume or neural")
+    neural = source == "neural" or (source == "auto" and (run / "memory" / "memory.json").is_file())
+    if hallucinate and not neural:
+        raise RealgapError(f"{run_dir}: --hallucinate needs a run of the neural backend (it has no memory/)")
+    if neural:
+        from slam.neural.run import recall_view
+        rgb, depth = recall_view(run, pose_c2w, hallucinate, size=(intr.width, intr.height))
+        return RenderedView(rgb, depth, np.asarray(pose_c2w, float), intr)
     use_volume = source == "volume" or (source == "auto" and (run / "volume.npz").is_file())
     if use_volume:
         from slam.tsdf import TSDFVolume
@@ -169,26 +178,9 @@ def render_run_to_png(run_dir: str | os.PathLike, png: str | os.PathLike, pose: 
                       hallucinate: bool = False) -> tuple[RenderedView, dict[str, str], float]:
     """``slam render``: render RUN from ``pose`` or trajectory pose ``frame`` (:func:`run_pose`)
     and save it (:func:`save_view`, depth in the run camera's depth scale). Returns (view,
-    written paths, depth scale).
-
-    ``source`` ``neural`` (``auto`` for a run of the neural backend): the view the run's neural memory
-    recalls (:func:`slam.neural.run.recall_view`; ``hallucinate``: after its hallucination module
-    filled the unobserved cells); the decoder's small image is resized to the camera x ``scale``."""
+    written paths, depth scale). ``source`` and ``hallucinate``: see :func:`render_run`."""
     from data_tools.camera import read_camera_json
-    T = run_pose(run_dir, pose, frame)
-    neural = source == "neural" or (source == "auto" and (Path(run_dir) / "memory" / "memory.json").is_file())
-    if hallucinate and not neural:
-        raise RealgapError(f"{run_dir}: --hallucinate needs a run of the neural backend (it has no memory/)")
-    if neural:
-        from slam.neural.run import recall_view
-        cam = read_camera_json(Path(run_dir) / "camera.json")
-        if not (0 < scale <= 8):
-            raise RealgapError(f"scale must be in (0, 8], got {scale}")
-        intr = cam.intrinsics.scaled(scale) if scale != 1.0 else cam.intrinsics
-        rgb, depth = recall_view(run_dir, T, hallucinate, size=(intr.width, intr.height))
-        view = RenderedView(rgb, depth, T, intr)
-        return view, save_view(view, png, cam.depth_scale), cam.depth_scale
-    view = render_run(run_dir, T, scale=scale, source=source)
+    view = render_run(run_dir, run_pose(run_dir, pose, frame), scale=scale, source=source, hallucinate=hallucinate)
     depth_scale = read_camera_json(Path(run_dir) / "camera.json").depth_scale
     return view, save_view(view, png, depth_scale), depth_scale
 

@@ -66,16 +66,13 @@ def _train(args) -> int:
 def _eval(args) -> int:
     from slam.neural.run import evaluate_folder
     from app.pipelines import simulate_planar_room
-    from slam.neural.train import load_model
-    mode = args.mode or load_model(args.model)[1].mode
-    n = args.sequences if args.sequences is not None else (24 if mode == "3d" else 64)
-    r = evaluate_folder(args.model, args.out, n, overwrite=args.overwrite, progress=not args.no_progress,
+    r = evaluate_folder(args.model, args.out, args.sequences, overwrite=args.overwrite, progress=not args.no_progress,
                         mode=args.mode, extra_sequences=args.planar,
                         log=lambda m: print(f"realgap: {m}", file=sys.stderr), simulate=simulate_planar_room)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
-    if mode == "3d":
+    if r["mode"] == "3d":
         loc, h, b = r["localisation"], r["hallucination"], r["baseline_tsdf_inpainting"]
         print(f"ATE RMSE neural {loc['neural']['ate_rmse_m_mean']:.3f} m vs icp {loc['icp']['ate_rmse_m_mean']:.3f} m "
               f"(cell {r['cell_m']:g} m; within 2 cells: {loc['within_2_cells_of_icp']}); anamnesis L1 "

@@ -98,18 +98,16 @@ class NeuralBackend(RegistrationBackend):
         return model, tcfg, folder
 
     def run_offline(self, reader, indices, progress=True):
-        from slam.neural.data3d import frame_arrays, sequence_geometry
+        from slam.neural.data3d import frame_arrays, view_geometry
         from slam.neural.geometry3d import allocentric_to_world
         self.config.validate()
         model, tcfg, folder = self._load()
         w = tcfg.world
-        R_c_L, wedge, T0 = sequence_geometry(reader, w)
-        if T0 is None or not np.all(np.isfinite(reader.poses[indices[0]])):
+        T0 = reader.poses[indices[0]]
+        if not np.all(np.isfinite(T0)):
             raise FormatError(reader.path, "the neural backend needs the first frame's pose (groundtruth.txt): it "
                                            "fixes the world frame, the camera height, pitch and roll")
-        T0 = reader.poses[indices[0]]
-        from slam.neural.geometry3d import level_rotation
-        R_c_L = level_rotation(T0)
+        R_c_L, wedge = view_geometry(reader.intrinsics, T0, w)
         steps = list(range(0, len(indices), int(self.config.stride)))
         if steps[-1] != len(indices) - 1:
             steps.append(len(indices) - 1)

@@ -20,7 +20,6 @@ frame's egocentric grid, rounded to the grid (the memory's resolution, as MapNet
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -29,7 +28,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 
-__all__ = ["World3DConfig", "default_worlds_dir", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
+__all__ = ["World3DConfig", "default_worlds_dir", "view_geometry", "cache_name", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
            "sequence_geometry"]
 
 TEST_SEED0 = 100_000
@@ -106,16 +105,27 @@ def frame_arrays(rgb: np.ndarray | None, depth_m: np.ndarray, intr, R_c_L: np.nd
     return img, cells
 
 
-def sequence_geometry(reader, cfg: World3DConfig):
-    """(R_c_L, view wedge (q, q) bool, first pose or None) of a sequence: the level frame of its first
-    ground-truth pose (or of an upright camera when it has none)."""
+def view_geometry(intr, T0: np.ndarray | None, cfg: World3DConfig):
+    """(R_c_L, view wedge (q, q) bool) of a camera with full-size intrinsics ``intr`` whose first pose is
+    ``T0``: the level frame of T0 (an upright camera when None) and the view field of the network's image."""
     from slam.neural.geometry3d import downsample_intrinsics, level_rotation, view_wedge
+    R_c_L = level_rotation(T0) if T0 is not None else np.eye(3)
+    small = downsample_intrinsics(intr, cfg.image_w, cfg.image_h)
+    return R_c_L, view_wedge(small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m)
+
+
+def sequence_geometry(reader, cfg: World3DConfig):
+    """(R_c_L, view wedge (q, q) bool, first pose or None) of a sequence: :func:`view_geometry` of its first
+    ground-truth pose."""
     poses = reader.poses
     ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
     T0 = poses[int(np.argmax(ok))] if ok.any() else None
-    R_c_L = level_rotation(T0) if T0 is not None else np.eye(3)
-    small = downsample_intrinsics(reader.intrinsics, cfg.image_w, cfg.image_h)
-    return R_c_L, view_wedge(small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m), T0
+    return (*view_geometry(reader.intrinsics, T0, cfg), T0)
+
+
+def cache_name(cfg: World3DConfig) -> str:
+    """File name of a sequence's prepared arrays (:func:`load_sequence_arrays`) for this configuration."""
+    return f"neural_{cfg.image_w}x{cfg.image_h}_q{cfg.view}_c{cfg.cell_m:g}_m{cfg.max_range_m:g}_r{cfg.rotations}.npz"
 
 
 def load_sequence_arrays(seq_dir: str | Path, cfg: World3DConfig, cache: str | Path | None = None,
@@ -197,13 +207,8 @@ class WorldBank:
 
     def allocentric(self, poses: np.ndarray) -> np.ndarray:
         """(T, 3) int64 allocentric (row, col, heading index) of (T, 4, 4) poses, rounded to the grid."""
-        from slam.neural.geometry3d import planar_relative
-        r = self.cfg.rotations
-        out = np.zeros((len(poses), 3), np.int64)
-        for t, P in enumerate(poses):
-            row, col, yaw = planar_relative(poses[0], P, self.cfg.cell_m)
-            out[t] = (int(round(row)), int(round(col)), int(round(yaw / (2 * math.pi / r))) % r)
-        return out
+        from slam.neural.geometry3d import grid_pose
+        return np.array([grid_pose(poses[0], P, self.cfg.cell_m, self.cfg.rotations) for P in poses], np.int64)
 
     def sample(self, rng: np.random.Generator, batch: int, steps: int):
         """(images (B, T, 4, H, W) float32, cells (B, T, r, H*W) int64, allocentric (B, T, 3) int64,

@@ -22,12 +22,6 @@ import time
 
 import numpy as np
 
-def _rep(psi, n: int):
-    """Memory index of each of n consecutive poses per memory: 0 x n, 1 x n, ..."""
-    import torch
-    return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
-
-
 __all__ = ["ssim_thesis", "evaluate_2d", "rigid_ate"]
 
 
@@ -103,6 +97,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     import torch
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
+    from slam.neural.model import memory_index
     agent = AGENTS[cfg.agent]
     mask = view_mask(agent)
     vm = torch.from_numpy(mask.astype(np.float32))
@@ -129,11 +124,11 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
             part = model(o[:, :k], vm, a[:, :k])
             filled = model.hallucinate(part["psi"], part["occ"])
             T = cfg.steps
-            rec = model.recall(out["psi"], a.flatten(0, 1), vm, _rep(out["psi"], T)).view(b, T, *obs.shape[2:])
-            rec_t = model.recall(tru["psi"], a.flatten(0, 1), vm, _rep(tru["psi"], T)).view(b, T, *obs.shape[2:])
+            rec = model.recall(out["psi"], a.flatten(0, 1), vm, memory_index(out["psi"], T)).view(b, T, *obs.shape[2:])
+            rec_t = model.recall(tru["psi"], a.flatten(0, 1), vm, memory_index(tru["psi"], T)).view(b, T, *obs.shape[2:])
             later = a[:, k:].flatten(0, 1)
-            hal = model.recall(filled, later, vm, _rep(filled, T - k)).view(b, T - k, *obs.shape[2:])
-            hal0 = model.recall(part["psi"], later, vm, _rep(part["psi"], T - k)).view(b, T - k, *obs.shape[2:])
+            hal = model.recall(filled, later, vm, memory_index(filled, T - k)).view(b, T - k, *obs.shape[2:])
+            hal0 = model.recall(part["psi"], later, vm, memory_index(part["psi"], T - k)).view(b, T - k, *obs.shape[2:])
             for i in range(b):
                 d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
                 ape += d.tolist()

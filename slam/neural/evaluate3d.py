@@ -20,7 +20,6 @@
 """
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
@@ -43,7 +42,7 @@ def _metrics(pred: np.ndarray, true: np.ndarray, max_range_m: float) -> tuple[fl
     return l1, ssim_thesis(pg, tg), float(structural_similarity(pg, tg, data_range=1.0, win_size=5)), dl1
 
 
-def _tsdf_baseline(reader, idx_seen, idx_later, w, R_c_L) -> list[np.ndarray]:
+def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
     """The later views of a TSDF of the seen frames (true poses), 40 x 30, holes inpainted; as (4, H, W)."""
     import cv2
 
@@ -76,11 +75,10 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
 
     from data_tools.sequence import SequenceReader
     from slam.metrics import ape, ate
-    from slam.neural.data3d import WorldBank, build_worlds, load_sequence_arrays, sequence_geometry
+    from slam.neural.data3d import WorldBank, build_worlds, cache_name, default_worlds_dir, load_sequence_arrays
     from slam.pipeline import make_config, run_slam
     out_dir = Path(out_dir)
     w = tcfg.world
-    from slam.neural.data3d import default_worlds_dir
     root = Path(tcfg.worlds_dir) if tcfg.worlds_dir and Path(tcfg.worlds_dir).is_dir() else default_worlds_dir(w)
     tests = build_worlds(root, w, "test", simulate=simulate, log=log)
     res: dict = {"cell_m": w.cell_m, "sequences": {}}
@@ -107,8 +105,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             "ate_rmse_m_mean": float(np.mean([s[b]["ate_m"]["rmse"] for s in seqs]))} for b in ("neural", "icp")}
     res["localisation"]["within_2_cells_of_icp"] = bool(all(s["neural_minus_icp_ate_cells"] <= 2 for s in seqs))
     # ---------------------------------------------------------------- images on short samples
-    tag = f"{w.image_w}x{w.image_h}_q{w.view}_c{w.cell_m:g}_m{w.max_range_m:g}_r{w.rotations}"
-    arrays = [load_sequence_arrays(s, w, s / f"neural_{tag}.npz", progress=progress) for s in tests]
+    arrays = [load_sequence_arrays(s, w, s / cache_name(w), progress=progress) for s in tests]
     bank = WorldBank(arrays, w)
     readers = [SequenceReader(s) for s in tests]
     rng = np.random.default_rng(seed)
@@ -136,8 +133,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
         true = s["images"][idx].astype(np.float32)
-        R_c_L, _, _ = sequence_geometry(readers[si], w)
-        base = _tsdf_baseline(readers[si], idx[:k], idx[k:], w, R_c_L)
+        base = _tsdf_baseline(readers[si], idx[:k], idx[k:], w)
         for t in range(T):
             rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
@@ -158,7 +154,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
                                                 > res["baseline_tsdf_inpainting"]["ssim_thesis"])
     # ---------------------------------------------------------------- speed
     s = arrays[0]
-    idx = np.arange(0, 10 * 10, 10)[:10] % len(s["images"])
+    idx = np.arange(0, 100, 10) % len(s["images"])
     obs = torch.from_numpy(s["images"][idx[:5]].astype(np.float32))[None]
     cells = torch.from_numpy(s["cells"][idx[:5]].astype(np.int64))[None]
     req = torch.from_numpy(bank.allocentric(s["poses"][idx]))

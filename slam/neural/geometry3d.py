@@ -28,7 +28,7 @@ from data_tools.camera import Intrinsics
 from data_tools.errors import RealgapError
 
 __all__ = ["level_rotation", "camera_height_m", "egocentric_cells", "view_wedge", "planar_state",
-           "planar_relative", "allocentric_to_world", "project_max", "downsample_intrinsics"]
+           "planar_relative", "grid_pose", "allocentric_to_world", "project_max", "downsample_intrinsics"]
 
 
 def level_rotation(T_w_c: np.ndarray) -> np.ndarray:
@@ -68,6 +68,13 @@ def planar_relative(T_w_a: np.ndarray, T_w_b: np.ndarray, cell_m: float) -> tupl
     left = -dx * math.sin(ta) + dy * math.cos(ta)
     dyaw = (tb - ta + math.pi) % (2 * math.pi) - math.pi
     return -fwd / cell_m, -left / cell_m, dyaw
+
+
+def grid_pose(T_w_a: np.ndarray, T_w_b: np.ndarray, cell_m: float, rotations: int) -> tuple[int, int, int]:
+    """:func:`planar_relative` rounded to the memory's grid: (row, col) cells and the heading index
+    (0 .. rotations - 1, counter-clockwise)."""
+    row, col, yaw = planar_relative(T_w_a, T_w_b, cell_m)
+    return int(round(row)), int(round(col)), int(round(yaw / (2 * math.pi / rotations))) % rotations
 
 
 def allocentric_to_world(T_w_c0: np.ndarray, row: float, col: float, yaw: float, cell_m: float) -> np.ndarray:

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "Hallucinator",
-           "PatchDiscriminator", "rotation_bank", "rotate_grid", "init_weights", "correlate", "register"]
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
 
@@ -216,6 +216,12 @@ def rotate_grid(x: torch.Tensor, k: int, r: int) -> torch.Tensor:
     from kornia.geometry.transform import rotate
     ang = torch.full((x.shape[0],), 360.0 * k / r, dtype=x.dtype, device=x.device)
     return rotate(x, ang, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+def memory_index(psi: torch.Tensor, n: int) -> torch.Tensor:
+    """(B * n,) memory index of n consecutive poses per memory (0 x n, 1 x n, ...): the ``index`` of
+    :meth:`NeuralMemory.cull` / :meth:`NeuralMemory.recall` when every memory is read at n poses."""
+    return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
 
 
 def rotation_bank(o: torch.Tensor, r: int = 4) -> torch.Tensor:

@@ -29,18 +29,22 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
     return model, tlog, folder
 
 
-def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 64, overwrite: bool = False,
+def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | None = None, overwrite: bool = False,
                     progress: bool = True, mode: str | None = None, extra_sequences=(), log=None,
                     simulate=None) -> dict:
+    """``neural eval``: the model's 2d or 3d evaluation (``sequences``: 2d test walks, default 64; 3d image
+    samples, default 24), with ``mode`` (the model's) in the result; written to ``out``/neural_eval.json."""
     from data_tools.outputs import check_output_dir
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
-    if sequences < 1:
+    if sequences is not None and sequences < 1:
         raise ConfigError(f"--sequences must be >= 1, got {sequences}")
     folder = check_output_dir(out, finished="neural_eval.json", overwrite=overwrite) if out else None
     model, cfg, _info = load_model(model_dir)
     if mode is not None and mode != cfg.mode:
         raise ConfigError(f"--mode {mode}: {model_dir} is a {cfg.mode} model")
+    if sequences is None:
+        sequences = 24 if cfg.mode == "3d" else 64
     if cfg.mode == "3d":
         if folder is None:
             raise ConfigError("--mode 3d evaluation runs SLAM on the test rooms: give --out DIR for its runs")
@@ -51,6 +55,7 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int = 6
         if extra_sequences:
             raise ConfigError("--planar sequences are for 3d models")
         res = evaluate_2d(model, cfg, sequences, progress=progress)
+    res = {"mode": cfg.mode, **res}
     if folder is not None:
         from data_tools.results import atomic_write_json
         atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})
@@ -78,14 +83,13 @@ def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False,
     first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
     image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""
     import json
-    import math
 
     import cv2
     import numpy as np
     import torch
 
     from data_tools.errors import FormatError
-    from slam.neural.geometry3d import planar_relative
+    from slam.neural.geometry3d import grid_pose
     from slam.neural.train import load_model
     d = Path(run_dir) / "memory"
     meta_p = d / "memory.json"
@@ -101,24 +105,20 @@ def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False,
     if psi.shape[1] != model.cfg.features:
         raise FormatError(d / "memory.npy", f"{psi.shape[1]} features per cell, the model {meta['model']} has "
                                             f"{model.cfg.features}")
-    cell, r = float(meta["cell_m"]), model.cfg.rotations
-    row, col, yaw = planar_relative(np.asarray(meta["T0"]), np.asarray(pose_c2w, float), cell)
-    k = int(round(yaw / (2 * math.pi / r))) % r
+    cell, T0 = float(meta["cell_m"]), np.asarray(meta["T0"])
+    row, col, k = grid_pose(T0, np.asarray(pose_c2w, float), cell, model.cfg.rotations)
     U = psi.shape[-1]
     if max(abs(row), abs(col)) > U // 2:
         raise FormatError(meta_p, f"the pose is {max(abs(row), abs(col)) * cell:.1f} m from the first frame, "
                                   f"outside the memory ({U // 2 * cell:.1f} m)")
     w = tcfg.world
-    from slam.neural.data3d import World3DConfig  # noqa: F401  (the config type of tcfg.world)
-    from slam.neural.geometry3d import downsample_intrinsics, level_rotation, view_wedge
     from data_tools.camera import read_camera_json
-    cam = read_camera_json(Path(run_dir) / "camera.json")
-    small = downsample_intrinsics(cam.intrinsics, w.image_w, w.image_h)
-    wedge = view_wedge(small, level_rotation(np.asarray(meta["T0"])), w.cell_m, w.view, w.max_range_m)
+    from slam.neural.data3d import view_geometry
+    _, wedge = view_geometry(read_camera_json(Path(run_dir) / "camera.json").intrinsics, T0, w)
     vm = torch.from_numpy(wedge.astype(np.float32))
     with torch.no_grad():
         mem = model.hallucinate(psi, occ) if hallucinate else psi
-        img = model.recall(mem, torch.tensor([[int(round(row)), int(round(col)), k]]), vm)[0].numpy()
+        img = model.recall(mem, torch.tensor([[row, col, k]]), vm)[0].numpy()
     rgb = np.clip((np.transpose(img[:3], (1, 2, 0)) + 1) / 2, 0, 1)
     depth = (img[3] + 1) / 2 * w.max_range_m
     depth = np.where(img[3] > -0.95, depth, 0.0).astype(np.float32)

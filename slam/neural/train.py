@@ -29,12 +29,6 @@ import numpy as np
 from data_tools.errors import ConfigError, FormatError
 from slam.neural.data3d import World3DConfig
 
-def _rep(psi, n: int):
-    """Memory index of each of n consecutive poses per memory: 0 x n, 1 x n, ..."""
-    import torch
-    return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
-
-
 __all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
            "load_model"]
 
@@ -159,7 +153,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     import torch
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights
+    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
     cfg.validate()
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
@@ -250,7 +244,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
                                  for t in range(cfg.steps)], 1)
             l_loc = _loc_loss(out["logits"], truth)
-            rec = model.recall(out["psi"], allo_t.flatten(0, 1), vm, _rep(out["psi"], T))
+            rec = model.recall(out["psi"], allo_t.flatten(0, 1), vm, memory_index(out["psi"], T))
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
             loss = cfg.loc_weight * l_loc + l_anam
             losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
@@ -285,6 +279,8 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
     path), fill the holes, predict the later views; discriminator on culled windows."""
     import torch
     import torch.nn.functional as F
+
+    from slam.neural.model import memory_index
     B, T = obs_t.shape[:2]
     k = cfg.observe
     img_mask = vm if img_mask is None else img_mask
@@ -293,11 +289,11 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
         full = model(obs_t, vm, allo_t, cells=cells_t)
     filled = model.hallucinate(part["psi"], part["occ"])
     later = allo_t[:, k:].flatten(0, 1)
-    rec = model.recall(filled, later, vm, _rep(filled, T - k))
+    rec = model.recall(filled, later, vm, memory_index(filled, T - k))
     l_hallu = (torch.abs(rec - obs_t[:, k:].flatten(0, 1)) * img_mask).mean()
     l_corrupt = (torch.abs(filled - part["psi"]) * part["occ"]).mean()
-    fake = model.cull(filled, later, vm, _rep(filled, T - k))[:, :-1]
-    real = model.cull(full["psi"], later, vm, _rep(full["psi"], T - k))[:, :-1]
+    fake = model.cull(filled, later, vm, memory_index(filled, T - k))[:, :-1]
+    real = model.cull(full["psi"], later, vm, memory_index(full["psi"], T - k))[:, :-1]
     l_gan = F.softplus(-disc(fake)).mean()
     loss = l_hallu + l_corrupt + 0.05 * l_gan
     opt_h.zero_grad(set_to_none=True)
@@ -313,13 +309,10 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
 def worlds_3d(cfg: NeuralTrainConfig, simulate, progress: bool, log, split: str = "train"):
     """The prepared 3D worlds of ``split`` (:class:`slam.neural.data3d.WorldBank`): simulated on first use
     into ``cfg.worlds_dir`` (default :func:`slam.neural.data3d.default_worlds_dir`), cached as .npz."""
-    from slam.neural.data3d import WorldBank, build_worlds, load_sequence_arrays
-    from slam.neural.data3d import default_worlds_dir
+    from slam.neural.data3d import WorldBank, build_worlds, cache_name, default_worlds_dir, load_sequence_arrays
     root = Path(cfg.worlds_dir) if cfg.worlds_dir else default_worlds_dir(cfg.world)
     seqs = build_worlds(root, cfg.world, split, simulate=simulate, log=log)
-    w = cfg.world
-    tag = f"{w.image_w}x{w.image_h}_q{w.view}_c{w.cell_m:g}_m{w.max_range_m:g}_r{w.rotations}"
-    arrays = [load_sequence_arrays(s, cfg.world, s / f"neural_{tag}.npz", progress=progress) for s in seqs]
+    arrays = [load_sequence_arrays(s, cfg.world, s / cache_name(cfg.world), progress=progress) for s in seqs]
     return WorldBank(arrays, cfg.world)
 
 
