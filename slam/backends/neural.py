@@ -17,8 +17,9 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
    say so in their ``reason`` (the last processed frame is always a memory step).
 
 ``fitness`` of a step is the pose field's maximum probability (1 = certain). The memory (features
-and occupancy, ``.npy``) and PNG pictures of the occupancy and of the memory's three principal
-feature components are written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`).
+and occupancy, ``.npy``) and PNG pictures of the occupancy (stretched to its own range) and of the
+memory's three principal feature components on the observed cells (:func:`observed_cells`) are
+written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`).
 """
 from __future__ import annotations
 
@@ -181,17 +182,28 @@ class NeuralBackend(RegistrationBackend):
             atomic_write_bytes(d / ("memory.npy" if name == "psi" else "occupancy.npy"), buf.getvalue())
         atomic_write_json(d / "memory.json", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                                               for k, v in self._snap.items() if k not in ("psi", "occ")})
-        occ = np.clip(self._snap["occ"], 0, 1)
-        atomic_write_bytes(d / "occupancy.png", cv2.imencode(".png", (occ * 255).astype(np.uint8))[1].tobytes())
-        atomic_write_bytes(d / "features.png", cv2.imencode(".png", memory_picture(self._snap["psi"], occ))[1].tobytes())
+        occ, seen = self._snap["occ"], observed_cells(self._snap["occ"])
+        span = max(float(occ.max() - occ.min()), 1e-9)
+        atomic_write_bytes(d / "occupancy.png",
+                           cv2.imencode(".png", ((occ - occ.min()) / span * 255).astype(np.uint8))[1].tobytes())
+        atomic_write_bytes(d / "features.png", cv2.imencode(".png", memory_picture(self._snap["psi"], seen))[1].tobytes())
 
 
-def memory_picture(psi: np.ndarray, occ: np.ndarray) -> np.ndarray:
+def observed_cells(occ: np.ndarray) -> np.ndarray:
+    """(U, U) bool: cells whose occupancy moved away from that of a cell no view reached (the memory's
+    corner) by more than a tenth of the occupancy's range. The occupancy LSTM's output is not a
+    calibrated probability (untouched cells sit near 0.6 for the shipped weights), so a fixed 0.5
+    threshold would call every cell observed."""
+    span = float(occ.max() - occ.min())
+    return np.abs(occ - occ[0, 0]) > 0.1 * span if span > 0 else np.zeros(occ.shape, bool)
+
+
+def memory_picture(psi: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """(U, U, 3) uint8 BGR top view of a memory (n, U, U): its three principal feature components as
-    colours where the occupancy exceeds 0.5, black elsewhere (row 0 = ahead of the first frame)."""
+    colours on the ``seen`` (U, U) cells, black elsewhere (row 0 = ahead of the first frame)."""
     n, U, _ = psi.shape
     X = psi.reshape(n, -1).T
-    seen = occ.reshape(-1) > 0.5
+    seen = seen.reshape(-1)
     out = np.zeros((U * U, 3))
     if seen.sum() >= 3:
         Y = X[seen] - X[seen].mean(0)
