@@ -99,6 +99,13 @@ def atomic_write_image(path: str | os.PathLike, image) -> Path:
     import numpy as np
     from data_tools.errors import RealgapError
     path = Path(path)
+    image = np.asarray(image)
+    if (path.suffix or ".png").lower() == ".png" and image.dtype in (np.uint8, np.uint16) \
+            and image.size and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (1, 3, 4))):
+        from data_tools.png import encode_png  # several times faster than OpenCV's PNG encoder
+        if image.ndim == 3 and image.shape[2] in (3, 4):
+            image = image[:, :, [2, 1, 0, 3][:image.shape[2]]]  # BGR(A) -> the file's RGB(A)
+        return atomic_write_bytes(path, encode_png(image))
     ok, buf = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(image))
     if not ok:
         raise RealgapError(f"{path}: cannot encode the image as {path.suffix or '.png'}")

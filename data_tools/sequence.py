@@ -321,23 +321,15 @@ def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
 
 def encode_depth_png(depth_m: np.ndarray, depth_scale: float) -> bytes:
     """The bytes of the 16-bit PNG file :class:`SequenceWriter` writes for ``depth_m``."""
-    import cv2
-    ok, buf = cv2.imencode(".png", encode_depth(depth_m, depth_scale))
-    if not ok:
-        raise RealgapError("cannot encode a depth image as PNG")
-    return buf.tobytes()
+    from data_tools.png import encode_png
+    return encode_png(encode_depth(depth_m, depth_scale))
 
 
 def encode_rgb_png(rgb: np.ndarray) -> bytes:
-    """The bytes of the PNG file :class:`SequenceWriter` writes for an (H, W, 3) RGB image
-    (zlib's run-length strategy: the same size as OpenCV's default for rendered images, at half
-    the encoding time)."""
-    import cv2
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(rgb[:, :, ::-1]),
-                           [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE])
-    if not ok:
-        raise RealgapError("cannot encode a colour image as PNG")
-    return buf.tobytes()
+    """The bytes of the PNG file :class:`SequenceWriter` writes for an (H, W, 3) uint8 RGB image
+    (:func:`data_tools.png.encode_png`)."""
+    from data_tools.png import encode_png
+    return encode_png(rgb)
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
