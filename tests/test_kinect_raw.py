@@ -140,3 +140,22 @@ def test_partial_colour_is_left_out_with_a_warning(capture, tmp_path, capsys):
     assert "1 of 3 frames have no colour" in capsys.readouterr().err
     seq = SequenceReader(tmp_path / "s")
     assert len(seq) == 3 and seq[0].rgb is None
+
+
+def test_destination_positional_or_out(capture, tmp_path, capsys):
+    # the form `convert-kinect-raw SRC DST --calib C` and the --out form write the same
+    src, calib, _ = capture
+    assert main(["data", "convert-kinect-raw", str(src), str(tmp_path / "a"), "--calib", str(calib),
+                 "--no-progress"]) == 0
+    assert main(["data", "convert-kinect-raw", str(src), "--out", str(tmp_path / "b"), "--calib", str(calib),
+                 "--no-progress"]) == 0
+    for name in ("depth.txt", "camera.json"):
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes()
+    capsys.readouterr()
+    assert main(["data", "convert-kinect-raw", str(src), str(tmp_path / "c"), "--out", str(tmp_path / "d"),
+                 "--calib", str(calib)]) == 1
+    err = capsys.readouterr().err
+    assert "two destinations" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "c").exists() and not (tmp_path / "d").exists()
+    assert main(["data", "convert-kinect-raw", str(src), "--calib", str(calib)]) == 1
+    assert "no destination" in capsys.readouterr().err

@@ -17,7 +17,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "into a TUM-layout sequence with camera.json (depth_scale 1000). Re-running "
                                    "continues an interrupted conversion.")
     p.add_argument("src", help="7-Scenes sequence folder")
-    add_shared(p, "--out", "the converted sequence folder (TUM layout)", required=True, metavar="DST")
+    p.add_argument("dst", nargs="?", help="the converted sequence folder (TUM layout); or give it as --out")
+    add_shared(p, "--out", "the converted sequence folder (same as DST)", metavar="DST")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate used to make timestamps (default 30)")
     add_shared(p, "--overwrite", "delete DST first instead of continuing the conversion in it")
     add_shared(p, "--no-progress")
@@ -29,7 +30,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "Herrera et al. 2012 calibration (OpenCV YAML: dK, dkc, dc, dc_alpha, dc_beta). "
                                    "Frame N gets the timestamp N / fps. Re-running continues an interrupted run.")
     p.add_argument("src", help="folder of raw captures")
-    add_shared(p, "--out", "the converted sequence folder (TUM layout)", required=True, metavar="DST")
+    p.add_argument("dst", nargs="?", help="the converted sequence folder (TUM layout); or give it as --out")
+    add_shared(p, "--out", "the converted sequence folder (same as DST)", metavar="DST")
     p.add_argument("--calib", required=True, metavar="CALIB.yml", help="the depth calibration (OpenCV YAML)")
     p.add_argument("--undistort-disparity", action="store_true",
                    help="correct the disparity with dc_beta/dc_alpha (default: keep the raw sensor behaviour, "
@@ -80,9 +82,18 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.set_defaults(func=_make_reference)
 
 
+def _destination(args) -> str:
+    """DST given as the second positional argument or as --out (one of them, not two different)."""
+    if args.dst and args.out and args.dst != args.out:
+        raise ConfigError(f"two destinations: DST {args.dst!r} and --out {args.out!r}; give one")
+    if not (args.dst or args.out):
+        raise ConfigError("no destination: give the converted sequence folder as DST (after SRC) or --out")
+    return args.dst or args.out
+
+
 def _convert_7scenes(args) -> int:
     from data_tools.sevenscenes import convert_7scenes
-    r = convert_7scenes(args.src, args.out, fps=args.fps, overwrite=args.overwrite)
+    r = convert_7scenes(args.src, _destination(args), fps=args.fps, overwrite=args.overwrite)
     print(f"wrote {r.frames} frames to {r.dst} (resumed after {r.skipped_existing}; "
           f"{r.invalid_65535_frames} depth images had 65535 invalid markers)")
     return 0
@@ -90,7 +101,7 @@ def _convert_7scenes(args) -> int:
 
 def _convert_kinect_raw(args) -> int:
     from data_tools.kinect_raw import convert_kinect_raw
-    r = convert_kinect_raw(args.src, args.out, args.calib, undistort_disparity=args.undistort_disparity,
+    r = convert_kinect_raw(args.src, _destination(args), args.calib, undistort_disparity=args.undistort_disparity,
                            fps=args.fps, overwrite=args.overwrite, progress=not args.no_progress)
     print(f"wrote {r.frames} frames to {r.dst} ({r.colour_frames} with colour; resumed after {r.skipped_existing}; "
           f"disparity {'undistorted' if r.undistorted else 'raw'})")
