@@ -217,7 +217,8 @@ def simulator_case(name: str, truth: dict, path: Path, frames: int, w: int, h: i
             rows.append({"effect": name, "quantity": key, "true": float(t), "fitted": fv, "error": err,
                          "tolerance": tol, "relative": rel, "within": abs(err) <= tol + 1e-12,
                          "at_bound": key in res.at_bound, "method": "simulator",
-                         "interval": list(res.intervals.get(key, ()))})
+                         "interval": list(res.intervals.get(key, ())),
+                         "interval_one_at_a_time": list(res.intervals_one_at_a_time.get(key, ()))})
     return rows
 
 
@@ -259,6 +260,9 @@ def main(argv=None) -> int:
             print(f"{r['effect'][:42]:42s} {r['quantity']:32s} {r['true']:9.4f} {r['fitted']:9.4f} {err:>9s} "
                   f"{tol:>7s}  {'yes' if r['within'] else 'NO':6s}  {iv}{' AT BOUND' if r['at_bound'] else ''}")
         print(f"\n{sum(r['within'] for r in rows)} of {len(rows)} parameters recovered within tolerance")
+        for label, key in (("joint", "interval"), ("one-at-a-time", "interval_one_at_a_time")):
+            hold = [r[key][0] <= r["true"] <= r[key][1] for r in rows if r.get(key)]
+            print(f"{label} intervals hold the true value in {sum(hold)} of {len(hold)} rows")
         if args.json:
             Path(args.json).write_text(json.dumps({"rows": rows}, indent=1, default=float))
         return 0

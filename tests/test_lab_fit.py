@@ -114,7 +114,7 @@ class _Quadratic:
     def __call__(self, cfg):
         self.calls += 1
         p = cfg.effect("axial_noise").params
-        return (math.asinh(p.sigma2_per_m / 5e-5) - math.asinh(0.0041 / 5e-5)) ** 2 + (p.z_offset_m - 0.7) ** 2 + 0.1
+        return (math.asinh(p.sigma2_per_m / 5e-5) - math.asinh(0.0041 / 5e-5)) ** 2 + (p.z_offset_m - 0.3) ** 2 + 0.1
 
 
 def test_search_finds_the_optimum_of_a_known_objective():
@@ -124,7 +124,7 @@ def test_search_finds_the_optimum_of_a_known_objective():
     fc = FitConfig(max_evaluations=80, refine_iterations=10, sweeps=3)
     x, g, n = search(obj, cfg, specs, fc)
     assert x["axial_noise.sigma2_per_m"] == pytest.approx(0.0041, rel=0.05)
-    assert x["axial_noise.z_offset_m"] == pytest.approx(0.7, abs=0.03)
+    assert x["axial_noise.z_offset_m"] == pytest.approx(0.3, abs=0.03)
     assert g == pytest.approx(0.1, abs=0.01) and n == obj.calls <= 80
     # the budget is respected
     obj2 = _Quadratic()
@@ -190,3 +190,80 @@ def test_fit_config_validation_and_round_trip():
         FitConfig.from_dict({"nope": 1})
     fc = FitConfig(max_frames=3, seed=7)
     assert FitConfig.from_dict(fc.to_dict()).to_dict() == fc.to_dict()
+
+
+def test_plausible_bounds_per_preset_keep_base_effects_physical():
+    # the issue's absurd fit: axial_noise.z_offset_m = 2.0 and range_limits.min_depth_m = 5.0 on
+    # a Kinect; the search space of every preset now stops at what the device can have
+    for name, zmin in (("kinect_v1", 0.45), ("structure", 0.4), ("kinect_v2", 0.5)):
+        cfg = SensorConfig.build(name, ["axial_noise", "range_limits"])
+        b = {s.key: (s.low, s.high) for s in param_specs(cfg)}
+        assert b["axial_noise.z_offset_m"] == (0.0, pytest.approx(zmin))
+        assert b["range_limits.min_depth_m"] == (0.0, pytest.approx(1.5 * zmin))
+        assert b["range_limits.max_depth_m"][1] == pytest.approx(1.5 * cfg.preset.max_depth_m)
+    kin = {s.key: s for s in param_specs(SensorConfig.build("kinect_v1", ["axial_noise"]))}
+    assert kin["axial_noise.sigma2_per_m"].high == pytest.approx(5 * 0.0014)   # 5x the device's
+    assert kin["axial_noise.sigma0_m"].high == pytest.approx(5 * 0.0014)       # 5x sigma at 1 m
+    # a value ending on such a limit is reported as at bound
+    from synth.lab.fit import FitResult
+    r = FitResult.__new__(FitResult)
+    r.params = {"axial_noise.z_offset_m": 0.45}
+    r.bounds = {"axial_noise.z_offset_m": (0.0, 0.45)}
+    assert "at upper bound 0.45" in r.at_bound["axial_noise.z_offset_m"]
+
+
+def _bowl(a: float, b: float, c: float = 1.0):
+    """gap = c + 1/2 [dx dy] [[a, b], [b, a]] [dx dy]^T around (0.5, 0.3); counts calls."""
+    calls = []
+
+    def gap_of(vals, seed_offset=0):
+        calls.append(1)
+        dx, dy = vals["e.x"] - 0.5, vals["e.y"] - 0.3
+        return c + 0.5 * (a * dx * dx + 2 * b * dx * dy + a * dy * dy)
+    return gap_of, calls
+
+
+def test_joint_intervals_widen_by_the_variance_inflation_of_a_known_bowl():
+    from synth.lab.fit import ParamSpec
+    from synth.lab.intervals import joint_intervals, profile_intervals
+    specs = [ParamSpec("e.x", -5.0, 5.0, 0.5), ParamSpec("e.y", -5.0, 5.0, 0.3)]
+    best = {"e.x": 0.5, "e.y": 0.3}
+    a, b = 2.02, 1.98                       # a strong trade-off: x + y is fixed, x - y barely
+    gap_of, calls = _bowl(a, b)
+    single, tau = profile_intervals(gap_of, specs, best, 1.0, steps=8)
+    assert tau == pytest.approx(0.02)       # noise-free: 2 % of the gap
+    # one at a time: 1/2 a dx^2 = tau -> dx = sqrt(2 tau / a), exact for a quadratic bowl
+    half = math.sqrt(2 * tau / a)
+    assert single["e.x"][1] - 0.5 == pytest.approx(half, rel=1e-6)
+    n0 = len(calls)
+    joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
+    assert len(calls) - n0 == 2 * 3         # n (n + 1) evaluations
+    vif = a * a / (a * a - b * b)           # A_ii (A^-1)_ii for [[a, b], [b, a]]
+    assert infl["e.x"] == pytest.approx(math.sqrt(vif), rel=1e-6)
+    assert corr["e.x|e.y"] == pytest.approx(-b / a, abs=1e-3)   # stored to 3 decimals
+    for k, v0 in best.items():
+        lo1, hi1 = single[k]
+        assert joint[k][0] == pytest.approx(v0 - infl[k] * (v0 - lo1))
+        assert joint[k][1] == pytest.approx(v0 + infl[k] * (hi1 - v0))
+    # the exact joint region {gap <= g_best + tau} reaches x = 0.5 +- sqrt(2 tau (A^-1)_xx): inside
+    reach = math.sqrt(2 * tau * a / (a * a - b * b))
+    assert joint["e.x"][0] <= 0.5 - 0.9 * reach and joint["e.x"][1] >= 0.5 + 0.9 * reach
+    # independent parameters: nothing to widen, no correlation reported
+    gap2, _ = _bowl(2.0, 0.0)
+    single2, _ = profile_intervals(gap2, specs, best, 1.0)
+    joint2, infl2, corr2 = joint_intervals(gap2, specs, best, 1.0, 0.02, single2)
+    assert infl2 == {"e.x": pytest.approx(1.0), "e.y": pytest.approx(1.0)} and corr2 == {}
+    for k in single2:
+        assert joint2[k] == pytest.approx(single2[k])
+
+
+def test_joint_intervals_at_a_bound_stay_inside_the_bounds():
+    from synth.lab.fit import ParamSpec
+    from synth.lab.intervals import joint_intervals, profile_intervals
+    specs = [ParamSpec("e.x", 0.5, 5.0, 0.5), ParamSpec("e.y", -1.0, 1.0, 0.3)]
+    best = {"e.x": 0.5, "e.y": 0.3}         # x on its lower bound
+    gap_of, _ = _bowl(2.0, 1.5)
+    single, tau = profile_intervals(gap_of, specs, best, 1.0)
+    joint, infl, _ = joint_intervals(gap_of, specs, best, 1.0, tau, single)
+    assert joint["e.x"][0] == 0.5 and joint["e.x"][1] <= 5.0 and joint["e.y"][0] >= -1.0
+    assert all(f >= 1.0 for f in infl.values())

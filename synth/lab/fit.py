@@ -130,6 +130,9 @@ class FitConfig:
     """Compute a profile interval per fitted parameter (:func:`synth.lab.intervals.profile_intervals`)."""
     interval_steps: int = 4
     """Profile steps outward on each side of each parameter (doubling in size)."""
+    joint_intervals: bool = True
+    """Widen the profile intervals by how much the other parameters can compensate
+    (:func:`synth.lab.intervals.joint_intervals`, n(n+1) more evaluations for n parameters)."""
     data_starts: bool = True
     """Try the effects' closed-form ``fit_start`` estimates as the starting point (kept when they
     score better than the given values)."""
@@ -218,6 +221,15 @@ class FitResult:
     gap_noise: float = float("nan")
     """The gap's noise level used for the intervals (twice the std of the best model's gap over
     three simulation seeds, at least 2 % of it)."""
+    intervals_one_at_a_time: dict = field(default_factory=dict)
+    """{"effect.param": (low, high)}: the profile intervals with the other parameters held at the
+    fit (``intervals`` are these widened by ``inflation`` when joint intervals are on)."""
+    inflation: dict = field(default_factory=dict)
+    """{"effect.param": factor >= 1}: how much the joint interval is wider than the one-at-a-time
+    one (1 / sqrt(1 - R^2) of the local quadratic gap model)."""
+    correlations: dict = field(default_factory=dict)
+    """{"a|b": r}: parameter pairs whose estimates are correlated (|r| >= 0.3) in the local
+    quadratic gap model; r < 0 = a trade-off (one up, the other down explains the data alike)."""
 
     @property
     def at_bound(self) -> dict[str, str]:
@@ -248,7 +260,9 @@ class FitResult:
                 "search_frames": list(self.frames), "eval_frames": list(self.eval_frames),
                 "time_capped": self.time_capped, "effects": self.config.names(enabled_only=True),
                 "bounds": {k: list(v) for k, v in self.bounds.items()}, "at_bound": self.at_bound,
-                "intervals": {k: list(v) for k, v in self.intervals.items()}, "gap_noise": self.gap_noise}
+                "intervals": {k: list(v) for k, v in self.intervals.items()}, "gap_noise": self.gap_noise,
+                "intervals_one_at_a_time": {k: list(v) for k, v in self.intervals_one_at_a_time.items()},
+                "inflation": dict(self.inflation), "correlations": dict(self.correlations)}
 
 
 # ------------------------------------------------------------------------------------------
@@ -334,8 +348,17 @@ def _effect(config, name):
     raise ConfigError(f"effect {name!r} is not in this sensor model ({', '.join(config.names())})")
 
 
+def _narrowed(lo: float, hi: float, plausible) -> tuple[float, float]:
+    """FITTABLE bounds (lo, hi) intersected with an effect's plausible bounds for the device."""
+    if plausible is None:
+        return lo, hi
+    a, b = max(float(lo), float(plausible[0])), min(float(hi), float(plausible[1]))
+    return (a, b) if a < b else (float(lo), float(hi))
+
+
 def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
-    """Fittable parameters of the enabled effects ``names`` (default all enabled) of ``config``."""
+    """Fittable parameters of the enabled effects ``names`` (default all enabled) of ``config``:
+    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``)."""
     enabled = config.names(enabled_only=True)
     names = list(enabled) if names is None else list(names)
     out = []
@@ -344,7 +367,8 @@ def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
         if not e.enabled:
             raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
         types = getattr(e, "FITTABLE_FOR", {})
-        items = [(k, lo, hi, getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
+        plausible = e.plausible_bounds(config.preset)
+        items = [(k, *_narrowed(lo, hi, plausible.get(k)), getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
                  if k not in types or config.preset.type in types[k]]
         items += [(k, x.low, x.high, x.get(config, e)) for k, x in config_parameters(config, e).items()]
         for k, lo, hi, v in items:
@@ -647,7 +671,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         if bar is not None:
             bar.close()
     best_cfg = set_params(start_cfg, best_x) if specs else config
-    intervals, noise = ({}, float("nan"))
+    intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:
         from synth.lab.intervals import profile_intervals
 
@@ -655,6 +679,10 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             o = obj if not seed_offset else Objective(measured, frames, obj.compare_config, fc.seed + seed_offset)
             return o(set_params(start_cfg, vals))
         intervals, noise = profile_intervals(gap_of, specs, best_x, g_best, fc.interval_steps)
+        single = dict(intervals)
+        if fc.joint_intervals:
+            from synth.lab.intervals import joint_intervals
+            intervals, inflation, correlations = joint_intervals(gap_of, specs, best_x, g_best, noise, single)
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
     before = ev(config)
     after = ev(best_cfg) if specs else before
@@ -666,5 +694,6 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
                      [measured.frame_indices[k] for k in frames],
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
-                     {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise)
+                     {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
+                     single if not kept else {}, inflation if not kept else {}, correlations if not kept else {})
 

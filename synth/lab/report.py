@@ -302,18 +302,30 @@ def write_report(result: CompareResult, observations_subset: Sequence[FrameObser
 
 
 def fit_section(fit: dict) -> str:
-    """HTML: the fitted parameters, their profile intervals and bound warnings of a fit record."""
+    """HTML: the fitted parameters, their intervals (joint and one at a time), correlated pairs
+    and bound warnings of a fit record."""
     iv, ab = fit.get("intervals") or {}, fit.get("at_bound") or {}
+    single, infl = fit.get("intervals_one_at_a_time") or {}, fit.get("inflation") or {}
     rows = []
     for k, v in (fit.get("params") or {}).items():
-        lo_hi = iv.get(k)
+        lo_hi, s1 = iv.get(k), single.get(k)
         rows.append([k, f"{v:.5g}", f"[{lo_hi[0]:.5g}, {lo_hi[1]:.5g}]" if lo_hi else "-",
-                     f"AT BOUND - {ab[k]}" if k in ab else ""])
-    note = (f"Gap {fit.get('gap_before', float('nan')):.4f} -> {fit.get('gap', float('nan')):.4f}. Interval: the "
-            f"values whose gap stays within the gap's noise ({fit.get('gap_noise', float('nan')):.4f}) of the best, "
-            f"the other parameters at the fit; an end on the search bound means the data does not bound it there.")
+                     f"[{s1[0]:.5g}, {s1[1]:.5g}]" if s1 else "-",
+                     f"{infl[k]:.2f}" if k in infl else "-", f"AT BOUND - {ab[k]}" if k in ab else ""])
+    note = (f"Gap {fit.get('gap_before', float('nan')):.4f} -> {fit.get('gap', float('nan')):.4f}. One at a time: "
+            f"the values whose gap stays within the gap's noise ({fit.get('gap_noise', float('nan')):.4f}) of the "
+            f"best, the other parameters at the fit. Joint: that interval widened by the inflation factor "
+            f"1/sqrt(1 - R^2) of a local quadratic model of the gap (how far the other parameters can compensate). "
+            f"An end on the search bound means the data does not bound the parameter there.")
+    corr = fit.get("correlations") or {}
+    extra = ""
+    if corr:
+        extra = "<p>" + html.escape("Correlated estimates (r < 0: a trade-off, one up and the other down fit "
+                                    "alike): " + ", ".join(f"{k.replace('|', ' vs ')} r = {r:+.2f}"
+                                                           for k, r in corr.items())) + "</p>"
     return (f"<h2>Fitted parameters</h2><p>{html.escape(note)}</p>"
-            + html_table(rows, ["parameter", "fitted", "profile interval", "note"]))
+            + html_table(rows, ["parameter", "fitted", "joint interval", "one at a time", "inflation", "note"])
+            + extra)
 
 
 def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike, *,

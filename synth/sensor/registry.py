@@ -268,6 +268,15 @@ class Effect(ABC):
         the positions of the fit's frames. Default: none."""
         return {}
 
+    @classmethod
+    def plausible_bounds(cls, preset) -> dict[str, tuple[float, float]]:
+        """Per-device narrowing of :attr:`FITTABLE`: ``{param: (low, high)}`` values a sensor of
+        ``preset`` can physically have (e.g. no Kinect reports nothing nearer than 5 m). The lab
+        searches the intersection with FITTABLE, so a fit cannot move an effect to an implausible
+        value to explain what another effect should, and a value ending on such a limit is
+        reported as at bound. Default: FITTABLE as it is."""
+        return {}
+
     # -- helpers ---------------------------------------------------------------------------
     def to_json(self) -> dict:
         return {"name": self.name, "enabled": self.enabled, "params": params_to_dict(self.params)}

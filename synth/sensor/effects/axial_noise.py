@@ -54,6 +54,27 @@ class AxialNoise(Effect):
     0.0027 z + 0.0014 z^2). sigma0 and sigma2 still trade off over a narrow depth range."""
     stage = STAGE_DEPTH
 
+    @classmethod
+    def plausible_bounds(cls, preset) -> dict[str, tuple[float, float]]:
+        """Relative to the device's own noise model (the preset's axial_noise defaults; 2 mm at
+        1 m when it has none): sigma at 1 m s1 = sigma0 + sigma1 + sigma2 (1 - z_offset)^2.
+        sigma0 <= 5 s1 and sigma1 <= 5 s1 / 1 m (a noise floor five times the device's whole
+        noise at 1 m is a different device or another effect's errors), sigma2 <= 5 x the preset's
+        sigma2 (or 5 s1 / 1 m^2 when it has none): published Kinect v1 values span 1.2e-3 -
+        1.9e-3 /m (Nguyen et al. 2012, Khoshelham & Elberink 2012), so 5x covers worn or hot
+        devices and bright rooms. z_offset <= the device's nearest depth: the quadratic's minimum
+        (Nguyen's 0.4 m) lies at the near end of the working range; a minimum farther out would
+        mean noise falling with distance, which no triangulating or ToF sensor shows."""
+        d = dict(preset.effect_params.get(cls.name, {}))
+        s0, s1_, s2 = (float(d.get(k, 0.0)) for k in ("sigma0_m", "sigma1", "sigma2_per_m"))
+        zo = float(d.get("z_offset_m", 0.0))
+        at1 = s0 + s1_ + s2 * (1.0 - zo) ** 2
+        if at1 <= 0:
+            at1 = 0.002
+        return {"sigma0_m": (0.0, 5.0 * at1), "sigma1": (0.0, 5.0 * at1),
+                "sigma2_per_m": (0.0, 5.0 * (s2 if s2 > 0 else at1)),
+                "z_offset_m": (0.0, float(preset.min_depth_m))}
+
     def sample(self, rng, state):
         return normal_draw(rng, state.shape)
 

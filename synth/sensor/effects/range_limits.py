@@ -32,6 +32,15 @@ class RangeLimits(Effect):
         panels=(("distance", "invalid_fraction"),))
     Params = RangeLimitsParams
     FITTABLE = {"min_depth_m": (0.0, 5.0), "max_depth_m": (0.0, 50.0)}
+
+    @classmethod
+    def plausible_bounds(cls, preset) -> dict[str, tuple[float, float]]:
+        """At most 1.5 x the device's own limits (0 keeps the device's value): the near limit is
+        set by the disparity search range / the projector's dot overlap, the far one by the
+        signal, and both are in the data sheet; a fit that wants a near limit of several metres
+        is explaining holes another effect makes (incidence, reflectance)."""
+        return {"min_depth_m": (0.0, 1.5 * float(preset.min_depth_m)),
+                "max_depth_m": (0.0, 1.5 * float(preset.max_depth_m))}
     stage = STAGE_POST
 
     def apply(self, state, draw) -> None:
