@@ -267,3 +267,19 @@ def test_joint_intervals_at_a_bound_stay_inside_the_bounds():
     joint, infl, _ = joint_intervals(gap_of, specs, best, 1.0, tau, single)
     assert joint["e.x"][0] == 0.5 and joint["e.x"][1] <= 5.0 and joint["e.y"][0] >= -1.0
     assert all(f >= 1.0 for f in infl.values())
+
+
+def test_joint_intervals_ignore_couplings_that_are_noise():
+    # three independent parameters and a rugged gap (noise of 1 tau on every evaluation, as on
+    # real data): no spurious trade-off may be reported, nothing widened much
+    from synth.lab.fit import ParamSpec
+    from synth.lab.intervals import joint_intervals, profile_intervals
+    specs = [ParamSpec(f"e.{k}", -5.0, 5.0, 0.0) for k in "xyz"]
+    best = {"e.x": 0.0, "e.y": 0.0, "e.z": 0.0}
+    rng = np.random.default_rng(5)
+
+    def gap_of(vals, seed_offset=0):
+        return 1.0 + sum(vals[k] ** 2 for k in best) + (1.0 * 0.02 * rng.standard_normal() if vals != best else 0.0)
+    single, tau = profile_intervals(gap_of, specs, best, 1.0)
+    joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
+    assert corr == {} and max(infl.values()) < 1.3

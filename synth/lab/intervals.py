@@ -68,8 +68,11 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     point with j flipped); points outside the search bounds are clipped to them, and where a
     parameter sits on a bound its axis uses +h and +2h on the open side. A full quadratic
     g = c + b.u + u'Au/2 is fitted to these n(n+1) points and the best by least squares, A's
-    eigenvalues are floored at 1e-3 of the largest (a flat or noise-bent direction then counts
-    as nearly unconstrained). The inflation factor of parameter i is
+    curvatures and couplings less than 2 standard errors (of that least-squares fit) from 0 are
+    set to 0, and a parameter without a significant positive curvature is left uncoupled (real
+    gaps are rugged, and some parameters jump: range_limits' 0 means "the device's value");
+    then A's eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly
+    unconstrained). The inflation factor of parameter i is
     ``sqrt(A_ii (A^-1)_ii)`` (= 1 / sqrt(1 - R_i^2): how much the others can compensate; 1
     for a parameter that trades off with nothing): the joint interval is the profile interval
     widened by it about the fitted value on each side and clipped to the bounds. It is an
@@ -89,7 +92,7 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     for i, sp in enumerate(specs):
         lo, hi = profile.get(sp.key, (best_x[sp.key], best_x[sp.key]))
         w = 0.5 * (sp.to_t(hi) - sp.to_t(lo))
-        h[i] = max(w, (tb[i, 1] - tb[i, 0]) / 32.0, 1.0 if sp.integer else 0.0)
+        h[i] = max(2.0 * w, (tb[i, 1] - tb[i, 0]) / 32.0, 1.0 if sp.integer else 0.0)
 
     def clip(t):
         return np.minimum(np.maximum(t, tb[:, 0]), tb[:, 1])
@@ -128,9 +131,24 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     quad = np.stack([U[:, a] * U[:, b] * (0.5 if a == b else 1.0) for a, b in zip(*iu)], axis=1)
     X = np.hstack([np.ones((len(U), 1)), U, quad])
     coef, *_ = np.linalg.lstsq(X, G, rcond=None)
+    # keep only what the points show: a coupling (or curvature) whose least-squares estimate is
+    # not 2 standard errors from 0 is noise (real data: a rugged gap, a parameter whose 0 means
+    # "the device's value" jumps) and is set to 0 - that parameter then counts as independent
+    dof = len(G) - X.shape[1]
+    if dof > 0:
+        s2 = float(np.sum((X @ coef - G) ** 2)) / dof
+        se = np.sqrt(np.maximum(np.diag(np.linalg.pinv(X.T @ X)) * s2, 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tstat = np.where(se > 1e-12 * max(float(np.abs(G).max()), 1e-12), np.abs(coef) / se, np.inf)
+    else:
+        tstat = np.full(len(coef), np.inf)
     A = np.zeros((n, n))
-    A[iu] = coef[1 + n:]
+    A[iu] = np.where(tstat[1 + n:] >= 2.0, coef[1 + n:], 0.0)
     A = A + np.triu(A, 1).T
+    flat = ~(np.diag(A) > 0)                         # no significant positive curvature: uncoupled
+    A[flat, :] = 0.0
+    A[:, flat] = 0.0
+    A[flat, flat] = 1.0
     w, V = np.linalg.eigh(A)
     top = max(float(w.max()), 1e-12)
     w = np.maximum(w, 1e-3 * top)
