@@ -283,3 +283,17 @@ def test_joint_intervals_ignore_couplings_that_are_noise():
     single, tau = profile_intervals(gap_of, specs, best, 1.0)
     joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
     assert corr == {} and max(infl.values()) < 1.3
+
+
+def test_joint_intervals_leave_a_parameter_that_changes_nothing_alone():
+    from synth.lab.fit import ParamSpec
+    from synth.lab.intervals import joint_intervals, profile_intervals
+    specs = [ParamSpec("e.x", -5.0, 5.0, 0.5), ParamSpec("e.y", -5.0, 5.0, 0.3), ParamSpec("e.z", 0.0, 1.0, 0.03)]
+    best = {"e.x": 0.5, "e.y": 0.3, "e.z": 0.03}
+    bowl, _ = _bowl(2.02, 1.98)
+    gap_of = lambda vals, seed_offset=0: (bowl(vals) + 1e-4 * (vals["e.z"] - 0.03) ** 2      # noqa: E731
+                                         + 2e-4 * (vals["e.z"] - 0.03) * (vals["e.x"] - 0.5))  # e.z: next to nothing
+    single, tau = profile_intervals(gap_of, specs, best, 1.0)
+    joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
+    assert infl["e.z"] == 1.0 and joint["e.z"] == single["e.z"]
+    assert set(corr) == {"e.x|e.y"} and infl["e.x"] == pytest.approx(math.sqrt(2.02 ** 2 / (2.02 ** 2 - 1.98 ** 2)))

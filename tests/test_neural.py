@@ -139,3 +139,17 @@ def test_shipped_weights_load_and_the_hallucination_module_helps():
     # error ~10 px); the shipped weights have a median of 6.2 px on these walks
     assert r["ape_px"]["median"] < 8.0 and r["localised_within_1px"] > 0.15
     assert r["baseline_mosaic_anamnesis"]["l1"] < 0.01          # the mosaic recalls what it saw
+
+
+def test_table_4_2_ablations_at_inference_cost_quality():
+    """Switching localisation off (every view written at the first pose) makes the recall of the
+    observed views worse; the ablation numbers are reported beside the full model's."""
+    from pathlib import Path
+
+    from slam.neural.evaluate import evaluate_2d
+    from slam.neural.train import load_model
+    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
+    r = evaluate_2d(model, cfg, sequences=8, progress=False)
+    assert r["ablation_no_localisation_anamnesis"]["l1"] > r["anamnesis"]["l1"] + 0.01
+    for k in ("ablation_no_culling_anamnesis", "ablation_no_culling_hallucination"):
+        assert set(r[k]) == {"l1", "ssim_thesis", "ssim_skimage"}

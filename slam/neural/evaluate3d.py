@@ -14,7 +14,9 @@
 * **Baselines and ablations** (same samples): the classic memory - the first ``observe`` frames
   fused at their true poses into a TSDF (``slam.tsdf``), ray cast at the later poses, resized to
   40 x 30, holes filled by OpenCV inpainting (Telea) -; the memory without the hallucination module;
-  recall from a memory registered at the true poses (no localisation error).
+  recall from a memory registered at the true poses (no localisation error); thesis Table 4.2's
+  *no localisation* and *no culling* at inference, as in :mod:`slam.neural.evaluate` (the trained
+  model with the module switched off, not a model retrained without it).
 * **Speed**: register 5 views + localise + recall 5 + hallucinate 5 views (the thesis' < 1 s on a
   Titan X), median of 5 runs on this machine's CPU.
 """
@@ -111,7 +113,9 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     rng = np.random.default_rng(seed)
     vm = torch.from_numpy(bank.wedge.astype(np.float32))
     k, T = tcfg.observe, tcfg.steps
-    rows = {key: [] for key in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "tsdf_inpainting")}
+    rows = {key: [] for key in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "tsdf_inpainting",
+                                "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
+    full = torch.ones_like(vm)
     for _ in range(samples):
         si = int(rng.integers(len(arrays)))
         s = arrays[si]
@@ -132,15 +136,22 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             rec_t = model.recall(tru["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
+            nol = model(obs, vm, allo[:, :1].expand_as(allo).contiguous(), cells=cells)   # no localisation
+            rec_nl = model.recall(nol["psi"].expand(T, -1, -1, -1), a, vm).numpy()
+            rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()      # no culling
+            hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
         true = s["images"][idx].astype(np.float32)
         base = _tsdf_baseline(readers[si], idx[:k], idx[k:], w)
         for t in range(T):
             rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
+            rows["anam_no_localisation"].append(_metrics(rec_nl[t], true[t], w.max_range_m))
+            rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
         for t in range(T - k):
             rows["hallu"].append(_metrics(hal[t], true[k + t], w.max_range_m))
             rows["hallu_no_module"].append(_metrics(hal0[t], true[k + t], w.max_range_m))
             rows["tsdf_inpainting"].append(_metrics(base[t], true[k + t], w.max_range_m))
+            rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
 
     def images(key):
         v = np.asarray(rows[key], float)
@@ -149,7 +160,10 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     res.update({"samples": samples, "steps": T, "observe": k, "anamnesis": images("anam"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),
                 "ablation_no_hallucination_module": images("hallu_no_module"),
-                "baseline_tsdf_inpainting": images("tsdf_inpainting")})
+                "baseline_tsdf_inpainting": images("tsdf_inpainting"),
+                "ablation_no_localisation_anamnesis": images("anam_no_localisation"),
+                "ablation_no_culling_anamnesis": images("anam_no_culling"),
+                "ablation_no_culling_hallucination": images("hallu_no_culling")})
     res["hallucination_beats_tsdf_ssim"] = bool(res["hallucination"]["ssim_thesis"]
                                                 > res["baseline_tsdf_inpainting"]["ssim_thesis"])
     # ---------------------------------------------------------------- speed

@@ -69,7 +69,8 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     parameter sits on a bound its axis uses +h and +2h on the open side. A full quadratic
     g = c + b.u + u'Au/2 is fitted to these n(n+1) points and the best by least squares, A's
     curvatures and couplings less than 2 standard errors (of that least-squares fit) from 0 are
-    set to 0, and a parameter without a significant positive curvature is left uncoupled (real
+    set to 0, and a parameter without a significant positive curvature (or a rise over +-h below
+    tau / 4: it changes almost nothing) is left uncoupled (real
     gaps are rugged, and some parameters jump: range_limits' 0 means "the device's value");
     then A's eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly
     unconstrained). The inflation factor of parameter i is
@@ -145,7 +146,9 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     A = np.zeros((n, n))
     A[iu] = np.where(tstat[1 + n:] >= 2.0, coef[1 + n:], 0.0)
     A = A + np.triu(A, 1).T
-    flat = ~(np.diag(A) > 0)                         # no significant positive curvature: uncoupled
+    # no significant curvature, or one too small to matter (a rise over +-h of less than tau / 4
+    # where the profile predicts ~4 tau; e.g. a parameter that changes nothing): uncoupled
+    flat = ~(np.diag(A) > 0.5 * float(tau))
     A[flat, :] = 0.0
     A[:, flat] = 0.0
     A[flat, flat] = 1.0
