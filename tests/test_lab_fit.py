@@ -288,12 +288,30 @@ def test_joint_intervals_ignore_couplings_that_are_noise():
 def test_joint_intervals_leave_a_parameter_that_changes_nothing_alone():
     from synth.lab.fit import ParamSpec
     from synth.lab.intervals import joint_intervals, profile_intervals
-    specs = [ParamSpec("e.x", -5.0, 5.0, 0.5), ParamSpec("e.y", -5.0, 5.0, 0.3), ParamSpec("e.z", 0.0, 1.0, 0.03)]
-    best = {"e.x": 0.5, "e.y": 0.3, "e.z": 0.03}
+    specs = [ParamSpec("e.x", -5.0, 5.0, 0.5), ParamSpec("e.y", -5.0, 5.0, 0.3), ParamSpec("e.z", 0.0, 1.0, 0.5)]
+    best = {"e.x": 0.5, "e.y": 0.3, "e.z": 0.5}
     bowl, _ = _bowl(2.02, 1.98)
-    gap_of = lambda vals, seed_offset=0: (bowl(vals) + 1e-4 * (vals["e.z"] - 0.03) ** 2      # noqa: E731
-                                         + 2e-4 * (vals["e.z"] - 0.03) * (vals["e.x"] - 0.5))  # e.z: next to nothing
+    gap_of = lambda vals, seed_offset=0: (bowl(vals) + 1e-4 * (vals["e.z"] - 0.5) ** 2      # noqa: E731
+                                         + 2e-4 * (vals["e.z"] - 0.5) * (vals["e.x"] - 0.5))  # e.z: next to nothing
     single, tau = profile_intervals(gap_of, specs, best, 1.0)
     joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
     assert infl["e.z"] == 1.0 and joint["e.z"] == single["e.z"]
     assert set(corr) == {"e.x|e.y"} and infl["e.x"] == pytest.approx(math.sqrt(2.02 ** 2 / (2.02 ** 2 - 1.98 ** 2)))
+
+
+
+def test_joint_intervals_leave_integers_and_bound_values_uncoupled():
+    from synth.lab.fit import ParamSpec
+    from synth.lab.intervals import joint_intervals, profile_intervals
+    specs = [ParamSpec("e.x", -5.0, 5.0, 0.5), ParamSpec("e.y", -5.0, 5.0, 0.3),
+             ParamSpec("e.r", 0.0, 20.0, 0.0, integer=True), ParamSpec("e.m", 0.0, 1.0, 0.0)]
+    best = {"e.x": 0.5, "e.y": 0.3, "e.r": 0.0, "e.m": 0.0}
+    bowl, calls = _bowl(2.02, 1.98)
+    # r and m jump at 0 (as "0 = the device's value"): no quadratic model may couple them
+    gap_of = lambda v, seed_offset=0: bowl(v) + (0.5 if v["e.r"] else 0.0) + (0.3 if v["e.m"] else 0.0)  # noqa: E731
+    single, tau = profile_intervals(gap_of, specs, best, 1.0)
+    n0 = len(calls)
+    joint, infl, corr = joint_intervals(gap_of, specs, best, 1.0, tau, single)
+    assert len(calls) - n0 == 2 * 3                      # only x and y are modelled
+    assert infl["e.r"] == infl["e.m"] == 1.0 and joint["e.r"] == single["e.r"] and joint["e.m"] == single["e.m"]
+    assert set(corr) == {"e.x|e.y"}

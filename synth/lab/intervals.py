@@ -65,14 +65,13 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     In each parameter's search coordinate t (scaled by h_i, the half-width of its profile
     interval, at least 1/32 of its range) the gap is evaluated at +-h_i on every axis and at
     (+-h_i, +-h_j) for every pair (the sign of the pair drawn from a fixed seed, the second
-    point with j flipped); points outside the search bounds are clipped to them, and where a
-    parameter sits on a bound its axis uses +h and +2h on the open side. A full quadratic
+    point with j flipped), for the continuous parameters at least h/2 inside their bounds (an
+    integer, or a value on a bound - an effect switched off, range_limits' "0 = the device's
+    value" - keeps its profile interval, uncoupled: the gap is not quadratic there). A full quadratic
     g = c + b.u + u'Au/2 is fitted to these n(n+1) points and the best by least squares, A's
     curvatures and couplings less than 2 standard errors (of that least-squares fit) from 0 are
     set to 0, and a parameter without a significant positive curvature (or a rise over +-h below
-    tau / 4: it changes almost nothing) is left uncoupled (real
-    gaps are rugged, and some parameters jump: range_limits' 0 means "the device's value");
-    then A's eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly
+    tau / 4: it changes almost nothing) is left uncoupled (real gaps are rugged); then A's eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly
     unconstrained). The inflation factor of parameter i is
     ``sqrt(A_ii (A^-1)_ii)`` (= 1 / sqrt(1 - R_i^2): how much the others can compensate; 1
     for a parameter that trades off with nothing): the joint interval is the profile interval
@@ -82,31 +81,36 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     Returns (intervals {key: (low, high)}, inflation {key: factor}, correlations
     {"a|b": r} of the pairs with |r| >= 0.3, r = C_ij / sqrt(C_ii C_jj) with C = A^-1: negative
     for a trade-off, one up and the other down leaving the gap alike).
-    Costs n(n+1) evaluations; with one parameter it returns the profile interval unchanged."""
+    Costs n(n+1) evaluations for the n coupled parameters; with fewer than two it returns the
+    profile intervals unchanged."""
+    out = {sp.key: tuple(profile.get(sp.key, (best_x[sp.key], best_x[sp.key]))) for sp in specs}
+    factors = {sp.key: 1.0 for sp in specs}
+    # the quadratic model holds for continuous parameters inside their bounds; integers (a window
+    # radius), values on a bound (an effect switched off, "0 = the device's value") keep their
+    # profile interval and are left uncoupled
+    h_all, coupled = {}, []
+    for sp in specs:
+        t0_, (a_, b_) = sp.to_t(float(best_x[sp.key])), sp.t_bounds
+        lo, hi = out[sp.key]
+        h_ = max(2.0 * 0.5 * (sp.to_t(hi) - sp.to_t(lo)), (b_ - a_) / 32.0)
+        if not sp.integer and min(t0_ - a_, b_ - t0_) >= 0.5 * h_:
+            coupled.append(sp)
+            h_all[sp.key] = h_
+    if len(coupled) < 2:
+        return out, factors, {}
+    specs = coupled
     n = len(specs)
     keys = [sp.key for sp in specs]
-    if n < 2:
-        return dict(profile), {k: 1.0 for k in keys}, {}
     t0 = np.array([sp.to_t(float(best_x[sp.key])) for sp in specs])
     tb = np.array([sp.t_bounds for sp in specs])
-    h = np.empty(n)
-    for i, sp in enumerate(specs):
-        lo, hi = profile.get(sp.key, (best_x[sp.key], best_x[sp.key]))
-        w = 0.5 * (sp.to_t(hi) - sp.to_t(lo))
-        h[i] = max(2.0 * w, (tb[i, 1] - tb[i, 0]) / 32.0, 1.0 if sp.integer else 0.0)
+    h = np.array([h_all[k] for k in keys])
 
     def clip(t):
         return np.minimum(np.maximum(t, tb[:, 0]), tb[:, 1])
 
     pts = []
     for i in range(n):
-        room = (t0[i] - tb[i, 0], tb[i, 1] - t0[i])
-        if min(room) < 0.25 * h[i]:                  # on (or next to) a bound: the open side twice
-            s = 1.0 if room[1] >= room[0] else -1.0
-            offs = (s * h[i], 2.0 * s * h[i])
-        else:
-            offs = (-h[i], h[i])
-        for o in offs:
+        for o in (-h[i], h[i]):
             t = t0.copy()
             t[i] += o
             pts.append(clip(t))
@@ -133,8 +137,7 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     X = np.hstack([np.ones((len(U), 1)), U, quad])
     coef, *_ = np.linalg.lstsq(X, G, rcond=None)
     # keep only what the points show: a coupling (or curvature) whose least-squares estimate is
-    # not 2 standard errors from 0 is noise (real data: a rugged gap, a parameter whose 0 means
-    # "the device's value" jumps) and is set to 0 - that parameter then counts as independent
+    # not 2 standard errors from 0 is noise (real data: a rugged gap) and is set to 0
     dof = len(G) - X.shape[1]
     if dof > 0:
         s2 = float(np.sum((X @ coef - G) ** 2)) / dof
@@ -158,10 +161,10 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     A = (V * w) @ V.T
     C = np.linalg.inv(A)
     infl = np.sqrt(np.clip(np.diag(A) * np.diag(C), 1.0, None))
-    out, factors, corr = {}, {}, {}
+    corr = {}
     for i, sp in enumerate(specs):
         v0 = float(best_x[sp.key])
-        lo, hi = profile.get(sp.key, (v0, v0))
+        lo, hi = out[sp.key]
         a = t0[i] - infl[i] * (t0[i] - sp.to_t(lo))
         b = t0[i] + infl[i] * (sp.to_t(hi) - t0[i])
         out[sp.key] = (min(sp.from_t(max(a, tb[i, 0])), v0), max(sp.from_t(min(b, tb[i, 1])), v0))
