@@ -127,7 +127,8 @@ class FitConfig:
     seed: int = 0
     """Simulation seed (frame k uses seed + its index: common random numbers)."""
     intervals: bool = True
-    """Compute a profile interval per fitted parameter (:func:`synth.lab.intervals.profile_intervals`)."""
+    """Compute an interval per fitted parameter (:func:`synth.lab.intervals.profile_intervals`, then
+    :func:`synth.lab.intervals.joint_intervals` when ``joint_intervals``)."""
     interval_steps: int = 4
     """Profile steps outward on each side of each parameter (doubling in size)."""
     joint_intervals: bool = True
@@ -214,10 +215,11 @@ class FitResult:
     bounds: dict = field(default_factory=dict)
     """{"effect.param": (low, high)} search bounds of the fitted parameters."""
     intervals: dict = field(default_factory=dict)
-    """{"effect.param": (low, high)}: the profile interval of each fitted parameter - the values
-    whose gap (the others kept at the fit) stays within the gap's own noise of the best one
-    (:func:`synth.lab.intervals.profile_intervals`); an end equal to the search bound means the data does not bound
-    the parameter on that side."""
+    """{"effect.param": (low, high)}: the interval of each fitted parameter - with
+    ``FitConfig.joint_intervals`` (default) the joint one (:func:`synth.lab.intervals.joint_intervals`:
+    the profile interval widened by how far the other parameters can compensate), else the profile
+    interval (``intervals_one_at_a_time``); an end equal to the search bound means the data does not
+    bound the parameter on that side."""
     gap_noise: float = float("nan")
     """The gap's noise level used for the intervals (twice the std of the best model's gap over
     three simulation seeds, at least 2 % of it)."""
