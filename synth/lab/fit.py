@@ -69,7 +69,6 @@ the data.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -81,6 +80,7 @@ from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
+from synth.lab.params import ParamSpec, _effect, config_parameters, get_params, param_specs, set_params  # noqa: F401
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
            "Objective", "search", "config_parameters", "start_values"]
@@ -268,18 +268,8 @@ class FitResult:
 
 
 # ------------------------------------------------------------------------------------------
-# Parameter spaces
+# Starting values measured from the data (the parameter space itself: synth.lab.params)
 # ------------------------------------------------------------------------------------------
-
-# ------------------------------------------------------------------------------------------
-# Starting values measured from the data
-# ------------------------------------------------------------------------------------------
-
-def config_parameters(config, effect) -> dict:
-    """The ``CONFIG_PARAMETERS`` of ``effect`` that apply to ``config``
-    (:class:`synth.sensor.registry.ConfigParameter`)."""
-    return {k: x for k, x in effect.CONFIG_PARAMETERS.items() if x.applies is None or x.applies(config)}
-
 
 def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
     """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
@@ -295,133 +285,6 @@ def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) 
             known |= {f"{n}.{k}" for k in (*e.FILE_PARAMS, *e.START_ONLY_PARAMS)}   # a learned map, a shape
             out.update({k: v for k, v in start.items() if k in known})
     return out
-
-
-@dataclass
-class ParamSpec:
-    """One fitted parameter and the scale it is searched on."""
-
-    key: str
-    """``effect.param``."""
-    low: float
-    """Lower bound."""
-    high: float
-    """Upper bound."""
-    value: float
-    """Starting value (clipped into the bounds)."""
-    integer: bool = False
-    """The parameter takes integer values (searched linearly, rounded)."""
-    scale: str = "linear"
-    """Search coordinate t(x): ``linear``; ``log`` (log10 x: positive bounds spanning >= 2
-    decades); ``asinh`` (asinh(x / e), e = 1e-2 max(|low|, |high|): bounds that include 0, so a
-    grid covers 0 and two decades of magnitude on each side, e.g. a noise level of 1 mm and of
-    10 cm within bounds [0, 0.1])."""
-
-    @property
-    def _e(self) -> float:
-        return 1e-2 * max(abs(self.low), abs(self.high), 1e-12)
-
-    def to_t(self, x: float) -> float:
-        if self.scale == "log":
-            return math.log10(max(float(x), self.low))
-        if self.scale == "asinh":
-            return math.asinh(float(x) / self._e)
-        return float(x)
-
-    def from_t(self, t: float) -> float:
-        if self.scale == "log":
-            x = 10.0 ** t
-        elif self.scale == "asinh":
-            x = math.sinh(t) * self._e
-        else:
-            x = float(t)
-        x = min(max(x, self.low), self.high)
-        return float(round(x)) if self.integer else x
-
-    @property
-    def t_bounds(self) -> tuple[float, float]:
-        return self.to_t(self.low), self.to_t(self.high)
-
-
-def _effect(config, name):
-    for e in config.effects:
-        if e.name == name:
-            return e
-    raise ConfigError(f"effect {name!r} is not in this sensor model ({', '.join(config.names())})")
-
-
-def _narrowed(lo: float, hi: float, plausible) -> tuple[float, float]:
-    """FITTABLE bounds (lo, hi) intersected with an effect's plausible bounds for the device."""
-    if plausible is None:
-        return lo, hi
-    a, b = max(float(lo), float(plausible[0])), min(float(hi), float(plausible[1]))
-    return (a, b) if a < b else (float(lo), float(hi))
-
-
-def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
-    """Fittable parameters of the enabled effects ``names`` (default all enabled) of ``config``:
-    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``)."""
-    enabled = config.names(enabled_only=True)
-    names = list(enabled) if names is None else list(names)
-    out = []
-    for n in names:
-        e = _effect(config, n)
-        if not e.enabled:
-            raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
-        types = getattr(e, "FITTABLE_FOR", {})
-        plausible = e.plausible_bounds(config.preset)
-        items = [(k, *_narrowed(lo, hi, plausible.get(k)), getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
-                 if k not in types or config.preset.type in types[k]]
-        items += [(k, x.low, x.high, x.get(config, e)) for k, x in config_parameters(config, e).items()]
-        for k, lo, hi, v in items:
-            integer = isinstance(v, (int, np.integer)) and not isinstance(v, bool)
-            lo, hi = float(lo), float(hi)
-            if integer:
-                scale = "linear"
-            elif lo > 0 and hi / lo >= 100:
-                scale = "log"
-            elif lo <= 0 <= hi and hi > lo:
-                scale = "asinh"
-            else:
-                scale = "linear"
-            out.append(ParamSpec(f"{n}.{k}", lo, hi, min(max(float(v), lo), hi), integer, scale))
-    return out
-
-
-def get_params(config, specs: Sequence[ParamSpec]) -> dict[str, float]:
-    """Current values of ``specs`` in ``config``."""
-    out = {}
-    for s in specs:
-        en, pn = s.key.split(".", 1)
-        e = _effect(config, en)
-        extra = config_parameters(config, e).get(pn)
-        out[s.key] = float(extra.get(config, e)) if extra else float(getattr(e.params, pn))
-    return out
-
-
-def set_params(config, values: dict[str, float]):
-    """A copy of ``config`` with ``{"effect.param": value}`` set (FITTABLE or config parameters).
-
-    Only the effects (and, for the config parameters that need it, the preset) change: every
-    other field of ``config`` (e.g. ``motion``) is carried over with ``dataclasses.replace``."""
-    plain, extra = {}, []
-    for k, v in values.items():
-        if "." not in k:
-            raise ConfigError(f"parameter key {k!r} must be 'effect.param'")
-        en, pn = k.split(".", 1)
-        e = _effect(config, en)
-        x = config_parameters(config, e).get(pn)
-        if x is not None:
-            extra.append((en, x, v))
-        else:
-            cur = getattr(e.params, pn, None)
-            plain[k] = int(round(v)) if isinstance(cur, int) and not isinstance(cur, bool) else v
-    # with_params validates names and bounds; only its effects are taken
-    effects = config.with_params(plain).effects if plain else list(config.effects)
-    cfg = dataclasses.replace(config, effects=effects)
-    for en, x, v in extra:
-        cfg = x.set(cfg, _effect(cfg, en), v)
-    return cfg
 
 
 # ------------------------------------------------------------------------------------------
@@ -545,10 +408,11 @@ def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, 
             if b <= a:
                 continue
             cur_t = s.to_t(x[s.key])
+            ga, gb = s.grid_t_bounds
             if sweep == 0 and not local:
-                grid = list(np.linspace(a, b, int(fc.grid_points)))
+                grid = [min(max(t, a), b) for t in np.linspace(ga, gb, int(fc.grid_points))]
             else:
-                h = (b - a) / max(int(fc.grid_points) - 1, 1) / 2
+                h = (gb - ga) / max(int(fc.grid_points) - 1, 1) / 2
                 grid = [max(a, cur_t - h), min(b, cur_t + h)]
             grid = sorted(set(grid) | {cur_t})
             vals = []
