@@ -25,10 +25,9 @@ from data_tools.errors import RealgapError
 
 try:  # ISA-L's deflate: zlib-format streams, several times faster than zlib at level 1
     from isal import isal_zlib as _deflate_lib
-    _LEVEL = 1
 except ImportError:  # pragma: no cover - isal is a declared dependency
     _deflate_lib = zlib
-    _LEVEL = 1
+_LEVEL = 1
 
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}

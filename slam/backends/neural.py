@@ -170,9 +170,7 @@ class NeuralBackend(RegistrationBackend):
         pose, model, memory steps and their allocentric estimates), occupancy.png, features.png."""
         if self._snap is None:
             return
-        import cv2
-
-        from data_tools.results import atomic_write_bytes, atomic_write_json
+        from data_tools.results import atomic_write_bytes, atomic_write_image, atomic_write_json
         d = Path(out) / "memory"
         d.mkdir(parents=True, exist_ok=True)
         import io
@@ -184,9 +182,8 @@ class NeuralBackend(RegistrationBackend):
                                               for k, v in self._snap.items() if k not in ("psi", "occ")})
         occ, seen = self._snap["occ"], observed_cells(self._snap["occ"])
         span = max(float(occ.max() - occ.min()), 1e-9)
-        atomic_write_bytes(d / "occupancy.png",
-                           cv2.imencode(".png", ((occ - occ.min()) / span * 255).astype(np.uint8))[1].tobytes())
-        atomic_write_bytes(d / "features.png", cv2.imencode(".png", memory_picture(self._snap["psi"], seen))[1].tobytes())
+        atomic_write_image(d / "occupancy.png", ((occ - occ.min()) / span * 255).astype(np.uint8))
+        atomic_write_image(d / "features.png", memory_picture(self._snap["psi"], seen))
 
 
 def observed_cells(occ: np.ndarray) -> np.ndarray:

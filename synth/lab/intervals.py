@@ -34,7 +34,7 @@ def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4
         ends = []
         for sign in (-1.0, 1.0):
             step = 1.0 if sp.integer else (thi - tlo) / 32.0
-            t_in, g_in, end = t0, float(g_best), None
+            t_in, end = t0, None
             for _ in range(int(steps)):
                 t = min(max(t0 + sign * step, tlo), thi)
                 if t == t_in:
@@ -49,7 +49,7 @@ def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4
                         reach = abs(t - t0) * np.sqrt(tau / max(g - g_best, 1e-12))
                         end = sp.from_t(t0 + sign * min(max(reach, abs(t_in - t0)), abs(t - t0)))
                     break
-                t_in, g_in = t, g
+                t_in = t
                 step *= 2.0
             ends.append(end if end is not None else sp.from_t(t_in))
         lo, hi = sorted((float(ends[0]), float(ends[1])))
@@ -71,8 +71,8 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     g = c + b.u + u'Au/2 is fitted to these n(n+1) points and the best by least squares, A's
     curvatures and couplings less than 2 standard errors (of that least-squares fit) from 0 are
     set to 0, and a parameter without a significant positive curvature (or a rise over +-h below
-    tau / 4: it changes almost nothing) is left uncoupled (real gaps are rugged); then A's eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly
-    unconstrained). The inflation factor of parameter i is
+    tau / 4: it changes almost nothing) is left uncoupled (real gaps are rugged); then A's
+    eigenvalues are floored at 1e-3 of the largest (a flat direction counts as nearly unconstrained). The inflation factor of parameter i is
     ``sqrt(A_ii (A^-1)_ii)`` (= 1 / sqrt(1 - R_i^2): how much the others can compensate; 1
     for a parameter that trades off with nothing): the joint interval is the profile interval
     widened by it about the fitted value on each side and clipped to the bounds. It is an
@@ -88,22 +88,21 @@ def joint_intervals(gap_of, specs, best_x: dict, g_best: float, tau: float, prof
     # the quadratic model holds for continuous parameters inside their bounds; integers (a window
     # radius), values on a bound (an effect switched off, "0 = the device's value") keep their
     # profile interval and are left uncoupled
-    h_all, coupled = {}, []
+    coupled = []                                     # (spec, h: twice the profile half-width)
     for sp in specs:
         t0_, (a_, b_) = sp.to_t(float(best_x[sp.key])), sp.t_bounds
         lo, hi = out[sp.key]
-        h_ = max(2.0 * 0.5 * (sp.to_t(hi) - sp.to_t(lo)), (b_ - a_) / 32.0)
+        h_ = max(sp.to_t(hi) - sp.to_t(lo), (b_ - a_) / 32.0)
         if not sp.integer and min(t0_ - a_, b_ - t0_) >= 0.5 * h_:
-            coupled.append(sp)
-            h_all[sp.key] = h_
+            coupled.append((sp, h_))
     if len(coupled) < 2:
         return out, factors, {}
-    specs = coupled
+    specs = [sp for sp, _ in coupled]
     n = len(specs)
     keys = [sp.key for sp in specs]
     t0 = np.array([sp.to_t(float(best_x[sp.key])) for sp in specs])
     tb = np.array([sp.t_bounds for sp in specs])
-    h = np.array([h_all[k] for k in keys])
+    h = np.array([h_ for _, h_ in coupled])
 
     def clip(t):
         return np.minimum(np.maximum(t, tb[:, 0]), tb[:, 1])
