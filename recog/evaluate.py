@@ -26,7 +26,7 @@ from recog.model import Recogniser
 from recog.symmetry import rotation_error_deg
 from recog.testset import read_testset
 
-__all__ = ["evaluate", "summarise"]
+__all__ = ["evaluate", "summarise", "write_eval_json"]
 
 
 def summarise(rot: list[float], rot_plain: list[float], trans: list[float]) -> dict:
@@ -104,10 +104,10 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
     return result
 
 
-def _write(model, testset, out: Path, result: dict, rows, err, names, conf) -> None:
-    from data_tools.results import atomic_write_bytes, make_header, write_result
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(out / "predictions.jsonl", "".join(json.dumps(r) + "\n" for r in rows).encode())
+def write_eval_json(model, testset, result: dict, path: str | os.PathLike) -> Path:
+    """``result`` (:func:`evaluate`'s) with its result header, written atomically to ``path``: the
+    eval.json of ``--out`` and the file of ``recog eval --json OUT``."""
+    from data_tools.results import make_header, write_result
     header = make_header("recog.eval", inputs={"model": model.folder / "recogniser.json",
                                                 "testset": Path(testset) / "labels.json"},
                          parameters={"icp": result["icp"]}, timings_s={"total": result["seconds"]},
@@ -115,7 +115,14 @@ def _write(model, testset, out: Path, result: dict, rows, err, names, conf) -> N
                                   "rot_err_deg_median": result["rot_err_deg"]["median"],
                                   "rot_err_deg_median_before_icp": result["before_icp"]["rot_err_deg"]["median"],
                                   "trans_err_m_median": result["trans_err_m"]["median"]})
-    write_result(out / "eval.json", header, result)
+    return write_result(path, header, result)
+
+
+def _write(model, testset, out: Path, result: dict, rows, err, names, conf) -> None:
+    from data_tools.results import atomic_write_bytes
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(out / "predictions.jsonl", "".join(json.dumps(r) + "\n" for r in rows).encode())
+    write_eval_json(model, testset, result, out / "eval.json")
     _figures(out / "figures", err, names, conf, str(model.data.variant))
 
 
