@@ -147,6 +147,7 @@ def _figures(folder: Path, err, names, conf, label: str) -> None:
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize=8)
         ax.set_title(f"CDF of the {key} error (correctly classified scans)", fontsize=9)
+        fig.tight_layout()                      # the x label was cut off at the bottom edge
         atomic_save_figure(fig, folder / f"cdf_{key}.png")
         plt.close(fig)
     fig, ax = plt.subplots(figsize=(1.0 + 0.55 * len(names), 0.8 + 0.5 * len(names)))
