@@ -170,6 +170,8 @@ def planar_seq(tmp_path_factory):
     import torch
     torch.manual_seed(0)
     save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
+    from slam.neural.topview import TopViewDecoder, save_topview
+    save_topview(root / "model", TopViewDecoder(4, 4))
     return root
 
 
@@ -197,6 +199,9 @@ def test_neural_backend_run_snapshots_and_render(planar_seq):
     assert psi.shape[0] == 4 and psi.shape[1:] == occ.shape == (33 + 2 * 20,) * 2
     for name in ("occupancy.png", "features.png", "memory.json"):
         assert (mem / name).stat().st_size > 0
+    import cv2
+    top = cv2.imread(str(mem / "topview.png"))          # the model has a (here untrained) top-view decoder
+    assert top.shape == (33 + 2 * 20, 33 + 2 * 20, 3)
     for hall in (False, True):
         view, paths, _ = render_run_to_png(root / "run", root / f"v{hall}.png", frame=10, hallucinate=hall)
         H, W = reader.intrinsics.shape

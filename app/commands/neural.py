@@ -29,6 +29,16 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a model already in MODEL")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_train, on_interrupt=RESUMES)
+    p = sub.add_parser("train-topview", help="give a 3d model a trained top-view decoder (memory frozen)",
+                       description="Train the per-cell read-out of a 3d model's memory into a colour floor plan "
+                                   "(MODEL/topview.pt; 'neural train --mode 3d' makes one itself), the memory's "
+                                   "weights untouched. slam run --backend neural then writes memory/topview.png.")
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("--steps", type=int, default=300, help="optimiser steps (default 300)")
+    p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
+    add_shared(p, "--overwrite", "a top-view decoder already in MODEL")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_train_topview)
     p = sub.add_parser("eval", help="localisation, recall and hallucination metrics + baselines (JSON)")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "folder for neural_eval.json", metavar="DIR")
@@ -60,6 +70,18 @@ def _train(args) -> int:
     last = tlog.steps[-1] if tlog.steps else {}
     print(f"{folder}: neural memory trained ({cfg.iterations} steps, {tlog.seconds:.0f} s this run); last losses "
           + " ".join(f"{k} {v:.3f}" for k, v in last.items() if k != "step"))
+    return 0
+
+
+def _train_topview(args) -> int:
+    from slam.neural.run import add_topview
+    from app.pipelines import simulate_planar_room
+    info = add_topview(args.model, args.steps, overwrite=args.overwrite, worlds=args.worlds,
+                       progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
+                       simulate=simulate_planar_room)
+    last = info["log"][-1]["topview_l1"] if info["log"] else float("nan")
+    print(f"{args.model}/topview.pt: top-view decoder trained ({info['steps']} steps, {info['seconds']:.0f} s); "
+          f"last L1 {last:.3f}")
     return 0
 
 

@@ -19,7 +19,9 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
 ``fitness`` of a step is the pose field's maximum probability (1 = certain). The memory (features
 and occupancy, ``.npy``) and PNG pictures of the occupancy (stretched to its own range) and of the
 memory's three principal feature components on the observed cells (:func:`observed_cells`) are
-written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`).
+written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`), with the decoded top view
+(``topview.png``: the trained per-cell colour read-out of :mod:`slam.neural.topview`, row 0 = ahead of
+the first frame) when the model has one.
 """
 from __future__ import annotations
 
@@ -167,7 +169,8 @@ class NeuralBackend(RegistrationBackend):
 
     def save_outputs(self, out: Path) -> None:
         """RUN/memory/: memory.npy (n, U, U) features, occupancy.npy (U, U), memory.json (cell size, first
-        pose, model, memory steps and their allocentric estimates), occupancy.png, features.png."""
+        pose, model, memory steps and their allocentric estimates), occupancy.png, features.png, and topview.png
+        (the decoded colour floor plan, unobserved cells dimmed) when the model has a top-view decoder."""
         if self._snap is None:
             return
         from data_tools.results import atomic_write_bytes, atomic_write_image, atomic_write_json
@@ -184,6 +187,10 @@ class NeuralBackend(RegistrationBackend):
         span = max(float(occ.max() - occ.min()), 1e-9)
         atomic_write_image(d / "occupancy.png", ((occ - occ.min()) / span * 255).astype(np.uint8))
         atomic_write_image(d / "features.png", memory_picture(self._snap["psi"], seen))
+        from slam.neural.topview import decode_topview, load_topview, topview_picture
+        dec = load_topview(self._snap["model"], self._snap["psi"].shape[0])
+        if dec is not None:      # the model's trained top-view decoder: the map's colours
+            atomic_write_image(d / "topview.png", topview_picture(decode_topview(dec, self._snap["psi"], occ), seen))
 
 
 def observed_cells(occ: np.ndarray) -> np.ndarray:

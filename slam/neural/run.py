@@ -7,7 +7,7 @@ from typing import Callable
 
 from data_tools.errors import ConfigError
 
-__all__ = ["train_to_folder", "evaluate_folder"]
+__all__ = ["train_to_folder", "train_topview_into", "add_topview", "evaluate_folder"]
 
 
 def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progress: bool = True,
@@ -22,11 +22,53 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
     folder.mkdir(parents=True, exist_ok=True)
     mark_incomplete(folder, "realgap neural train", 0, cfg.iterations, unit="steps")
     model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate)
+    if cfg.mode == "3d" and cfg.topview_steps > 0:
+        # the memory's final checkpoint is on disk: an interruption here restarts only this phase
+        train_topview_into(folder, model, cfg, cfg.topview_steps, progress=progress, log=log, simulate=simulate)
     save_model(folder, model, cfg, {"train_log": tlog.steps[-20:], "train_seconds": round(tlog.seconds, 1),
                                     "resumed_from_step": tlog.resumed_from})
     (folder / "checkpoint.pt").unlink(missing_ok=True)
     clear_incomplete(folder)
     return model, tlog, folder
+
+
+def train_topview_into(folder, model, cfg, steps: int, progress: bool = True, log=None, simulate=None,
+                       command: str = "") -> dict:
+    """Train the top-view decoder of a 3D ``model`` (frozen) on ``cfg``'s training rooms for ``steps`` steps and
+    write MODEL/topview.pt (:mod:`slam.neural.topview`); returns its info (steps, seed, seconds, losses)."""
+    from slam.neural.topview import save_topview, train_topview
+    from slam.neural.train import worlds_3d
+    bank = worlds_3d(cfg, simulate, progress, log)
+    dec, hist, sec = train_topview(model, bank, steps, batch=cfg.batch, seq_steps=cfg.steps, lr=cfg.lr, seed=cfg.seed,
+                                   progress=progress, log=log)
+    info = {"steps": int(steps), "seed": int(cfg.seed), "seconds": round(sec, 1), "log": hist[-10:],
+            "command": command or "realgap neural train --mode 3d"}
+    save_topview(folder, dec, info)
+    return info
+
+
+def add_topview(model_dir, steps: int, overwrite: bool = False, worlds: str | None = None, progress: bool = True,
+                log=None, simulate=None) -> dict:
+    """``neural train-topview``: give an existing 3D model folder a trained top-view decoder (the memory's
+    weights are not touched)."""
+    import dataclasses
+
+    from data_tools.errors import RealgapError
+    from slam.neural.topview import TOPVIEW_FILE
+    from slam.neural.train import load_model
+    if steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {steps}")
+    model, cfg, _ = load_model(model_dir)
+    if cfg.mode != "3d":
+        raise ConfigError(f"{model_dir} is a {cfg.mode} model; the top-view decoder is for 3d models (a 2d memory "
+                          "is a top view already)")
+    if (Path(model_dir) / TOPVIEW_FILE).is_file() and not overwrite:
+        raise RealgapError(f"{Path(model_dir) / TOPVIEW_FILE}: already holds a top-view decoder; pass --overwrite to "
+                           "train a new one")
+    if worlds:
+        cfg = dataclasses.replace(cfg, worlds_dir=str(worlds))
+    return train_topview_into(model_dir, model, cfg, steps, progress=progress, log=log, simulate=simulate,
+                              command=f"realgap neural train-topview MODEL --steps {steps}")
 
 
 def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | None = None, overwrite: bool = False,

@@ -71,6 +71,9 @@ class NeuralTrainConfig:
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
     """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
+    topview_steps: int = 300
+    """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
+    (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
     world: World3DConfig = field(default_factory=World3DConfig)
     """3D mode: grid, images and simulated rooms (:class:`slam.neural.data3d.World3DConfig`)."""
     worlds_dir: str = ""
@@ -85,6 +88,8 @@ class NeuralTrainConfig:
         for k in ("steps", "batch", "iterations", "checkpoint_every", "log_every", "features", "width"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        if int(self.topview_steps) < 0:
+            raise ConfigError(f"topview_steps must be >= 0, got {self.topview_steps}")
         if not 1 <= self.observe < self.steps:
             raise ConfigError(f"observe must be in 1..steps-1, got {self.observe}")
         return self
@@ -101,7 +106,7 @@ TRAIN_PRESETS_3D = {
     "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1800, pretrain_steps=150, teacher_steps=450,
                              hallucination_from=1000, features=16, width=16),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
-                             hallucination_from=10000, features=32, width=64, device="cuda",
+                             hallucination_from=10000, features=32, width=64, device="cuda", topview_steps=2000,
                              world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
 }
 """3D (``--mode 3d``) presets: ``cpu`` took about 60 min on one core of this 2-core machine (1000 steps

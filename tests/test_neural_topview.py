@@ -1,0 +1,119 @@
+"""The 3D memory's top-view decoder (slam.neural.topview): targets, training, save -> load, CLI errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from slam.neural.topview import (TopViewDecoder, load_topview, project_sum, save_topview, topview_targets,
+                                 train_topview)
+
+
+def test_project_sum_hand_computed():
+    vals = torch.tensor([[[1.0, 2.0, 4.0, 8.0]]])          # (B=1, c=1, 4 pixels)
+    cells = torch.tensor([[0, 0, 3, -1]])                   # two pixels in cell 0, one in cell 3, one dropped
+    s, n = project_sum(vals, cells, 2)
+    np.testing.assert_array_equal(s[0, 0].numpy(), [[3.0, 0.0], [0.0, 4.0]])
+    np.testing.assert_array_equal(n[0, 0].numpy(), [[2.0, 0.0], [0.0, 1.0]])
+
+
+def _one_pixel(q, r, ego_cell, colour, heading_cell=None):
+    """imgs (1, 1, 4, 1, 1) with one pixel of ``colour`` in ego cell ``ego_cell`` of the unturned grid (and
+    ``heading_cell[k]`` of the turned ones)."""
+    imgs = torch.tensor(list(colour) + [0.0]).view(1, 1, 4, 1, 1)
+    cells = torch.full((1, 1, r, 1), -1, dtype=torch.long)
+    for k in range(r):
+        cells[0, 0, k, 0] = ego_cell if heading_cell is None else heading_cell[k]
+    return imgs, cells
+
+
+def test_targets_paste_each_view_at_its_allocentric_pose():
+    """The view's centre cell lands on memory cell (row + U // 2, col + U // 2), as the memory's own
+    registration places it; a point 2 cells ahead lands 2 rows up; the heading picks its turned grid."""
+    q, r, U = 5, 4, 11
+    c = q // 2
+    imgs, cells = _one_pixel(q, r, c * q + c, (0.5, -0.5, 0.25))
+    tgt, seen = topview_targets(imgs, cells, torch.tensor([[[2, -1, 0]]]), r, q, U)
+    assert seen.sum() == 1 and seen[0, 0, U // 2 + 2, U // 2 - 1]
+    np.testing.assert_allclose(tgt[0, :, U // 2 + 2, U // 2 - 1].numpy(), [0.5, -0.5, 0.25])
+    ahead = (c - 2) * q + c
+    imgs, cells = _one_pixel(q, r, None, (1.0, 1.0, 1.0), heading_cell=[ahead, c * q + c - 2, -1, -1])
+    _, seen0 = topview_targets(imgs, cells, torch.tensor([[[0, 0, 0]]]), r, q, U)
+    assert seen0[0, 0, U // 2 - 2, U // 2]
+    _, seen1 = topview_targets(imgs, cells, torch.tensor([[[0, 0, 1]]]), r, q, U)   # heading 1: turned grid 1
+    assert seen1[0, 0, U // 2, U // 2 - 2] and seen1.sum() == 1
+
+
+def test_targets_average_views():
+    q, r, U = 5, 4, 9
+    c = q // 2
+    a, ca = _one_pixel(q, r, c * q + c, (1.0, 0.0, 0.0))
+    b, cb = _one_pixel(q, r, c * q + c, (0.0, 1.0, 0.0))
+    imgs, cells = torch.cat([a, b], 1), torch.cat([ca, cb], 1)
+    tgt, seen = topview_targets(imgs, cells, torch.tensor([[[0, 0, 0], [0, 0, 2]]]), r, q, U)
+    np.testing.assert_allclose(tgt[0, :, U // 2, U // 2].numpy(), [0.5, 0.5, 0.0])
+
+
+class _Bank:
+    """A stand-in for slam.neural.data3d.WorldBank: rooms of one colour (plus a little noise), views of random
+    cells (the memory is teacher-forced, so what it could not localise does not matter)."""
+
+    def __init__(self, q, r, H, W):
+        self.q, self.r, self.H, self.W = q, r, H, W
+        self.wedge = np.ones((q, q), bool)
+
+    def sample(self, rng, batch, steps):
+        col = (np.array([0.6, -0.4, 0.2]).reshape(1, 1, 3, 1, 1)
+               + rng.normal(0, 0.05, (batch, 1, 3, 1, 1))).astype(np.float32)
+        imgs = np.concatenate([np.broadcast_to(col, (batch, steps, 3, self.H, self.W)),
+                               np.zeros((batch, steps, 1, self.H, self.W), np.float32)], 2)
+        cells = rng.integers(0, self.q * self.q, (batch, steps, self.r, self.H * self.W)).astype(np.int64)
+        allo = np.stack([rng.integers(-1, 2, (batch, steps)), rng.integers(-1, 2, (batch, steps)),
+                         rng.integers(0, self.r, (batch, steps))], -1).astype(np.int64)
+        allo[:, 0] = 0
+        return imgs, cells, allo, None
+
+
+def _tiny_model():
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    torch.manual_seed(0)
+    return NeuralMemory(MemoryConfig(channels=4, features=4, view=7, memory=15, width=4, rotations=4, search=2,
+                                     input="image", image_size=(4, 6)))
+
+
+def test_training_lowers_the_loss_and_leaves_the_memory_alone():
+    model = _tiny_model()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    dec, hist, _ = train_topview(model, _Bank(7, 4, 4, 6), 100, batch=4, seq_steps=3, lr=2e-3, progress=False)
+    assert hist[-1]["topview_l1"] < 0.5 * hist[0]["topview_l1"], hist
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    assert all(p.requires_grad for p in model.parameters())
+
+
+def test_save_load_identical_and_errors(tmp_path):
+    from data_tools.errors import FormatError
+    torch.manual_seed(3)
+    dec = TopViewDecoder(4, 8)
+    save_topview(tmp_path, dec, {"steps": 1})
+    back = load_topview(tmp_path, 4)
+    psi, occ = torch.randn(1, 4, 9, 9), torch.rand(1, 1, 9, 9)
+    with torch.no_grad():
+        assert torch.equal(dec.eval()(psi, occ), back(psi, occ))
+    assert load_topview(tmp_path / "none", 4) is None
+    with pytest.raises(FormatError, match="for 4 memory features, the model has 8"):
+        load_topview(tmp_path, 8)
+    (tmp_path / "topview.pt").write_bytes(b"not torch")
+    with pytest.raises(FormatError, match="unreadable top-view decoder"):
+        load_topview(tmp_path, 4)
+
+
+def test_train_topview_cli_rejects_a_2d_model(tmp_path, capsys):
+    from pathlib import Path
+
+    from app.cli import main
+    shipped = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    assert main(["neural", "train-topview", str(shipped), "--steps", "1", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "is a 2d model" in err, err
+    assert not (shipped / "topview.pt").exists()
