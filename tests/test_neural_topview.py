@@ -117,3 +117,36 @@ def test_train_topview_cli_rejects_a_2d_model(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "is a 2d model" in err, err
     assert not (shipped / "topview.pt").exists()
+
+
+def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
+    """evaluate_3d on one simulated 40-frame test room with a tiny untrained model (+ its top-view decoder):
+    localisation (neural and icp), images, ablations, baseline, top view and speed all come out finite and
+    JSON-serialisable. The plumbing, not the accuracy (the shipped model's numbers are in the README)."""
+    import json
+
+    from app.pipelines import simulate_planar_room
+    from slam.neural.data3d import World3DConfig
+    from slam.neural.evaluate3d import evaluate_3d
+    from slam.neural.model import NeuralMemory
+    from slam.neural.topview import TopViewDecoder
+    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
+    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=40, stride_min=2, stride_max=3)
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"))
+    torch.manual_seed(0)
+    save_model(tmp_path / "model", NeuralMemory(memory_config(tcfg)), tcfg)
+    save_topview(tmp_path / "model", TopViewDecoder(4, 4))
+    model, cfg, _ = load_model(tmp_path / "model")
+    res = evaluate_3d(model, cfg, tmp_path / "ev", tmp_path / "model", samples=2, progress=False,
+                      simulate=lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False))
+    json.dumps(res)
+    assert list(res["sequences"]) == ["test_000"]
+    row = res["sequences"]["test_000"]
+    assert row["neural"]["frames"] == row["icp"]["frames"] == 40
+    assert row["icp"]["ate_m"]["rmse"] < 0.1                   # icp tracks a simulated room
+    for key in ("anamnesis", "hallucination", "baseline_tsdf_inpainting", "ablation_no_localisation_anamnesis",
+                "ablation_no_culling_hallucination"):
+        assert 0.0 <= res[key]["l1"] <= 1.0 and -1.0 <= res[key]["ssim_thesis"] <= 1.0, key
+    top = res["topview"]
+    assert 0.0 < top["l1"] <= 1.0 and 0.0 < top["l1_true_poses"] <= 1.0 and 0.0 < top["baseline_mean_colour_l1"] < 1
+    assert res["speed_register5_recall5_hallucinate5_s"]["median"] > 0
