@@ -184,6 +184,10 @@ class Effect(ABC):
     """FITTABLE parameters that the lab fits only for some sensor types (``SensorPreset.type``):
     a parameter whose physics another sensor does not have stays at its value there, so a fit
     cannot use it to explain what another effect should."""
+    START_PRIORITY: ClassVar[int] = 0
+    """Order of the closed-form starts (lower first): each effect's ``fit_start`` sees the ``config``
+    with the starts of the effects before it applied (a pixel re-mapping such as the lens warp is
+    estimated first, so that a depth-bias regression does not explain it with a radial term)."""
     START_ONLY_PARAMS: ClassVar[tuple[str, ...]] = ()
     """Non-numeric parameters (choices) that ``fit_start`` chooses from the data (e.g. a window
     shape); the search keeps them fixed."""
@@ -265,7 +269,8 @@ class Effect(ABC):
         """Starting values of fitted parameters estimated directly from measured data
         (``{"effect.param": value}``), for parameters whose gap landscape is too rugged for a
         coarse grid; ``measured`` is a :class:`synth.lab.measured.MeasuredSequence`, ``frames``
-        the positions of the fit's frames. Default: none."""
+        the positions of the fit's frames; ``config`` holds the starts of the effects of lower
+        :attr:`START_PRIORITY`. Default: none."""
         return {}
 
     @classmethod

@@ -72,17 +72,22 @@ class DepthBias(Effect):
         corner, s the scale, o the offset; r the normalised image radius), linear in the four
         unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
-        (mismatches, flying pixels). Values are clipped into the fit ranges."""
+        (mismatches, flying pixels). Values are clipped into the fit ranges. When ``config`` carries a
+        lens distortion start (started first, :attr:`Effect.START_PRIORITY`), the ideal depth is warped
+        by it before the regression: a radial term must not explain what the lens does."""
         from synth.sensor.effects._common import measured_samples
+        from synth.sensor.effects.lens_distortion import warped_ideal_depth
         fb = float(config.preset.fb)
         rows, ys = [], []
         rng = np.random.default_rng(0)
         for _, m, r, ok in measured_samples(measured):
+            zi = warped_ideal_depth(config, measured.intrinsics, np.where(r.hit, r.depth, 0))
+            ok = ok & (zi > 0)
             vv, uu = np.nonzero(ok & (m > 0))
             if vv.size > 20000:
                 keep = rng.choice(vv.size, 20000, replace=False)
                 vv, uu = vv[keep], uu[keep]
-            z = r.depth[vv, uu].astype(np.float64)
+            z = zi[vv, uu].astype(np.float64)
             zm = m[vv, uu].astype(np.float64)
             intr = measured.intrinsics
             r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2) / (intr.cx ** 2 + intr.cy ** 2)
