@@ -34,7 +34,9 @@ phase of the disparity levels, which is the preset's reference depth):
 2. every parameter whose scan improved the gap is refined alone from the same point by
    golden-section search (``refine_iterations`` steps) in the bracket between the grid
    neighbours of its best grid value (the objective is not assumed unimodal over the whole
-   range, only inside that bracket); parameters that did not help cost only their scan;
+   range, only inside that bracket); in the first sweep so is a parameter whose best grid value
+   is its starting value (a closed-form start is close, not exact: no grid value beats it, but a
+   bracket around it may); the other parameters that did not help cost only their scan;
 3. the 1-D optima are combined in order of their gap (Gauss-Southwell rule: of strongly
    coupled parameters, e.g. a constant and a quadratic noise term, the one that explains most
    is settled first), each re-scored at the moving point and kept only while it helps;
@@ -438,15 +440,15 @@ def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, 
                 trial[s.key] = s.from_t(t)
                 vals.append(f(trial))
             i = int(np.argmin(vals))
-            scans.append((vals[i], s, grid, i))
+            scans.append((vals[i], s, grid, i, sweep == 0 and grid[i] == cur_t))
         # 2. every parameter whose scan helped is refined alone from the sweep's start point
         #    (golden section in the bracket of its best grid value), then the 1-D optima are
         #    combined, the best first (Gauss-Southwell order), each re-scored at the moving point
         #    and kept only if it still helps
         x0, best0 = dict(x), best
         singles = []
-        for val, s, grid, i in scans:
-            if val >= best0:
+        for val, s, grid, i, at_start in scans:
+            if val >= best0 and not at_start:
                 continue
             xs = dict(x0)
             xs[s.key] = s.from_t(grid[i])
@@ -454,7 +456,8 @@ def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, 
             if refine_below is None or val < refine_below:
                 vs, xs = _golden(f, xs, s, grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)], val,
                                  int(fc.refine_iterations), budget)
-            singles.append((vs, s.key, xs[s.key]))
+            if vs < best0:
+                singles.append((vs, s.key, xs[s.key]))
         singles.sort(key=lambda r: r[0])
         moved = False
         for vs, key, v in singles:

@@ -96,6 +96,8 @@ class LensDistortion(Effect):
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
     """k1 values of the closed-form start's scan."""
+    START_GRID_K2 = np.linspace(-0.15, 0.15, 13)
+    """k2 values of the start's second scan (at the best k1)."""
 
     def __init__(self, params=None, enabled=True):
         super().__init__(params, enabled)
@@ -109,9 +111,11 @@ class LensDistortion(Effect):
         the measured ones by the symmetric chamfer distance (mean distance to the nearest edge of the
         other image, capped at 5 px). Edges do not move under depth biases, scale errors or noise
         (which a depth residual would mix in: a 0.3 px disparity offset is a 4 % depth change at
-        3 m), only under the lens. The best grid value is refined by a parabola through its
-        neighbours. Nothing when it does not beat k1 = 0 by 5 % of the cost (no lens distortion to
-        speak of) or when the frames show fewer than 200 edge pixels."""
+        3 m), only under the lens. Then k2 is scanned over :attr:`START_GRID_K2` at that k1 (kept when
+        it lowers the cost by 2 %) and k1 again on a fine grid at that k2; each best grid value is
+        refined by a parabola through its neighbours. Nothing when k1 does not beat k1 = 0 by 5 % of
+        the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
+        pixels. Tangential terms are not estimated (the fit has none)."""
         import cv2
 
         from synth.sensor.effects._common import measured_samples
@@ -150,9 +154,10 @@ class LensDistortion(Effect):
         base = [float(x) for x in (tuple(e.params.coefficients) or tuple(config.preset.distortion))]
         base += [0.0] * (5 - len(base))
 
-        def cost(k1: float) -> float:
+        def cost(k1: float, k2: float = 0.0) -> float:
             c = list(base)
             c[0] += k1
+            c[1] += k2
             und = undistort_pixels(pts, intr.K, c).reshape(-1, 2) if any(c) else pts.reshape(-1, 2)
             ui, vi = np.rint(und[:, 0]).astype(np.int64), np.rint(und[:, 1]).astype(np.int64)
             inside = (ui >= 0) & (ui < W) & (vi >= 0) & (vi < H)
@@ -168,19 +173,33 @@ class LensDistortion(Effect):
                 n += int(em.sum() + ew.sum())
             return tot / max(n, 1)
 
-        grid = cls.START_GRID
-        costs = np.array([cost(float(k)) for k in grid])
-        i = int(np.argmin(costs))
-        if not costs[i] < 0.95 * cost(0.0):
+        def best_on(grid, f) -> tuple[float, float]:
+            """(argmin refined by a parabola through its neighbours, min) of f over an even grid."""
+            costs = np.array([f(float(v)) for v in grid])
+            i = int(np.argmin(costs))
+            x = float(grid[i])
+            if 0 < i < len(grid) - 1:
+                a, b, c = costs[i - 1], costs[i], costs[i + 1]
+                den = a - 2 * b + c
+                if den > 0:
+                    x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
+            return x, float(costs[i])
+
+        c0 = cost(0.0)
+        k1, c1 = best_on(cls.START_GRID, cost)
+        if not c1 < 0.95 * c0:
             return {}
-        k1 = float(grid[i])
-        if 0 < i < len(grid) - 1:
-            a, b, c = costs[i - 1], costs[i], costs[i + 1]
-            den = a - 2 * b + c
-            if den > 0:
-                k1 += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
+        # k2 at that k1, then k1 again finely at that k2 (coordinate steps: a lens is mostly k1)
+        k2, c2 = best_on(cls.START_GRID_K2, lambda v: cost(k1, v))
+        if not c2 < 0.98 * c1:
+            k2 = 0.0
+        d = float(cls.START_GRID[1] - cls.START_GRID[0])
+        k1, _ = best_on(k1 + d * np.linspace(-1.0, 1.0, 9), lambda v: cost(v, k2))
         lo, hi = cls.FITTABLE["k1"]
-        return {f"{cls.name}.k1": float(np.clip(k1, lo, hi))}
+        out = {f"{cls.name}.k1": float(np.clip(k1, lo, hi))}
+        if k2:
+            out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
+        return out
 
     def validate(self) -> None:
         super().validate()
