@@ -150,3 +150,16 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     top = res["topview"]
     assert 0.0 < top["l1"] <= 1.0 and 0.0 < top["l1_true_poses"] <= 1.0 and 0.0 < top["baseline_mean_colour_l1"] < 1
     assert res["speed_register5_recall5_hallucinate5_s"]["median"] > 0
+
+
+def test_train_preset_of_the_other_mode_is_one_line(tmp_path, capsys):
+    from app.cli import main
+    from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
+    assert "cpu-long" in TRAIN_PRESETS_3D and "cpu-long" not in TRAIN_PRESETS
+    assert main(["neural", "train", "--mode", "2d", "--preset", "cpu-long", "--out", str(tmp_path / "m"),
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--preset cpu-long is for --mode 3d" in err, err
+    assert not (tmp_path / "m").exists()
+    c = TRAIN_PRESETS_3D["cpu"]            # the <= 30 min schedule (see its docstring for the step costs)
+    assert c.pretrain_steps < c.hallucination_from < c.iterations and c.topview_steps > 0

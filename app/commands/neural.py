@@ -19,7 +19,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents walking on images; 3d: a ground robot's simulated "
                         "kinect_v1 RGB-D sequences in procedural rooms")
     add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
-    p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"), help="cpu: minutes on 2 cores; gpu: larger")
+    p.add_argument("--preset", default="cpu", choices=("cpu", "cpu-long", "gpu"),
+                   help="cpu: <= 30 min on 2 cores; cpu-long (3d): the shipped planar_3d recipe, ~1 h; gpu: larger")
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
@@ -62,6 +63,9 @@ def _train(args) -> int:
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
+    if args.preset not in presets:
+        from data_tools.errors import ConfigError
+        raise ConfigError(f"--preset {args.preset} is for --mode 3d; --mode {args.mode} has {', '.join(presets)}")
     cfg = dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over).validate()
     from app.pipelines import simulate_planar_room
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,

@@ -185,9 +185,10 @@ class Effect(ABC):
     a parameter whose physics another sensor does not have stays at its value there, so a fit
     cannot use it to explain what another effect should."""
     START_PRIORITY: ClassVar[int] = 0
-    """Order of the closed-form starts (lower first): each effect's ``fit_start`` sees the ``config``
-    with the starts of the effects before it applied (a pixel re-mapping such as the lens warp is
-    estimated first, so that a depth-bias regression does not explain it with a radial term)."""
+    """Order of the closed-form starts (lower first). The starts of an effect with a negative priority
+    are applied to the ``config`` that the later effects' ``fit_start`` see: a pixel re-mapping such
+    as the lens warp is estimated first, so that a depth-bias regression does not explain it with a
+    radial term."""
     START_ONLY_PARAMS: ClassVar[tuple[str, ...]] = ()
     """Non-numeric parameters (choices) that ``fit_start`` chooses from the data (e.g. a window
     shape); the search keeps them fixed."""
