@@ -1,4 +1,4 @@
-"""An independent generator of "measured" depth sequences with one hidden sensor effect.
+"""An independent generator of "measured" depth sequences with one hidden sensor effect (or a pair).
 
 The sensor lab must find effects in data that did NOT come from our simulator, so this module
 re-implements every effect its own way, from the ideal geometry only (``synth.render``'s
@@ -124,9 +124,30 @@ SCENES = {"studio": (studio_scene, trajectory), "room": (room_scene, room_trajec
 """Scene builders and their trajectories."""
 
 
+def hidden_set(effect: str | None) -> tuple[str, ...]:
+    """The hidden effects named by ``effect``: None (base effects only), one name, or several joined
+    by ``+`` (``"depth_bias+lens_distortion"``: both hidden in the same frames)."""
+    if effect is None:
+        return ()
+    names = tuple(e for e in str(effect).split("+") if e)
+    unknown = [e for e in names if e not in HIDDEN_EFFECTS]
+    if unknown or len(set(names)) != len(names):
+        raise ValueError(f"unknown or repeated hidden effect in {effect!r}; known: {', '.join(HIDDEN_EFFECTS)}")
+    return names
+
+
 def draw_params(effect: str | None, rng: np.random.Generator) -> dict:
-    """Random parameters of the base effects and of the hidden one."""
+    """Random parameters of the base effects and of the hidden one(s) (see :func:`hidden_set`; the
+    draws of a single effect are the same whether or not pairs exist: each effect draws in turn)."""
     p = {"sigma_d_px": float(rng.uniform(0.05, 0.09)), "range_min_m": 0.5, "range_max_m": float(rng.uniform(4.5, 6.0))}
+    for e in hidden_set(effect):
+        p.update(_draw_effect(e, rng))
+    return p
+
+
+def _draw_effect(effect: str, rng: np.random.Generator) -> dict:
+    """Random true parameters of one hidden effect."""
+    p = {}
     if effect == "projector_shadow":
         p["tolerance_rel"] = float(rng.uniform(0.002, 0.01))
     elif effect == "disparity_quantization":
@@ -149,8 +170,6 @@ def draw_params(effect: str | None, rng: np.random.Generator) -> dict:
         lo = float(rng.uniform(0.03, 0.07))
         p["albedo_lo"] = lo
         p["albedo_hi"] = lo + float(rng.uniform(0.06, 0.12))
-    elif effect is not None:
-        raise ValueError(f"unknown hidden effect {effect!r}; known: {', '.join(HIDDEN_EFFECTS)}")
     return p
 
 
@@ -195,24 +214,26 @@ def _disk(radius: int) -> np.ndarray:
 
 def sense(effect: str | None, params: dict, renderer, r, pose, intr: Intrinsics, albedo_of_id: np.ndarray,
           rng: np.random.Generator) -> np.ndarray:
-    """The measured depth (H, W) float32 of one frame from its ideal render ``r``."""
+    """The measured depth (H, W) float32 of one frame from its ideal render ``r``; ``effect`` as
+    in :func:`hidden_set` (several effects act in the fixed order of the device's path below)."""
     from scipy import ndimage
+    hidden = hidden_set(effect)
     z = np.where(r.hit, r.depth, 0.0).astype(np.float64)
     fb = intr.fx * BASELINE
     holes = ~r.hit
-    if effect == "edge_fattening":
+    if "edge_fattening" in hidden:
         far = np.where(r.hit, z, np.inf)
         zmin = ndimage.minimum_filter(far, footprint=_disk(params["radius_px"]), mode="nearest")
         fat = np.isfinite(zmin) & (zmin < far * 0.96)
         z = np.where(fat, zmin, z)
         holes &= ~fat
-    if effect == "projector_shadow":
+    if "projector_shadow" in hidden:
         holes |= _shadow(renderer, r, pose, (BASELINE, 0.0, 0.0), params["tolerance_rel"])
-    if effect == "incidence_dropout":
+    if "incidence_dropout" in hidden:
         cos_t = np.abs(np.einsum("hwk,hwk->hw", r.normals_cam, r.ray_dirs_cam))
         p = 1.0 / (1.0 + np.exp(np.clip((cos_t - params["cos50"]) / params["width_cos"], -50, 50)))
         holes |= rng.random(z.shape) < p
-    if effect == "low_reflectance":
+    if "low_reflectance" in hidden:
         a = albedo_of_id[r.instance_ids]
         p = np.clip((params["albedo_hi"] - a) / (params["albedo_hi"] - params["albedo_lo"]), 0.0, 1.0)
         holes |= r.hit & (rng.random(z.shape) < p)
@@ -220,15 +241,15 @@ def sense(effect: str | None, params: dict, renderer, r, pose, intr: Intrinsics,
     with np.errstate(divide="ignore"):
         d = np.where(z > 0, fb / np.maximum(z, 1e-9), 0.0)
     d = d + params["sigma_d_px"] * rng.standard_normal(z.shape)
-    if effect == "disparity_quantization":
+    if "disparity_quantization" in hidden:
         d = params["step_px"] * np.round(d / params["step_px"])
     with np.errstate(divide="ignore", invalid="ignore"):
         z = np.where((d > 0) & ~holes, fb / d, 0.0)
-    if effect == "depth_bias":
+    if "depth_bias" in hidden:
         zz = z - 2.0
         z = np.where(z > 0, z + params["c0_m"] + params["c1"] * zz + params["c2_per_m"] * zz * zz, 0.0)
     z[(z < params["range_min_m"]) | (z > params["range_max_m"])] = 0.0
-    if effect == "lens_distortion":
+    if "lens_distortion" in hidden:
         mu, mv = _undistort_map(intr, params["k1"], params["k2"], params["p1"], params["p2"])
         ui, vi = np.rint(mu).astype(int), np.rint(mv).astype(int)
         inside = (ui >= 0) & (ui < intr.width) & (vi >= 0) & (vi < intr.height)
