@@ -78,6 +78,28 @@ def measured_samples(measured, frames=None):
         yield k, m, r, ok
 
 
+def locally_flat(depth: np.ndarray, radius_px: int = 8, rel: float = 0.03, min_share: float = 0.3) -> np.ndarray:
+    """(H, W) bool: hit pixels of the ideal ``depth`` (H, W, metres; 0 = no hit) whose whole
+    (2 radius_px + 1)^2 neighbourhood is hit and stays within +-``rel`` of their own depth: away from
+    depth edges and from steeply slanted surfaces. Block matching fattens foregrounds across both (a
+    window's nearest depth wins: at grazing incidence the depth changes by several per cent within a
+    window), lens shifts and mixed or flying pixels live there too: they are outliers for the
+    closed-form starts of smooth errors (noise, biases). When fewer than ``min_share`` of the hit
+    pixels stay (a cluttered or steep view) the neighbourhood shrinks to 3 px."""
+    import cv2
+    z = np.asarray(depth, np.float32)
+    hit = z > 0
+    out = hit
+    for r in (radius_px, min(3, radius_px)):
+        k = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        zmin = cv2.erode(z, k, borderType=cv2.BORDER_REPLICATE)       # 0 beside a hole
+        zmax = cv2.dilate(z, k, borderType=cv2.BORDER_REPLICATE)
+        out = hit & (zmin >= z * (1.0 - rel)) & (zmax <= z * (1.0 + rel))
+        if out.sum() >= min_share * max(int(hit.sum()), 1):
+            break
+    return out
+
+
 def robust_std(x: np.ndarray) -> float:
     """1.4826 x the median absolute deviation (the std of a normal sample, outliers ignored)."""
     x = np.asarray(x, np.float64)

@@ -5,7 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.effects._common import check_draw, cos_incidence, measured_samples, normal_draw, robust_std
+from synth.sensor.effects._common import (check_draw, cos_incidence, locally_flat, measured_samples, normal_draw,
+                                          robust_std)
 from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
@@ -83,22 +84,31 @@ class AxialNoise(Effect):
         """The noise level from local residuals: the robust std of the difference of horizontally
         adjacent residuals on one surface (ideal depths within 1 %), divided by sqrt(2), per depth
         bin of 0.25 m (>= 200 pixel pairs) - differences remove every bias that is smooth across
-        the image (offsets, distortion bowls, a wrong scale). Triangulation: the residual is taken
+        the image (offsets, distortion bowls, a wrong scale); only pixels whose ideal depth is locally
+        flat (within 3 % over 8 px: ``_common.locally_flat``) are used - fattened or shifted edges and
+        steep slopes read as noise. Triangulation: the residual is taken
         in disparity, f b / z_measured - f b / z_ideal, whose noise sigma_d is the same at every
         depth (and unchanged by a disparity offset applied after the noise), so sigma2 = mean
         sigma_d / (f b) and sigma(z) = sigma2 z^2; ToF: sigma0 + sigma1 z by weighted least
         squares over the bins. The other terms start at 0. Heavy disparity quantisation (a step
-        several times the noise) hides the noise from differences: the estimate is then low. Spatially
+        several times the noise) hides the noise from differences - most adjacent pixels read the
+        same level, their robust spread is 0 - so when ``config`` quantises the disparity (the
+        disparity_quantization start runs first, :attr:`START_PRIORITY`) the noise is read from how
+        often adjacent pixels of one surface read different levels (:func:`quantised_noise`). Spatially
         correlated noise (a matching window) makes the estimate low: the search refines it.
         Nothing when fewer than two bins have data."""
         zs, ss, ws = [], [], []
-        pairs_z, pairs_d = [], []
+        pairs_z, pairs_d, pairs_m, pairs_i = [], [], [], []
         fb = float(config.preset.fb)
+        step = _quantisation_step(config) if fb > 0 else 0.0
         for _, m, r, ok in measured_samples(measured):
             z = r.depth.astype(np.float64)
+            ok = ok & locally_flat(np.where(r.hit, z, 0.0))
             if fb > 0:     # triangulation: the residual in disparity (a disparity offset leaves its noise alone)
                 with np.errstate(divide="ignore"):
-                    res = np.where(ok & (m > 0), fb / np.maximum(m, 1e-9) - fb / np.maximum(z, 1e-9), np.nan)
+                    dm = np.where(ok & (m > 0), fb / np.maximum(m, 1e-9), np.nan)
+                    di = np.where(ok, fb / np.maximum(z, 1e-9), np.nan)
+                res = dm - di
             else:
                 res = np.where(ok & (m > 0), m - z, np.nan)
             a, b = res[:, :-1], res[:, 1:]
@@ -106,14 +116,28 @@ class AxialNoise(Effect):
             sel = np.isfinite(a) & np.isfinite(b) & same
             pairs_z.append(z[:, :-1][sel])
             pairs_d.append((b - a)[sel])
+            if step > 0:
+                pairs_m.append((dm[:, 1:] - dm[:, :-1])[sel])
+                pairs_i.append((di[:, 1:] - di[:, :-1])[sel])
         if not pairs_z:
             return {}
         pz, pd = np.concatenate(pairs_z), np.concatenate(pairs_d)
+        if step > 0:
+            pm, pi = np.concatenate(pairs_m), np.concatenate(pairs_i)
+        rng = np.random.default_rng(0)
         for lo in np.arange(0.0, 10.0, 0.25):
             sel = (pz >= lo) & (pz < lo + 0.25)
             if sel.sum() >= 200:
                 zs.append(float(np.median(pz[sel])))
-                ss.append(robust_std(pd[sel]) / np.sqrt(2.0))
+                sd = robust_std(pd[sel]) / np.sqrt(2.0)
+                if step > 0:
+                    idx = np.flatnonzero(sel)
+                    if idx.size > 4000:
+                        idx = rng.choice(idx, 4000, replace=False)
+                    sq = quantised_noise(pm[idx], pi[idx], step)
+                    if np.isfinite(sq) and sq < 0.5 * step:     # the differences cannot see below a level
+                        sd = sq
+                ss.append(sd)
                 ws.append(float(np.sqrt(sel.sum())))
         if len(zs) < 2:
             return {}
@@ -146,3 +170,45 @@ class AxialNoise(Effect):
         state.valid &= state.depth > 0
         vz = state.valid
         state.log[self.name] = {"mean_sigma_m": float(s[vz].mean()) if vz.any() else 0.0}
+
+
+def _quantisation_step(config) -> float:
+    """The disparity step (px) of ``config``'s enabled disparity_quantization (its fitted or start
+    ``step_px``, else the device's matching step); 0 without one."""
+    if "disparity_quantization" not in config.names(enabled_only=True):
+        return 0.0
+    step = float(config.effect("disparity_quantization").params.step_px or 0.0)
+    if step <= 0:
+        from synth.sensor.matching import MatchSetup
+        step = float(MatchSetup.for_preset(config.preset).step)
+    return step
+
+
+_GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(24)
+_GH_W = _GH_W / _GH_W.sum()
+
+
+def quantised_noise(measured_diff: np.ndarray, ideal_diff: np.ndarray, step: float) -> float:
+    """The disparity noise sigma_d (px) under a quantisation of ``step`` px, from pairs of adjacent
+    pixels on one surface: ``measured_diff`` (N,) the difference of their measured disparities (a
+    multiple of the step), ``ideal_diff`` (N,) of their ideal ones.
+
+    With the level grid at a uniformly distributed phase relative to the pixels' disparities, two
+    values x and x + t fall in different levels with probability min(|t| / step, 1); here t =
+    ideal_diff + n2 - n1 with n ~ N(0, sigma_d^2), so P(different levels) = E[min(|ideal_diff + sqrt(2)
+    sigma_d N(0, 1)| / step, 1)] (Gauss-Hermite quadrature). The observed share of pairs on different
+    levels (pairs more than 2.5 steps apart - an edge, a mismatch - are left out) is matched by a
+    search over sigma_d in [0.002, 2] steps. NaN when fewer than 100 pairs, or when the share is at
+    the noise-free rate or above the largest modelled one."""
+    md, idf = np.asarray(measured_diff, np.float64), np.asarray(ideal_diff, np.float64)
+    keep = np.isfinite(md) & np.isfinite(idf) & (np.abs(md) < 2.5 * step)
+    md, idf = md[keep], idf[keep]
+    if md.size < 100:
+        return float("nan")
+    observed = float(np.mean(np.abs(md) > 0.5 * step))
+    sig = np.geomspace(0.002, 2.0, 80) * step
+    t = idf[None, :, None] + np.sqrt(2.0) * sig[:, None, None] * _GH_X[None, None, :]
+    p = (np.minimum(np.abs(t) / step, 1.0) * _GH_W).sum(-1).mean(-1)      # (80,) increasing in sigma
+    if observed <= p[0] or observed >= p[-1]:
+        return float("nan")
+    return float(np.interp(observed, p, sig))

@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -72,17 +72,23 @@ class DepthBias(Effect):
         corner, s the scale, o the offset; r the normalised image radius), linear in the four
         unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
-        (mismatches, flying pixels). Values are clipped into the fit ranges. When ``config`` carries a
-        lens distortion start (started first, :attr:`Effect.START_PRIORITY`), the ideal depth is warped
+        (mismatches, flying pixels), only pixels whose ideal depth is locally flat are used (within
+        3 % over 8 px: ``_common.locally_flat``, not beside an edge, not on a steep slope), and the
+        least squares is trimmed (:func:`_trimmed_lstsq`) and bounded by the fit ranges: pixels that
+        block matching gave a nearer depth (fattened edges, steep floors) or that a lens shifted
+        across an edge are outliers of the smooth bias and pull it by centimetres (an
+        independent-generator pair depth_bias + edge_fattening started at a 0.54 px disparity offset
+        and a 4.7 % scale for a 2 cm polynomial bias). When ``config`` carries a lens distortion
+        start (started first, :attr:`Effect.START_PRIORITY`), the ideal depth is warped
         by it before the regression: a radial term must not explain what the lens does."""
-        from synth.sensor.effects._common import measured_samples
+        from synth.sensor.effects._common import locally_flat, measured_samples
         from synth.sensor.effects.lens_distortion import warped_ideal_depth
         fb = float(config.preset.fb)
         rows, ys = [], []
         rng = np.random.default_rng(0)
         for _, m, r, ok in measured_samples(measured):
             zi = warped_ideal_depth(config, measured.intrinsics, np.where(r.hit, r.depth, 0))
-            ok = ok & (zi > 0)
+            ok = ok & (zi > 0) & locally_flat(zi)
             vv, uu = np.nonzero(ok & (m > 0))
             if vv.size > 20000:
                 keep = rng.choice(vv.size, 20000, replace=False)
@@ -103,10 +109,11 @@ class DepthBias(Effect):
         if not rows or sum(len(y) for y in ys) < 100:
             return {}
         A, y = np.concatenate(rows), np.concatenate(ys)
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
         lim = cls.FITTABLE
-        clip = (lambda k, v: float(np.clip(v, *lim[k])))
         n = cls.name
+        keys = ("disparity_offset_px", "radial_disparity_px", "scale", "offset_m") if fb > 0 else ("offset_m", "scale")
+        coef = _trimmed_lstsq(A, y, bounds=[lim[k] for k in keys])
+        clip = (lambda k, v: float(np.clip(v, *lim[k])))
         if fb > 0:
             e, er, s, o = coef
             return {f"{n}.disparity_offset_px": clip("disparity_offset_px", e),
@@ -154,3 +161,35 @@ class DepthBias(Effect):
         return (f"the measured depth is systematically off: median error {ctx.mm(bm[0])} at {zc[0]:.1f} m, "
                 f"{ctx.mm(bm[1])} in the middle and {ctx.mm(bm[2])} at {zc[2]:.1f} m, against {model} in the current "
                 f"model (an offset {shape}).")
+
+
+def _trimmed_lstsq(A: np.ndarray, y: np.ndarray, k: float = 3.0, iterations: int = 6,
+                   bounds: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+    """Least squares of ``y`` (N,) on ``A`` (N, P) refitted on the rows whose residual lies within
+    ``k`` robust standard deviations (1.4826 MAD) of the residuals' median, until the kept set stops
+    changing (at most ``iterations`` refits). Gaussian noise loses 0.3 % of its rows at k = 3; a
+    minority of gross outliers (fattened edges: residuals of 1-3 px against a noise of ~0.1 px) is
+    left out after the first refit. ``bounds`` (P pairs): a bounded least squares
+    (scipy's ``lsq_linear``) - over a narrow depth range scale and offset are nearly collinear, and
+    clipping an unbounded solution afterwards breaks the combination the data asked for."""
+    if bounds is not None:
+        from scipy.optimize import lsq_linear
+        lo, hi = np.asarray(bounds, np.float64).T
+
+        def solve(M, v):
+            return lsq_linear(M, v, bounds=(lo, hi), method="bvls").x
+    else:
+        def solve(M, v):
+            return np.linalg.lstsq(M, v, rcond=None)[0]
+    keep = np.ones(y.shape, bool)
+    coef = solve(A, y)
+    for _ in range(iterations):
+        r = y - A @ coef
+        med = np.median(r[keep])
+        sd = 1.4826 * np.median(np.abs(r[keep] - med))
+        new = np.abs(r - med) <= k * max(sd, 1e-12)
+        if new.sum() < max(A.shape[1] * 10, 100) or np.array_equal(new, keep):
+            break
+        keep = new
+        coef = solve(A[keep], y[keep])
+    return coef

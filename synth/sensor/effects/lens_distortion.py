@@ -113,7 +113,11 @@ class LensDistortion(Effect):
         (which a depth residual would mix in: a 0.3 px disparity offset is a 4 % depth change at
         3 m), only under the lens. Then k2 is scanned over :attr:`START_GRID_K2` at that k1 (kept when
         it lowers the cost by 2 %) and k1 again on a fine grid at that k2; each best grid value is
-        refined by a parabola through its neighbours. Nothing when k1 does not beat k1 = 0 by 5 % of
+        refined by a parabola through its neighbours. When the model has edge_fattening, the fattening
+        moves the measured edges into the background by its radius (5-6 px: the chamfer's cap, where
+        the cost stops seeing k1 - an independent-generator pair started at k1 0.13 for 0.18), so the
+        warped ideal depth is fattened too, by a square window whose radius (0-10 grid px) is scanned
+        at the first k1 before k1 is scanned again. Nothing when k1 does not beat k1 = 0 by 5 % of
         the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
         pixels. Tangential terms are not estimated (the fit has none)."""
         import cv2
@@ -154,7 +158,18 @@ class LensDistortion(Effect):
         base = [float(x) for x in (tuple(e.params.coefficients) or tuple(config.preset.distortion))]
         base += [0.0] * (5 - len(base))
 
-        def cost(k1: float, k2: float = 0.0) -> float:
+        fat_r = 0       # radius (grid px) of the edge fattening modelled in the warped ideal depth
+
+        def fatten(zw: np.ndarray, r: int) -> np.ndarray:
+            """The foreground dilated by a (2r+1)^2 window where it is nearer by > 4 %."""
+            if r <= 0:
+                return zw
+            far = np.where(zw > 0, zw, 1e6).astype(np.float32)
+            near = cv2.erode(far, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(np.float64)
+            return np.where((zw > 0) & (near < zw * 0.96), near, zw)
+
+        def cost(k1: float, k2: float = 0.0, r: int | None = None) -> float:
+            r = fat_r if r is None else r
             c = list(base)
             c[0] += k1
             c[1] += k2
@@ -165,7 +180,7 @@ class LensDistortion(Effect):
             for em, dm, z, use in data:
                 zw = np.zeros(ui.shape)
                 zw[inside] = z[vi[inside], ui[inside]]
-                ew = edges(np.where(use, zw.reshape(shape), 0))
+                ew = edges(np.where(use, fatten(zw.reshape(shape), r), 0))
                 if not ew.any():
                     continue
                 dw = dist_to(ew)
@@ -187,6 +202,15 @@ class LensDistortion(Effect):
 
         c0 = cost(0.0)
         k1, c1 = best_on(cls.START_GRID, cost)
+        if "edge_fattening" in config.names(enabled_only=True):
+            # fattened foregrounds move the measured edges r px into the background, as far as the
+            # chamfer cap: model the fattening in the warped ideal depth, radius scanned at that k1
+            costs_r = [cost(k1, 0.0, r) for r in range(0, 11)]
+            r_best = int(np.argmin(costs_r))
+            if r_best > 0 and costs_r[r_best] < 0.98 * costs_r[0]:
+                fat_r = r_best
+                c0 = cost(0.0)
+                k1, c1 = best_on(cls.START_GRID, cost)
         if not c1 < 0.95 * c0:
             return {}
         # k2 at that k1, then k1 again finely at that k2 (coordinate steps: a lens is mostly k1)
