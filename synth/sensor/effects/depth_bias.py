@@ -72,9 +72,11 @@ class DepthBias(Effect):
         corner, s the scale, o the offset; r the normalised image radius), linear in the four
         unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
-        (mismatches, flying pixels), only pixels whose ideal depth is locally flat are used (within
-        3 % over 8 px: ``_common.locally_flat``, not beside an edge, not on a steep slope), and the
-        least squares is trimmed (:func:`_trimmed_lstsq`) and bounded by the fit ranges: pixels that
+        (mismatches, flying pixels); when the model has edge_fattening only pixels whose ideal depth
+        is locally flat are used (within 3 % over 8 px: ``_common.locally_flat``, not beside an edge,
+        not on a steep slope - elsewhere the slanted floor's continuous depths are what lets a bias
+        of a twentieth of a disparity step show through a coarse quantisation); the least squares is
+        trimmed (:func:`_trimmed_lstsq`) and bounded by the fit ranges: pixels that
         block matching gave a nearer depth (fattened edges, steep floors) or that a lens shifted
         across an edge are outliers of the smooth bias and pull it by centimetres (an
         independent-generator pair depth_bias + edge_fattening started at a 0.54 px disparity offset
@@ -86,9 +88,10 @@ class DepthBias(Effect):
         fb = float(config.preset.fb)
         rows, ys = [], []
         rng = np.random.default_rng(0)
+        fattening = "edge_fattening" in config.names(enabled_only=True)
         for _, m, r, ok in measured_samples(measured):
             zi = warped_ideal_depth(config, measured.intrinsics, np.where(r.hit, r.depth, 0))
-            ok = ok & (zi > 0) & locally_flat(zi)
+            ok = ok & (zi > 0) & (locally_flat(zi) if fattening else True)
             vv, uu = np.nonzero(ok & (m > 0))
             if vv.size > 20000:
                 keep = rng.choice(vv.size, 20000, replace=False)
