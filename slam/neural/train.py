@@ -113,7 +113,8 @@ TRAIN_PRESETS_3D = {
 }
 """3D (``--mode 3d``) presets. ``cpu``: <= 30 min on this 2-core machine after the 12 training rooms are
 simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
-2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min. ``cpu-long``:
+2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min (measured end to end:
+28 min 47 s, slam/neural/weights/README.md). ``cpu-long``:
 the recipe of the shipped ``planar_3d`` weights (about 60 min on one core). ``gpu``: the larger configuration."""
 
 
