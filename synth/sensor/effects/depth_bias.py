@@ -115,15 +115,8 @@ class DepthBias(Effect):
         lim = cls.FITTABLE
         n = cls.name
         keys = ("disparity_offset_px", "radial_disparity_px", "scale", "offset_m") if fb > 0 else ("offset_m", "scale")
-        coef = _trimmed_lstsq(A, y, bounds=[lim[k] for k in keys])
-        clip = (lambda k, v: float(np.clip(v, *lim[k])))
-        if fb > 0:
-            e, er, s, o = coef
-            return {f"{n}.disparity_offset_px": clip("disparity_offset_px", e),
-                    f"{n}.radial_disparity_px": clip("radial_disparity_px", er),
-                    f"{n}.scale": clip("scale", s), f"{n}.offset_m": clip("offset_m", o)}
-        o, s = coef
-        return {f"{n}.offset_m": clip("offset_m", o), f"{n}.scale": clip("scale", s)}
+        coef = _trimmed_lstsq(A, y, bounds=[lim[k] for k in keys])      # inside the fit ranges
+        return {f"{n}.{k}": float(c) for k, c in zip(keys, coef)}
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
@@ -175,6 +168,7 @@ def _trimmed_lstsq(A: np.ndarray, y: np.ndarray, k: float = 3.0, iterations: int
     left out after the first refit. ``bounds`` (P pairs): a bounded least squares
     (scipy's ``lsq_linear``) - over a narrow depth range scale and offset are nearly collinear, and
     clipping an unbounded solution afterwards breaks the combination the data asked for."""
+    from synth.sensor.effects._common import robust_std
     if bounds is not None:
         from scipy.optimize import lsq_linear
         lo, hi = np.asarray(bounds, np.float64).T
@@ -189,7 +183,7 @@ def _trimmed_lstsq(A: np.ndarray, y: np.ndarray, k: float = 3.0, iterations: int
     for _ in range(iterations):
         r = y - A @ coef
         med = np.median(r[keep])
-        sd = 1.4826 * np.median(np.abs(r[keep] - med))
+        sd = robust_std(r[keep])
         new = np.abs(r - med) <= k * max(sd, 1e-12)
         if new.sum() < max(A.shape[1] * 10, 100) or np.array_equal(new, keep):
             break
