@@ -294,6 +294,9 @@ PRODUCTS = {
                  "for effects that re-compute the radiance at other poses (motion_blur)",
     "projector_shadow": "(H, W) bool pixels whose surface the projector does not light (pattern_projection's "
                         "shadow test), for effects that re-compute the radiance of nearby sub-exposure views",
+    "projector_shading": "(H, W) float32 radiance per unit pattern value of each pixel (pattern_projection, "
+                         "moving frames only): fall-off, incidence, material and shadow, for motion_blur's "
+                         "sub-exposures",
     "ambient": "(H, W) float32 ambient radiance reaching the IR camera (ambient_light); optics warp it",
     "ambient_second": "(H, W) float32 ambient radiance reaching the second camera (ambient_light)",
 }

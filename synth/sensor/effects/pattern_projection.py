@@ -241,7 +241,9 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
     direction hits the camera (saturation). Irradiance = pattern cos_i / r^2 (point source).
     ``shadow_mask``: (H, W) bool projector shadows to use instead of testing them (a nearby view's,
     carried over); ``out``: a dict that receives the shadow mask used (``"shadow"``, None when
-    shadows are off).
+    shadows are off) and, when it has the key ``"shading"``, the radiance per unit pattern value
+    (H, W) float32 (the radiance for a pattern value of 1 wherever the surface faces the projector
+    and is not shadowed, 0 elsewhere: fall-off, incidence, material and shadow of each pixel).
     """
     H, W = view.shape
     if ray_dirs_cam is None:
@@ -283,10 +285,17 @@ def compute_radiance(view, camera_offset_m, preset, pattern_blurred: np.ndarray,
         out["shadow"] = sh
     E = np.empty((H, W), np.float32)
     k = float(params.specular_exponent)
+    # the shading (radiance for a pattern value of 1) wherever the surface faces the projector
+    # unshadowed, between the dots too: the dots of a moving frame's sub-exposures move there
+    want_g = out is not None and "shading" in out
+    G = np.empty((H, W) if want_g else (1, 1), np.float32)
+    shm = sh if sh is not None else np.zeros((1, 1), np.bool_)
     run_row_bands(lambda r0, r1: _radiance_rows(
         r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, np.ascontiguousarray(view.albedo, np.float32),
-        np.ascontiguousarray(view.specular, np.float32), float(params.power), k, 1e-4 ** (1.0 / k), E),
-        H, nthreads)
+        np.ascontiguousarray(view.specular, np.float32), float(params.power), k, 1e-4 ** (1.0 / k), E,
+        want_g, ok, shm, sh is not None, G), H, nthreads)
+    if want_g:
+        out["shading"] = G
     return E, stats
 
 
@@ -338,18 +347,23 @@ def _projection_rows(r0, r1, Z, hit, xn, yn, nrm, pattern, px, py, pz, fp, cxp, 
 
 
 @kernel
-def _radiance_rows(r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, albedo, spec, power, k, thr, E):
+def _radiance_rows(r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, albedo, spec, power, k, thr, E,
+                   want_g, ok, shadow, use_shadow, G):
     """Rows [r0, r1) of the reflected radiance (see :func:`compute_radiance`): irradiance
     pattern cos_i / r^2 times (Lambertian albedo (1 - s) + Phong lobe s (k + 2) / 2 cos^k alpha,
-    the lobe only where cos^k alpha >= 1e-4, i.e. cos alpha > ``thr``)."""
+    the lobe only where cos^k alpha >= 1e-4, i.e. cos alpha > ``thr``). ``want_g``: also the
+    same for a pattern value of 1 into ``G`` wherever ``ok``, -n.L > 0 and not ``shadow`` (when
+    ``use_shadow``), 0 elsewhere."""
     W = lit.shape[1]
     for v in range(r0, r1):
         for u in range(W):
-            if not lit[v, u]:
+            g_on = want_g and ok[v, u] and mndl[v, u] > 0.0 and not (use_shadow and shadow[v, u])
+            if want_g and not g_on:
+                G[v, u] = 0.0
+            if not (lit[v, u] or g_on):
                 E[v, u] = 0.0
                 continue
             rr = r[v, u]
-            e = pat[v, u] * mndl[v, u] / max(rr * rr * rr, 1e-12) * power
             s = spec[v, u]
             refl = albedo[v, u] * (1.0 - s)
             if s > 0.0:
@@ -370,7 +384,9 @@ def _radiance_rows(r0, r1, lit, pat, mndl, Lx, Ly, Lz, r, xn, yn, Z, nrm, albedo
                 c = ((lx - ln2 * nx) * X + (ly - ln2 * ny) * Y + (lz - ln2 * nz) * z) * inv_d
                 if c > thr:
                     refl += s * (k + 2.0) / 2.0 * c ** k
-            E[v, u] = e * refl
+            E[v, u] = pat[v, u] * mndl[v, u] / max(rr * rr * rr, 1e-12) * power * refl if lit[v, u] else 0.0
+            if g_on:
+                G[v, u] = mndl[v, u] / max(rr * rr * rr, 1e-12) * power * refl
 
 
 @kernel
@@ -445,12 +461,15 @@ class PatternProjection(Effect):
         pb = blurred_pattern(state.pattern, self.params.dot_sigma_px, self._cache)
         from synth.sensor.state import ProjectorProduct
         state.publish("projector", ProjectorProduct(pb, self.params))
-        sh: dict = {}
+        # a moving frame's sub-exposures (motion_blur) reuse the shading of this view
+        sh: dict = {"shading": None} if state.frame.moving and not state.is_reference else {}
         rad, stats = compute_radiance(state.view, (0.0, 0.0, 0.0), state.preset, pb, self.params,
                                       state.renderer, state.ray_dirs_cam, out=sh)
         state.radiance = rad
         if sh.get("shadow") is not None:
             state.publish("projector_shadow", sh["shadow"])
+        if sh.get("shading") is not None:
+            state.publish("projector_shading", sh["shading"])
         if state.preset.type == "active_stereo" and not state.is_reference:
             off = (state.preset.projector_side * state.preset.baseline_m, 0.0, 0.0)
             if state.second_view is None:
