@@ -58,11 +58,12 @@ class IRCapture(Effect):
     in_reference = True
 
     def sample(self, rng, state):
+        from synth.fastrand import standard_normal  # the compiled ziggurat: ~2x numpy's speed
         sh = state.shape
-        d = {"speckle": rng.standard_normal(sh, dtype=np.float32), "noise": rng.standard_normal(sh, dtype=np.float32)}
+        d = {"speckle": standard_normal(rng, sh), "noise": standard_normal(rng, sh)}
         if state.preset.type == "active_stereo":
-            d["speckle_second"] = rng.standard_normal(sh, dtype=np.float32)
-            d["noise_second"] = rng.standard_normal(sh, dtype=np.float32)
+            d["speckle_second"] = standard_normal(rng, sh)
+            d["noise_second"] = standard_normal(rng, sh)
         return d
 
     def null_draw(self, state):
