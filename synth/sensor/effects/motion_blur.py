@@ -32,9 +32,11 @@ class MotionBlurParams:
     2 % and 40 % between two noise seeds of the same method. ``warp_pattern`` (default): the same
     warped depth, but only the pattern is sampled again (the dots move along the row with the
     sub-exposure's depth, which is what blurs them); the shading - distance fall-off, incidence,
-    material and shadow - is the frame's own, of the source pixel (~7 ms per tap). Its error is
-    the change of the shading within an exposure: relative 1e-3 for the room walkthrough's
-    motion (0.15 frame periods of a hand-held camera); at occlusion boundaries it is ``warp``'s.
+    material and shadow - is the frame's own, of the source pixel (~10 ms per tap). Its error is
+    the change of the shading within an exposure: measured on 10 frames of the room walkthrough
+    against ``warp``, the radiance differs by 5e-5 - 7e-5 of its sum (99.9th percentile of the
+    per-pixel relative difference 0.6 - 1.1 %), 0.02 % of the pixels in validity and 0.05 % in
+    depth by > 1 cm (``warp`` against ``render``: 0.5 % and 0.9 %).
     Active stereo (a second camera) always renders."""
 
 
