@@ -310,18 +310,14 @@ def _refine(Ln, Rn, Rx, d, block, iterations, max_shift_px, col_offset):
     _refine_start(d, u, d0, okf, mx)
     cur = d0
     k = (block, block)
-    g2 = np.empty((H, W), np.float32)
-    g2c = np.empty((H, W), np.float32)
-    eg = np.empty((H, W), np.float32)
-    for it in range(int(iterations)):
+    terms = np.empty((H, W, 3), np.float32)   # g^2, g^2 d, e g: one 3-channel box filter
+    for it in range(int(iterations)):          # (per channel the same sums as three filters)
         Rw = cv2.remap(Rn, mx, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         g = cv2.remap(Rx, mx, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        _refine_terms(g, okf, cur, Ln, Rw, g2, g2c, eg)
-        sg = cv2.boxFilter(g2, -1, k, normalize=False)
-        dm = cv2.boxFilter(g2c, -1, k, normalize=False)
-        de = cv2.boxFilter(eg, -1, k, normalize=False)
+        _refine_terms(g, okf, cur, Ln, Rw, terms)
+        sums = cv2.boxFilter(terms, -1, k, normalize=False)
         cur = np.empty((H, W), np.float32)
-        _refine_step(dm, de, sg, u, cur, mx)
+        _refine_step(sums, u, cur, mx)
     _refine_finish(cur, d0, d, np.float32(max_shift_px))
     return cur
 
@@ -340,26 +336,27 @@ def _refine_start(d, u, d0, okf, mx):
 
 
 @kernel
-def _refine_terms(g, okf, cur, Ln, Rw, g2, g2c, eg):
-    """The window sums' terms of one Gauss-Newton step: g^2 (valid pixels), g^2 d and e g with
-    the residual e = L - R(u - d) (float32, the products in the order of the numpy original)."""
+def _refine_terms(g, okf, cur, Ln, Rw, terms):
+    """The window sums' terms of one Gauss-Newton step into ``terms`` (H, W, 3): g^2 (valid
+    pixels), g^2 d and e g with the residual e = L - R(u - d) (float32, the products in the
+    order of the numpy original)."""
     H, W = g.shape
     for y in range(H):
         for x in range(W):
             a = g[y, x] * g[y, x] * okf[y, x]
-            g2[y, x] = a
-            g2c[y, x] = a * cur[y, x]
-            eg[y, x] = (Ln[y, x] - Rw[y, x]) * g[y, x] * okf[y, x]
+            terms[y, x, 0] = a
+            terms[y, x, 1] = a * cur[y, x]
+            terms[y, x, 2] = (Ln[y, x] - Rw[y, x]) * g[y, x] * okf[y, x]
 
 
 @kernel
-def _refine_step(dm, de, sg, u, cur, mx):
-    """The new disparity (sum g^2 d - sum e g) / max(sum g^2, 1e-6) and the next sampling
-    column u - d."""
-    H, W = dm.shape
+def _refine_step(sums, u, cur, mx):
+    """The new disparity (sum g^2 d - sum e g) / max(sum g^2, 1e-6) from the window sums
+    ``sums`` (H, W, 3) of :func:`_refine_terms`, and the next sampling column u - d."""
+    H, W = cur.shape
     for y in range(H):
         for x in range(W):
-            c = (dm[y, x] - de[y, x]) / max(sg[y, x], np.float32(1e-6))
+            c = (sums[y, x, 1] - sums[y, x, 2]) / max(sums[y, x, 0], np.float32(1e-6))
             cur[y, x] = c
             mx[y, x] = u[x] - c
 
