@@ -86,3 +86,39 @@ def test_other_triangulating_presets_measure_a_wall(preset):
     err = (res.depth - res.ideal_depth)[res.valid]
     assert res.valid_fraction > 0.5
     assert abs(np.median(err)) < 0.03 * 1.5   # D435 spec: < 2 % at 2 m (SGBM pixel-locking adds ~1 %)
+
+
+def test_compiled_quantised_depth_equals_the_setup_methods():
+    """block_matching's one-pass kernel = MatchSetup.quantize + disparity_to_depth + the validity
+    rule (bit for bit; NaN, negative, huge and half-step disparities included)."""
+    from synth.sensor.effects.block_matching import _quantised_depth
+    from synth.sensor.presets import get_preset
+    setup = MatchSetup.for_preset(get_preset("kinect_v1"))
+    rng = np.random.default_rng(0)
+    d = (rng.standard_normal((60, 80)) * 40).astype(np.float32)
+    d.flat[:50] = np.arange(50, dtype=np.float32) * np.float32(setup.step / 2) - 40   # exact half steps
+    d.flat[50:60] = np.nan
+    d.flat[60:70] = [-43.5, -43.4, -1e9, 1e9, np.inf, -np.inf, 0.0, -0.0, 43.5, -50.0]
+    q = setup.quantize(d)
+    z_ref = setup.disparity_to_depth(q)
+    valid_ref = np.isfinite(q) & (z_ref > 0)
+    z_ref[~valid_ref] = 0
+    q[~valid_ref] = np.nan
+    dd = d.copy()
+    z = np.empty_like(d)
+    valid = np.empty(d.shape, bool)
+    _quantised_depth(dd, np.float32(setup.step), np.float32(1.0 / setup.z0), np.float32(setup.fb), z, valid)
+    assert np.array_equal(valid, valid_ref) and np.array_equal(z, z_ref) and np.array_equal(dd, q, equal_nan=True)
+    assert 0.2 < valid.mean() < 0.9
+
+
+def test_compiled_window_normalisation_equals_numpy():
+    import cv2
+
+    from synth.sensor.matching import _normalized
+    img = np.random.default_rng(1).integers(0, 256, (48, 70), dtype=np.uint8)
+    img[10:20, 10:30] = 7                                   # a flat patch: the variance floor of 1
+    f = img.astype(np.float32)
+    m = cv2.blur(f, (9, 9))
+    ref = (f - m) / np.sqrt(np.maximum(cv2.blur(f * f, (9, 9)) - m * m, np.float32(1.0)))
+    assert np.array_equal(_normalized(img, 9), ref)

@@ -253,11 +253,37 @@ _REF_CACHE: list = []
 def _normalized(img: np.ndarray, block: int) -> np.ndarray:
     """Zero-mean, unit-contrast image over ``block`` windows (gain/offset invariant), float32."""
     import cv2
-    f = img.astype(np.float32)
+    img = np.ascontiguousarray(img)
+    f = np.empty(img.shape, np.float32)
+    f2 = np.empty(img.shape, np.float32)
+    _square(img, f, f2)
     k = (block, block)
     m = cv2.blur(f, k)
-    v = cv2.blur(f * f, k) - m * m
-    return (f - m) / np.sqrt(np.maximum(v, np.float32(1.0)))
+    v = cv2.blur(f2, k)
+    out = np.empty(img.shape, np.float32)
+    _contrast(f, m, v, out)
+    return out
+
+
+@kernel
+def _square(img, f, f2):
+    """``img`` as float32 into ``f``, and its square into ``f2`` (the inputs of the box means)."""
+    H, W = img.shape
+    for y in range(H):
+        for x in range(W):
+            a = np.float32(img[y, x])
+            f[y, x] = a
+            f2[y, x] = a * a
+
+
+@kernel
+def _contrast(f, m, v2, out):
+    """(f - mean) / sqrt(max(mean of f^2 - mean^2, 1)), float32 (the window normalisation)."""
+    H, W = f.shape
+    for y in range(H):
+        for x in range(W):
+            var = v2[y, x] - m[y, x] * m[y, x]
+            out[y, x] = (f[y, x] - m[y, x]) / np.sqrt(max(var, np.float32(1.0)))
 
 
 def _normalized_with_gradient(img: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from synth.jit import kernel
 from synth.sensor.registry import STAGE_MATCHING, Effect, param, register_effect
 
 
@@ -109,14 +110,37 @@ class BlockMatching(Effect):
             if state.reference_ir8 is None:
                 raise ConfigError("effect 'block_matching': no reference pattern image (structured light)")
             right = state.reference_ir8
-        d = match(state.ir8, right, setup, method, self.matcher_params(setup))
-        d = setup.quantize(d)
-        z = setup.disparity_to_depth(d)
-        valid = np.isfinite(d) & (z > 0)
-        z[~valid] = 0.0
-        d[~valid] = np.nan
+        d = np.ascontiguousarray(match(state.ir8, right, setup, method, self.matcher_params(setup)), np.float32)
+        z = np.empty(d.shape, np.float32)
+        valid = np.empty(d.shape, np.bool_)
+        # setup.quantize + setup.disparity_to_depth + the validity rule in one compiled pass
+        _quantised_depth(d, np.float32(setup.step), np.float32(0.0 if setup.z0 is None else 1.0 / setup.z0),
+                         np.float32(setup.fb), z, valid)
         state.disparity = d
         state.depth = z
         state.valid = valid
         state.log[self.name] = {"valid_px": int(valid.sum()), "min_disp": setup.min_disp,
                                 "num_disp": setup.num_disp, "step_px": setup.step}
+
+
+@kernel
+def _quantised_depth(d, step, inv0, fb, z, valid):
+    """In place: ``d`` (H, W) float32 disparity rounded to the device ``step`` (NaN where the
+    matcher found none or the depth is not positive); ``z`` its depth 1 / (inv0 + d / fb), metres
+    (0 where invalid); ``valid``. The float32 arithmetic of ``MatchSetup.quantize`` and
+    ``MatchSetup.disparity_to_depth`` (tests/test_sensor_matching.py compares them)."""
+    H, W = d.shape
+    for y in range(H):
+        for x in range(W):
+            q = np.rint(d[y, x] / step) * step
+            inv = inv0 + q / fb
+            ok = np.isfinite(q) and np.isfinite(inv) and inv > 0
+            zz = np.float32(1.0) / inv if ok else np.float32(0.0)
+            if ok and zz > 0:
+                d[y, x] = q
+                z[y, x] = zz
+                valid[y, x] = True
+            else:
+                d[y, x] = np.nan
+                z[y, x] = 0.0
+                valid[y, x] = False
