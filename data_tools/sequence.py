@@ -311,11 +311,11 @@ def spread_indices(n_total: int, n: int | None) -> list[int]:
 
 def encode_depth(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
     """Metres -> uint16 PNG values; NaN, <= 0 and values beyond the uint16 range become 0."""
-    d = np.array(depth_m, dtype=np.float64)          # a copy, worked on in place
-    d *= depth_scale
+    d = np.multiply(depth_m, depth_scale, dtype=np.float64)   # a new array, worked on in place
     np.rint(d, out=d)
     with np.errstate(invalid="ignore"):
-        d[~((d > 0) & (d <= 65535))] = 0               # NaN and +-inf fail both tests
+        ok = (d > 0) & (d <= 65535)                    # NaN and +-inf fail both tests
+    np.copyto(d, 0.0, where=~ok)
     return d.astype(np.uint16)
 
 
