@@ -201,8 +201,9 @@ def bench_sequence(preset: str, repeats: int) -> int:
                                                   ("moving camera (physical)", preset, "physical", 2, n1),
                                                   ("static (no motion effects)", preset, STATIC_EFFECTS, 2, n1)):
         rates = []
-        _run_sequence(tmp / "a", n0, sensor, effects, workers)   # warm-up (one-time caches), not counted:
-        for _ in range(repeats):                                  # it inflated the first ideal-only repeat
+        # an untimed warm-up run: one-time caches inflated the first ideal-only repeat
+        _run_sequence(tmp / "a", n0, sensor, effects, workers)
+        for _ in range(repeats):
             a = _run_sequence(tmp / "a", n0, sensor, effects, workers)
             b = _run_sequence(tmp / "b", n_hi, sensor, effects, workers)
             rates.append((n_hi - n0) / max(b - a, 1e-9))
