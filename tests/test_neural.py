@@ -33,6 +33,33 @@ def test_walk_views_agree_in_the_allocentric_frame(agent):
         np.testing.assert_allclose(crops[t][:, mask], obs[t][:, mask], atol=1.5 / 127.5)
 
 
+def _unique_placements(plan: np.ndarray, rng, n: int = 40) -> float:
+    """Share of n random 8 x 15 views of an (S, S, 3) plan that match (SSD < 1e-6) at one place only."""
+    S = plan.shape[0]
+    from numpy.lib.stride_tricks import sliding_window_view
+    wins = sliding_window_view(plan, (8, 15, 3))[..., 0, :, :, :]          # (S-7, S-14, 8, 15, 3)
+    ok = 0
+    for _ in range(n):
+        r, c = int(rng.integers(0, S - 7)), int(rng.integers(0, S - 14))
+        ssd = ((wins - plan[r:r + 8, c:c + 15]) ** 2).sum((-3, -2, -1))
+        ok += int((ssd < 1e-6).sum() == 1)
+    return ok / n
+
+
+def test_floor_plans_are_placeable_by_their_content():
+    """Textured floors make a view of a floor plan match at one place of the plan only (a flat-coloured
+    room matches everywhere inside it: its views cannot be localised by any memory); walls and
+    furniture alone would leave most views of a room's inside ambiguous."""
+    from slam.neural.data2d import floor_plan
+    rng = np.random.default_rng(0)
+    shares = [_unique_placements(floor_plan(43, np.random.default_rng(s)), rng) for s in range(6)]
+    assert min(shares) >= 0.9, shares
+    flat = np.zeros((43, 43, 3), np.float32)
+    flat[:, :20] = 0.5                                     # the control: two flat rooms
+    flat[:, 20] = 0.1
+    assert _unique_placements(flat, rng) < 0.5
+
+
 def test_pose_field_peaks_at_the_true_shift_and_rotation():
     rng = np.random.default_rng(0)
     B, n, q, W = 2, 3, 7, 25

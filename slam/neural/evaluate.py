@@ -4,8 +4,8 @@ On test environments never seen in training (other pictures, other faces, other 
 seeds), agents walk ``steps`` steps; then
 
 * localisation: the estimated allocentric positions (the pose-field maxima) against the true
-  ones - APE (per pose, px: median, mean, std) and ATE (per sequence, RMSE after the best rigid
-  2D fit, px);
+  ones - APE (per pose, px: median, mean, std; also per kind of environment: picture, face, floor
+  plan) and ATE (per sequence, RMSE after the best rigid 2D fit, px);
 * anamnesis: the views at the observed poses recalled from the final memory vs the observations
   (L1 on [0, 1] images over the view field, SSIM as in the thesis - non-overlapping N x N windows,
   c1 = 0.001, c2 = 0.003 on [0, 1] grey values, N = 5 - and ``skimage.metrics.structural_similarity``);
@@ -103,14 +103,14 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     for every model evaluated with it)."""
     import torch
 
-    from slam.neural.data2d import AGENTS, make_batch, view_mask
+    from slam.neural.data2d import AGENTS, KINDS, make_batch, view_mask
     from slam.neural.model import memory_index
     agent = AGENTS[cfg.agent]
     mask = view_mask(agent)
     vm = torch.from_numpy(mask.astype(np.float32))
     rng = np.random.default_rng(seed)
     U = model.cfg.memory
-    ape, ate = [], []
+    ape, ate, ape_kind = [], [], []
     rows = {k: [] for k in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "mosaic_anam", "mosaic_hallu",
                             "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
@@ -124,7 +124,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     with torch.no_grad():
         while done < sequences:
             b = min(B, sequences - done)
-            _, obs, _, allo = make_batch(rng, b, agent, cfg.steps, cfg.image, split="test")
+            _, obs, _, allo, kinds = make_batch(rng, b, agent, cfg.steps, cfg.image, split="test", with_kinds=True)
             o, a = torch.from_numpy(obs), torch.from_numpy(allo)
             out = model(o, vm, None)
             est = out["estimates"].numpy()
@@ -145,6 +145,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
             for i in range(b):
                 d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
                 ape += d.tolist()
+                ape_kind += [int(kinds[i])] * len(d)
                 ate.append(rigid_ate(est[i, :, :2].astype(float), allo[i, :, :2].astype(float)))
                 mos_a = _mosaic_views(obs[i], allo[i], mask, U, T, allo[i])
                 mos_h = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
@@ -164,7 +165,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                 bar.update(b)
     if bar is not None:
         bar.close()
-    ape_a, ate_a = np.asarray(ape), np.asarray(ate)
+    ape_a, ate_a, kind_a = np.asarray(ape), np.asarray(ate), np.asarray(ape_kind)
 
     def stats(a):
         return {"median": float(np.median(a)), "mean": float(np.mean(a)), "std": float(np.std(a))}
@@ -174,6 +175,9 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
         return {"l1": float(v[:, 0].mean()), "ssim_thesis": float(v[:, 1].mean()), "ssim_skimage": float(v[:, 2].mean())}
     return {"sequences": sequences, "steps": cfg.steps, "observe": cfg.observe, "agent": cfg.agent,
             "ape_px": stats(ape_a), "ate_px": stats(ate_a), "localised_within_1px": float(np.mean(ape_a <= 1.0)),
+            "ape_px_by_environment": {name: {**stats(ape_a[kind_a == j]), "poses": int((kind_a == j).sum()),
+                                             "localised_within_1px": float(np.mean(ape_a[kind_a == j] <= 1.0))}
+                                      for j, name in enumerate(KINDS) if (kind_a == j).any()},
             "anamnesis": images("anam"), "anamnesis_true_poses": images("anam_true_poses"),
             "hallucination": images("hallu"), "ablation_no_hallucination_module": images("hallu_no_module"),
             "baseline_mosaic_anamnesis": images("mosaic_anam"), "baseline_mosaic_inpainting": images("mosaic_hallu"),
