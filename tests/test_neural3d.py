@@ -135,6 +135,66 @@ def test_image_bank_turns_the_projection_exactly():
     np.testing.assert_allclose(bank[0, 6].numpy(), torch.rot90(bank[0, 0], 2, (1, 2)).numpy())
 
 
+def _ray_model(features=3, memory=45):
+    from slam.neural.data3d import World3DConfig, default_ray_geometry
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    g = default_ray_geometry(World3DConfig())
+    return NeuralMemory(MemoryConfig(channels=4, features=features, view=33, memory=memory, width=4, rotations=12,
+                                     search=2, input="image", image_size=(30, 40), decoder="rays", camera=g["camera"],
+                                     level_rotation=g["level_rotation"], camera_height_m=1.0, cell_m=0.15,
+                                     max_range_m=2.4, ray_samples=8)), g
+
+
+@pytest.mark.parametrize("k", [0, 1, 3, 7])
+def test_ray_samples_fall_in_the_cells_the_ground_projection_uses(k):
+    """Back-projection round trip: the k-th turned ground projection of a depth image (egocentric_cells) puts each
+    pixel in the memory cell where the ray decoder samples that pixel at that depth, for a view at heading k."""
+    import torch
+    model, g = _ray_model()
+    dec = model.decoder
+    intr = Intrinsics(40, 30, *g["camera"])
+    R = np.asarray(g["level_rotation"]).reshape(3, 3)
+    q, U = 33, 45
+    rc = dec.ray_cells(torch.tensor([[0.0, 0.0, float(k)]]), q)[0].numpy()       # (D, H*W, 2), a q x q memory
+    agree = total = 0
+    for d in range(dec.D):
+        z = 2.4 * (d + 1) / dec.D
+        cells = egocentric_cells(np.full((30, 40), z), intr, R, 0.15, q, None, rotations=12)[k]
+        ok = cells >= 0
+        got = np.rint(rc[d, ok, 0]).astype(int) * q + np.rint(rc[d, ok, 1]).astype(int)
+        agree += int((got == cells[ok]).sum())
+        total += int(ok.sum())
+    assert total > 5000 and agree / total > 0.995        # float32 vs float64 at rounding ties only
+    # a pose shifted by (dr, dc) cells samples the same cells shifted by (dr, dc)
+    a = dec.ray_cells(torch.tensor([[0.0, 0.0, float(k)]]), U)[0]
+    b = dec.ray_cells(torch.tensor([[3.0, -5.0, float(k)]]), U)[0]
+    np.testing.assert_allclose((b - a).numpy(), np.broadcast_to([3.0, -5.0], a.shape), atol=1e-4)
+
+
+def test_ray_decoder_reads_the_memory_at_the_exact_pose():
+    """A memory that is one feature on one cell: the ray decoder's samples see it only on the rays that pass that
+    cell, and a pose between two headings samples between them (real poses, no rounding)."""
+    import torch
+    model, _ = _ray_model(features=1, memory=45)
+    dec = model.decoder
+    psi = torch.zeros(1, 1, 45, 45)
+    psi[0, 0, 22 - 8, 22] = 1.0                 # 8 cells (1.2 m) straight ahead of a camera at the centre
+    grid = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.0]]), 45)[0]
+    gs = torch.stack([grid[..., 1], grid[..., 0]], -1) * (2.0 / 44) - 1.0
+    smp = torch.nn.functional.grid_sample(psi, gs[None], align_corners=True)[0, 0]      # (D, H*W)
+    hit = smp.amax(0).view(30, 40) > 0
+    cols = np.nonzero(hit.numpy().any(0))[0]
+    assert hit.any() and 17 <= cols.mean() <= 22          # the image's middle columns (principal point 19.5)
+    # turned by a quarter of a heading: the samples move sideways by a fraction of the half-turn's shift
+    g0 = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.0]]), 45)[0]
+    g1 = dec.ray_cells(torch.tensor([[0.0, 0.0, 1.0]]), 45)[0]
+    gh = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.5]]), 45)[0]
+    assert float((gh - g0).abs().max()) < float((g1 - g0).abs().max()) and float((gh - g0).abs().max()) > 0
+    out = model.recall(psi.expand(1, 1, 45, 45).repeat(1, 1, 1, 1), torch.tensor([[0.3, -0.2, 0.5]]),
+                       torch.ones(33, 33))
+    assert out.shape == (1, 4, 30, 40) and torch.isfinite(out).all()
+
+
 def test_planar_trajectory_keeps_height_pitch_and_clearance():
     from synth.scenes import build_scene
     from synth.sequence import SequenceConfig, make_sequence_trajectory

@@ -15,7 +15,8 @@
   fused at their true poses into a TSDF (``slam.tsdf``), ray cast at the later poses, resized to
   40 x 30, holes filled by OpenCV inpainting (Telea) -; the memory without the hallucination module;
   recall from a memory registered at the true poses (no localisation error); thesis Table 4.2's
-  *no localisation* and *no culling* at inference, as in :mod:`slam.neural.evaluate` (the trained
+  *no localisation* and *no culling* (not for the ``rays`` decoder, whose culling is the view frustum
+  it samples) at inference, as in :mod:`slam.neural.evaluate` (the trained
   model with the module switched off, not a model retrained without it).
 * **Top view** (when the model has a trained top-view decoder, :mod:`slam.neural.topview`): on the
   same samples, the decoded colour floor plan of the memory the model registered itself and of the
@@ -133,12 +134,13 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         obs = torch.from_numpy(s["images"][idx].astype(np.float32))[None]
         cells = torch.from_numpy(s["cells"][idx].astype(np.int64))[None]
         allo = torch.from_numpy(bank.allocentric(s["poses"][idx]))[None]
+        ex = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))     # recall at the exact poses
         with torch.no_grad():
             out = model(obs, vm, None, cells=cells)
             tru = model(obs, vm, allo, cells=cells)
             part = model(obs[:, :k], vm, allo[:, :k], cells=cells[:, :k])
             filled = model.hallucinate(part["psi"], part["occ"])
-            a = allo[0]
+            a = ex
             rec = model.recall(out["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             rec_t = model.recall(tru["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
@@ -173,13 +175,14 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         v = np.asarray(rows[key], float)
         return {"l1": float(np.nanmean(v[:, 0])), "ssim_thesis": float(np.nanmean(v[:, 1])),
                 "ssim_skimage": float(np.nanmean(v[:, 2])), "depth_l1_m": float(np.nanmean(v[:, 3]))}
-    res.update({"samples": samples, "steps": T, "observe": k, "anamnesis": images("anam"),
+    rays = model.cfg.decoder == "rays"      # its culling is the view frustum itself: "no culling" does not apply
+    res.update({"samples": samples, "steps": T, "observe": k, "decoder": model.cfg.decoder, "anamnesis": images("anam"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),
                 "ablation_no_hallucination_module": images("hallu_no_module"),
                 "baseline_tsdf_inpainting": images("tsdf_inpainting"),
                 "ablation_no_localisation_anamnesis": images("anam_no_localisation"),
-                "ablation_no_culling_anamnesis": images("anam_no_culling"),
-                "ablation_no_culling_hallucination": images("hallu_no_culling")})
+                "ablation_no_culling_anamnesis": None if rays else images("anam_no_culling"),
+                "ablation_no_culling_hallucination": None if rays else images("hallu_no_culling")})
     if top_rows:
         v = np.asarray(top_rows)
         res["topview"] = {"l1": float(v[:, 0].mean()), "l1_true_poses": float(v[:, 1].mean()),
@@ -191,7 +194,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     idx = np.arange(0, 100, 10) % len(s["images"])
     obs = torch.from_numpy(s["images"][idx[:5]].astype(np.float32))[None]
     cells = torch.from_numpy(s["cells"][idx[:5]].astype(np.int64))[None]
-    req = torch.from_numpy(bank.allocentric(s["poses"][idx]))
+    req = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))
     times = []
     with torch.no_grad():
         for _ in range(5):

@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "Hallucinator",
+__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
            "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
@@ -73,6 +73,23 @@ class MemoryConfig:
     by the pixels' cell indices (:func:`slam.neural.geometry3d.project_max`)."""
     image_size: tuple = (0, 0)
     """3D: (H, W) of the decoded images, pixels (the decoder back-projects the culled window)."""
+    decoder: str = "learned"
+    """3D recall: ``learned`` (:class:`ImageDecoder`: the culled window at the pose rounded to the grid, a learned
+    top-view-to-image map) or ``rays`` (:class:`RayDecoder`: the memory sampled along every pixel's ray at the
+    exact pose, then a per-pixel network - a geometric back-projection)."""
+    camera: tuple = ()
+    """``rays``: (fx, fy, cx, cy) of the decoded H x W image, pixels."""
+    level_rotation: tuple = ()
+    """``rays``: R_c_L of the camera (9 numbers, row-major; :func:`slam.neural.geometry3d.level_rotation`): its
+    pitch and roll."""
+    camera_height_m: float = 0.0
+    """``rays``: height of the camera above the floor, metres."""
+    cell_m: float = 0.0
+    """``rays``: side of a memory cell, metres."""
+    max_range_m: float = 0.0
+    """``rays``: the last depth sampled along a ray, metres (the ground projection's range)."""
+    ray_samples: int = 12
+    """``rays``: depths sampled per ray, evenly spaced in (0, max_range_m]."""
     correlation: str = "dot"
     """Localisation score: ``dot`` (MapNet's plain cross-correlation of features and memory) or ``cosine``
     (each cell's feature vector and memory vector unit-normalised first, the sum divided by the view's cell
@@ -140,6 +157,65 @@ class ImageDecoder(nn.Module):
         B = x.shape[0]
         y = F.leaky_relu(self.fc(self.top(x).flatten(1)), 0.2).view(B, self.w, *self.coarse)
         return self.img(F.interpolate(y, size=self.size, mode="bilinear", align_corners=False))
+
+
+class RayDecoder(nn.Module):
+    """3D recall by geometric back-projection: for every pixel of the H x W image the memory is sampled
+    (bilinear, ``grid_sample``) at ``ray_samples`` points of the pixel's ray (camera depths evenly spaced up to
+    ``max_range_m``), placed by the *exact* requested pose (row, col in cells, heading in units of 2 pi / r,
+    all real: no rounding to the grid); the n x D samples of a pixel, plus where each sample lies under the
+    floor and the depth at which the ray meets the floor (known: camera height and pitch), go through a
+    1 x 1 convolution (a per-pixel network along the ray) and a ResNet to RGB-D. This is the thesis' culling
+    (rotation, translation, clipping to the view frustum) done per ray instead of on a top-view window -
+    a deviation: the memory is 2.5D (cells on the floor plan), so the decoder still has to learn which
+    sample along a ray is the first surface (the encoder max-pools a cell's column)."""
+
+    def __init__(self, cfg: "MemoryConfig"):
+        super().__init__()
+        if len(cfg.camera) != 4 or len(cfg.level_rotation) != 9 or cfg.cell_m <= 0 or cfg.max_range_m <= 0:
+            raise ValueError("a ray decoder needs camera (fx, fy, cx, cy), level_rotation (9), cell_m and max_range_m")
+        H, W = cfg.image_size
+        D, n, w = cfg.ray_samples, cfg.features, cfg.width
+        fx, fy, cx, cy = (float(v) for v in cfg.camera)
+        R = torch.tensor([float(v) for v in cfg.level_rotation], dtype=torch.float64).view(3, 3)
+        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+        d_c = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1).reshape(-1, 3)
+        d_L = d_c @ R                                  # level-frame directions per unit camera depth (x, down, fwd)
+        z = cfg.max_range_m * torch.arange(1, D + 1, dtype=torch.float64) / D
+        pts = z[:, None, None] * d_L[None]             # (D, H*W, 3) metres
+        self.register_buffer("fwd", (pts[..., 2] / cfg.cell_m).float(), persistent=False)      # (D, H*W) cells
+        self.register_buffer("right", (pts[..., 0] / cfg.cell_m).float(), persistent=False)
+        under = (pts[..., 1] > cfg.camera_height_m).float().view(D, H, W) * 2 - 1
+        down = d_L[:, 1]
+        zf = torch.where(down > 1e-6, cfg.camera_height_m / down.clamp(min=1e-6), torch.full_like(down, 1e9))
+        floor = (zf / cfg.max_range_m).clamp(0, 1).view(1, H, W) * 2 - 1
+        self.register_buffer("prior", torch.cat([under, floor], 0).float(), persistent=False)   # (D + 1, H, W)
+        self.size, self.D, self.n = (H, W), D, n
+        self.rotations = cfg.rotations
+        self.net = nn.Sequential(nn.Conv2d(n * D + D + 1, w, 1), nn.LeakyReLU(0.2), nn.Conv2d(w, w, 3, padding=1),
+                                 nn.LeakyReLU(0.2), ResBlock(w), ResBlock(w), nn.Conv2d(w, cfg.channels, 3, padding=1),
+                                 nn.Tanh())
+
+    def ray_cells(self, poses: torch.Tensor, U: int) -> torch.Tensor:
+        """(N, D, H*W, 2) memory (row, col) of every ray sample, cells (real), for (N, 3) poses (row, col, heading
+        in units of 2 pi / r) in a U x U memory."""
+        p = poses.to(self.fwd.dtype)
+        a = p[:, 2] * (2 * torch.pi / self.rotations)
+        ca, sa = torch.cos(a)[:, None, None], torch.sin(a)[:, None, None]
+        x = self.right[None] * ca - self.fwd[None] * sa
+        f = self.right[None] * sa + self.fwd[None] * ca
+        c = U // 2
+        return torch.stack([c + p[:, 0, None, None] - f, c + p[:, 1, None, None] + x], -1)
+
+    def forward(self, psi: torch.Tensor, poses: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """(N, C, H, W) images of the memories ``psi[index]`` (B, n, U, U) at ``poses`` (N, 3)."""
+        U = psi.shape[-1]
+        rc = self.ray_cells(poses, U)
+        grid = torch.stack([rc[..., 1], rc[..., 0]], -1) * (2.0 / (U - 1)) - 1.0      # x = col, y = row
+        smp = F.grid_sample(psi[index], grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        N = poses.shape[0]
+        x = torch.cat([smp.reshape(N, self.n * self.D, *self.size), self.prior.expand(N, -1, -1, -1)], 1)
+        return self.net(x)
 
 
 class SelfAttention(nn.Module):
@@ -256,7 +332,10 @@ class NeuralMemory(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg)
-        self.decoder = ImageDecoder(cfg) if cfg.input == "image" else Decoder(cfg)
+        if cfg.input == "image":
+            self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)
+        else:
+            self.decoder = Decoder(cfg)
         self.lstm = nn.LSTMCell(cfg.features, cfg.features)
         self.occ_lstm = nn.LSTMCell(1, 1)
         self.hallucinator = Hallucinator(cfg)
@@ -411,6 +490,8 @@ class NeuralMemory(nn.Module):
         pad = q // 2
         P = F.pad(psi, (pad, pad, pad, pad))
         N = poses.shape[0]
+        if poses.is_floating_point():        # exact poses (3D): the window is read at the nearest cell and heading
+            poses = torch.round(poses).long()
         idx = torch.arange(N, device=psi.device) if index is None else index.to(psi.device)
         ar = torch.arange(q, device=psi.device)
         rows = (poses[:, 0].long() + c)[:, None, None] + ar[None, :, None]
@@ -426,7 +507,13 @@ class NeuralMemory(nn.Module):
 
     def recall(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor,
                index: torch.Tensor | None = None) -> torch.Tensor:
-        """(N, C, q, q) decoded views (3D: (N, C, H, W) images) of the memories at the allocentric ``poses``."""
+        """(N, C, q, q) decoded views (3D: (N, C, H, W) images) of the memories at the allocentric ``poses`` (N, 3):
+        (row, col, heading index), integers or - 3D - reals (exact poses; the ``learned`` decoder rounds them,
+        the ``rays`` decoder samples at them; the ``rays`` decoder's culling is its view frustum, ``view_mask``
+        is not used)."""
+        if isinstance(self.decoder, RayDecoder):
+            idx = torch.arange(poses.shape[0], device=psi.device) if index is None else index.to(psi.device)
+            return self.decoder(psi, poses, idx)
         return self.decoder(self.cull(psi, poses, view_mask, index))
 
     def hallucinate(self, psi: torch.Tensor, occ: torch.Tensor) -> torch.Tensor:

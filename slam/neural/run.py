@@ -120,7 +120,8 @@ def register_sequence(model, images, cells, wedge, memory: int) -> dict:
 
 def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):
     """The view a neural run's memory recalls at camera-to-world ``pose_c2w`` (4, 4): RUN/memory's
-    features culled at the pose (rounded to the memory's cell and heading grid) and decoded by the
+    features at the pose (the ``rays`` decoder samples them along the pixels' rays at the exact pose; the
+    ``learned`` one culls a window at the pose rounded to the memory's cell and heading grid) decoded by the
     run's model; with ``hallucinate`` the hallucination module fills the memory's unobserved cells
     first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
     image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""
@@ -131,7 +132,7 @@ def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False,
     import torch
 
     from data_tools.errors import FormatError
-    from slam.neural.geometry3d import grid_pose
+    from slam.neural.geometry3d import planar_relative
     from slam.neural.train import load_model
     d = Path(run_dir) / "memory"
     meta_p = d / "memory.json"
@@ -148,7 +149,8 @@ def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False,
         raise FormatError(d / "memory.npy", f"{psi.shape[1]} features per cell, the model {meta['model']} has "
                                             f"{model.cfg.features}")
     cell, T0 = float(meta["cell_m"]), np.asarray(meta["T0"])
-    row, col, k = grid_pose(T0, np.asarray(pose_c2w, float), cell, model.cfg.rotations)
+    row, col, yaw = planar_relative(T0, np.asarray(pose_c2w, float), cell)
+    k = yaw / (2 * np.pi / model.cfg.rotations)          # heading in units of the memory's turns (real)
     U = psi.shape[-1]
     if max(abs(row), abs(col)) > U // 2:
         raise FormatError(meta_p, f"the pose is {max(abs(row), abs(col)) * cell:.1f} m from the first frame, "
@@ -160,7 +162,7 @@ def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False,
     vm = torch.from_numpy(wedge.astype(np.float32))
     with torch.no_grad():
         mem = model.hallucinate(psi, occ) if hallucinate else psi
-        img = model.recall(mem, torch.tensor([[row, col, k]]), vm)[0].numpy()
+        img = model.recall(mem, torch.tensor([[row, col, k]], dtype=torch.float32), vm)[0].numpy()
     rgb = np.clip((np.transpose(img[:3], (1, 2, 0)) + 1) / 2, 0, 1)
     depth = (img[3] + 1) / 2 * w.max_range_m
     depth = np.where(img[3] > -0.95, depth, 0.0).astype(np.float32)

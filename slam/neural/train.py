@@ -71,6 +71,10 @@ class NeuralTrainConfig:
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
     """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
+    decoder: str = "rays"
+    """3D mode: recall by ``rays`` (the memory sampled along each pixel's ray at the exact pose) or ``learned``
+    (a learned map from the culled top-view window; the decoder of the first shipped 3D weights), see
+    :class:`slam.neural.model.MemoryConfig`."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
@@ -90,6 +94,8 @@ class NeuralTrainConfig:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
         if int(self.topview_steps) < 0:
             raise ConfigError(f"topview_steps must be >= 0, got {self.topview_steps}")
+        if self.decoder not in ("rays", "learned"):
+            raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not 1 <= self.observe < self.steps:
             raise ConfigError(f"observe must be in 1..steps-1, got {self.observe}")
         return self
@@ -118,15 +124,23 @@ simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-tra
 the recipe of the shipped ``planar_3d`` weights (about 60 min on one core). ``gpu``: the larger configuration."""
 
 
-def memory_config(cfg: NeuralTrainConfig):
+def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
+    """The model's sizes for a training configuration; 3D ``rays``: the camera of ``geometry``
+    (:func:`slam.neural.data3d.ray_geometry`; default :func:`slam.neural.data3d.default_ray_geometry`)."""
     from slam.neural.data2d import AGENTS
     from slam.neural.model import MemoryConfig
     if cfg.mode == "3d":
+        from slam.neural.data3d import default_ray_geometry
         w = cfg.world
         reach = int(np.ceil(0.45 * w.stride_max / 30.0 * (cfg.steps - 1) / w.cell_m)) + 4
+        rays = {}
+        if cfg.decoder == "rays":
+            g = geometry or default_ray_geometry(w)
+            rays = dict(decoder="rays", camera=tuple(g["camera"]), level_rotation=tuple(g["level_rotation"]),
+                        camera_height_m=float(g["camera_height_m"]), cell_m=w.cell_m, max_range_m=w.max_range_m)
         return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
                             width=cfg.width, rotations=w.rotations, search=4, input="image",
-                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation)
+                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation, **rays)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
@@ -168,7 +182,14 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
     torch.manual_seed(cfg.seed)
-    mcfg = memory_config(cfg)
+    geometry = None
+    if cfg.mode == "3d":
+        bank = worlds_3d(cfg, simulate, progress, log)
+        if cfg.decoder == "rays":
+            from data_tools.sequence import SequenceReader
+            from slam.neural.data3d import ray_geometry
+            geometry = ray_geometry(SequenceReader(bank.folders[0]), cfg.world)
+    mcfg = memory_config(cfg, geometry)
     model = NeuralMemory(mcfg).to(dev)
     disc = PatchDiscriminator(mcfg).to(dev)
     init_weights(disc)
@@ -178,19 +199,21 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(cfg.seed)
     if cfg.mode == "3d":
-        bank = worlds_3d(cfg, simulate, progress, log)
         vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
 
         def batch():
-            imgs, cells, allo, _ = bank.sample(rng, cfg.batch, cfg.steps)
-            return torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev)
+            imgs, cells, allo, poses = bank.sample(rng, cfg.batch, cfg.steps)
+            exact = np.stack([bank.exact(p) for p in poses]).astype(np.float32)
+            return (torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev),
+                    torch.from_numpy(exact).to(dev))
     else:
         agent = AGENTS[cfg.agent]
         vm = torch.from_numpy(view_mask(agent).astype(np.float32)).to(dev)
 
         def batch():
             _, obs, _, allo = make_batch(rng, cfg.batch, agent, cfg.steps, cfg.image)
-            return torch.from_numpy(obs).to(dev), None, torch.from_numpy(allo).to(dev)
+            a = torch.from_numpy(allo).to(dev)
+            return torch.from_numpy(obs).to(dev), None, a, a
     tlog = TrainLog()
     start = 0
     ck = Path(checkpoint) if checkpoint else None
@@ -231,7 +254,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     t0 = time.perf_counter()
     model.train()
     for step in range(start, cfg.iterations):
-        obs_t, cells_t, allo_t = batch()
+        obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
         B, T = obs_t.shape[:2]
         img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
         losses = {}
@@ -253,7 +276,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
                                  for t in range(cfg.steps)], 1)
             l_loc = _loc_loss(out["logits"], truth)
-            rec = model.recall(out["psi"], allo_t.flatten(0, 1), vm, memory_index(out["psi"], T))
+            rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
             loss = cfg.loc_weight * l_loc + l_anam
             losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
@@ -261,7 +284,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             loss.backward()
             opt.step()
             if step >= cfg.hallucination_from:
-                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask))
+                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
+                                                  exact_t))
         for k, v in losses.items():
             acc[k] = acc.get(k, 0.0) + v
         acc["n"] = acc.get("n", 0) + 1
@@ -283,9 +307,11 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     return model, disc, tlog
 
 
-def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None) -> dict:
+def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
+                        exact_t=None) -> dict:
     """One hallucination update: memorise the first ``observe`` steps (no gradient into the memory
-    path), fill the holes, predict the later views; discriminator on culled windows."""
+    path), fill the holes, predict the later views (recalled at ``exact_t``, default ``allo_t``);
+    discriminator on culled windows."""
     import torch
     import torch.nn.functional as F
 
@@ -298,7 +324,8 @@ def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells
         full = model(obs_t, vm, allo_t, cells=cells_t)
     filled = model.hallucinate(part["psi"], part["occ"])
     later = allo_t[:, k:].flatten(0, 1)
-    rec = model.recall(filled, later, vm, memory_index(filled, T - k))
+    later_exact = (allo_t if exact_t is None else exact_t)[:, k:].flatten(0, 1)
+    rec = model.recall(filled, later_exact, vm, memory_index(filled, T - k))
     l_hallu = (torch.abs(rec - obs_t[:, k:].flatten(0, 1)) * img_mask).mean()
     l_corrupt = (torch.abs(filled - part["psi"]) * part["occ"]).mean()
     fake = model.cull(filled, later, vm, memory_index(filled, T - k))[:, :-1]
@@ -322,7 +349,7 @@ def worlds_3d(cfg: NeuralTrainConfig, simulate, progress: bool, log, split: str 
     root = Path(cfg.worlds_dir) if cfg.worlds_dir else default_worlds_dir(cfg.world)
     seqs = build_worlds(root, cfg.world, split, simulate=simulate, log=log)
     arrays = [load_sequence_arrays(s, cfg.world, s / cache_name(cfg.world), progress=progress) for s in seqs]
-    return WorldBank(arrays, cfg.world)
+    return WorldBank(arrays, cfg.world, seqs)
 
 
 def save_model(folder: str | Path, model, cfg: NeuralTrainConfig, info: dict | None = None) -> Path:
