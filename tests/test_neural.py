@@ -180,3 +180,20 @@ def test_table_4_2_ablations_at_inference_cost_quality():
     assert r["ablation_no_localisation_anamnesis"]["l1"] > r["anamnesis"]["l1"] + 0.01
     for k in ("ablation_no_culling_anamnesis", "ablation_no_culling_hallucination"):
         assert set(r[k]) == {"l1", "ssim_thesis", "ssim_skimage"}
+
+
+def test_train_2d_all_phases_pretraining_recalls_single_views(tmp_path):
+    """``train_memory`` in 2D goes through the three phases; the pre-training's auto-encoder of single views (each
+    view's grid recalled as a memory of its own at its centre) is the decoder of the masked grid."""
+    from slam.neural.train import NeuralTrainConfig, train_memory
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=4, width=8, iterations=8,
+                            pretrain_steps=5, teacher_steps=1, hallucination_from=7, log_every=1, lr=3e-3)
+    model, _, log = train_memory(cfg, None, progress=False)
+    assert "loc" not in log.steps[0] and "loc" in log.steps[5] and "hallu" in log.steps[-1]
+    assert all(np.isfinite(v) for s in log.steps for v in s.values())
+    vm = torch.from_numpy(view_mask(AGENTS[cfg.agent]).astype(np.float32))
+    f = torch.randn(3, 4, 15, 15)
+    with torch.no_grad():
+        a = model.recall(f, torch.zeros(3, 3, dtype=torch.long), vm)
+        b = model.decoder(torch.cat([f * vm - (1 - vm), vm.expand(3, 1, 15, 15)], 1))
+    assert torch.equal(a, b)

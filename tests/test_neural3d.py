@@ -296,3 +296,28 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
     shipped = __import__("pathlib").Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
     with pytest.raises(ConfigError, match="is a 2d model"):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
+
+
+def test_train_3d_rays_all_phases_and_resume(tmp_path):
+    """``train_memory`` in 3D with the rays decoder on a tiny simulated room goes through pre-training, memory +
+    recall and the hallucination GAN, takes the decoder's camera from the room, and a re-run resumes from the
+    checkpoint of the last step (same weights)."""
+    import torch
+
+    from app.pipelines import simulate_planar_room
+    from slam.neural.data3d import World3DConfig
+    from slam.neural.train import NeuralTrainConfig, train_memory
+    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
+    cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
+                            pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
+                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
+    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
+    assert model.cfg.decoder == "rays" and model.cfg.camera[0] == pytest.approx(580.0 * 20 / 640)
+    assert model.cfg.camera_height_m == pytest.approx(1.0, abs=1e-6)
+    phases = [set(s) for s in log.steps]
+    assert "loc" not in phases[0] and "loc" in phases[2] and "hallu" in phases[-1]
+    again, _, log2 = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
+    assert log2.resumed_from == 6
+    for a, b in zip(model.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)

@@ -260,8 +260,9 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         losses = {}
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
-            f = model.encode(obs_t, cells_t).flatten(0, 1) * vm
-            rec = model.decoder(torch.cat([f - (1 - vm), vm.expand(len(x), 1, *vm.shape)], 1))
+            f = model.encode(obs_t, cells_t).flatten(0, 1)
+            # each view's own grid as a memory (U = q), recalled at its centre: the auto-encoder of single views
+            rec = model.recall(f, f.new_zeros(len(x), 3), vm)
             loss = (torch.abs(rec - x) * img_mask).mean()
             losses["anam"] = float(loss.detach())
             opt.zero_grad(set_to_none=True)
