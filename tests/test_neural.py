@@ -197,3 +197,24 @@ def test_train_2d_all_phases_pretraining_recalls_single_views(tmp_path):
         a = model.recall(f, torch.zeros(3, 3, dtype=torch.long), vm)
         b = model.decoder(torch.cat([f * vm - (1 - vm), vm.expand(3, 1, 15, 15)], 1))
     assert torch.equal(a, b)
+
+
+def test_neural_eval_writes_json_and_figures(tmp_path):
+    """``neural eval MODEL --out DIR`` (2D): neural_eval.json with the APE per kind of environment, and the figures
+    it lists (readable PNGs) beside it."""
+    import cv2
+
+    from app.cli import main
+    from slam.neural.train import NeuralTrainConfig, memory_config, save_model
+    torch.manual_seed(0)
+    cfg = NeuralTrainConfig(image=23, features=4, width=4)
+    save_model(tmp_path / "m", NeuralMemory(memory_config(cfg)), cfg)
+    assert main(["neural", "eval", str(tmp_path / "m"), "--out", str(tmp_path / "ev"), "--sequences", "6",
+                 "--no-progress"]) == 0
+    res = json.loads((tmp_path / "ev" / "neural_eval.json").read_text())
+    assert sorted(res["figures"]) == ["ape_cdf.png", "examples.png", "images.png"]
+    for name in res["figures"]:
+        im = cv2.imread(str(tmp_path / "ev" / name))
+        assert im is not None and im.shape[0] > 100 and im.std() > 1, name
+    kinds = res["ape_px_by_environment"]
+    assert sum(v["poses"] for v in kinds.values()) == 6 * (cfg.steps - 1) and set(kinds) <= {"picture", "face", "floor plan"}

@@ -137,9 +137,15 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     save_model(tmp_path / "model", NeuralMemory(memory_config(tcfg)), tcfg)
     save_topview(tmp_path / "model", TopViewDecoder(4, 4))
     model, cfg, _ = load_model(tmp_path / "model")
+    ex: dict = {}
     res = evaluate_3d(model, cfg, tmp_path / "ev", tmp_path / "model", samples=2, progress=False,
-                      simulate=lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False))
+                      simulate=lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False),
+                      examples=ex)
     json.dumps(res)
+    from slam.neural.figures import write_figures
+    assert sorted(write_figures(tmp_path / "ev", {"mode": "3d", **res}, ex)) == ["ate.png", "examples.png",
+                                                                                "images.png"]
+    assert len(ex["samples"]) == 2 and (tmp_path / "ev" / "ate.png").stat().st_size > 1000
     assert list(res["sequences"]) == ["test_000"]
     row = res["sequences"]["test_000"]
     assert row["neural"]["frames"] == row["icp"]["frames"] == 40

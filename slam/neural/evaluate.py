@@ -98,9 +98,11 @@ def _mosaic_views(obs: np.ndarray, allo: np.ndarray, mask: np.ndarray, U: int, s
     return np.stack(out)
 
 
-def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bool = True) -> dict:
+def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bool = True,
+                examples: dict | None = None) -> dict:
     """The numbers of the module docstring for ``sequences`` test walks (a fixed seed: the same walks
-    for every model evaluated with it)."""
+    for every model evaluated with it). ``examples``: a dict filled with what the figures need
+    (:func:`slam.neural.figures.write_figures`): per-pose APE and environment kinds, two walks' images."""
     import torch
 
     from slam.neural.data2d import AGENTS, KINDS, make_batch, view_mask
@@ -143,6 +145,12 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
             rec_nc = model.recall(out["psi"], a.flatten(0, 1), full, memory_index(out["psi"], T)).view(b, T, *obs.shape[2:])
             hal_nc = model.recall(filled, later, full, memory_index(filled, T - k)).view(b, T - k, *obs.shape[2:])
             for i in range(b):
+                if examples is not None and done == 0 and i < 2:
+                    mh = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
+                    examples.setdefault("samples", []).append({"rows": [
+                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", list(rec[i].numpy())),
+                        ("hallucinated", [None] * k + list(hal[i].numpy())),
+                        ("mosaic + inpainting", [None] * k + list(mh))]})
                 d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
                 ape += d.tolist()
                 ape_kind += [int(kinds[i])] * len(d)
@@ -166,6 +174,8 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     if bar is not None:
         bar.close()
     ape_a, ate_a, kind_a = np.asarray(ape), np.asarray(ate), np.asarray(ape_kind)
+    if examples is not None:
+        examples.update(ape=ape_a, kinds=kind_a, kind_names=KINDS)
 
     def stats(a):
         return {"median": float(np.median(a)), "mean": float(np.mean(a)), "std": float(np.std(a))}

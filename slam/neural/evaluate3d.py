@@ -77,7 +77,9 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
 
 
 def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_sequences=(), samples: int = 24,
-                seed: int = 12345, progress: bool = True, log=None, simulate=None) -> dict:
+                seed: int = 12345, progress: bool = True, log=None, simulate=None, examples: dict | None = None) -> dict:
+    """The numbers of the module docstring; ``examples``: a dict filled with two samples' images for the figures
+    (:func:`slam.neural.figures.write_figures`)."""
     import torch
 
     from data_tools.sequence import SequenceReader
@@ -160,6 +162,14 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
                                      float(np.abs(tv.mean(1, keepdims=True) - tv).mean() / 2)))
         true = s["images"][idx].astype(np.float32)
         base = _tsdf_baseline(readers[si], idx[:k], idx[k:], w)
+        if examples is not None and len(examples.setdefault("samples", [])) < 2:
+            def depth(x):
+                return np.repeat(x[3:4], 3, 0)
+            examples["samples"].append({"rows": [
+                ("observed", list(true)), ("recalled", list(rec)), ("hallucinated", [None] * k + list(hal)),
+                ("TSDF + inpainting", [None] * k + list(base)), ("observed depth", [depth(x) for x in true]),
+                ("hallucinated depth", [None] * k + [depth(x) for x in hal]),
+                ("TSDF depth", [None] * k + [depth(x) for x in base])]})
         for t in range(T):
             rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))

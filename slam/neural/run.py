@@ -75,7 +75,8 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
                     progress: bool = True, mode: str | None = None, extra_sequences=(), log=None,
                     simulate=None) -> dict:
     """``neural eval``: the model's 2d or 3d evaluation (``sequences``: 2d test walks, default 64; 3d image
-    samples, default 24), with ``mode`` (the model's) in the result; written to ``out``/neural_eval.json."""
+    samples, default 24), with ``mode`` (the model's) in the result; written to ``out``/neural_eval.json with
+    the figures of :mod:`slam.neural.figures` beside it (their names in the result's ``figures``)."""
     from data_tools.outputs import check_output_dir
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
@@ -87,19 +88,22 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
         raise ConfigError(f"--mode {mode}: {model_dir} is a {cfg.mode} model")
     if sequences is None:
         sequences = 24 if cfg.mode == "3d" else 64
+    examples: dict = {}
     if cfg.mode == "3d":
         if folder is None:
             raise ConfigError("--mode 3d evaluation runs SLAM on the test rooms: give --out DIR for its runs")
         from slam.neural.evaluate3d import evaluate_3d
         res = evaluate_3d(model, cfg, folder, model_dir, extra_sequences, samples=sequences, progress=progress,
-                          log=log, simulate=simulate)
+                          log=log, simulate=simulate, examples=examples)
     else:
         if extra_sequences:
             raise ConfigError("--planar sequences are for 3d models")
-        res = evaluate_2d(model, cfg, sequences, progress=progress)
+        res = evaluate_2d(model, cfg, sequences, progress=progress, examples=examples)
     res = {"mode": cfg.mode, **res}
     if folder is not None:
         from data_tools.results import atomic_write_json
+        from slam.neural.figures import write_figures
+        res["figures"] = write_figures(folder, res, examples)
         atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})
     return res
 
