@@ -48,7 +48,7 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
-           "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "init_weights", "correlate", "register"]
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "peak_poses", "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
 
@@ -320,6 +320,16 @@ def correlate(window: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
                                                                                                   W - q + 1)
 
 
+def peak_poses(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """(..., 3) long allocentric (row, col, heading) of the maxima of local pose fields or logits (..., r, P, P)
+    whose middle cell is the allocentric ``centre`` (..., 2)."""
+    P = field.shape[-1]
+    idx = field.flatten(-3).argmax(-1)
+    k, rem = idx // (P * P), idx % (P * P)
+    R = P // 2
+    return torch.stack([centre[..., 0] + rem // P - R, centre[..., 1] + rem % P - R, k], -1)
+
+
 def register(field: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
     """The adjoint of :func:`correlate`: a pose field (B, r, P, P) placing the bank (B, r, c, q, q) ->
     (B, c, P + q - 1, P + q - 1); a one-hot field pastes bank[k] at (i, j)."""
@@ -451,9 +461,7 @@ class NeuralMemory(nn.Module):
             xm = obs.new_zeros(B, Up, Up, 1).index_put((bi, ri, ci), regm.permute(0, 2, 3, 1))
             h, c = self.lstm(x.view(-1, n), (h, c))                             # every cell, shared weights
             oh, oc = self.occ_lstm(xm.view(-1, 1), (oh, oc))
-            idx = field.flatten(1).argmax(1)
-            k, rem = idx // (Wp * Wp), idx % (Wp * Wp)
-            est = torch.stack([centre[:, 0] + rem // Wp - R, centre[:, 1] + rem % Wp - R, k], 1).detach()
+            est = peak_poses(field, centre).detach()
             logits.append(lg)
             fields.append(field)
             centres.append(centre)
