@@ -226,7 +226,7 @@ def planar_seq(tmp_path_factory):
     root = tmp_path_factory.mktemp("neural3d")
     cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
     generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20))
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20), decoder="rays")
     import torch
     torch.manual_seed(0)
     save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
@@ -298,9 +298,10 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
 
 
-def test_train_3d_rays_all_phases_and_resume(tmp_path):
-    """``train_memory`` in 3D with the rays decoder on a tiny simulated room goes through pre-training, memory +
-    recall and the hallucination GAN, takes the decoder's camera from the room, and a re-run resumes from the
+@pytest.mark.parametrize("decoder", ["rays", "learned"])
+def test_train_3d_all_phases_and_resume(tmp_path, decoder):
+    """``train_memory`` in 3D on a tiny simulated room goes through pre-training, memory + recall and the
+    hallucination GAN (the rays decoder takes its camera from the room), and a re-run resumes from the
     checkpoint of the last step (same weights)."""
     import torch
 
@@ -310,11 +311,13 @@ def test_train_3d_rays_all_phases_and_resume(tmp_path):
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
     cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
                             pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
-                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
+                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"), decoder=decoder)
     sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
     model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
-    assert model.cfg.decoder == "rays" and model.cfg.camera[0] == pytest.approx(580.0 * 20 / 640)
-    assert model.cfg.camera_height_m == pytest.approx(1.0, abs=1e-6)
+    assert model.cfg.decoder == decoder
+    if decoder == "rays":
+        assert model.cfg.camera[0] == pytest.approx(580.0 * 20 / 640)
+        assert model.cfg.camera_height_m == pytest.approx(1.0, abs=1e-6)
     phases = [set(s) for s in log.steps]
     assert "loc" not in phases[0] and "loc" in phases[2] and "hallu" in phases[-1]
     again, _, log2 = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)

@@ -132,7 +132,8 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     from slam.neural.topview import TopViewDecoder
     from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=40, stride_min=2, stride_max=3)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"))
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"),
+                             decoder="rays")
     torch.manual_seed(0)
     save_model(tmp_path / "model", NeuralMemory(memory_config(tcfg)), tcfg)
     save_topview(tmp_path / "model", TopViewDecoder(4, 4))

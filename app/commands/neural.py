@@ -23,6 +23,9 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="cpu: <= 30 min on 2 cores; cpu-long (3d): the shipped planar_3d recipe, ~1 h; gpu: larger")
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
+    p.add_argument("--decoder", choices=("learned", "rays"),
+                   help="3d recall: learned (default; a learned map from the culled top-view window at the pose "
+                        "rounded to the grid) or rays (the memory sampled along each pixel's ray at the exact pose)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -59,7 +62,7 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device") if getattr(args, k) is not None}
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder") if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS

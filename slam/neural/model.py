@@ -32,11 +32,11 @@ per-pixel features are ground-projected (max-pool per cell, :func:`slam.neural.g
 into the egocentric grid (15 cm cells, 33 x 33, the camera at the centre looking up the grid). The
 rotation bank of r = 12 headings (30 deg, the thesis' Doom turn) is made by projecting the pixels into
 each turned grid (points turned, then binned): exact, unlike resampling a grid - a deviation that also
-keeps the bank cheap. Recall (``decoder = "rays"``, the default of new 3D models): a
+keeps the bank cheap. Recall (``decoder = "rays"``, ``neural train --decoder rays``): a
 :class:`RayDecoder` samples the memory along every pixel's ray at the exact requested pose (real row,
 column and heading: no rounding to the 15 cm / 30 deg grid) and a small per-pixel network turns the
 samples into the 4 x 30 x 40 RGB-D image - the geometric culling of thesis Fig. 4.5 done per ray.
-``decoder = "learned"`` (the first shipped 3D weights): the memory window at the rounded pose is culled
+``decoder = "learned"`` (the default, and the shipped 3D weights): the memory window at the rounded pose is culled
 (turned by ``kornia.geometry.transform.rotate`` for headings that are not quarter turns) and an
 :class:`ImageDecoder` learns the back-projection. Poses are estimated on the 15 cm / 30 deg grid; the ``neural`` registration
 backend refines the field's maximum to sub-cell precision.

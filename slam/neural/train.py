@@ -71,10 +71,11 @@ class NeuralTrainConfig:
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
     """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
-    decoder: str = "rays"
-    """3D mode: recall by ``rays`` (the memory sampled along each pixel's ray at the exact pose) or ``learned``
-    (a learned map from the culled top-view window; the decoder of the first shipped 3D weights), see
-    :class:`slam.neural.model.MemoryConfig`."""
+    decoder: str = "learned"
+    """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
+    grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
+    :class:`slam.neural.model.MemoryConfig`. Measured with the cpu preset (slam/neural/weights/README.md): the
+    two are equal within noise at this training budget, so the measured recipe stays the default."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
