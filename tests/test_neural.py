@@ -218,3 +218,13 @@ def test_neural_eval_writes_json_and_figures(tmp_path):
         assert im is not None and im.shape[0] > 100 and im.std() > 1, name
     kinds = res["ape_px_by_environment"]
     assert sum(v["poses"] for v in kinds.values()) == 6 * (cfg.steps - 1) and set(kinds) <= {"picture", "face", "floor plan"}
+
+
+def test_learning_rate_schedule_is_a_function_of_the_step():
+    """Constant until lr_decay_from, then linear to lr_final at the last step; 0 = constant throughout (a resumed
+    run recomputes the same rates from its step)."""
+    from slam.neural.train import NeuralTrainConfig, lr_factor
+    cfg = NeuralTrainConfig(iterations=11, lr_decay_from=6, lr_final=0.5)
+    assert [lr_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
+    assert lr_factor(cfg, 8) == pytest.approx(0.75) and lr_factor(cfg, 10) == pytest.approx(0.5)
+    assert lr_factor(NeuralTrainConfig(iterations=11), 10) == 1.0

@@ -60,6 +60,11 @@ class NeuralTrainConfig:
     hallucination_from: int = 1500
     """Step at which the hallucination module joins."""
     lr: float = 2e-4
+    """Base learning rate (thesis: "initialized at 2e-4")."""
+    lr_decay_from: int = 0
+    """From this step on the learning rate falls linearly to ``lr_final`` x ``lr`` at the last step (all three
+    optimisers); 0 = constant."""
+    lr_final: float = 0.1
     loc_weight: float = 1.0
     checkpoint_every: int = 200
     log_every: int = 50
@@ -97,6 +102,8 @@ class NeuralTrainConfig:
             raise ConfigError(f"topview_steps must be >= 0, got {self.topview_steps}")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
+        if not 0.0 < self.lr_final <= 1.0:
+            raise ConfigError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if not 1 <= self.observe < self.steps:
             raise ConfigError(f"observe must be in 1..steps-1, got {self.observe}")
         return self
@@ -155,6 +162,16 @@ class TrainLog:
     steps: list = field(default_factory=list)
     seconds: float = 0.0
     resumed_from: int = 0
+
+
+def lr_factor(cfg: NeuralTrainConfig, step: int) -> float:
+    """The learning rate of ``step`` over the base one: 1 until ``lr_decay_from``, then linear to ``lr_final`` at
+    the last step (a function of the step only, so a resumed run continues the same schedule)."""
+    a = int(cfg.lr_decay_from)
+    if a <= 0 or step < a:
+        return 1.0
+    t = (step - a) / max(cfg.iterations - 1 - a, 1)
+    return 1.0 + (cfg.lr_final - 1.0) * min(t, 1.0)
 
 
 def _loc_loss(logits, truth_field):
@@ -255,6 +272,10 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     t0 = time.perf_counter()
     model.train()
     for step in range(start, cfg.iterations):
+        f = lr_factor(cfg, step)
+        for o in (opt, opt_h, opt_d):
+            for g in o.param_groups:
+                g["lr"] = cfg.lr * f
         obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
         B, T = obs_t.shape[:2]
         img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
