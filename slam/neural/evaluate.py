@@ -148,12 +148,6 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
             rec_nc = model.recall(out["psi"], a.flatten(0, 1), full, memory_index(out["psi"], T)).view(b, T, *obs.shape[2:])
             hal_nc = model.recall(filled, later, full, memory_index(filled, T - k)).view(b, T - k, *obs.shape[2:])
             for i in range(b):
-                if examples is not None and done == 0 and i < 2:
-                    mh = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
-                    examples.setdefault("samples", []).append({"rows": [
-                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", list(rec[i].numpy())),
-                        ("hallucinated", [None] * k + list(hal[i].numpy())),
-                        ("mosaic + inpainting", [None] * k + list(mh))]})
                 d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
                 ape += d.tolist()
                 one += np.linalg.norm(one_est[i, 1:, :2] - allo[i, 1:, :2], axis=1).tolist()
@@ -161,6 +155,11 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                 ate.append(rigid_ate(est[i, :, :2].astype(float), allo[i, :, :2].astype(float)))
                 mos_a = _mosaic_views(obs[i], allo[i], mask, U, T, allo[i])
                 mos_h = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
+                if examples is not None and done == 0 and i < 2:
+                    examples.setdefault("samples", []).append({"rows": [
+                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", list(rec[i].numpy())),
+                        ("hallucinated", [None] * k + list(hal[i].numpy())),
+                        ("mosaic + inpainting", [None] * k + list(mos_h))]})
                 for t in range(T):
                     rows["anam"].append(_image_metrics(rec[i, t].numpy(), obs[i, t], mask))
                     rows["anam_true_poses"].append(_image_metrics(rec_t[i, t].numpy(), obs[i, t], mask))

@@ -123,6 +123,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     rows = {key: [] for key in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "tsdf_inpainting",
                                 "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
+    rays = model.cfg.decoder == "rays"      # its culling is the view frustum itself: "no culling" does not apply
     from slam.neural.topview import load_topview, topview_targets
     topdec = load_topview(model_dir, model.cfg.features)
     top_rows = []
@@ -136,21 +137,21 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         obs = torch.from_numpy(s["images"][idx].astype(np.float32))[None]
         cells = torch.from_numpy(s["cells"][idx].astype(np.int64))[None]
         allo = torch.from_numpy(bank.allocentric(s["poses"][idx]))[None]
-        ex = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))     # recall at the exact poses
+        a = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))      # recall at the exact poses
         with torch.no_grad():
             out = model(obs, vm, None, cells=cells)
             tru = model(obs, vm, allo, cells=cells)
             part = model(obs[:, :k], vm, allo[:, :k], cells=cells[:, :k])
             filled = model.hallucinate(part["psi"], part["occ"])
-            a = ex
             rec = model.recall(out["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             rec_t = model.recall(tru["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             nol = model(obs, vm, allo[:, :1].expand_as(allo).contiguous(), cells=cells)   # no localisation
             rec_nl = model.recall(nol["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()      # no culling
-            hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
+            if not rays:                                                                  # no culling
+                rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()
+                hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
             if topdec is not None:      # the colour floor plan: decoded vs the views' pixels binned per cell
                 tgt, seen = topview_targets(obs, cells, allo, model.cfg.rotations, model.cfg.view, tru["psi"].shape[-1])
                 m = seen[0, 0].numpy()
@@ -174,18 +175,19 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
             rows["anam_no_localisation"].append(_metrics(rec_nl[t], true[t], w.max_range_m))
-            rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
+            if not rays:
+                rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
         for t in range(T - k):
             rows["hallu"].append(_metrics(hal[t], true[k + t], w.max_range_m))
             rows["hallu_no_module"].append(_metrics(hal0[t], true[k + t], w.max_range_m))
             rows["tsdf_inpainting"].append(_metrics(base[t], true[k + t], w.max_range_m))
-            rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
+            if not rays:
+                rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
 
     def images(key):
         v = np.asarray(rows[key], float)
         return {"l1": float(np.nanmean(v[:, 0])), "ssim_thesis": float(np.nanmean(v[:, 1])),
                 "ssim_skimage": float(np.nanmean(v[:, 2])), "depth_l1_m": float(np.nanmean(v[:, 3]))}
-    rays = model.cfg.decoder == "rays"      # its culling is the view frustum itself: "no culling" does not apply
     res.update({"samples": samples, "steps": T, "observe": k, "decoder": model.cfg.decoder, "anamnesis": images("anam"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),
                 "ablation_no_hallucination_module": images("hallu_no_module"),

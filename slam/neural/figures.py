@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.plots import _figure, _save
+
 __all__ = ["write_figures"]
 
 _IMAGE_ROWS = (("anamnesis", "recall (own poses)"), ("anamnesis_true_poses", "recall (true poses)"),
@@ -28,16 +30,6 @@ _IMAGE_ROWS = (("anamnesis", "recall (own poses)"), ("anamnesis_true_poses", "re
                ("ablation_no_culling_hallucination", "hallu., no culling"),
                ("baseline_mosaic_inpainting", "mosaic + inpainting"),
                ("baseline_tsdf_inpainting", "TSDF + inpainting"))
-
-
-def _figure(w: float, h: float):
-    from slam.plots import _figure as fig
-    return fig(w, h)
-
-
-def _save(fig, path: Path) -> Path:
-    from slam.plots import _save as save
-    return save(fig, path)
 
 
 def _image_bars(path: Path, res: dict) -> Path:
@@ -111,7 +103,7 @@ def _examples(path: Path, ex: list[dict]) -> Path:
     rows = [(lab, ims) for e in ex for lab, ims in e["rows"]]
     cols = max(len(ims) for _, ims in rows)
     h, w = next(im for _, ims in rows for im in ims if im is not None).shape[-2:]
-    scale = 1.6 / max(h, w) * 1.0
+    scale = 1.6 / max(h, w)
     fig = _figure(1.2 + cols * w * scale, 0.3 + len(rows) * h * scale)
     for r, (lab, ims) in enumerate(rows):
         for c in range(cols):
