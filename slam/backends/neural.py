@@ -9,7 +9,8 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
    (:mod:`slam.neural.data3d`, :mod:`slam.neural.geometry3d`);
 2. the trained model (``model``, default the project's shipped ``slam/neural/weights/planar_3d``)
    registers the steps one after the other: the pose field of each step against the memory so far
-   (searched around the previous estimate), then the LSTM memory update;
+   (searched around the previous estimate, times a Gaussian motion prior on the move from it:
+   ``prior_move_m``, ``prior_turn_deg``; 0 = the thesis' plain field), then the LSTM memory update;
 3. the pose of a step is the field's maximum refined to sub-cell / sub-heading precision by the
    centroid of the field over its 3 x 3 neighbours and the two neighbouring headings (the grid
    itself is ``cell_m`` = 15 cm and 30 deg coarse);
@@ -50,13 +51,32 @@ class NeuralConfig:
     """The memory covers this distance from the first frame in every direction, metres."""
     refine: bool = True
     """Refine the field's maximum to sub-cell / sub-heading precision (centroid of its neighbours)."""
+    prior_move_m: float = 0.15
+    """Motion prior: standard deviation of the planar move between two memory steps, metres (0 = no prior,
+    the thesis' field). The default is the training rooms' motion at ``stride`` 10 (RMS 0.10 m per step)
+    widened by the grid's rounding (one 15 cm cell); scale it with ``stride`` and the robot's speed."""
+    prior_turn_deg: float = 15.0
+    """Motion prior: standard deviation of the turn between two memory steps, degrees (0 = no prior). The
+    default is the training rooms' RMS turn at ``stride`` 10 (15 deg, half a heading step of the model)."""
 
     def validate(self) -> "NeuralConfig":
         if int(self.stride) < 1:
             raise ConfigError(f"neural.stride must be >= 1, got {self.stride}")
         if not self.max_reach_m > 0:
             raise ConfigError(f"neural.max_reach_m must be > 0, got {self.max_reach_m}")
+        if not (self.prior_move_m >= 0 and self.prior_turn_deg >= 0):
+            raise ConfigError(f"neural.prior_move_m and neural.prior_turn_deg must be >= 0, got "
+                              f"{self.prior_move_m}, {self.prior_turn_deg}")
+        if (self.prior_move_m == 0) != (self.prior_turn_deg == 0):
+            raise ConfigError("neural.prior_move_m and neural.prior_turn_deg: set both > 0 (a motion prior) or both "
+                              "to 0 (none)")
         return self
+
+    def motion_prior(self, cell_m: float, rotations: int) -> tuple[float, float] | None:
+        """(sigma in cells, sigma in heading steps of 2 pi / ``rotations``) of the motion prior, or None."""
+        if self.prior_move_m == 0:
+            return None
+        return self.prior_move_m / cell_m, self.prior_turn_deg / (360.0 / rotations)
 
 
 def refine_peak(field: np.ndarray, centre: np.ndarray, refine: bool = True) -> tuple[float, float, float, float]:
@@ -132,7 +152,8 @@ class NeuralBackend(RegistrationBackend):
             bar.close()
         reach = int(math.ceil(self.config.max_reach_m / w.cell_m))
         from slam.neural.run import register_sequence
-        out = register_sequence(model, np.stack(imgs), np.stack(cells), wedge, w.view + 2 * reach)
+        out = register_sequence(model, np.stack(imgs), np.stack(cells), wedge, w.view + 2 * reach,
+                                motion_prior=self.config.motion_prior(w.cell_m, model.cfg.rotations))
         fields, centres = out["fields"], out["centres"]
         r = model.cfg.rotations
         est, conf = [], []

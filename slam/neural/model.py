@@ -389,13 +389,17 @@ class NeuralMemory(nn.Module):
         return project_max(f, cells.reshape(B * r, H * W), q).view(B, r, n, q, q)
 
     def forward(self, obs: torch.Tensor, view_mask: torch.Tensor, teacher: torch.Tensor | None = None,
-                cells: torch.Tensor | None = None, memory: int | None = None):
+                cells: torch.Tensor | None = None, memory: int | None = None,
+                motion_prior: tuple[float, float] | None = None):
         """Register a sequence.
 
         obs (B, T, C, q, q) in [-1, 1] (3D: images (B, T, C, H, W) with ``cells`` (B, T, H * W), see
         :meth:`encode`); view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at these
         allocentric poses instead of the predicted field (training warm-up), or None; ``memory``: side
-        U of the memory for this call (default the configuration's; the model is the same for any U).
+        U of the memory for this call (default the configuration's; the model is the same for any U);
+        ``motion_prior`` = (sigma_cells, sigma_headings): at inference, add the log of a Gaussian on the move
+        from the previous estimate (cells, heading steps) to the localisation logits before the softmax -
+        p(pose | view, memory, previous pose), see :meth:`_log_motion_prior`; None = the thesis' field.
 
         Localisation searches a window of (2 R + 1)^2 positions (R = :attr:`MemoryConfig.search`) around the
         previous estimate (the agent moves at most 3/4 of its view per step): a grouped convolution of
@@ -452,6 +456,8 @@ class NeuralMemory(nn.Module):
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
                 lg = self._score(hw, bank, m)
+                if motion_prior is not None:
+                    lg = lg + self._log_motion_prior(est, centre, Wp, motion_prior)
                 field = torch.softmax(lg.flatten(1), 1).view_as(lg)
                 if teacher is not None:
                     field = self._local_one_hot(teacher[:, t], centre, Wp)
@@ -479,6 +485,27 @@ class NeuralMemory(nn.Module):
             b = F.normalize(bank, dim=2, eps=1e-6)
             return correlate(w, b) * (20.0 * torch.exp(self.log_beta) / m[0].sum().clamp(min=1))
         return correlate(window, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
+
+    def _log_motion_prior(self, prev: torch.Tensor, centre: torch.Tensor, Wp: int,
+                          sigmas: tuple[float, float]) -> torch.Tensor:
+        """(B, r, Wp, Wp) log of an isotropic Gaussian on the move from the previous estimate ``prev`` (B, 3)
+        (row, col, heading) to every pose of the local field centred on ``centre`` (B, 2): -d^2 / (2 s_c^2)
+        - dk^2 / (2 s_k^2), d in cells, dk the heading difference in steps of 2 pi / r (the shorter way
+        round). Not in the thesis (MapNet localises on the memory alone): an agent that moves little
+        between two steps makes far jumps unlikely, which stops one wrong registration from pulling the
+        next ones after it."""
+        r, R = self.cfg.rotations, Wp // 2
+        sc, sk = (float(v) for v in sigmas)
+        if not (sc > 0 and sk > 0):
+            raise ValueError(f"motion_prior sigmas must be > 0, got {sigmas}")
+        ar = torch.arange(Wp, device=prev.device, dtype=torch.float32) - R
+        dr = (centre[:, 0] - prev[:, 0]).float()[:, None] + ar[None]                 # (B, Wp)
+        dc = (centre[:, 1] - prev[:, 1]).float()[:, None] + ar[None]
+        ks = torch.arange(r, device=prev.device)
+        dk = ((ks[None] - prev[:, 2:3]) % r).float()
+        dk = torch.minimum(dk, r - dk)                                             # (B, r)
+        lp = -(dr[:, :, None] ** 2 + dc[:, None, :] ** 2) / (2 * sc * sc)         # (B, Wp, Wp)
+        return lp[:, None] - (dk ** 2 / (2 * sk * sk))[:, :, None, None]
 
     def _local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
         """(B, r, Wp, Wp) one-hot of allocentric ``poses`` in windows centred on ``centre`` (all zero when

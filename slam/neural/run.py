@@ -108,16 +108,18 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
     return res
 
 
-def register_sequence(model, images, cells, wedge, memory: int) -> dict:
+def register_sequence(model, images, cells, wedge, memory: int, motion_prior=None) -> dict:
     """Run a 3D model over one sequence of memory steps: images (T, 4, H, W), cells (T, r, H * W), the view
-    wedge (q, q) bool, a memory of side ``memory`` cells. Returns numpy arrays: fields (T, r, P, P) local
+    wedge (q, q) bool, a memory of side ``memory`` cells, ``motion_prior`` (sigma cells, sigma heading steps) or
+    None (:meth:`slam.neural.model.NeuralMemory.forward`). Returns numpy arrays: fields (T, r, P, P) local
     pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U) and occ (U, U)."""
     import numpy as np
     import torch
     vm = torch.from_numpy(np.asarray(wedge, np.float32))
     with torch.no_grad():
         out = model(torch.from_numpy(np.asarray(images, np.float32))[None], vm, None,
-                    cells=torch.from_numpy(np.asarray(cells, np.int64))[None], memory=int(memory))
+                    cells=torch.from_numpy(np.asarray(cells, np.int64))[None], memory=int(memory),
+                    motion_prior=motion_prior)
     return {"fields": out["fields"][0].numpy(), "centres": out["centres"][0].numpy(),
             "psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy()}
 
