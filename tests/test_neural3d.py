@@ -324,3 +324,59 @@ def test_train_3d_all_phases_and_resume(tmp_path, decoder):
     assert log2.resumed_from == 6
     for a, b in zip(model.state_dict().values(), again.state_dict().values()):
         assert torch.equal(a, b)
+
+
+def test_motion_prior_is_a_gaussian_on_the_move_from_the_previous_estimate():
+    """Hand-computed log prior on a 3 x 3 field of 12 headings: 0 at the previous pose, -d^2 / 2 s^2 for a
+    move of d cells, the heading difference taken the shorter way round; the field's centre may differ
+    from the previous estimate (the search window is clamped at the memory's border)."""
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=5, memory=15, width=4, rotations=12, search=1,
+                                      input="image", image_size=(30, 40)))
+    prev = torch.tensor([[2, -1, 11]])
+    lp = model._log_motion_prior(prev, torch.tensor([[2, -1]]), 3, (1.0, 0.5))
+    assert lp.shape == (1, 12, 3, 3)
+    assert lp[0, 11, 1, 1] == 0 and lp.max() == 0
+    assert lp[0, 11, 0, 1] == pytest.approx(-0.5) and lp[0, 11, 0, 0] == pytest.approx(-1.0)
+    assert lp[0, 0, 1, 1] == pytest.approx(-2.0)             # heading 0 is one step from 11 (wraps)
+    assert lp[0, 5, 1, 1] == pytest.approx(-72.0)            # six steps: the opposite heading
+    shifted = model._log_motion_prior(prev, torch.tensor([[3, -1]]), 3, (1.0, 0.5))   # window one row lower
+    assert shifted[0, 11, 0, 1] == 0 and shifted[0, 11, 1, 1] == pytest.approx(-0.5)
+    with pytest.raises(ValueError):
+        model._log_motion_prior(prev, prev[:, :2], 3, (0.0, 1.0))
+
+
+def test_motion_prior_tight_pins_the_estimate_wide_changes_nothing():
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    torch.manual_seed(0)
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
+                                      input="image", image_size=(30, 40)))
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    cells = np.stack([egocentric_cells(rng.uniform(0.5, 2.3, (30, 40)), intr, level_rotation(_cam(0, 0, 0.3)), 0.15,
+                                       33, 2.4, rotations=12) for _ in range(4)])
+    obs = torch.from_numpy(rng.uniform(-1, 1, (1, 4, 4, 30, 40)).astype(np.float32))
+    c = torch.from_numpy(cells)[None]
+    vm = torch.ones(33, 33)
+    with torch.no_grad():
+        free = model(obs, vm, None, cells=c)
+        wide = model(obs, vm, None, cells=c, motion_prior=(1e6, 1e6))
+        tight = model(obs, vm, None, cells=c, motion_prior=(1e-3, 1e-3))
+    assert (free["estimates"][0, 1:] != 0).any()                    # an untrained model wanders ...
+    assert torch.equal(tight["estimates"], torch.zeros_like(tight["estimates"]))   # ... the tight prior holds it
+    np.testing.assert_allclose(wide["fields"].numpy(), free["fields"].numpy(), atol=1e-5)
+    assert torch.equal(wide["estimates"], free["estimates"])
+
+
+def test_neural_backend_motion_prior_config():
+    from data_tools.errors import ConfigError
+    from slam.backends.neural import NeuralConfig
+    assert NeuralConfig().motion_prior(0.15, 12) == pytest.approx((1.0, 0.5))
+    assert NeuralConfig(prior_move_m=0, prior_turn_deg=0).validate().motion_prior(0.15, 12) is None
+    for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
+        with pytest.raises(ConfigError, match="prior"):
+            NeuralConfig(**bad).validate()

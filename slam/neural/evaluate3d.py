@@ -4,7 +4,8 @@
   (``procedural_room`` seeds never used in training) and, when given, extra planar sequences
   (e.g. the built-in ``room``): ``slam run --backend neural`` and ``--backend icp`` on the same
   frames; APE (first poses aligned, evo's ``--align_origin``) and ATE (SE(3) alignment), metres and
-  in memory cells.
+  in memory cells; and the ablation ``neural_no_motion_prior`` (the backend's motion prior off: the
+  thesis' plain pose field).
 * **Images** on 10-step samples of the test rooms (frames ``stride`` apart): anamnesis - the
   observed views recalled from the memory the model registered itself (predicted poses) - and
   hallucination - the last ``steps - observe`` views, unseen when the memory of the first
@@ -96,22 +97,26 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         reader = SequenceReader(seq)
         gt = reader.trajectory
         row = {}
-        for backend in ("neural", "icp"):
+        for name in ("neural", "icp", "neural_no_motion_prior"):
+            backend = "icp" if name == "icp" else "neural"
             over = {"backend_config.model": str(Path(model_dir).resolve())} if backend == "neural" else {}
+            if name == "neural_no_motion_prior":
+                over.update({"backend_config.prior_move_m": 0.0, "backend_config.prior_turn_deg": 0.0})
             cfg = make_config(backend, overrides=over)
             t0 = time.perf_counter()
-            run = run_slam(reader, out_dir / "runs" / f"{backend}_{seq.name}", cfg, progress=progress)
+            run = run_slam(reader, out_dir / "runs" / f"{name}_{seq.name}", cfg, progress=progress)
             est = run.trajectory
             a = ape(gt, est, align="origin")
             t = ate(gt, est)
-            row[backend] = {"ape_m": a.stats, "ate_m": t.stats, "ate_rmse_cells": t.stats["rmse"] / w.cell_m,
+            row[name] = {"ape_m": a.stats, "ate_m": t.stats, "ate_rmse_cells": t.stats["rmse"] / w.cell_m,
                             "seconds": time.perf_counter() - t0, "frames": len(reader)}
         row["neural_minus_icp_ate_cells"] = row["neural"]["ate_rmse_cells"] - row["icp"]["ate_rmse_cells"]
         res["sequences"][seq.name] = row
     seqs = res["sequences"].values()
     res["localisation"] = {
         b: {"ape_median_m": float(np.median([s[b]["ape_m"]["median"] for s in seqs])),
-            "ate_rmse_m_mean": float(np.mean([s[b]["ate_m"]["rmse"] for s in seqs]))} for b in ("neural", "icp")}
+            "ate_rmse_m_mean": float(np.mean([s[b]["ate_m"]["rmse"] for s in seqs]))}
+        for b in ("neural", "icp", "neural_no_motion_prior")}
     res["localisation"]["within_2_cells_of_icp"] = bool(all(s["neural_minus_icp_ate_cells"] <= 2 for s in seqs))
     # ---------------------------------------------------------------- images on short samples
     arrays = [load_sequence_arrays(s, w, s / cache_name(w), progress=progress) for s in tests]

@@ -4,7 +4,8 @@
   ablations measured in the same run, one bar each;
 * 2D ``ape_cdf.png``: the share of poses localised within d pixels, for all test walks and per kind of
   environment (pictures, faces, floor plans);
-* 3D ``ate.png``: ATE RMSE of ``neural`` and ``icp`` per sequence, in memory cells, with the 2-cell margin;
+* 3D ``ate.png``: ATE RMSE of ``neural`` (and without its motion prior) and ``icp`` per sequence, in memory
+  cells, with the 2-cell margin;
 * ``examples.png``: test samples row by row - the observations, their recall from the memory the model
   registered itself, the hallucinated later views and the classic baseline's (mosaic or TSDF +
   inpainting) for the same views.
@@ -80,8 +81,14 @@ def _ate_bars(path: Path, res: dict) -> Path:
     fig = _figure(max(5.0, 1.4 * len(names) + 2), 4.0)
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(len(names))
-    ax.bar(x - 0.2, n, 0.4, label="neural", color="tab:orange")
-    ax.bar(x + 0.2, i, 0.4, label="icp", color="tab:blue")
+    if all("neural_no_motion_prior" in seqs[s] for s in names):
+        p = np.array([seqs[s]["neural_no_motion_prior"]["ate_rmse_cells"] for s in names])
+        ax.bar(x - 0.3, p, 0.3, label="neural, no motion prior", color="tab:gray")
+        ax.bar(x, n, 0.3, label="neural", color="tab:orange")
+        ax.bar(x + 0.3, i, 0.3, label="icp", color="tab:blue")
+    else:
+        ax.bar(x - 0.2, n, 0.4, label="neural", color="tab:orange")
+        ax.bar(x + 0.2, i, 0.4, label="icp", color="tab:blue")
     ax.plot(x, i + 2, "k_", ms=18, mew=1.5, label="icp + 2 cells (target)")
     ax.set_xticks(x)
     ax.set_xticklabels(names, fontsize=8)
