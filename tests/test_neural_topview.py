@@ -149,7 +149,8 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     assert len(ex["samples"]) == 2 and (tmp_path / "ev" / "ate.png").stat().st_size > 1000
     assert list(res["sequences"]) == ["test_000"]
     row = res["sequences"]["test_000"]
-    assert row["neural"]["frames"] == row["icp"]["frames"] == 40
+    assert row["neural"]["frames"] == row["icp"]["frames"] == row["neural_no_motion_prior"]["frames"] == 40
+    assert "neural_no_motion_prior" in res["localisation"]
     assert row["icp"]["ate_m"]["rmse"] < 0.1                   # icp tracks a simulated room
     for key in ("anamnesis", "hallucination", "baseline_tsdf_inpainting", "ablation_no_localisation_anamnesis"):
         assert 0.0 <= res[key]["l1"] <= 1.0 and -1.0 <= res[key]["ssim_thesis"] <= 1.0, key
