@@ -368,6 +368,7 @@ def test_motion_prior_tight_pins_the_estimate_wide_changes_nothing():
         tight = model(obs, vm, None, cells=c, motion_prior=(1e-3, 1e-3))
     assert (free["estimates"][0, 1:] != 0).any()                    # an untrained model wanders ...
     assert torch.equal(tight["estimates"], torch.zeros_like(tight["estimates"]))   # ... the tight prior holds it
+    np.testing.assert_allclose(tight["logits"][:, 1].numpy(), free["logits"][:, 1].numpy())   # logits: content only
     np.testing.assert_allclose(wide["fields"].numpy(), free["fields"].numpy(), atol=1e-5)
     assert torch.equal(wide["estimates"], free["estimates"])
 
@@ -380,3 +381,12 @@ def test_neural_backend_motion_prior_config():
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):
             NeuralConfig(**bad).validate()
+
+
+def test_train_config_motion_prior_is_checked():
+    from data_tools.errors import ConfigError
+    from slam.neural.train import NeuralTrainConfig
+    assert NeuralTrainConfig(mode="3d", motion_prior=(1.0, 0.5)).validate().motion_prior == (1.0, 0.5)
+    for bad in ((1.0,), (1.0, 0.0), (-1.0, 0.5)):
+        with pytest.raises(ConfigError, match="motion_prior"):
+            NeuralTrainConfig(mode="3d", motion_prior=bad).validate()

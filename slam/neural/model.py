@@ -400,9 +400,10 @@ class NeuralMemory(nn.Module):
         :meth:`encode`); view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at these
         allocentric poses instead of the predicted field (training warm-up), or None; ``memory``: side
         U of the memory for this call (default the configuration's; the model is the same for any U);
-        ``motion_prior`` = (sigma_cells, sigma_headings): at inference, add the log of a Gaussian on the move
-        from the previous estimate (cells, heading steps) to the localisation logits before the softmax -
-        p(pose | view, memory, previous pose), see :meth:`_log_motion_prior`; None = the thesis' field.
+        ``motion_prior`` = (sigma_cells, sigma_headings): add the log of a Gaussian on the move from the previous
+        estimate (cells, heading steps) to the localisation logits before the softmax - the field (and the
+        estimates and the registration) become p(pose | view, memory, previous pose), see
+        :meth:`_log_motion_prior`; the returned ``logits`` stay the content scores; None = the thesis' field.
 
         Localisation searches a window of (2 R + 1)^2 positions (R = :attr:`MemoryConfig.search`) around the
         previous estimate (the agent moves at most 3/4 of its view per step): a grouped convolution of
@@ -459,9 +460,8 @@ class NeuralMemory(nn.Module):
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
                 lg = self._score(hw, bank, m)
-                if motion_prior is not None:
-                    lg = lg + self._log_motion_prior(est, centre, Wp, motion_prior)
-                field = torch.softmax(lg.flatten(1), 1).view_as(lg)
+                post = lg if motion_prior is None else lg + self._log_motion_prior(est, centre, Wp, motion_prior)
+                field = torch.softmax(post.flatten(1), 1).view_as(lg)
                 if teacher is not None:
                     field = self._local_one_hot(teacher[:, t], centre, Wp)
             reg = register(field, bank)                                         # (B, n, Wc, Wc)
