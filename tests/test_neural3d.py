@@ -382,11 +382,3 @@ def test_neural_backend_motion_prior_config():
         with pytest.raises(ConfigError, match="prior"):
             NeuralConfig(**bad).validate()
 
-
-def test_train_config_motion_prior_is_checked():
-    from data_tools.errors import ConfigError
-    from slam.neural.train import NeuralTrainConfig
-    assert NeuralTrainConfig(mode="3d", motion_prior=(1.0, 0.5)).validate().motion_prior == (1.0, 0.5)
-    for bad in ((1.0,), (1.0, 0.0), (-1.0, 0.5)):
-        with pytest.raises(ConfigError, match="motion_prior"):
-            NeuralTrainConfig(mode="3d", motion_prior=bad).validate()

@@ -81,10 +81,6 @@ class NeuralTrainConfig:
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
     :class:`slam.neural.model.MemoryConfig`. Measured with the cpu preset (slam/neural/weights/README.md): the
     two are equal within noise at this training budget, so the measured recipe stays the default."""
-    motion_prior: tuple = ()
-    """3D mode: (sigma cells, sigma heading steps) of a Gaussian motion prior on the registration of the free-running
-    training steps (:meth:`slam.neural.model.NeuralMemory.forward`; L_loc stays on the content logits); () = none,
-    the thesis' training."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
@@ -104,9 +100,6 @@ class NeuralTrainConfig:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
         if int(self.topview_steps) < 0:
             raise ConfigError(f"topview_steps must be >= 0, got {self.topview_steps}")
-        if tuple(self.motion_prior) and (len(self.motion_prior) != 2 or not all(float(v) > 0 for v in self.motion_prior)):
-            raise ConfigError(f"motion_prior must be empty or (sigma cells, sigma heading steps) > 0, got "
-                              f"{self.motion_prior}")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not 0.0 < self.lr_final <= 1.0:
@@ -305,7 +298,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             s = step - cfg.pretrain_steps
             p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
             teacher = allo_t if rng.random() < p_teacher else None
-            out = model(obs_t, vm, teacher, cells=cells_t, motion_prior=tuple(cfg.motion_prior) or None)
+            out = model(obs_t, vm, teacher, cells=cells_t)
             Wp = out["logits"].shape[-1]
             truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
                                  for t in range(cfg.steps)], 1)
