@@ -109,7 +109,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             a = ape(gt, est, align="origin")
             t = ate(gt, est)
             row[name] = {"ape_m": a.stats, "ate_m": t.stats, "ate_rmse_cells": t.stats["rmse"] / w.cell_m,
-                            "seconds": time.perf_counter() - t0, "frames": len(reader)}
+                         "seconds": time.perf_counter() - t0, "frames": len(reader)}
         row["neural_minus_icp_ate_cells"] = row["neural"]["ate_rmse_cells"] - row["icp"]["ate_rmse_cells"]
         res["sequences"][seq.name] = row
     seqs = res["sequences"].values()
