@@ -381,4 +381,3 @@ def test_neural_backend_motion_prior_config():
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):
             NeuralConfig(**bad).validate()
-

@@ -276,10 +276,10 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     t0 = time.perf_counter()
     model.train()
     for step in range(start, cfg.iterations):
-        f = lr_factor(cfg, step)
+        lr = cfg.lr * lr_factor(cfg, step)
         for o in (opt, opt_h, opt_d):
             for g in o.param_groups:
-                g["lr"] = cfg.lr * f
+                g["lr"] = lr
         obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
         B, T = obs_t.shape[:2]
         img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
