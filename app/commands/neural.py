@@ -43,6 +43,22 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a top-view decoder already in MODEL")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_train_topview)
+    p = sub.add_parser("refine-decoder", help="retrain a 3d model's recall decoder on more rooms (memory frozen)",
+                       description="Copy a 3d model into OUT with its recall decoder refined on --rooms simulated "
+                                   "rooms (L1 + SSIM; encoder, localisation, LSTMs and hallucination module "
+                                   "unchanged, so localisation is identical). Resumable: re-run with the same --out.")
+    p.add_argument("model", metavar="MODEL")
+    add_shared(p, "--out", "the refined model's folder", required=True, metavar="OUT")
+    p.add_argument("--rooms", type=int, default=48, help="training rooms recalled (default 48; simulated on first use)")
+    p.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
+    p.add_argument("--pool-batches", type=int, default=450, help="batches of 8 ten-view samples memorised once "
+                                                                 "(default 450, about 1.4 GB in RAM)")
+    p.add_argument("--ssim-weight", type=float, default=1.0, help="weight of the SSIM term (default 1; 0 = L1 only)")
+    p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
+    add_shared(p, "--seed", "(default 0)", default=0)
+    add_shared(p, "--overwrite", "a model already in OUT")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_refine, on_interrupt=RESUMES)
     p = sub.add_parser("eval", help="localisation, recall and hallucination metrics + baselines (JSON)")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "folder for neural_eval.json", metavar="DIR")
@@ -89,6 +105,21 @@ def _train_topview(args) -> int:
     last = info["log"][-1]["topview_l1"] if info["log"] else float("nan")
     print(f"{args.model}/topview.pt: top-view decoder trained ({info['steps']} steps, {info['seconds']:.0f} s); "
           f"last L1 {last:.3f}")
+    return 0
+
+
+def _refine(args) -> int:
+    from slam.neural.refine import RefineConfig
+    from slam.neural.run import refine_folder
+    from app.pipelines import simulate_planar_room
+    rcfg = RefineConfig(rooms=args.rooms, steps=args.steps, pool_batches=args.pool_batches,
+                        ssim_weight=args.ssim_weight, seed=args.seed).validate()
+    info = refine_folder(args.model, args.out, rcfg, worlds=args.worlds, overwrite=args.overwrite,
+                         progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
+                         simulate=simulate_planar_room)
+    last = info["log"][-1] if info["log"] else {}
+    print(f"{args.out}: recall decoder refined ({rcfg.steps} steps on {rcfg.rooms} rooms, {info['seconds']:.0f} s this "
+          f"run); last L1 {last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
     return 0
 
 

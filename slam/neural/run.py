@@ -7,7 +7,9 @@ from typing import Callable
 
 from data_tools.errors import ConfigError
 
-__all__ = ["train_to_folder", "train_topview_into", "add_topview", "evaluate_folder"]
+__all__ = ["train_to_folder", "train_topview_into", "add_topview", "refine_into", "refine_folder", "evaluate_folder"]
+
+REFINE_CHECKPOINT = "refine_checkpoint.pt"
 
 
 def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progress: bool = True,
@@ -22,12 +24,21 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
     folder.mkdir(parents=True, exist_ok=True)
     mark_incomplete(folder, "realgap neural train", 0, cfg.iterations, unit="steps")
     model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate)
+    info = {}
+    if cfg.mode == "3d" and cfg.refine_steps > 0:
+        # the memory's final checkpoint is on disk: an interruption here restarts only this phase
+        from slam.neural.refine import RefineConfig
+        rcfg = RefineConfig(rooms=cfg.refine_rooms, steps=cfg.refine_steps, pool_batches=cfg.refine_pool_batches,
+                            seed=cfg.seed)
+        info["decoder_refinement"] = refine_into(folder, model, cfg, rcfg, progress=progress, log=log,
+                                                 simulate=simulate, command="realgap neural train --mode 3d")
     if cfg.mode == "3d" and cfg.topview_steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
         train_topview_into(folder, model, cfg, cfg.topview_steps, progress=progress, log=log, simulate=simulate)
     save_model(folder, model, cfg, {"train_log": tlog.steps[-20:], "train_seconds": round(tlog.seconds, 1),
-                                    "resumed_from_step": tlog.resumed_from})
+                                    "resumed_from_step": tlog.resumed_from, **info})
     (folder / "checkpoint.pt").unlink(missing_ok=True)
+    (folder / REFINE_CHECKPOINT).unlink(missing_ok=True)
     clear_incomplete(folder)
     return model, tlog, folder
 
@@ -69,6 +80,59 @@ def add_topview(model_dir, steps: int, overwrite: bool = False, worlds: str | No
         cfg = dataclasses.replace(cfg, worlds_dir=str(worlds))
     return train_topview_into(model_dir, model, cfg, steps, progress=progress, log=log, simulate=simulate,
                               command=f"realgap neural train-topview MODEL --steps {steps}")
+
+
+def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simulate=None, command: str = "") -> dict:
+    """Refine the recall decoder of the 3D ``model`` (:mod:`slam.neural.refine`) on ``rcfg.rooms`` training rooms of
+    ``cfg``'s world (simulated where missing), checkpointing to FOLDER/refine_checkpoint.pt; returns its info."""
+    import dataclasses
+
+    from slam.neural.refine import refine_decoder
+    from slam.neural.train import worlds_3d
+    wcfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, rooms=int(rcfg.rooms)))
+    bank = worlds_3d(wcfg, simulate, progress, log)
+    info = refine_decoder(model, bank, rcfg, cfg.steps, cfg.observe, Path(folder) / REFINE_CHECKPOINT,
+                          progress=progress, log=log)
+    info["command"] = command
+    return info
+
+
+def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bool = False, progress: bool = True,
+                  log=None, simulate=None) -> dict:
+    """``neural refine-decoder``: a copy of the 3D model folder ``model_dir`` in ``out`` whose recall decoder is
+    refined (:mod:`slam.neural.refine`; every other weight and the top-view decoder copied unchanged). Resumable:
+    a re-run with the same ``out`` continues from its checkpoint. Returns the refinement's info."""
+    import dataclasses
+    import shutil
+
+    from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
+    from slam.neural.topview import TOPVIEW_FILE
+    from slam.neural.train import load_model, save_model
+    rcfg.validate()
+    model, cfg, info = load_model(model_dir)
+    if cfg.mode != "3d":
+        raise ConfigError(f"{model_dir} is a {cfg.mode} model; the decoder refinement is for 3d models")
+    if Path(out).resolve() == Path(model_dir).resolve():
+        raise ConfigError(f"--out {out} is the model folder itself: the refined model goes into a new folder")
+    folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
+    if overwrite:
+        for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
+            (folder / name).unlink(missing_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    mark_incomplete(folder, "realgap neural refine-decoder", 0, rcfg.steps, unit="steps")
+    if worlds:
+        cfg = dataclasses.replace(cfg, worlds_dir=str(worlds))
+    rinfo = refine_into(folder, model, cfg, rcfg, progress=progress, log=log, simulate=simulate,
+                        command=f"realgap neural refine-decoder MODEL --out OUT --rooms {rcfg.rooms} --steps "
+                                f"{rcfg.steps} --ssim-weight {rcfg.ssim_weight:g}")
+    if (Path(model_dir) / TOPVIEW_FILE).is_file():
+        shutil.copyfile(Path(model_dir) / TOPVIEW_FILE, folder / TOPVIEW_FILE)
+    prior = [i for i in [info.get("decoder_refinement")] if i]
+    save_model(folder, model, cfg, {**info, "decoder_refinement": rinfo,
+                                    **({"earlier_decoder_refinement": prior[0]} if prior else {})})
+    (folder / REFINE_CHECKPOINT).unlink(missing_ok=True)
+    clear_incomplete(folder)
+    return rinfo
 
 
 def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | None = None, overwrite: bool = False,

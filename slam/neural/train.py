@@ -84,6 +84,13 @@ class NeuralTrainConfig:
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
+    refine_steps: int = 0
+    """3D mode: steps of the decoder refinement after the memory phases (:mod:`slam.neural.refine`: the recall
+    decoder retrained on ``refine_rooms`` rooms with an SSIM term, the memory frozen); 0 = none."""
+    refine_rooms: int = 48
+    """3D mode: training rooms the refinement recalls (seeds 0 .. refine_rooms - 1, simulated on first use)."""
+    refine_pool_batches: int = 450
+    """3D mode: batches of 8 samples the refinement memorises once (:attr:`slam.neural.refine.RefineConfig.pool_batches`)."""
     world: World3DConfig = field(default_factory=World3DConfig)
     """3D mode: grid, images and simulated rooms (:class:`slam.neural.data3d.World3DConfig`)."""
     worlds_dir: str = ""
@@ -98,8 +105,12 @@ class NeuralTrainConfig:
         for k in ("steps", "batch", "iterations", "checkpoint_every", "log_every", "features", "width"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
-        if int(self.topview_steps) < 0:
-            raise ConfigError(f"topview_steps must be >= 0, got {self.topview_steps}")
+        for k in ("topview_steps", "refine_steps"):
+            if int(getattr(self, k)) < 0:
+                raise ConfigError(f"{k} must be >= 0, got {getattr(self, k)}")
+        for k in ("refine_rooms", "refine_pool_batches"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not 0.0 < self.lr_final <= 1.0:
@@ -124,16 +135,17 @@ TRAIN_PRESETS_3D = {
     "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
                              hallucination_from=700, features=16, width=16, topview_steps=150),
     "cpu-long": NeuralTrainConfig(mode="3d", batch=8, iterations=1800, pretrain_steps=150, teacher_steps=450,
-                                  hallucination_from=1000, features=16, width=16),
+                                  hallucination_from=1000, features=16, width=16, refine_steps=1500, refine_rooms=48),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
                              hallucination_from=10000, features=32, width=64, device="cuda", topview_steps=2000,
-                             world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
+                             refine_steps=3000, refine_rooms=128, world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
 }
 """3D (``--mode 3d``) presets. ``cpu``: <= 30 min on this 2-core machine after the 12 training rooms are
 simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
 2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min (measured end to end:
-28 min 47 s, slam/neural/weights/README.md). ``cpu-long``:
-the recipe of the shipped ``planar_3d`` weights (about 60 min on one core). ``gpu``: the larger configuration."""
+28 min 47 s, slam/neural/weights/README.md); no decoder refinement (``neural refine-decoder`` adds it: ~10 min, plus
+~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights (about 60 min
+on one core for the memory, then the decoder refinement on 48 rooms). ``gpu``: the larger configuration."""
 
 
 def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
