@@ -116,7 +116,7 @@ def test_config_validation(field, value):
         RefineConfig(**{field: value}).validate()
 
 
-@pytest.mark.parametrize("extra,msg", [([], "is a 2d model"), (["--steps", "0"], "steps must be >= 1")])
+@pytest.mark.parametrize("extra,msg", [(["--steps", "0"], "steps must be >= 1"), (["--ssim-weight", "-1"], "ssim_weight")])
 def test_cli_errors_are_one_line(tmp_path, capsys, extra, msg):
     from app.cli import main
     out = tmp_path / "refined"
@@ -166,3 +166,21 @@ def test_train_with_refinement_then_refine_a_copy(tmp_path):
     info2 = json.loads((tmp_path / "m2" / "neural.json").read_text())["info"]
     assert info2["decoder_refinement"]["config"]["steps"] == 2
     assert info2["earlier_decoder_refinement"]["config"]["steps"] == 3
+
+
+def test_2d_refinement_on_walks_changes_only_the_decoder():
+    """2D: the pool holds training walks of the model's agent (integer poses), the loss is on the view field; the
+    decoder learns (L1 falls) and nothing else moves."""
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.refine import Walks2D
+    torch.manual_seed(0)
+    model = NeuralMemory(MemoryConfig(channels=3, features=4, view=15, memory=71, width=4, search=16))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    walks = Walks2D("front", 43)
+    imgs, cells, allo, poses = walks.sample(np.random.default_rng(0), 2, 4)
+    assert cells is None and imgs.shape == (2, 4, 3, 15, 15) and allo.dtype == np.int64
+    info = refine_decoder(model, walks, RefineConfig(pool_batches=2, steps=100, batch=8, lr=4e-3), 4, 2,
+                          progress=False)
+    assert info["log"][-1]["l1"] < info["log"][0]["l1"], info["log"]
+    changed = {k for k, v in model.state_dict().items() if not torch.equal(v, before[k])}
+    assert changed and all(k.startswith("decoder.") for k in changed), changed

@@ -43,13 +43,15 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a top-view decoder already in MODEL")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_train_topview)
-    p = sub.add_parser("refine-decoder", help="retrain a 3d model's recall decoder on more rooms (memory frozen)",
-                       description="Copy a 3d model into OUT with its recall decoder refined on --rooms simulated "
-                                   "rooms (L1 + SSIM; encoder, localisation, LSTMs and hallucination module "
-                                   "unchanged, so localisation is identical). Resumable: re-run with the same --out.")
+    p = sub.add_parser("refine-decoder", help="retrain a model's recall decoder with an SSIM term (memory frozen)",
+                       description="Copy a model into OUT with its recall decoder refined (L1 + SSIM; 3d: on --rooms "
+                                   "simulated rooms; 2d: on training walks). Encoder, localisation, LSTMs and "
+                                   "hallucination module are unchanged, so localisation is identical. Resumable: "
+                                   "re-run with the same --out.")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "the refined model's folder", required=True, metavar="OUT")
-    p.add_argument("--rooms", type=int, default=48, help="training rooms recalled (default 48; simulated on first use)")
+    p.add_argument("--rooms", type=int, default=48, help="3d: training rooms recalled (default 48; simulated on first "
+                                                         "use); 2d: unused")
     p.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
     p.add_argument("--pool-batches", type=int, default=450, help="batches of 8 ten-view samples memorised once "
                                                                  "(default 450, about 1.4 GB in RAM)")
@@ -118,8 +120,7 @@ def _refine(args) -> int:
                          progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                          simulate=simulate_planar_room)
     last = info["log"][-1] if info["log"] else {}
-    print(f"{args.out}: recall decoder refined ({rcfg.steps} steps on {rcfg.rooms} rooms, {info['seconds']:.0f} s this "
-          f"run); last L1 {last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
+    print(f"{args.out}: recall decoder refined ({rcfg.steps} steps, {info['seconds']:.0f} s this run); last L1 {last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""Refining the recall decoder of a trained 3D memory on more rooms, the memory frozen.
+"""Refining the recall decoder of a trained memory, the memory frozen (3D: on more rooms; 2D: on more walks).
 
 Why: the memory phases (:mod:`slam.neural.train`) see 12 simulated rooms; the decoder that turns a
 culled memory window into an RGB-D image then learns those rooms' looks and generalises poorly -
@@ -22,6 +22,10 @@ so localisation - and every ATE of the ``neural`` backend - is unchanged; only r
   a window could show, which SSIM (the thesis' image metric) scores low; measured on the test rooms,
   48 rooms with L1 alone give hallucination SSIM 0.62, with the SSIM term 0.65 (L1 0.155 both).
 
+2D (:class:`Walks2D`): the pool holds training walks of the model's agent (``rooms`` unused), the L1 is taken
+on the view field and the SSIM on the view field with the truth outside it, as :mod:`slam.neural.evaluate`
+measures.
+
 Checkpointed (``checkpoint`` path: decoder, optimiser, step, random state every ``checkpoint_every``
 steps); a resumed run rebuilds the same pool (same seed) and continues.
 """
@@ -38,7 +42,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 
-__all__ = ["RefineConfig", "build_pool", "refine_decoder"]
+__all__ = ["RefineConfig", "Walks2D", "build_pool", "refine_decoder"]
 
 
 @dataclass
@@ -70,6 +74,24 @@ class RefineConfig:
         return self
 
 
+class Walks2D:
+    """2D stand-in for :class:`slam.neural.data3d.WorldBank`: ``sample`` draws training walks of ``agent`` on
+    environments of side ``size`` (:func:`slam.neural.data2d.make_batch`, split ``train``); poses are integers."""
+
+    def __init__(self, agent: str, size: int):
+        from slam.neural.data2d import AGENTS, view_mask
+        self.agent, self.size = AGENTS[agent], int(size)
+        self.wedge = view_mask(self.agent).astype(bool)
+
+    def sample(self, rng: np.random.Generator, batch: int, steps: int):
+        from slam.neural.data2d import make_batch
+        _, obs, _, allo = make_batch(rng, batch, self.agent, steps, self.size)
+        return obs.astype(np.float32), None, allo, allo
+
+    def exact(self, poses: np.ndarray) -> np.ndarray:
+        return np.asarray(poses, np.float64)
+
+
 def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, seed: int,
                progress: bool = True) -> dict:
     """The frozen memories to recall from: {mem (2 N, n, U, U) float16 - the N self-registered memories, then the
@@ -87,9 +109,10 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
     with torch.no_grad():
         for b in range(int(batches)):
             imgs, cells, allo, P = bank.sample(rng, batch, steps)
-            obs, cells_t, allo_t = torch.from_numpy(imgs), torch.from_numpy(cells), torch.from_numpy(allo)
+            obs, allo_t = torch.from_numpy(imgs), torch.from_numpy(allo)
+            cells_t = None if cells is None else torch.from_numpy(cells)
             out = model(obs, vm, None, cells=cells_t)
-            part = model(obs[:, :observe], vm, allo_t[:, :observe], cells=cells_t[:, :observe])
+            part = model(obs[:, :observe], vm, allo_t[:, :observe], cells=None if cells is None else cells_t[:, :observe])
             filled = model.hallucinate(part["psi"], part["occ"])
             if mem is None:
                 mem = torch.empty((2 * N, *out["psi"].shape[1:]), dtype=torch.float16)
@@ -122,8 +145,9 @@ def _pairs(pool: dict, rng: np.random.Generator, n: int):
 def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, observe: int,
                    checkpoint: str | Path | None = None, progress: bool = True,
                    log: Callable[[str], None] | None = None) -> dict:
-    """Refine ``model.decoder`` in place on ``bank`` (:class:`slam.neural.data3d.WorldBank` of ``rcfg.rooms``
-    rooms), every other weight frozen; returns the info saved with the model (config, losses, seconds)."""
+    """Refine ``model.decoder`` in place on ``bank`` (3D: :class:`slam.neural.data3d.WorldBank` of ``rcfg.rooms``
+    rooms; 2D: :class:`Walks2D`, ``rooms`` unused), every other weight frozen; returns the info saved with the
+    model (config, losses, seconds)."""
     import torch
     from kornia.losses import ssim_loss
 
@@ -157,6 +181,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     pool = build_pool(model, bank, rcfg.pool_batches, 8, steps_per_sample, observe, rcfg.seed, progress=progress)
     t_pool = time.perf_counter() - t0
     vm = torch.from_numpy(bank.wedge.astype(np.float32))
+    image = model.cfg.input == "image"
     # the lr schedule of the memory training: constant, then linear to a tenth over the last 40 %
     sched = SimpleNamespace(lr_decay_from=int(0.6 * rcfg.steps), iterations=rcfg.steps, lr_final=0.1)
     bar = None
@@ -180,7 +205,11 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
             g["lr"] = rcfg.lr * lr_factor(sched, step)
         mem, poses, y = _pairs(pool, rng, rcfg.batch)
         pred = model.recall(mem, poses, vm)
-        l1 = (pred - y).abs().mean()
+        if image:
+            l1 = (pred - y).abs().mean()
+        else:       # 2D: the view field only, as the memory's training and the evaluation (outside it: the truth)
+            l1 = ((pred - y).abs() * vm).mean()
+            pred = pred * vm + y * (1 - vm)
         loss = l1
         s = torch.zeros(())
         if rcfg.ssim_weight > 0:

@@ -25,7 +25,7 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
     mark_incomplete(folder, "realgap neural train", 0, cfg.iterations, unit="steps")
     model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate)
     info = {}
-    if cfg.mode == "3d" and cfg.refine_steps > 0:
+    if cfg.refine_steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
         from slam.neural.refine import RefineConfig
         rcfg = RefineConfig(rooms=cfg.refine_rooms, steps=cfg.refine_steps, pool_batches=cfg.refine_pool_batches,
@@ -83,14 +83,18 @@ def add_topview(model_dir, steps: int, overwrite: bool = False, worlds: str | No
 
 
 def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simulate=None, command: str = "") -> dict:
-    """Refine the recall decoder of the 3D ``model`` (:mod:`slam.neural.refine`) on ``rcfg.rooms`` training rooms of
-    ``cfg``'s world (simulated where missing), checkpointing to FOLDER/refine_checkpoint.pt; returns its info."""
+    """Refine the recall decoder of ``model`` (:mod:`slam.neural.refine`) - 3D: on ``rcfg.rooms`` training rooms of
+    ``cfg``'s world (simulated where missing); 2D: on training walks -, checkpointing to FOLDER/refine_checkpoint.pt;
+    returns its info."""
     import dataclasses
 
-    from slam.neural.refine import refine_decoder
+    from slam.neural.refine import Walks2D, refine_decoder
     from slam.neural.train import worlds_3d
-    wcfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, rooms=int(rcfg.rooms)))
-    bank = worlds_3d(wcfg, simulate, progress, log)
+    if cfg.mode == "3d":
+        wcfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, rooms=int(rcfg.rooms)))
+        bank = worlds_3d(wcfg, simulate, progress, log)
+    else:
+        bank = Walks2D(cfg.agent, cfg.image)
     info = refine_decoder(model, bank, rcfg, cfg.steps, cfg.observe, Path(folder) / REFINE_CHECKPOINT,
                           progress=progress, log=log)
     info["command"] = command
@@ -99,7 +103,7 @@ def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simul
 
 def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bool = False, progress: bool = True,
                   log=None, simulate=None) -> dict:
-    """``neural refine-decoder``: a copy of the 3D model folder ``model_dir`` in ``out`` whose recall decoder is
+    """``neural refine-decoder``: a copy of the model folder ``model_dir`` in ``out`` whose recall decoder is
     refined (:mod:`slam.neural.refine`; every other weight and the top-view decoder copied unchanged). Resumable:
     a re-run with the same ``out`` continues from its checkpoint. Returns the refinement's info."""
     import dataclasses
@@ -110,8 +114,6 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     from slam.neural.train import load_model, save_model
     rcfg.validate()
     model, cfg, info = load_model(model_dir)
-    if cfg.mode != "3d":
-        raise ConfigError(f"{model_dir} is a {cfg.mode} model; the decoder refinement is for 3d models")
     if Path(out).resolve() == Path(model_dir).resolve():
         raise ConfigError(f"--out {out} is the model folder itself: the refined model goes into a new folder")
     folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
@@ -122,9 +124,10 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     mark_incomplete(folder, "realgap neural refine-decoder", 0, rcfg.steps, unit="steps")
     if worlds:
         cfg = dataclasses.replace(cfg, worlds_dir=str(worlds))
+    rooms = f" --rooms {rcfg.rooms}" if cfg.mode == "3d" else ""
     rinfo = refine_into(folder, model, cfg, rcfg, progress=progress, log=log, simulate=simulate,
-                        command=f"realgap neural refine-decoder MODEL --out OUT --rooms {rcfg.rooms} --steps "
-                                f"{rcfg.steps} --ssim-weight {rcfg.ssim_weight:g}")
+                        command=f"realgap neural refine-decoder MODEL --out OUT{rooms} --steps {rcfg.steps} "
+                                f"--pool-batches {rcfg.pool_batches} --ssim-weight {rcfg.ssim_weight:g}")
     if (Path(model_dir) / TOPVIEW_FILE).is_file():
         shutil.copyfile(Path(model_dir) / TOPVIEW_FILE, folder / TOPVIEW_FILE)
     prior = [i for i in [info.get("decoder_refinement")] if i]

@@ -85,12 +85,12 @@ class NeuralTrainConfig:
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
     refine_steps: int = 0
-    """3D mode: steps of the decoder refinement after the memory phases (:mod:`slam.neural.refine`: the recall
-    decoder retrained on ``refine_rooms`` rooms with an SSIM term, the memory frozen); 0 = none."""
+    """Steps of the decoder refinement after the memory phases (:mod:`slam.neural.refine`: the recall decoder
+    retrained with an SSIM term, the memory frozen; 3D on ``refine_rooms`` rooms); 0 = none."""
     refine_rooms: int = 48
     """3D mode: training rooms the refinement recalls (seeds 0 .. refine_rooms - 1, simulated on first use)."""
     refine_pool_batches: int = 450
-    """3D mode: batches of 8 samples the refinement memorises once (:attr:`slam.neural.refine.RefineConfig.pool_batches`)."""
+    """Batches of 8 samples the refinement memorises once (:attr:`slam.neural.refine.RefineConfig.pool_batches`)."""
     world: World3DConfig = field(default_factory=World3DConfig)
     """3D mode: grid, images and simulated rooms (:class:`slam.neural.data3d.World3DConfig`)."""
     worlds_dir: str = ""
