@@ -54,7 +54,7 @@ def register(parser: argparse.ArgumentParser) -> None:
                                                          "use); 2d: unused")
     p.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
     p.add_argument("--pool-batches", type=int, default=450, help="batches of 8 ten-view samples memorised once "
-                                                                 "(default 450, about 1.4 GB in RAM)")
+                                                                 "(default 450, about 1.5 GB in RAM)")
     p.add_argument("--ssim-weight", type=float, default=1.0, help="weight of the SSIM term (default 1; 0 = L1 only)")
     p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
     add_shared(p, "--seed", "(default 0)", default=0)

@@ -12,8 +12,8 @@ so localisation - and every ATE of the ``neural`` backend - is unchanged; only r
   own). Per sample, as :mod:`slam.neural.evaluate3d` measures: the memory the model registers itself
   (no poses given: anamnesis, recalled at all ``steps`` views) and the memory of the first ``observe``
   views registered at the true poses and filled by the hallucination module (hallucination, recalled at
-  the later views). Stored float16 in RAM (1.5 GB for the default 3600 samples, 2.4 GB peak with the 48
-  rooms' arrays).
+  the later views). Stored float16 in RAM (1.5 GB for the default 3600 samples; measured peak of the whole
+  process 4.1 GB with 96 rooms and 7200 samples).
 * **training** (:func:`refine_decoder`): random (memory, pose) pairs of the pool, the decoder's
   current weights as the start, Adam (beta1 = 0.5, lr 2e-4 falling linearly to a tenth over the last
   40 % of the steps), loss = L1 of the RGB-D image (thesis L_anam) + ``ssim_weight`` x (1 - SSIM) / 2 of
