@@ -218,6 +218,11 @@ def test_neural_eval_writes_json_and_figures(tmp_path):
         assert im is not None and im.shape[0] > 100 and im.std() > 1, name
     kinds = res["ape_px_by_environment"]
     assert sum(v["poses"] for v in kinds.values()) == 6 * (cfg.steps - 1) and set(kinds) <= {"picture", "face", "floor plan"}
+    # the image metrics per kind: every view counted once, and their view-weighted mean is the overall one
+    for key, per in (("anamnesis", cfg.steps), ("hallucination", cfg.steps - cfg.observe)):
+        by = res[f"{key}_by_environment"]
+        assert sum(v["views"] for v in by.values()) == 6 * per and set(by) == set(kinds)
+        assert sum(v["l1"] * v["views"] for v in by.values()) / (6 * per) == pytest.approx(res[key]["l1"])
 
 
 def test_learning_rate_schedule_is_a_function_of_the_step():

@@ -10,7 +10,8 @@ seeds), agents walk ``steps`` steps; then
   drift of its own earlier errors);
 * anamnesis: the views at the observed poses recalled from the final memory vs the observations
   (L1 on [0, 1] images over the view field, SSIM as in the thesis - non-overlapping N x N windows,
-  c1 = 0.001, c2 = 0.003 on [0, 1] grey values, N = 5 - and ``skimage.metrics.structural_similarity``);
+  c1 = 0.001, c2 = 0.003 on [0, 1] grey values, N = 5 - and ``skimage.metrics.structural_similarity``;
+  also per kind of environment: the thesis' Table 4.1 B numbers are on portraits only);
 * hallucination: views at poses the agent visits after the first ``observe`` steps (unseen when
   the memory was built), decoded from the hole-filled memory of the first steps;
 * baselines and ablations in the same run: a mosaic of the observations pasted at the true poses
@@ -115,6 +116,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     rng = np.random.default_rng(seed)
     U = model.cfg.memory
     ape, ate, ape_kind, one = [], [], [], []
+    img_kind = {"anam": [], "hallu": []}        # the environment kind of every row of rows["anam"] / rows["hallu"]
     rows = {k: [] for k in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "mosaic_anam", "mosaic_hallu",
                             "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
@@ -160,6 +162,8 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                         (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", list(rec[i].numpy())),
                         ("hallucinated", [None] * k + list(hal[i].numpy())),
                         ("mosaic + inpainting", [None] * k + list(mos_h))]})
+                img_kind["anam"] += [int(kinds[i])] * T
+                img_kind["hallu"] += [int(kinds[i])] * (T - k)
                 for t in range(T):
                     rows["anam"].append(_image_metrics(rec[i, t].numpy(), obs[i, t], mask))
                     rows["anam_true_poses"].append(_image_metrics(rec_t[i, t].numpy(), obs[i, t], mask))
@@ -183,9 +187,15 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     def stats(a):
         return {"median": float(np.median(a)), "mean": float(np.mean(a)), "std": float(np.std(a))}
 
-    def images(key):
+    def images(key, sel=None):
         v = np.asarray(rows[key])
+        v = v if sel is None else v[sel]
         return {"l1": float(v[:, 0].mean()), "ssim_thesis": float(v[:, 1].mean()), "ssim_skimage": float(v[:, 2].mean())}
+
+    def by_kind(key):
+        kk = np.asarray(img_kind[key])
+        return {name: {**images(key, kk == j), "views": int((kk == j).sum())} for j, name in enumerate(KINDS)
+                if (kk == j).any()}
     return {"sequences": sequences, "steps": cfg.steps, "observe": cfg.observe, "agent": cfg.agent,
             "ape_px": stats(ape_a), "ate_px": stats(ate_a), "localised_within_1px": float(np.mean(ape_a <= 1.0)),
             "ape_one_step_true_memory_px": {**stats(one_a), "localised_within_1px": float(np.mean(one_a <= 1.0))},
@@ -194,6 +204,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                                              "one_step_true_memory_within_1px": float(np.mean(one_a[kind_a == j] <= 1.0))}
                                       for j, name in enumerate(KINDS) if (kind_a == j).any()},
             "anamnesis": images("anam"), "anamnesis_true_poses": images("anam_true_poses"),
+            "anamnesis_by_environment": by_kind("anam"), "hallucination_by_environment": by_kind("hallu"),
             "hallucination": images("hallu"), "ablation_no_hallucination_module": images("hallu_no_module"),
             "baseline_mosaic_anamnesis": images("mosaic_anam"), "baseline_mosaic_inpainting": images("mosaic_hallu"),
             "ablation_no_localisation_anamnesis": images("anam_no_localisation"),

@@ -99,7 +99,8 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
     float16 targets}, N = batches x batch (see the module docstring)."""
     import torch
     rng = np.random.default_rng(seed)
-    vm = torch.from_numpy(bank.wedge.astype(np.float32))
+    dev = next(model.parameters()).device
+    vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
     N = int(batches) * int(batch)
     mem = poses = images = None           # allocated at the first batch's sizes: no copy of the whole pool at the end
     bar = None
@@ -109,8 +110,8 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
     with torch.no_grad():
         for b in range(int(batches)):
             imgs, cells, allo, P = bank.sample(rng, batch, steps)
-            obs, allo_t = torch.from_numpy(imgs), torch.from_numpy(allo)
-            cells_t = None if cells is None else torch.from_numpy(cells)
+            obs, allo_t = torch.from_numpy(imgs).to(dev), torch.from_numpy(allo).to(dev)
+            cells_t = None if cells is None else torch.from_numpy(cells).to(dev)
             out = model(obs, vm, None, cells=cells_t)
             part = model(obs[:, :observe], vm, allo_t[:, :observe], cells=None if cells is None else cells_t[:, :observe])
             filled = model.hallucinate(part["psi"], part["occ"])
@@ -119,8 +120,8 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
                 poses = torch.empty((N, steps, 3), dtype=torch.float32)
                 images = torch.empty((N, *imgs.shape[1:]), dtype=torch.float16)
             sl = slice(b * batch, (b + 1) * batch)
-            mem[sl] = out["psi"].half()
-            mem[N + b * batch:N + (b + 1) * batch] = filled.half()
+            mem[sl] = out["psi"].half().cpu()
+            mem[N + b * batch:N + (b + 1) * batch] = filled.half().cpu()
             poses[sl] = torch.from_numpy(np.stack([bank.exact(p) for p in P]).astype(np.float32))
             images[sl] = torch.from_numpy(imgs).half()
             if bar is not None:
@@ -180,7 +181,8 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     model.eval()
     pool = build_pool(model, bank, rcfg.pool_batches, 8, steps_per_sample, observe, rcfg.seed, progress=progress)
     t_pool = time.perf_counter() - t0
-    vm = torch.from_numpy(bank.wedge.astype(np.float32))
+    dev = next(model.parameters()).device
+    vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
     image = model.cfg.input == "image"
     # the lr schedule of the memory training: constant, then linear to a tenth over the last 40 %
     sched = SimpleNamespace(lr_decay_from=int(0.6 * rcfg.steps), iterations=rcfg.steps, lr_final=0.1)
@@ -203,7 +205,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     for step in range(start, rcfg.steps):
         for g in opt.param_groups:
             g["lr"] = rcfg.lr * lr_factor(sched, step)
-        mem, poses, y = _pairs(pool, rng, rcfg.batch)
+        mem, poses, y = (x.to(dev) for x in _pairs(pool, rng, rcfg.batch))      # the pool stays in host memory
         pred = model.recall(mem, poses, vm)
         if image:
             l1 = (pred - y).abs().mean()
@@ -211,7 +213,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
             l1 = ((pred - y).abs() * vm).mean()
             pred = pred * vm + y * (1 - vm)
         loss = l1
-        s = torch.zeros(())
+        s = torch.zeros((), device=dev)
         if rcfg.ssim_weight > 0:
             grey_p = ((pred[:, :3] + 1) / 2).mean(1, keepdim=True)
             grey_y = ((y[:, :3] + 1) / 2).mean(1, keepdim=True)

@@ -121,9 +121,10 @@ class NeuralTrainConfig:
 
 
 TRAIN_PRESETS = {
-    "cpu": NeuralTrainConfig(lr_decay_from=1500),
+    "cpu": NeuralTrainConfig(lr_decay_from=1500, refine_steps=5000, refine_pool_batches=900),
     "gpu": NeuralTrainConfig(batch=32, iterations=30000, pretrain_steps=2000, teacher_steps=5000,
-                             hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000),
+                             hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000,
+                             refine_steps=10000, refine_pool_batches=2000),
 }
 """2D presets. ``cpu``: the shipped front_2d recipe (2200 steps, ~35 min on one core); its learning rate falls
 linearly to a tenth over the last 700 steps - measured against the constant rate: APE median 1.0 vs 3.2 px
