@@ -126,9 +126,9 @@ TRAIN_PRESETS = {
                              hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000,
                              refine_steps=10000, refine_pool_batches=2000),
 }
-"""2D presets. ``cpu``: the shipped front_2d recipe (2200 steps, ~35 min on one core); its learning rate falls
-linearly to a tenth over the last 700 steps - measured against the constant rate: APE median 1.0 vs 3.2 px
-(slam/neural/weights/README.md). ``gpu``: the larger configuration, decaying over its last third by analogy
+"""2D presets. ``cpu``: the shipped front_2d recipe (2200 steps, ~35 min on one core, then 5000 steps of decoder
+refinement on 900 pool batches, 489 s on one core); its learning rate falls linearly to a tenth over the last 700
+steps - measured against the constant rate: APE median 1.0 vs 3.2 px (slam/neural/weights/README.md). ``gpu``: the larger configuration, decaying over its last third by analogy
 (never run: no GPU has been lent)."""
 
 
