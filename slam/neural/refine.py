@@ -50,11 +50,12 @@ class RefineConfig:
     """How the decoder is refined (saved in the model's neural.json ``info``)."""
 
     rooms: int = 48
-    """Training rooms whose views form the pool (seeds 0 .. rooms - 1; the memory trained on the first 12)."""
+    """3D: training rooms whose views form the pool (seeds 0 .. rooms - 1; the memory trained on the first 12)."""
     pool_batches: int = 450
     """Batches of ``batch`` samples memorised once for the pool (3600 samples of 10 views by default)."""
     steps: int = 1500
-    """Optimiser steps (measured: the test rooms' SSIM stops rising after ~1000 with the default pool)."""
+    """Optimiser steps (3D, in an experiment with this pool size: the test rooms' SSIM was flat from 500 to 1500
+    steps; 2D: 5000 steps on 900 batches beat 1500 on 450, slam/neural/weights/README.md)."""
     batch: int = 32
     """(memory, pose) pairs per step."""
     lr: float = 2e-4
