@@ -158,9 +158,11 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                 mos_a = _mosaic_views(obs[i], allo[i], mask, U, T, allo[i])
                 mos_h = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
                 if examples is not None and done == 0 and i < 2:
+                    def shown(x):       # outside the view field (not measured) grey, as the observations
+                        return list(x.numpy() * mask)
                     examples.setdefault("samples", []).append({"rows": [
-                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", list(rec[i].numpy())),
-                        ("hallucinated", [None] * k + list(hal[i].numpy())),
+                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", shown(rec[i])),
+                        ("hallucinated", [None] * k + shown(hal[i])),
                         ("mosaic + inpainting", [None] * k + list(mos_h))]})
                 img_kind["anam"] += [int(kinds[i])] * T
                 img_kind["hallu"] += [int(kinds[i])] * (T - k)
