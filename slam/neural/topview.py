@@ -105,10 +105,11 @@ def train_topview(model, bank, steps: int, batch: int = 8, seq_steps: int = 10, 
     ``decoder``: continue training this one (default: a new one)."""
     cfg = model.cfg
     torch.manual_seed(seed)
-    dec = decoder if decoder is not None else TopViewDecoder(cfg.features, cfg.width)
+    dev = next(model.parameters()).device
+    dec = (decoder if decoder is not None else TopViewDecoder(cfg.features, cfg.width)).to(dev)
     opt = torch.optim.Adam(dec.parameters(), lr=lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(seed)
-    vm = torch.from_numpy(bank.wedge.astype(np.float32))
+    vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
     model.eval()
     for p in model.parameters():
         p.requires_grad_(False)
@@ -120,7 +121,7 @@ def train_topview(model, bank, steps: int, batch: int = 8, seq_steps: int = 10, 
     dec.train()
     for step in range(int(steps)):
         imgs, cells, allo, _ = bank.sample(rng, batch, seq_steps)
-        imgs, cells, allo = torch.from_numpy(imgs), torch.from_numpy(cells), torch.from_numpy(allo)
+        imgs, cells, allo = torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev)
         with torch.no_grad():
             out = model(imgs, vm, allo, cells=cells)
             target, seen = topview_targets(imgs, cells, allo, cfg.rotations, cfg.view, out["psi"].shape[-1])
