@@ -31,7 +31,7 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
         rcfg = RefineConfig(rooms=cfg.refine_rooms, steps=cfg.refine_steps, pool_batches=cfg.refine_pool_batches,
                             seed=cfg.seed)
         info["decoder_refinement"] = refine_into(folder, model, cfg, rcfg, progress=progress, log=log,
-                                                 simulate=simulate, command="realgap neural train --mode 3d")
+                                                 simulate=simulate, command=f"realgap neural train --mode {cfg.mode}")
     if cfg.mode == "3d" and cfg.topview_steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
         train_topview_into(folder, model, cfg, cfg.topview_steps, progress=progress, log=log, simulate=simulate)
@@ -122,17 +122,17 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
     mark_incomplete(folder, "realgap neural refine-decoder", 0, rcfg.steps, unit="steps")
-    if worlds:
-        cfg = dataclasses.replace(cfg, worlds_dir=str(worlds))
+    run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg     # the saved config stays the model's
     rooms = f" --rooms {rcfg.rooms}" if cfg.mode == "3d" else ""
-    rinfo = refine_into(folder, model, cfg, rcfg, progress=progress, log=log, simulate=simulate,
+    rinfo = refine_into(folder, model, run_cfg, rcfg, progress=progress, log=log, simulate=simulate,
                         command=f"realgap neural refine-decoder MODEL --out OUT{rooms} --steps {rcfg.steps} "
                                 f"--pool-batches {rcfg.pool_batches} --ssim-weight {rcfg.ssim_weight:g}")
     if (Path(model_dir) / TOPVIEW_FILE).is_file():
         shutil.copyfile(Path(model_dir) / TOPVIEW_FILE, folder / TOPVIEW_FILE)
-    prior = [i for i in [info.get("decoder_refinement")] if i]
-    save_model(folder, model, cfg, {**info, "decoder_refinement": rinfo,
-                                    **({"earlier_decoder_refinement": prior[0]} if prior else {})})
+    new_info = {**info, "decoder_refinement": rinfo}
+    if info.get("decoder_refinement"):
+        new_info["earlier_decoder_refinement"] = info["decoder_refinement"]
+    save_model(folder, model, cfg, new_info)
     (folder / REFINE_CHECKPOINT).unlink(missing_ok=True)
     clear_incomplete(folder)
     return rinfo
