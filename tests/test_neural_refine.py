@@ -157,8 +157,9 @@ def test_train_with_refinement_then_refine_a_copy(tmp_path):
     info = json.loads((tmp_path / "m" / "neural.json").read_text())["info"]
     assert info["decoder_refinement"]["log"][-1]["step"] == 3
     assert not (tmp_path / "m" / "refine_checkpoint.pt").exists()
+    (tmp_path / "worlds2").symlink_to(tmp_path / "worlds")           # --worlds: used, not written into the model
     refine_folder(tmp_path / "m", tmp_path / "m2", RefineConfig(rooms=1, steps=2, pool_batches=1), progress=False,
-                  simulate=sim)
+                  simulate=sim, worlds=str(tmp_path / "worlds2"))
     a = torch.load(tmp_path / "m" / "weights.pt", weights_only=True)
     b = torch.load(tmp_path / "m2" / "weights.pt", weights_only=True)
     changed = {k for k in a if not torch.equal(a[k], b[k])}
@@ -166,6 +167,7 @@ def test_train_with_refinement_then_refine_a_copy(tmp_path):
     info2 = json.loads((tmp_path / "m2" / "neural.json").read_text())["info"]
     assert info2["decoder_refinement"]["config"]["steps"] == 2
     assert info2["earlier_decoder_refinement"]["config"]["steps"] == 3
+    assert json.loads((tmp_path / "m2" / "neural.json").read_text())["train"]["worlds_dir"] == str(tmp_path / "worlds")
 
 
 def test_2d_refinement_on_walks_changes_only_the_decoder():
