@@ -8,38 +8,25 @@ import pytest
 import torch
 
 from slam.neural.refine import RefineConfig, _pairs, build_pool, refine_decoder
+from tests.test_neural_topview import _Bank as _TopviewBank
+from tests.test_neural_topview import _tiny_model
 
 SHIPPED = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights"
 
 
-class _Bank:
-    """A stand-in for slam.neural.data3d.WorldBank: views of one colour per sample (plus noise) at random cells;
-    ``exact`` returns the allocentric poses as reals."""
+class _Bank(_TopviewBank):
+    """The top-view tests' stand-in WorldBank (one colour per sample, random cells) with the exact poses recall
+    needs: the allocentric ones, as reals."""
 
-    def __init__(self, q=7, r=4, H=4, W=6):
-        self.q, self.r, self.H, self.W = q, r, H, W
-        self.wedge = np.ones((q, q), bool)
+    def __init__(self):
+        super().__init__(7, 4, 4, 6)
 
     def sample(self, rng, batch, steps):
-        col = (np.array([0.6, -0.4, 0.2]).reshape(1, 1, 3, 1, 1)
-               + rng.normal(0, 0.05, (batch, 1, 3, 1, 1))).astype(np.float32)
-        imgs = np.concatenate([np.broadcast_to(col, (batch, steps, 3, self.H, self.W)),
-                               np.full((batch, steps, 1, self.H, self.W), -0.5, np.float32)], 2)
-        cells = rng.integers(0, self.q * self.q, (batch, steps, self.r, self.H * self.W)).astype(np.int64)
-        allo = np.stack([rng.integers(-1, 2, (batch, steps)), rng.integers(-1, 2, (batch, steps)),
-                         rng.integers(0, self.r, (batch, steps))], -1).astype(np.int64)
-        allo[:, 0] = 0
+        imgs, cells, allo, _ = super().sample(rng, batch, steps)
         return np.ascontiguousarray(imgs), cells, allo, allo
 
     def exact(self, P):
         return np.asarray(P, np.float64)
-
-
-def _tiny_model():
-    from slam.neural.model import MemoryConfig, NeuralMemory
-    torch.manual_seed(0)
-    return NeuralMemory(MemoryConfig(channels=4, features=4, view=7, memory=15, width=4, rotations=4, search=2,
-                                     input="image", image_size=(4, 6)))
 
 
 def test_pairs_read_the_right_memory_pose_and_view():
@@ -116,7 +103,8 @@ def test_config_validation(field, value):
         RefineConfig(**{field: value}).validate()
 
 
-@pytest.mark.parametrize("extra,msg", [(["--steps", "0"], "steps must be >= 1"), (["--ssim-weight", "-1"], "ssim_weight")])
+@pytest.mark.parametrize("extra,msg", [(["--steps", "0"], "steps must be >= 1"),
+                                       (["--ssim-weight", "-1"], "ssim_weight")])
 def test_cli_errors_are_one_line(tmp_path, capsys, extra, msg):
     from app.cli import main
     out = tmp_path / "refined"

@@ -120,7 +120,8 @@ def _refine(args) -> int:
                          progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                          simulate=simulate_planar_room)
     last = info["log"][-1] if info["log"] else {}
-    print(f"{args.out}: recall decoder refined ({rcfg.steps} steps, {info['seconds']:.0f} s this run); last L1 {last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
+    print(f"{args.out}: recall decoder refined ({rcfg.steps} steps, {info['seconds']:.0f} s this run); last L1 "
+          f"{last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
     return 0
 
 

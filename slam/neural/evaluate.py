@@ -120,6 +120,9 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     rows = {k: [] for k in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "mosaic_anam", "mosaic_hallu",
                             "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
+
+    def shown(x):       # example figures: outside the view field (not measured) grey, as the observations
+        return list(x.numpy() * mask)
     t0 = time.perf_counter()
     bar = None
     if progress:
@@ -158,8 +161,6 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
                 mos_a = _mosaic_views(obs[i], allo[i], mask, U, T, allo[i])
                 mos_h = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
                 if examples is not None and done == 0 and i < 2:
-                    def shown(x):       # outside the view field (not measured) grey, as the observations
-                        return list(x.numpy() * mask)
                     examples.setdefault("samples", []).append({"rows": [
                         (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", shown(rec[i])),
                         ("hallucinated", [None] * k + shown(hal[i])),

@@ -42,7 +42,10 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 
-__all__ = ["RefineConfig", "Walks2D", "build_pool", "refine_decoder"]
+__all__ = ["RefineConfig", "Walks2D", "build_pool", "refine_decoder", "POOL_BATCH"]
+
+POOL_BATCH = 8
+"""Samples memorised per pool batch (one forward pass of the memory)."""
 
 
 @dataclass
@@ -114,7 +117,8 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
             obs, allo_t = torch.from_numpy(imgs).to(dev), torch.from_numpy(allo).to(dev)
             cells_t = None if cells is None else torch.from_numpy(cells).to(dev)
             out = model(obs, vm, None, cells=cells_t)
-            part = model(obs[:, :observe], vm, allo_t[:, :observe], cells=None if cells is None else cells_t[:, :observe])
+            part = model(obs[:, :observe], vm, allo_t[:, :observe],
+                         cells=None if cells_t is None else cells_t[:, :observe])
             filled = model.hallucinate(part["psi"], part["occ"])
             if mem is None:
                 mem = torch.empty((2 * N, *out["psi"].shape[1:]), dtype=torch.float16)
@@ -133,7 +137,8 @@ def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, 
 
 
 def _pairs(pool: dict, rng: np.random.Generator, n: int):
-    """``n`` random (memory, pose, target) triples of the pool: (mem (n, f, U, U), poses (n, 3), targets (n, C, H, W))."""
+    """``n`` random (memory, pose, target) triples of the pool: (mem (n, f, U, U), poses (n, 3),
+    targets (n, C, H, W))."""
     N, T = pool["poses"].shape[:2]
     k = pool["observe"]
     s = rng.integers(0, N, n)
@@ -180,11 +185,12 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
             log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {ck}")
     t0 = time.perf_counter()
     model.eval()
-    pool = build_pool(model, bank, rcfg.pool_batches, 8, steps_per_sample, observe, rcfg.seed, progress=progress)
+    pool = build_pool(model, bank, rcfg.pool_batches, POOL_BATCH, steps_per_sample, observe, rcfg.seed,
+                      progress=progress)
     t_pool = time.perf_counter() - t0
     dev = next(model.parameters()).device
     vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
-    image = model.cfg.input == "image"
+    img_mask = 1.0 if model.cfg.input == "image" else vm      # as the memory's training: 2D on the view field only
     # the lr schedule of the memory training: constant, then linear to a tenth over the last 40 %
     sched = SimpleNamespace(lr_decay_from=int(0.6 * rcfg.steps), iterations=rcfg.steps, lr_final=0.1)
     bar = None
@@ -208,11 +214,8 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
             g["lr"] = rcfg.lr * lr_factor(sched, step)
         mem, poses, y = (x.to(dev) for x in _pairs(pool, rng, rcfg.batch))      # the pool stays in host memory
         pred = model.recall(mem, poses, vm)
-        if image:
-            l1 = (pred - y).abs().mean()
-        else:       # 2D: the view field only, as the memory's training and the evaluation (outside it: the truth)
-            l1 = ((pred - y).abs() * vm).mean()
-            pred = pred * vm + y * (1 - vm)
+        l1 = ((pred - y).abs() * img_mask).mean()
+        pred = pred * img_mask + y * (1 - img_mask)     # SSIM as the evaluation: the truth outside a 2D view field
         loss = l1
         s = torch.zeros((), device=dev)
         if rcfg.ssim_weight > 0:

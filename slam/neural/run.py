@@ -122,7 +122,7 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
     mark_incomplete(folder, "realgap neural refine-decoder", 0, rcfg.steps, unit="steps")
-    run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg     # the saved config stays the model's
+    run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
     rooms = f" --rooms {rcfg.rooms}" if cfg.mode == "3d" else ""
     rinfo = refine_into(folder, model, run_cfg, rcfg, progress=progress, log=log, simulate=simulate,
                         command=f"realgap neural refine-decoder MODEL --out OUT{rooms} --steps {rcfg.steps} "

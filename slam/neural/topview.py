@@ -121,7 +121,7 @@ def train_topview(model, bank, steps: int, batch: int = 8, seq_steps: int = 10, 
     dec.train()
     for step in range(int(steps)):
         imgs, cells, allo, _ = bank.sample(rng, batch, seq_steps)
-        imgs, cells, allo = torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev)
+        imgs, cells, allo = (torch.from_numpy(a).to(dev) for a in (imgs, cells, allo))
         with torch.no_grad():
             out = model(imgs, vm, allo, cells=cells)
             target, seen = topview_targets(imgs, cells, allo, cfg.rotations, cfg.view, out["psi"].shape[-1])

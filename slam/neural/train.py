@@ -128,8 +128,8 @@ TRAIN_PRESETS = {
 }
 """2D presets. ``cpu``: the shipped front_2d recipe (2200 steps, ~35 min on one core, then 5000 steps of decoder
 refinement on 900 pool batches, 489 s on one core); its learning rate falls linearly to a tenth over the last 700
-steps - measured against the constant rate: APE median 1.0 vs 3.2 px (slam/neural/weights/README.md). ``gpu``: the larger configuration, decaying over its last third by analogy
-(never run: no GPU has been lent)."""
+steps - measured against the constant rate: APE median 1.0 vs 3.2 px (slam/neural/weights/README.md). ``gpu``:
+the larger configuration, decaying over its last third by analogy (never run: no GPU has been lent)."""
 
 
 TRAIN_PRESETS_3D = {
@@ -139,7 +139,8 @@ TRAIN_PRESETS_3D = {
                                   hallucination_from=1000, features=16, width=16, refine_steps=1500, refine_rooms=48),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
                              hallucination_from=10000, features=32, width=64, device="cuda", topview_steps=2000,
-                             refine_steps=3000, refine_rooms=128, world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
+                             refine_steps=3000, refine_rooms=128,
+                             world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
 }
 """3D (``--mode 3d``) presets. ``cpu``: <= 30 min on this 2-core machine after the 12 training rooms are
 simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
