@@ -114,8 +114,9 @@ def _examples(path: Path, ex: list[dict]) -> Path:
             ax.set_xticks([])
             ax.set_yticks([])
             im = ims[c] if c < len(ims) else None
-            if im is None:
-                ax.axis("off")
+            if im is None:      # an empty cell: no frame, but the row's label (column 0) stays visible
+                for sp in ax.spines.values():
+                    sp.set_visible(False)
             else:
                 ax.imshow(_rgb(im), interpolation="nearest")
             if c == 0:
