@@ -233,3 +233,53 @@ def test_learning_rate_schedule_is_a_function_of_the_step():
     assert [lr_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
     assert lr_factor(cfg, 8) == pytest.approx(0.75) and lr_factor(cfg, 10) == pytest.approx(0.5)
     assert lr_factor(NeuralTrainConfig(iterations=11), 10) == 1.0
+
+
+def test_lstm_forget_bias_sets_only_the_forget_gates():
+    """lstm_forget_bias fills the forget slice (PyTorch gate order: input, forget, cell, output) of both memory
+    LSTMs' input biases and changes nothing else: the same seed with and without it gives the same weights
+    elsewhere. One pretraining step does not touch the LSTMs (not in the single-view auto-encoder), so the
+    trained models still show the init."""
+    import torch
+
+    from slam.neural.train import NeuralTrainConfig, train_memory
+    models = [train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=1,
+                                             pretrain_steps=1, lstm_forget_bias=b), progress=False)[0] for b in (0.0, 1.5)]
+    a, b = (m.state_dict() for m in models)
+    for name in ("lstm", "occ_lstm"):
+        hs = getattr(models[0], name).hidden_size
+        want = a[f"{name}.bias_ih"].clone()
+        want[hs:2 * hs] = 1.5
+        assert torch.equal(b[f"{name}.bias_ih"], want)
+        assert not torch.equal(a[f"{name}.bias_ih"], want)
+    assert all(torch.equal(a[k], b[k]) for k in a if not k.endswith("lstm.bias_ih"))
+
+
+@pytest.mark.parametrize("preset", ["cpu", "gpu"])
+def test_2d_presets_build_a_model_that_runs(preset):
+    """Every 2D preset's sizes fit together (the gpu one has never had a GPU: this is its only check here): its
+    model registers a walk of the preset's length, recalls, hallucinates and the discriminator scores a window,
+    on the CPU, in the expected shapes."""
+    import dataclasses
+
+    import torch
+
+    from slam.neural.data2d import AGENTS, make_batch, view_mask
+    from slam.neural.model import NeuralMemory, PatchDiscriminator, memory_index
+    from slam.neural.train import TRAIN_PRESETS, memory_config
+    cfg = dataclasses.replace(TRAIN_PRESETS[preset], device="cpu").validate()
+    mc = memory_config(cfg)
+    model, disc = NeuralMemory(mc).eval(), PatchDiscriminator(mc)
+    agent = AGENTS[cfg.agent]
+    vm = torch.from_numpy(view_mask(agent).astype(np.float32))
+    _, obs, _, allo = make_batch(np.random.default_rng(0), 1, agent, cfg.steps, cfg.image)
+    with torch.no_grad():
+        out = model(torch.from_numpy(obs), vm, None)
+        psi = out["psi"]
+        assert psi.shape == (1, cfg.features, mc.memory, mc.memory) and out["estimates"].shape == (1, cfg.steps, 3)
+        a = torch.from_numpy(allo).flatten(0, 1)
+        rec = model.recall(psi, a, vm, memory_index(psi, cfg.steps))
+        assert rec.shape == (cfg.steps, 3, agent.view, agent.view) and torch.isfinite(rec).all()
+        filled = model.hallucinate(psi, out["occ"])
+        assert filled.shape == psi.shape
+        assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
