@@ -243,8 +243,10 @@ def test_lstm_forget_bias_sets_only_the_forget_gates():
     import torch
 
     from slam.neural.train import NeuralTrainConfig, train_memory
-    models = [train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=1,
-                                             pretrain_steps=1, lstm_forget_bias=b), progress=False)[0] for b in (0.0, 1.5)]
+    def trained(bias):
+        return train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=1,
+                                              pretrain_steps=1, lstm_forget_bias=bias), progress=False)[0]
+    models = [trained(0.0), trained(1.5)]
     a, b = (m.state_dict() for m in models)
     for name in ("lstm", "occ_lstm"):
         hs = getattr(models[0], name).hidden_size

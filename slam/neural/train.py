@@ -136,7 +136,8 @@ TRAIN_PRESETS = {
 refinement on 900 pool batches, ~6 min on one core); its learning rate falls linearly to a tenth over the last 700
 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
-the larger configuration, decaying over its last third and with the forget bias by analogy (never run: no GPU has been lent)."""
+the larger configuration, decaying over its last third and with the forget bias by analogy (never run: no GPU
+has been lent)."""
 
 
 TRAIN_PRESETS_3D = {
