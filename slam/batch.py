@@ -291,8 +291,11 @@ def _names(sequences: list[Path]) -> list[str]:
 def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str | os.PathLike,
               config: SlamConfig | dict[str, SlamConfig] | None = None, camera: Camera | None = None,
               executor: str = "local", workers: int = 0, progress: bool = True,
-              write_html: bool = True) -> BatchReport:
+              write_html: bool = True, threads_per_job: int = 0) -> BatchReport:
     """Run every backend on every sequence and write REPORT/results.json and index.html.
+
+    ``threads_per_job``: Open3D/OpenMP threads of each job (0 = ``cpu_count // workers``); 1 makes
+    every number bit-for-bit reproducible across runs and executors.
 
     ``config``: one SlamConfig (its backend is replaced per job, the backend options reset to
     that backend's defaults unless it is the same backend) or a dict backend -> SlamConfig.
@@ -310,7 +313,9 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
     out.mkdir(parents=True, exist_ok=True)
     ex = get_executor(executor, workers)
     n_jobs = len(seqs) * len(backends)
-    threads = max(1, (os.cpu_count() or 1) // min(ex.workers, n_jobs))
+    if threads_per_job < 0:
+        raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
+    threads = threads_per_job or max(1, (os.cpu_count() or 1) // min(ex.workers, n_jobs))
     jobs = []
     for s, name in zip(seqs, _names(seqs)):
         for b in backends:

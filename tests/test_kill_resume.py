@@ -250,7 +250,7 @@ def test_slam_run_killed_resumes_identically(room, tmp_path):
 
 
 def test_batch_killed_resumes_identically(room, tmp_path):
-    args = ["batch", room, room / "ideal", "--backends", "icp", "--workers", "1"]
+    args = ["batch", room, room / "ideal", "--backends", "icp", "--workers", "1", "--threads-per-job", "1"]
     part, full = tmp_path / "part", tmp_path / "full"
     kill_part_way([*args, "--out", part], marker_at_least(part, 1))
     assert_reported_incomplete(part)
@@ -259,25 +259,9 @@ def test_batch_killed_resumes_identically(room, tmp_path):
     run_ok([*args, "--out", full])
     a = json.loads((part / "results.json").read_text())["results"]
     b = json.loads((full / "results.json").read_text())["results"]
-    # two ICP runs of the same sequence in two processes agree to ~1e-4 relative in the full suite (not
-    # bit for bit: Open3D's multi-threaded reductions; alone this test is bit-exact), so metrics are
-    # compared to 1e-3; counts, failed frames and the job structure exactly
-    _assert_close(_strip_volatile(a), _strip_volatile(b))
-
-
-def _assert_close(x, y, rel=1e-3):
-    if isinstance(x, dict):
-        assert isinstance(y, dict) and x.keys() == y.keys()
-        for k in x:
-            _assert_close(x[k], y[k], rel)
-    elif isinstance(x, list):
-        assert isinstance(y, list) and len(x) == len(y)
-        for u, v in zip(x, y):
-            _assert_close(u, v, rel)
-    elif isinstance(x, float) and not isinstance(y, bool):
-        assert y == pytest.approx(x, rel=rel, abs=1e-9)
-    else:
-        assert x == y
+    # one thread per job: Open3D's reductions are then deterministic, so the resumed report equals the
+    # uninterrupted one number for number (with 2 threads they differed by up to 3e-3 relative)
+    assert _strip_volatile(a) == _strip_volatile(b)
 
 
 # ----------------------------------------------------------------------------------- make-reference

@@ -77,10 +77,19 @@ def test_unknown_executor():
 
 def test_cli_batch(tmp_path, two_sequences, capsys):
     rc = main(["batch", str(two_sequences[0]), "--backends", "icp", "--out", str(tmp_path / "rep"),
-               "--workers", "1", "--no-progress", "--tsdf.voxel_size_m", "0.02",
+               "--workers", "1", "--threads-per-job", "1", "--no-progress", "--tsdf.voxel_size_m", "0.02",
                "--tsdf.mesh_weight_threshold", "1", "--icp.raycast_scale", "1"])
     out = capsys.readouterr().out
     assert rc == 0, out
     assert "report:" in out and (tmp_path / "rep" / "index.html").is_file()
     from data_tools.results import read_result
     assert read_result(tmp_path / "rep").kind == "batch"
+    meta = json.loads((tmp_path / "rep" / "results.json").read_text())["meta"]
+    assert meta["threads_per_job"] == 1 and meta["workers"] == 1
+
+
+def test_negative_threads_per_job_is_a_config_error(tmp_path, two_sequences):
+    from data_tools.errors import ConfigError
+    with pytest.raises(ConfigError, match="threads per job"):
+        run_batch(two_sequences[:1], ["icp"], tmp_path / "rep", _configs(), workers=1, progress=False,
+                  threads_per_job=-1)

@@ -39,7 +39,8 @@ def _run(args) -> int:
         raise ConfigError("--backends: give at least one backend, e.g. icp,rgbd_odometry")
     configs = {b: config_from_args(args, b, tuple(backends)) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
-                    executor=args.executor, workers=args.workers, progress=not args.no_progress)
+                    executor=args.executor, workers=args.workers, progress=not args.no_progress,
+                    threads_per_job=args.threads_per_job)
     from data_tools.results import format_table
     print(format_table(*_table(rep.results)))
     if rep.runs_kept:
@@ -61,6 +62,10 @@ def register(parser: argparse.ArgumentParser) -> None:
                         help="local: process pool on this machine; ray: Ray tasks (ray.init(), "
                              "RAY_ADDRESS for a cluster; needs the optional package ray)")
     add_shared(parser, "--workers", "jobs at once (default: the CPU count)", default=0)
+    parser.add_argument("--threads-per-job", type=int, default=0, metavar="N",
+                        help="Open3D/OpenMP threads per job (default: CPU count / workers); 1 makes the "
+                             "numbers bit-for-bit reproducible (multi-threaded float sums differ in the "
+                             "last bits from run to run)")
     add_shared(parser, "--no-progress")
     add_config_arguments(parser)
     parser.set_defaults(func=_run, on_interrupt=RESUMES)
