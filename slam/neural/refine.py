@@ -31,7 +31,6 @@ steps); a resumed run rebuilds the same pool (same seed) and continues.
 """
 from __future__ import annotations
 
-import io
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +39,7 @@ from typing import Callable
 
 import numpy as np
 
-from data_tools.errors import ConfigError, FormatError
+from data_tools.errors import ConfigError
 
 __all__ = ["RefineConfig", "Walks2D", "build_pool", "refine_decoder", "POOL_BATCH"]
 
@@ -170,17 +169,10 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     rng = np.random.default_rng(rcfg.seed + 1)
     start, hist = 0, []
     ck = Path(checkpoint) if checkpoint else None
+    parts = {"decoder": dec, "opt": opt}
     if ck is not None and ck.is_file():
-        try:
-            st = torch.load(ck, map_location="cpu", weights_only=False)
-            dec.load_state_dict(st["decoder"])
-            opt.load_state_dict(st["opt"])
-            rng.bit_generator.state = st["rng"]
-            torch.set_rng_state(st["torch_rng"])
-            start, hist = int(st["step"]), list(st["log"])
-        except Exception as e:
-            raise FormatError(ck, f"unreadable refinement checkpoint ({type(e).__name__}); delete it to start again") \
-                from None
+        from slam.neural.checkpoint import load_training_state
+        start, hist = load_training_state(ck, parts, rng, "refinement checkpoint")
         if log is not None:
             log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {ck}")
     t0 = time.perf_counter()
@@ -200,13 +192,9 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     acc: list[tuple[float, float]] = []
 
     def save(step: int) -> None:
-        if ck is None:
-            return
-        from data_tools.results import atomic_write_bytes
-        buf = io.BytesIO()
-        torch.save({"decoder": dec.state_dict(), "opt": opt.state_dict(), "rng": rng.bit_generator.state,
-                    "torch_rng": torch.get_rng_state(), "step": step, "log": hist}, buf)
-        atomic_write_bytes(ck, buf.getvalue())
+        if ck is not None:
+            from slam.neural.checkpoint import save_training_state
+            save_training_state(ck, parts, rng, step, hist)
 
     dec.train()
     for step in range(start, rcfg.steps):

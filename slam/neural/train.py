@@ -1,6 +1,7 @@
 """Training the neural memory (thesis 4.3-4.4.1), in three phases, resumable.
 
-1. ``pretrain`` (``pretrain_steps``): encoder and decoder as an auto-encoder of single views.
+1. ``pretrain`` (``pretrain_steps``): encoder and decoder as an auto-encoder of single views (with
+   ``pretrain_write``, through one write of the memory LSTM).
 2. ``memory``: encoder, LSTMs, decoder on whole sequences: L_loc (binary cross-entropy between the
    pose field and the one-hot true pose, thesis Eq. 4.6) + L_anam (L1 of the recalled views at
    the true poses). Registration uses the predicted field; during the first ``teacher_steps`` it
@@ -14,7 +15,8 @@
    full memory as real, of the hole-filled partial memory at unvisited poses as fake).
 
 Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every
-``checkpoint_every`` steps (models, optimisers, step, random states): a re-run continues there.
+``checkpoint_every`` steps (models, optimisers, step, random states; :mod:`slam.neural.checkpoint`): a re-run
+continues there.
 """
 from __future__ import annotations
 
@@ -55,6 +57,13 @@ class NeuralTrainConfig:
     iterations: int = 2200
     """Optimiser steps in all (pretraining included)."""
     pretrain_steps: int = 300
+    """Steps of the single-view auto-encoder pre-training (thesis phase 1)."""
+    pretrain_write: bool = False
+    """Pre-train through the memory write: each view's features, masked by the view field, are written once into
+    an empty memory by the shared cell LSTM and the decoder reads its output (False: the thesis' pre-training,
+    features straight to the decoder). A deviation: the thesis' pre-training leaves the LSTM untrained, so when
+    the memory phase starts the decoder reads an untrained LSTM's output and the recall loss jumps (measured in
+    2D: 0.10 -> 0.20) and spends the memory phase recovering."""
     teacher_steps: int = 600
     """Steps (after pretraining) over which teacher-forced registration fades out."""
     hallucination_from: int = 1500
@@ -266,34 +275,18 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     tlog = TrainLog()
     start = 0
     ck = Path(checkpoint) if checkpoint else None
+    parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
     if ck is not None and ck.is_file():
-        try:
-            st = torch.load(ck, map_location=dev, weights_only=False)
-            model.load_state_dict(st["model"])
-            disc.load_state_dict(st["disc"])
-            opt.load_state_dict(st["opt"])
-            opt_h.load_state_dict(st["opt_h"])
-            opt_d.load_state_dict(st["opt_d"])
-            rng.bit_generator.state = st["rng"]
-            torch.set_rng_state(st["torch_rng"])
-            start = int(st["step"])
-            tlog.steps = list(st.get("log", []))
-        except Exception as e:
-            raise FormatError(ck, f"unreadable training checkpoint ({type(e).__name__}); delete it to start again") \
-                from None
+        from slam.neural.checkpoint import load_training_state
+        start, tlog.steps = load_training_state(ck, parts, rng, "training checkpoint", map_location=dev)
         tlog.resumed_from = start
         if log is not None:
             log(f"resuming training at step {start} of {cfg.iterations} from {ck}")
 
     def save(step: int) -> None:
-        if ck is None:
-            return
-        from data_tools.results import atomic_write_bytes
-        buf = io.BytesIO()
-        torch.save({"model": model.state_dict(), "disc": disc.state_dict(), "opt": opt.state_dict(),
-                    "opt_h": opt_h.state_dict(), "opt_d": opt_d.state_dict(), "rng": rng.bit_generator.state,
-                    "torch_rng": torch.get_rng_state(), "step": step, "log": tlog.steps}, buf)
-        atomic_write_bytes(ck, buf.getvalue())
+        if ck is not None:
+            from slam.neural.checkpoint import save_training_state
+            save_training_state(ck, parts, rng, step, tlog.steps)
 
     bar = None
     if progress:
@@ -314,6 +307,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
             f = model.encode(obs_t, cells_t).flatten(0, 1)
+            if cfg.pretrain_write:          # one write of the view into an empty memory (zero LSTM state)
+                f = model.write_once(f, vm)
             # each view's own grid as a memory (U = q), recalled at its centre: the auto-encoder of single views
             rec = model.recall(f, f.new_zeros(len(x), 3), vm)
             loss = (torch.abs(rec - x) * img_mask).mean()
