@@ -257,38 +257,6 @@ def test_lstm_forget_bias_sets_only_the_forget_gates():
     assert all(torch.equal(a[k], b[k]) for k in a if not k.endswith("lstm.bias_ih"))
 
 
-def test_pretrain_write_is_the_memory_first_write_and_trains_the_lstm():
-    """``write_once`` is exactly what the memory holds after its first observation (forward at T = 1: registered at
-    the origin, the LSTM from a zero state), read back by the same recall; pre-training with ``pretrain_write``
-    trains the cell LSTM's input weights (from a zero state its recurrent weights get no gradient), the thesis'
-    pre-training leaves the LSTMs at their init."""
-    from slam.neural.train import NeuralTrainConfig, memory_config, train_memory
-    torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4)
-    model = NeuralMemory(memory_config(cfg)).eval()
-    vm = torch.from_numpy(view_mask(AGENTS[cfg.agent]).astype(np.float32))
-    _, obs, _, _ = make_batch(np.random.default_rng(3), 2, AGENTS[cfg.agent], 4, 23)
-    o = torch.from_numpy(obs)
-    zero = torch.zeros(2, 3, dtype=torch.long)
-    with torch.no_grad():
-        a = model.recall(model.write_once(model.encode(o[:, :1]).flatten(0, 1), vm), zero, vm)
-        b = model.recall(model(o[:, :1], vm, None)["psi"], zero, vm)
-    assert torch.allclose(a, b, atol=1e-6)
-
-    def pretrained(write):
-        torch.manual_seed(0)                      # train_memory's seed: the same init
-        init = NeuralMemory(memory_config(cfg)).state_dict()
-        m = train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=3,
-                                           pretrain_steps=3, lr=1e-2, pretrain_write=write), progress=False)[0]
-        return init, m.state_dict()
-    for write in (False, True):
-        init, st = pretrained(write)
-        assert torch.equal(init["lstm.weight_hh"], st["lstm.weight_hh"])
-        assert all(torch.equal(init[k], st[k]) for k in init if k.startswith("occ_lstm"))
-        assert torch.equal(init["lstm.weight_ih"], st["lstm.weight_ih"]) != write
-        assert not torch.equal(init["encoder.net.0.weight"], st["encoder.net.0.weight"])
-
-
 def test_corrupt_training_checkpoint_is_a_one_line_error_naming_it(tmp_path):
     """A training checkpoint cut short (a disk full, a copy interrupted) or of another model: FormatError naming the
     file, telling how to start again; the file is left as it was."""

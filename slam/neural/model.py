@@ -524,15 +524,6 @@ class NeuralMemory(nn.Module):
         f[b, poses[b, 2] % self.cfg.rotations, d[b, 0], d[b, 1]] = 1.0
         return f
 
-    def write_once(self, feats: torch.Tensor, view_mask: torch.Tensor) -> torch.Tensor:
-        """(N, n, q, q) egocentric features -> (N, n, q, q) the memory after writing them, masked by the view field
-        ``view_mask`` (q, q), into an empty memory at the origin: the first step of :meth:`forward` (the shared cell
-        LSTM from a zero state) on the view's own cells, without localisation. The pre-training's path through the
-        memory write (:attr:`slam.neural.train.NeuralTrainConfig.pretrain_write`)."""
-        N, n, q, _ = feats.shape
-        h, _ = self.lstm((feats * view_mask.to(feats.dtype)).permute(0, 2, 3, 1).reshape(-1, n))
-        return h.view(N, q, q, n).permute(0, 3, 1, 2)
-
     # ------------------------------------------------------------------ recall
     def cull(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor,
              index: torch.Tensor | None = None) -> torch.Tensor:

@@ -1,7 +1,6 @@
 """Training the neural memory (thesis 4.3-4.4.1), in three phases, resumable.
 
-1. ``pretrain`` (``pretrain_steps``): encoder and decoder as an auto-encoder of single views (with
-   ``pretrain_write``, through one write of the memory LSTM).
+1. ``pretrain`` (``pretrain_steps``): encoder and decoder as an auto-encoder of single views.
 2. ``memory``: encoder, LSTMs, decoder on whole sequences: L_loc (binary cross-entropy between the
    pose field and the one-hot true pose, thesis Eq. 4.6) + L_anam (L1 of the recalled views at
    the true poses). Registration uses the predicted field; during the first ``teacher_steps`` it
@@ -58,12 +57,6 @@ class NeuralTrainConfig:
     """Optimiser steps in all (pretraining included)."""
     pretrain_steps: int = 300
     """Steps of the single-view auto-encoder pre-training (thesis phase 1)."""
-    pretrain_write: bool = False
-    """Pre-train through the memory write: each view's features, masked by the view field, are written once into
-    an empty memory by the shared cell LSTM and the decoder reads its output (False: the thesis' pre-training,
-    features straight to the decoder). A deviation: the thesis' pre-training leaves the LSTM untrained, so when
-    the memory phase starts the decoder reads an untrained LSTM's output and the recall loss jumps (measured in
-    2D: 0.10 -> 0.20) and spends the memory phase recovering."""
     teacher_steps: int = 600
     """Steps (after pretraining) over which teacher-forced registration fades out."""
     hallucination_from: int = 1500
@@ -307,8 +300,6 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
             f = model.encode(obs_t, cells_t).flatten(0, 1)
-            if cfg.pretrain_write:          # one write of the view into an empty memory (zero LSTM state)
-                f = model.write_once(f, vm)
             # each view's own grid as a memory (U = q), recalled at its centre: the auto-encoder of single views
             rec = model.recall(f, f.new_zeros(len(x), 3), vm)
             loss = (torch.abs(rec - x) * img_mask).mean()
