@@ -161,14 +161,19 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     assert res["speed_register5_recall5_hallucinate5_s"]["median"] > 0
 
 
-def test_train_preset_of_the_other_mode_is_one_line(tmp_path, capsys):
-    from app.cli import main
+def test_every_train_preset_exists_in_both_modes():
+    """``neural train --preset`` offers cpu, cpu-long and gpu; each names a recipe in 2D and in 3D (cpu-long: the
+    shipped weights' recipe of each mode)."""
+    import argparse
+
+    from app.commands.neural import register
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    assert "cpu-long" in TRAIN_PRESETS_3D and "cpu-long" not in TRAIN_PRESETS
-    assert main(["neural", "train", "--mode", "2d", "--preset", "cpu-long", "--out", str(tmp_path / "m"),
-                 "--no-progress"]) == 1
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "--preset cpu-long is for --mode 3d" in err, err
-    assert not (tmp_path / "m").exists()
+    p = argparse.ArgumentParser()
+    register(p)
+    sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction)).choices["train"]
+    choices = set(next(a for a in sub._actions if a.dest == "preset").choices)
+    assert choices == set(TRAIN_PRESETS) == set(TRAIN_PRESETS_3D) == {"cpu", "cpu-long", "gpu"}
+    big, small = TRAIN_PRESETS["cpu-long"], TRAIN_PRESETS["cpu"]
+    assert (big.features, big.width) == (16, 32) and big.iterations == small.iterations
     c = TRAIN_PRESETS_3D["cpu"]            # the <= 30 min schedule (see its docstring for the step costs)
     assert c.pretrain_steps < c.hallucination_from < c.iterations and c.topview_steps > 0
