@@ -305,6 +305,8 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         raise ConfigError("no sequences given")
     if not backends:
         raise ConfigError("no backends given")
+    if threads_per_job < 0:
+        raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
     for b in backends:
         get_backend(b)
     from data_tools.outputs import check_input_dir, check_output_dir
@@ -313,8 +315,6 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
     out.mkdir(parents=True, exist_ok=True)
     ex = get_executor(executor, workers)
     n_jobs = len(seqs) * len(backends)
-    if threads_per_job < 0:
-        raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
     threads = threads_per_job or max(1, (os.cpu_count() or 1) // min(ex.workers, n_jobs))
     jobs = []
     for s, name in zip(seqs, _names(seqs)):

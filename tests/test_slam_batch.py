@@ -93,3 +93,4 @@ def test_negative_threads_per_job_is_a_config_error(tmp_path, two_sequences):
     with pytest.raises(ConfigError, match="threads per job"):
         run_batch(two_sequences[:1], ["icp"], tmp_path / "rep", _configs(), workers=1, progress=False,
                   threads_per_job=-1)
+    assert not (tmp_path / "rep").exists()              # refused before anything is written

@@ -85,9 +85,6 @@ def _train(args) -> int:
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
-    if args.preset not in presets:
-        from data_tools.errors import ConfigError
-        raise ConfigError(f"--preset {args.preset} is for --mode 3d; --mode {args.mode} has {', '.join(presets)}")
     cfg = dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over).validate()
     from app.pipelines import simulate_planar_room
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,

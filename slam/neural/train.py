@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import io
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -128,10 +128,10 @@ class NeuralTrainConfig:
         return self
 
 
+_CPU_2D = NeuralTrainConfig(lr_decay_from=1500, lstm_forget_bias=1.0, refine_steps=5000, refine_pool_batches=900)
 TRAIN_PRESETS = {
-    "cpu": NeuralTrainConfig(lr_decay_from=1500, lstm_forget_bias=1.0, refine_steps=5000, refine_pool_batches=900),
-    "cpu-long": NeuralTrainConfig(lr_decay_from=1500, lstm_forget_bias=1.0, refine_steps=5000, refine_pool_batches=900,
-                                  features=16, width=32),
+    "cpu": _CPU_2D,
+    "cpu-long": replace(_CPU_2D, features=16, width=32),
     "gpu": NeuralTrainConfig(batch=32, iterations=30000, pretrain_steps=2000, teacher_steps=5000,
                              hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000,
                              lstm_forget_bias=1.0, refine_steps=10000, refine_pool_batches=2000),
