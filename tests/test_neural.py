@@ -304,3 +304,30 @@ def test_2d_presets_build_a_model_that_runs(preset):
         filled = model.hallucinate(psi, out["occ"])
         assert filled.shape == psi.shape
         assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
+
+
+def test_equivariant_encoder_commutes_with_quarter_turns(tmp_path):
+    """``equivariant``: the encoder of a turned view is the turned encoding (exactly, for every quarter turn) -
+    the plain encoder's is not; the option survives save -> load and is refused for 3D."""
+    from data_tools.errors import ConfigError
+    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
+    torch.manual_seed(0)
+    cfg = NeuralTrainConfig(image=23, features=4, width=4, equivariant=True).validate()
+    model = NeuralMemory(memory_config(cfg)).eval()
+    plain = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=4, width=4))).eval()
+    x = torch.randn(2, 3, 15, 15)
+    with torch.no_grad():
+        for k in (1, 2, 3):
+            turned = torch.rot90(x, k, (-2, -1))
+            torch.testing.assert_close(model.encoder(turned), torch.rot90(model.encoder(x), k, (-2, -1)),
+                                       rtol=0, atol=1e-5)
+            assert (plain.encoder(turned) - torch.rot90(plain.encoder(x), k, (-2, -1))).abs().max() > 1e-2
+    save_model(tmp_path / "m", model, cfg)
+    loaded, lcfg, _ = load_model(tmp_path / "m")
+    assert loaded.cfg.equivariant and lcfg.equivariant
+    with torch.no_grad():
+        assert torch.equal(loaded.encoder(x), model.encoder(x))
+    with pytest.raises(ConfigError, match="equivariant"):
+        NeuralTrainConfig(mode="3d", equivariant=True).validate()
+    with pytest.raises(ValueError, match="equivariant"):
+        NeuralMemory(MemoryConfig(input="image", equivariant=True))

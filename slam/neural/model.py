@@ -104,6 +104,12 @@ class MemoryConfig:
     (each cell's feature vector and memory vector unit-normalised first, the sum divided by the view's cell
     count: a score in [-1, 1] whatever the scale of the LSTM's output, times a learned inverse temperature
     starting at 20 - a deviation that lets localisation learn from the first memory steps)."""
+    equivariant: bool = False
+    """2D (``grid`` input) only: make the encoder exactly equivariant to quarter turns by averaging it over the
+    group C4 - E'(x) = 1/4 sum_k rot90^-k(E(rot90^k(x))), so E'(rot90(x)) = rot90(E'(x)) - at 4 x the encoder's
+    cost. A place seen from different headings then gives the same registered features (up to the context the
+    view mask leaves), so the memory LSTM does not have to merge heading-dependent codes. A deviation from
+    the thesis' plain ResNet encoder (MapNet's too)."""
 
 
 class ResBlock(nn.Module):
@@ -117,16 +123,22 @@ class ResBlock(nn.Module):
 
 
 class Encoder(nn.Module):
-    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q)."""
+    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q); ``equivariant``: averaged over the 4 quarter turns
+    (:attr:`MemoryConfig.equivariant`; square inputs only)."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         w = cfg.width
+        self.equivariant = bool(cfg.equivariant)
         self.net = nn.Sequential(nn.Conv2d(cfg.channels, w, 3, padding=1), nn.LeakyReLU(0.2),
                                  *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.features, 1))
 
     def forward(self, x):
-        return self.net(x)
+        if not self.equivariant:
+            return self.net(x)
+        B = x.shape[0]
+        f = self.net(torch.cat([torch.rot90(x, k, (-2, -1)) for k in range(4)], 0))
+        return sum(torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)) / 4.0
 
 
 class Decoder(nn.Module):
@@ -350,6 +362,8 @@ class NeuralMemory(nn.Module):
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         self.cfg = cfg
+        if cfg.equivariant and cfg.input != "grid":
+            raise ValueError("an equivariant (quarter-turn-averaged) encoder needs square grid inputs (2D)")
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
             self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)
