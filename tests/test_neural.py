@@ -306,28 +306,62 @@ def test_2d_presets_build_a_model_that_runs(preset):
         assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
 
 
-def test_equivariant_encoder_commutes_with_quarter_turns(tmp_path):
-    """``equivariant``: the encoder of a turned view is the turned encoding (exactly, for every quarter turn) -
-    the plain encoder's is not; the option survives save -> load and is refused for 3D."""
+@pytest.mark.parametrize("kind", ["invariant", "regular"])
+def test_equivariant_encoder_commutes_with_quarter_turns(tmp_path, kind):
+    """``equivariance``: the encoding of a turned view is the encoding turned by the group action (``invariant``:
+    turned; ``regular``: turned and its 4 channel groups rolled), exactly, for every quarter turn - the plain
+    encoder's is not; so a place seen from any heading gives the same bank entry at that heading (what the memory
+    receives). The option survives save -> load; 3D and feature counts the action cannot split are refused."""
     from data_tools.errors import ConfigError
+    from slam.neural.model import turn_features
     from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
     torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, features=4, width=4, equivariant=True).validate()
+    cfg = NeuralTrainConfig(image=23, features=8, width=4, equivariance=kind).validate()
     model = NeuralMemory(memory_config(cfg)).eval()
-    plain = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=4, width=4))).eval()
+    plain = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=8, width=4))).eval()
+    regular = kind == "regular"
     x = torch.randn(2, 3, 15, 15)
     with torch.no_grad():
+        fx = model.encoder(x)
+        assert fx.shape == (2, 8, 15, 15)
         for k in (1, 2, 3):
             turned = torch.rot90(x, k, (-2, -1))
-            torch.testing.assert_close(model.encoder(turned), torch.rot90(model.encoder(x), k, (-2, -1)),
-                                       rtol=0, atol=1e-5)
-            assert (plain.encoder(turned) - torch.rot90(plain.encoder(x), k, (-2, -1))).abs().max() > 1e-2
+            torch.testing.assert_close(model.encoder(turned), turn_features(fx, k, 4, regular), rtol=0, atol=1e-5)
+            assert (plain.encoder(turned) - turn_features(plain.encoder(x), k, 4, regular)).abs().max() > 1e-2
+            # the agent at heading k sees the world patch x turned by -k; its bank entry k is x's encoding
+            bank = rotation_bank(model.encoder(torch.rot90(x, -k, (-2, -1))), 4, regular)
+            torch.testing.assert_close(bank[:, k], fx, rtol=0, atol=1e-5)
+    if regular:     # the groups differ: orientation is kept (an invariant encoder's channels could not tell)
+        assert (fx[:, :2] - fx[:, 2:4]).abs().max() > 1e-3
     save_model(tmp_path / "m", model, cfg)
     loaded, lcfg, _ = load_model(tmp_path / "m")
-    assert loaded.cfg.equivariant and lcfg.equivariant
+    assert loaded.cfg.equivariance == kind == lcfg.equivariance
     with torch.no_grad():
-        assert torch.equal(loaded.encoder(x), model.encoder(x))
-    with pytest.raises(ConfigError, match="equivariant"):
-        NeuralTrainConfig(mode="3d", equivariant=True).validate()
+        assert torch.equal(loaded.encoder(x), fx)
+    with pytest.raises(ConfigError, match="equivariance"):
+        NeuralTrainConfig(mode="3d", equivariance=kind).validate()
+    with pytest.raises(ConfigError, match="equivariance"):
+        NeuralTrainConfig(equivariance="c8").validate()
     with pytest.raises(ValueError, match="equivariant"):
-        NeuralMemory(MemoryConfig(input="image", equivariant=True))
+        NeuralMemory(MemoryConfig(input="image", equivariance=kind))
+    if regular:
+        with pytest.raises(ConfigError, match="divisible by 4"):
+            NeuralTrainConfig(features=6, equivariance=kind).validate()
+
+
+def test_regular_culling_undoes_the_bank_turn():
+    """With the regular representation, a view registered at heading k (its bank entry k written at its pose) and
+    culled at that pose comes back as its own egocentric encoding: culling applies the inverse group action."""
+    from slam.neural.model import register, turn_features
+    torch.manual_seed(1)
+    cfg = MemoryConfig(channels=3, features=8, view=5, memory=11, width=4, search=3, equivariance="regular")
+    model = NeuralMemory(cfg).eval()
+    o = torch.randn(1, 8, 5, 5)
+    for k in range(4):
+        field = torch.zeros(1, 4, 7, 7)
+        field[0, k, 3, 3] = 1.0                                  # centre of the 11 x 11 memory
+        psi = register(field, rotation_bank(o, 4, True))
+        win = model.cull(psi, torch.tensor([[0, 0, k]]), torch.ones(5, 5))
+        torch.testing.assert_close(win[:, :8], o, rtol=0, atol=0)
+        if k:
+            assert not torch.equal(turn_features(o, k, 4, False), turn_features(o, k, 4, True))

@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
-           "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "peak_poses", "init_weights", "correlate", "register"]
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "turn_features", "memory_index", "peak_poses", "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
 
@@ -104,12 +104,17 @@ class MemoryConfig:
     (each cell's feature vector and memory vector unit-normalised first, the sum divided by the view's cell
     count: a score in [-1, 1] whatever the scale of the LSTM's output, times a learned inverse temperature
     starting at 20 - a deviation that lets localisation learn from the first memory steps)."""
-    equivariant: bool = False
-    """2D (``grid`` input) only: make the encoder exactly equivariant to quarter turns by averaging it over the
-    group C4 - E'(x) = 1/4 sum_k rot90^-k(E(rot90^k(x))), so E'(rot90(x)) = rot90(E'(x)) - at 4 x the encoder's
-    cost. A place seen from different headings then gives the same registered features (up to the context the
-    view mask leaves), so the memory LSTM does not have to merge heading-dependent codes. A deviation from
-    the thesis' plain ResNet encoder (MapNet's too)."""
+    equivariance: str = "none"
+    """2D (``grid`` input) only: make the encoder exactly equivariant to quarter turns, so that a place seen from
+    different headings gives the same registered features (up to the context the view mask leaves) and the memory
+    LSTM does not have to merge heading-dependent codes - a deviation from the thesis' (and MapNet's) plain ResNet,
+    at 4 x the encoder's cost. ``none``: the plain encoder. ``invariant``: averaged over the group C4,
+    E'(x) = 1/4 sum_k rot90^-k(E(rot90^k(x))), so E'(rot90(x)) = rot90(E'(x)): every channel is a
+    rotation-invariant field (it cannot tell a horizontal edge from a vertical one). ``regular``: the regular
+    representation of C4 - the ResNet gives n / 4 channels and E'(x) stacks the 4 groups rot90^-k(E(rot90^k(x))),
+    k = 0..3, so E'(rot90^j(x)) = rot90^j(roll(E'(x), -j groups)) (:func:`turn_features`): orientation is kept in
+    which group responds. The rotation bank and the culling turn features by that same action; ``features`` must
+    be a multiple of 4."""
 
 
 class ResBlock(nn.Module):
@@ -123,22 +128,24 @@ class ResBlock(nn.Module):
 
 
 class Encoder(nn.Module):
-    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q); ``equivariant``: averaged over the 4 quarter turns
-    (:attr:`MemoryConfig.equivariant`; square inputs only)."""
+    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q); made equivariant to quarter turns by
+    :attr:`MemoryConfig.equivariance` (square inputs only)."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         w = cfg.width
-        self.equivariant = bool(cfg.equivariant)
+        self.equivariance = cfg.equivariance
+        out = cfg.features // 4 if cfg.equivariance == "regular" else cfg.features
         self.net = nn.Sequential(nn.Conv2d(cfg.channels, w, 3, padding=1), nn.LeakyReLU(0.2),
-                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.features, 1))
+                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, out, 1))
 
     def forward(self, x):
-        if not self.equivariant:
+        if self.equivariance == "none":
             return self.net(x)
         B = x.shape[0]
         f = self.net(torch.cat([torch.rot90(x, k, (-2, -1)) for k in range(4)], 0))
-        return sum(torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)) / 4.0
+        turned = [torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)]
+        return sum(turned) / 4.0 if self.equivariance == "invariant" else torch.cat(turned, 1)
 
 
 class Decoder(nn.Module):
@@ -315,16 +322,26 @@ def rotate_grid(x: torch.Tensor, k: int, r: int) -> torch.Tensor:
     return rotate(x, ang, mode="bilinear", padding_mode="zeros", align_corners=True)
 
 
+def turn_features(x: torch.Tensor, k: int, r: int, regular: bool = False) -> torch.Tensor:
+    """Feature grids (B, n, q, q) turned by k / r of a full turn (:func:`rotate_grid`); ``regular``: features of the
+    regular representation of C4 (:attr:`MemoryConfig.equivariance`, r = 4) - turned and their 4 channel groups rolled
+    by -k, the action under which the encoder is equivariant."""
+    if regular:
+        B, n = x.shape[:2]
+        x = torch.roll(x.reshape(B, 4, n // 4, *x.shape[2:]), -k, 1).reshape(x.shape)
+    return rotate_grid(x, k, r)
+
+
 def memory_index(psi: torch.Tensor, n: int) -> torch.Tensor:
     """(B * n,) memory index of n consecutive poses per memory (0 x n, 1 x n, ...): the ``index`` of
     :meth:`NeuralMemory.cull` / :meth:`NeuralMemory.recall` when every memory is read at n poses."""
     return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
 
 
-def rotation_bank(o: torch.Tensor, r: int = 4) -> torch.Tensor:
+def rotation_bank(o: torch.Tensor, r: int = 4, regular: bool = False) -> torch.Tensor:
     """(B, n, q, q) -> (B, r, n, q, q): o turned counter-clockwise by k / r of a full turn, k = 0..r-1
-    (quarter turns exact; see :func:`rotate_grid`)."""
-    return torch.stack([rotate_grid(o, k, r) for k in range(r)], 1)
+    (quarter turns exact; see :func:`rotate_grid`; ``regular``: :func:`turn_features`)."""
+    return torch.stack([turn_features(o, k, r, regular) for k in range(r)], 1)
 
 
 def correlate(window: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
@@ -362,8 +379,12 @@ class NeuralMemory(nn.Module):
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         self.cfg = cfg
-        if cfg.equivariant and cfg.input != "grid":
-            raise ValueError("an equivariant (quarter-turn-averaged) encoder needs square grid inputs (2D)")
+        if cfg.equivariance not in ("none", "invariant", "regular"):
+            raise ValueError(f"equivariance must be none, invariant or regular, got {cfg.equivariance!r}")
+        if cfg.equivariance != "none" and (cfg.input != "grid" or cfg.rotations != 4):
+            raise ValueError("an equivariant encoder needs square grid inputs and 4 headings (2D)")
+        if cfg.equivariance == "regular" and cfg.features % 4:
+            raise ValueError(f"equivariance regular needs features divisible by 4, got {cfg.features}")
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
             self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)
@@ -462,7 +483,7 @@ class NeuralMemory(nn.Module):
             if image:
                 bank = self._image_bank(f_img[:, t], cells[:, t]) * mbank         # (B, r, n, q, q)
             else:
-                bank = rotation_bank(feats[:, t] * m, r)                        # (B, r, n, q, q)
+                bank = rotation_bank(feats[:, t] * m, r, cfg.equivariance == "regular")  # (B, r, n, q, q)
             want = est[:, :2].clone() if teacher is None or t == 0 else teacher[:, t - 1, :2].clone()
             # the window starts R + q//2 cells before the wanted centre, moved inside the memory at its borders;
             # ``centre`` is the allocentric position of the window's middle (field index R, R)
@@ -559,7 +580,7 @@ class NeuralMemory(nn.Module):
         out = torch.empty_like(w)
         for k in torch.unique(ks).tolist():
             sel = torch.nonzero(ks == k).flatten()
-            out[sel] = rotate_grid(w[sel], -int(k), r)
+            out[sel] = turn_features(w[sel], -int(k), r, self.cfg.equivariance == "regular")
         m = view_mask.to(psi.dtype)[None, None]
         return torch.cat([out * m - (1 - m), m.expand(N, 1, q, q)], 1)
 

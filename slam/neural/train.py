@@ -84,9 +84,9 @@ class NeuralTrainConfig:
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
     """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
-    equivariant: bool = False
-    """2D mode: the encoder averaged over the 4 quarter turns, exactly rotation-equivariant
-    (:attr:`slam.neural.model.MemoryConfig.equivariant`)."""
+    equivariance: str = "none"
+    """2D mode: ``none``, ``invariant`` or ``regular`` - an encoder exactly equivariant to quarter turns
+    (:attr:`slam.neural.model.MemoryConfig.equivariance`)."""
     decoder: str = "learned"
     """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
@@ -122,9 +122,13 @@ class NeuralTrainConfig:
         for k in ("refine_rooms", "refine_pool_batches"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
-        if self.equivariant and self.mode != "2d":
-            raise ConfigError("equivariant (a quarter-turn-averaged encoder) is for --mode 2d: 3D images are not square "
-                              "top views")
+        if self.equivariance not in ("none", "invariant", "regular"):
+            raise ConfigError(f"equivariance must be none, invariant or regular, got {self.equivariance!r}")
+        if self.equivariance != "none" and self.mode != "2d":
+            raise ConfigError("equivariance (an encoder equivariant to quarter turns) is for --mode 2d: 3D images are "
+                              "not square top views")
+        if self.equivariance == "regular" and self.features % 4:
+            raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not 0.0 < self.lr_final <= 1.0:
@@ -190,7 +194,7 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
-                        correlation=cfg.correlation, equivariant=cfg.equivariant,
+                        correlation=cfg.correlation, equivariance=cfg.equivariance,
                         search=min(3 * q // 4 + 5, (U - q) // 2))
 
 
