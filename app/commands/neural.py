@@ -27,6 +27,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--decoder", choices=("learned", "rays"),
                    help="3d recall: learned (default; a learned map from the culled top-view window at the pose "
                         "rounded to the grid) or rays (the memory sampled along each pixel's ray at the exact pose)")
+    p.add_argument("--equivariance", choices=("none", "invariant", "regular"),
+                   help="2d: an encoder exactly equivariant to quarter turns (regular: the regular representation of "
+                        "C4, features a multiple of 4; invariant: averaged over the turns); default: the preset's")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -81,7 +84,7 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder") if getattr(args, k) is not None}
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance") if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
