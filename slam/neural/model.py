@@ -31,6 +31,9 @@ backend may multiply the pose field by a Gaussian motion prior around the previo
 and the next steps follow it (measured on the 3D test rooms: ATE 0.27-0.55 m without, 0.16-0.29 m with).
 The shipped 3D model's recall decoder is refined after the memory's training, the memory frozen, on 48 rooms
 instead of 12 and with an SSIM term beside the thesis' L1 (:mod:`slam.neural.refine`).
+Optionally (2D, :attr:`MemoryConfig.equivariance`) the encoder is made exactly equivariant to quarter turns
+(averaged over C4, or its regular representation), so that a place seen from several headings is written with the
+same features - the thesis' encoder is a plain ResNet.
 
 3D (``input = "image"``, thesis 4.4.3): the encoder runs on the RGB-D image (4 x 30 x 40) and its
 per-pixel features are ground-projected (max-pool per cell, :func:`slam.neural.geometry3d.project_max`)
