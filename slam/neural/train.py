@@ -145,7 +145,7 @@ class NeuralTrainConfig:
 _CPU_2D = NeuralTrainConfig(lr_decay_from=1500, lstm_forget_bias=1.0, refine_steps=5000, refine_pool_batches=900)
 TRAIN_PRESETS = {
     "cpu": _CPU_2D,
-    "cpu-long": replace(_CPU_2D, features=16, width=32),
+    "cpu-long": replace(_CPU_2D, features=16, width=32, loc_weight=0.02),
     "gpu": NeuralTrainConfig(batch=32, iterations=30000, pretrain_steps=2000, teacher_steps=5000,
                              hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000,
                              lstm_forget_bias=1.0, refine_steps=10000, refine_pool_batches=2000),
@@ -155,8 +155,9 @@ refinement on 900 pool batches, ~6 min on one core); its learning rate falls lin
 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
 the larger configuration, decaying over its last third and with the forget bias by analogy (never run: no GPU
-has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features and
-ResNets of width 32 (~60 min on one core with its refinement; anamnesis L1 0.122 vs 0.134, APE mean 4.3 vs 5.4 px)."""
+has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features, ResNets
+of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement; anamnesis L1 0.096 vs 0.134, APE mean
+4.9 vs 5.4 px; at weight 1: 0.122, 4.3 px - slam/neural/weights/README.md, "Localisation against recall")."""
 
 
 TRAIN_PRESETS_3D = {
