@@ -149,13 +149,13 @@ TRAIN_PRESETS = {
     "cpu-long": replace(_CPU_2D, features=16, width=32, loc_weight=0.02),
     "gpu": NeuralTrainConfig(batch=32, iterations=30000, pretrain_steps=2000, teacher_steps=5000,
                              hallucination_from=15000, features=32, width=64, device="cuda", lr_decay_from=20000,
-                             lstm_forget_bias=1.0, refine_steps=10000, refine_pool_batches=2000),
+                             lstm_forget_bias=1.0, refine_steps=10000, refine_pool_batches=2000, loc_weight=0.02),
 }
 """2D presets. ``cpu``: the 30-minute recipe (2200 steps, ~37 min on one core, then 5000 steps of decoder
 refinement on 900 pool batches, ~6 min on one core); its learning rate falls linearly to a tenth over the last 700
 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
-the larger configuration, decaying over its last third and with the forget bias by analogy (never run: no GPU
+the larger configuration, decaying over its last third and with the forget bias and cpu-long's L_loc weight by analogy (never run: no GPU
 has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features, ResNets
 of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement; anamnesis L1 0.096 vs 0.134, APE mean
 4.9 vs 5.4 px; at weight 1: 0.122, 4.3 px - slam/neural/weights/README.md, "Localisation against recall")."""
