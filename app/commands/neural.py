@@ -84,7 +84,8 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance") if getattr(args, k) is not None}
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance")
+            if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS

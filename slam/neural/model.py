@@ -56,7 +56,8 @@ import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
-           "PatchDiscriminator", "rotation_bank", "rotate_grid", "turn_features", "memory_index", "peak_poses", "init_weights", "correlate", "register"]
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "turn_features", "memory_index", "peak_poses",
+           "init_weights", "correlate", "register"]
 
 from dataclasses import dataclass
 

@@ -155,8 +155,8 @@ TRAIN_PRESETS = {
 refinement on 900 pool batches, ~6 min on one core); its learning rate falls linearly to a tenth over the last 700
 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
-the larger configuration, decaying over its last third and with the forget bias and cpu-long's L_loc weight by analogy (never run: no GPU
-has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features, ResNets
+the larger configuration, decaying over its last third and with the forget bias and cpu-long's L_loc weight by
+analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features, ResNets
 of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement; anamnesis L1 0.096 vs 0.134, APE mean
 4.9 vs 5.4 px; at weight 1: 0.122, 4.3 px - slam/neural/weights/README.md, "Localisation against recall")."""
 
