@@ -120,8 +120,12 @@ def _examples(path: Path, ex: list[dict]) -> Path:
             else:
                 ax.imshow(_rgb(im), interpolation="nearest")
             if c == 0:
-                ax.set_ylabel(lab, fontsize=7, rotation=0, ha="right", va="center")
-    fig.subplots_adjust(left=0.16, right=0.99, top=0.99, bottom=0.01, wspace=0.05, hspace=0.08)
+                ax.set_ylabel(lab, fontsize=9, rotation=0, ha="right", va="center")
+            if r == 0:
+                ax.set_title(f"step {c + 1}", fontsize=9)
+    fig.suptitle("test walks: each view observed, recalled from the memory at its pose, and - for the steps not "
+                 "yet observed - hallucinated (beside the true-pose mosaic + inpainting baseline)", fontsize=10)
+    fig.subplots_adjust(left=0.16, right=0.99, top=0.93, bottom=0.01, wspace=0.05, hspace=0.08)
     return _save(fig, path)
 
 
