@@ -376,7 +376,7 @@ def test_motion_prior_tight_pins_the_estimate_wide_changes_nothing():
 def test_neural_backend_motion_prior_config():
     from data_tools.errors import ConfigError
     from slam.backends.neural import NeuralConfig
-    assert NeuralConfig().motion_prior(0.15, 12) == pytest.approx((1.0, 0.5))
+    assert NeuralConfig().motion_prior(0.15, 12) == pytest.approx((1.0, 0.25))   # 7.5 deg / 30 deg
     assert NeuralConfig(prior_move_m=0, prior_turn_deg=0).validate().motion_prior(0.15, 12) is None
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):

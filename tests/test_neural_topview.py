@@ -177,3 +177,25 @@ def test_every_train_preset_exists_in_both_modes():
     assert (big.features, big.width) == (16, 32) and big.iterations == small.iterations
     c = TRAIN_PRESETS_3D["cpu"]            # the <= 30 min schedule (see its docstring for the step costs)
     assert c.pretrain_steps < c.hallucination_from < c.iterations and c.topview_steps > 0
+
+
+def test_3d_cpu_long_preset_is_the_shipped_planar_3d_recipe():
+    """The shipped planar_3d weights record the configuration they were trained with (neural.json ``train``); the
+    ``cpu-long`` 3D preset must be that configuration (its memory phases; the decoder refinement, run afterwards
+    by ``neural refine-decoder``, is recorded in ``info.decoder_refinement`` and is the preset's ``refine_*``)."""
+    import json
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from slam.neural.train import TRAIN_PRESETS_3D
+    meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "planar_3d"
+                       / "neural.json").read_text())
+    preset = asdict(TRAIN_PRESETS_3D["cpu-long"])
+    recorded = meta["train"]
+    for k, v in recorded.items():
+        if k != "refine_steps":
+            assert preset[k] == v, (k, preset[k], v)
+    ref = meta["info"]["decoder_refinement"]["config"]
+    assert (preset["refine_steps"], preset["refine_rooms"], preset["refine_pool_batches"]) == \
+        (ref["steps"], ref["rooms"], ref["pool_batches"])
+    assert preset["world"]["view"] == 49 and preset["world"]["max_range_m"] == 3.6

@@ -37,7 +37,8 @@ same features - the thesis' encoder is a plain ResNet.
 
 3D (``input = "image"``, thesis 4.4.3): the encoder runs on the RGB-D image (4 x 30 x 40) and its
 per-pixel features are ground-projected (max-pool per cell, :func:`slam.neural.geometry3d.project_max`)
-into the egocentric grid (15 cm cells, 33 x 33, the camera at the centre looking up the grid). The
+into the egocentric grid (15 cm cells; 33 x 33 in the 3D `cpu` preset, 49 x 49 in the shipped planar_3d; the
+camera at the centre looking up the grid). The
 rotation bank of r = 12 headings (30 deg, the thesis' Doom turn) is made by projecting the pixels into
 each turned grid (points turned, then binned): exact, unlike resampling a grid - a deviation that also
 keeps the bank cheap. Recall (``decoder = "rays"``, ``neural train --decoder rays``): a

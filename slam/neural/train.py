@@ -164,8 +164,9 @@ of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement; an
 TRAIN_PRESETS_3D = {
     "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
                              hallucination_from=700, features=16, width=16, topview_steps=150),
-    "cpu-long": NeuralTrainConfig(mode="3d", batch=8, iterations=1800, pretrain_steps=150, teacher_steps=450,
-                                  hallucination_from=1000, features=16, width=16, refine_steps=1500, refine_rooms=48),
+    "cpu-long": NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
+                                  hallucination_from=700, features=16, width=16, topview_steps=150, lr_decay_from=700,
+                                  refine_steps=1500, refine_rooms=48, world=World3DConfig(view=49, max_range_m=3.6)),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
                              hallucination_from=10000, features=32, width=64, device="cuda", topview_steps=2000,
                              refine_steps=3000, refine_rooms=128,
@@ -175,8 +176,13 @@ TRAIN_PRESETS_3D = {
 simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
 2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min (measured end to end:
 28 min 47 s, slam/neural/weights/README.md); no decoder refinement (``neural refine-decoder`` adds it: ~10 min, plus
-~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights (about 60 min
-on one core for the memory, then the decoder refinement on 48 rooms). ``gpu``: the larger configuration."""
+~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights - the ``cpu`` schedule
+with a grid that reaches the walls (49 cells of 15 cm, depth to 3.6 m, instead of 33 cells to 2.4 m: 0-16 % of
+the test rooms' depth pixels left out instead of 35-54 %), the learning rate falling over the last 400 steps and
+the decoder refined on 48 rooms (48 min wall on 2 cores + 18 min of refinement on one; the 12 training rooms'
+49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior (turn 7.5 deg:
+ATE within 2 cells of icp on all four evaluation sequences; slam/neural/weights/README.md). ``gpu``: the larger
+configuration."""
 
 
 def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
