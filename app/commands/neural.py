@@ -20,8 +20,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                         "kinect_v1 RGB-D sequences in procedural rooms")
     add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
     p.add_argument("--preset", default="cpu", choices=("cpu", "cpu-long", "gpu"),
-                   help="cpu: <= 30 min on 2 cores; cpu-long: the shipped recipe (2d: front_2d, ~1 h 15 min on one core; "
-                        "3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
+                   help="cpu: <= 30 min on 2 cores; cpu-long: the shipped recipe (2d: front_2d, ~1 h 15 min on one "
+                        "core; 3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
     p.add_argument("--decoder", choices=("learned", "rays"),

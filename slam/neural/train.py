@@ -176,13 +176,13 @@ TRAIN_PRESETS_3D = {
 simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
 2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min (measured end to end:
 28 min 47 s, slam/neural/weights/README.md); no decoder refinement (``neural refine-decoder`` adds it: ~10 min, plus
-~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights - the ``cpu`` schedule
-with a grid that reaches the walls (49 cells of 15 cm, depth to 3.6 m, instead of 33 cells to 2.4 m: 0-16 % of
-the test rooms' depth pixels left out instead of 35-54 %), the learning rate falling over the last 400 steps and
-the decoder refined on 48 rooms (48 min wall on 2 cores + 18 min of refinement on one; the 12 training rooms'
-49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior (turn 7.5 deg:
-ATE within 2 cells of icp on all four evaluation sequences; slam/neural/weights/README.md). ``gpu``: the larger
-configuration."""
+~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights - the
+``cpu`` schedule with a grid that reaches the walls (49 cells of 15 cm, depth to 3.6 m, instead of 33 cells to
+2.4 m: 0-16 % of the test rooms' depth pixels left out instead of 35-54 %), the learning rate falling over the
+last 400 steps and the decoder refined on 48 rooms (48 min wall on 2 cores + 18 min of refinement on one; the 12
+training rooms' 49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior (turn
+7.5 deg: ATE within 2 cells of icp on all four evaluation sequences; slam/neural/weights/README.md). ``gpu``: the
+larger configuration."""
 
 
 def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
