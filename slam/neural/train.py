@@ -156,17 +156,18 @@ refinement on 900 pool batches, ~6 min on one core); its learning rate falls lin
 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
 the larger configuration, decaying over its last third and with the forget bias and cpu-long's L_loc weight by
-analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a memory of 16 features, ResNets
-of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement; anamnesis L1 0.096 vs 0.134, APE mean
-4.9 vs 5.4 px; at weight 1: 0.122, 4.3 px - slam/neural/weights/README.md, "Localisation against recall")."""
+analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the ``cpu`` one with a
+memory of 16 features, ResNets of width 32 and L_loc weighted 0.02 (~73 min on one core with its refinement;
+anamnesis L1 0.096 vs 0.134, APE mean 4.9 vs 5.4 px; at weight 1: 0.122, 4.3 px - slam/neural/weights/README.md,
+"Localisation against recall")."""
 
 
+_CPU_3D = NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
+                            hallucination_from=700, features=16, width=16, topview_steps=150)
 TRAIN_PRESETS_3D = {
-    "cpu": NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
-                             hallucination_from=700, features=16, width=16, topview_steps=150),
-    "cpu-long": NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
-                                  hallucination_from=700, features=16, width=16, topview_steps=150, lr_decay_from=700,
-                                  refine_steps=1500, refine_rooms=48, world=World3DConfig(view=49, max_range_m=3.6)),
+    "cpu": _CPU_3D,
+    "cpu-long": replace(_CPU_3D, lr_decay_from=700, refine_steps=1500, refine_rooms=48,
+                        world=World3DConfig(view=49, max_range_m=3.6)),
     "gpu": NeuralTrainConfig(mode="3d", batch=32, iterations=20000, pretrain_steps=2000, teacher_steps=4000,
                              hallucination_from=10000, features=32, width=64, device="cuda", topview_steps=2000,
                              refine_steps=3000, refine_rooms=128,
