@@ -95,6 +95,24 @@ def test_culling_masks_outside_the_view_and_recalls_what_was_registered():
     np.testing.assert_array_equal(turned[0, 0].numpy(), torch.rot90(psi[0, 0, 4:9, 1:6], -1).numpy())
 
 
+def test_seen_mask_is_the_union_of_the_registered_view_fields():
+    """forward's ``seen``: 1 on exactly the cells some step's view field covered once registered (here at teacher
+    poses): the front half-patch (rows 0-2 of 5) at the origin, moved by (1, -2), and turned a quarter (k = 1, the
+    allocentric footprint rot90(mask, 1), as culling reads it back with rot90(., -1)) at (0, 3)."""
+    cfg = MemoryConfig(channels=3, features=2, view=5, memory=11, width=4, search=3)
+    model = NeuralMemory(cfg).eval()
+    vm = torch.from_numpy(np.r_[np.ones((3, 5)), np.zeros((2, 5))].astype(np.float32))
+    obs = torch.rand(1, 3, 3, 5, 5) * 2 - 1
+    with torch.no_grad():
+        out = model(obs, vm, torch.tensor([[[0, 0, 0], [1, -2, 0], [0, 3, 1]]]))
+    want = np.zeros((11, 11), np.float32)
+    want[3:6, 3:8] = 1                                  # centre (5, 5), rows 5-2..5
+    want[4:7, 1:6] = 1                                  # centre (6, 3)
+    want[3:8, 6:9] = 1                                  # centre (5, 8), turned: the seen rows become the left columns
+    assert out["seen"].shape == (1, 1, 11, 11)
+    np.testing.assert_array_equal(out["seen"][0, 0].numpy(), want)
+
+
 def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
     from slam.neural.train import NeuralTrainConfig, _loc_loss, load_model, memory_config, save_model
     torch.manual_seed(0)
@@ -233,6 +251,31 @@ def test_learning_rate_schedule_is_a_function_of_the_step():
     assert [lr_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
     assert lr_factor(cfg, 8) == pytest.approx(0.75) and lr_factor(cfg, 10) == pytest.approx(0.5)
     assert lr_factor(NeuralTrainConfig(iterations=11), 10) == 1.0
+
+
+def test_occupancy_loss_trains_the_occupancy_lstm_and_nothing_else():
+    """occ_weight > 0: the mask becomes (h + 1) / 2 and L_occ (BCE against ``seen``) trains the occupancy LSTM on
+    its own optimiser - L_occ falls; every other weight is bit-identical to the same seed's run without it (before
+    the hallucination phase, which reads the mask); with occ_weight 0 the occupancy LSTM keeps its init (the models
+    trained before the loss existed)."""
+    from slam.neural.model import NeuralMemory
+    from slam.neural.train import NeuralTrainConfig, memory_config, train_memory
+
+    def run(w):
+        cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=60,
+                                pretrain_steps=2, teacher_steps=2, hallucination_from=100, occ_weight=w, log_every=20)
+        return train_memory(cfg, progress=False)[0::2], cfg
+    (a, la), cfg0 = run(0.0)
+    (b, lb), _ = run(1.0)
+    assert b.cfg.occupancy == "affine" and a.cfg.occupancy == "sigmoid"
+    occ = [r["occ"] for r in lb.steps]
+    assert occ[-1] < 0.75 * occ[0]
+    sa, sb = a.state_dict(), b.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa if not k.startswith("occ_lstm"))
+    assert not all(torch.equal(sa[k], sb[k]) for k in sa if k.startswith("occ_lstm"))
+    torch.manual_seed(cfg0.seed)
+    init = NeuralMemory(memory_config(cfg0)).state_dict()
+    assert all(torch.equal(init[k], sa[k]) for k in sa if k.startswith("occ_lstm"))
 
 
 def test_lstm_forget_bias_sets_only_the_forget_gates():

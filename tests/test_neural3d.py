@@ -259,6 +259,9 @@ def test_neural_backend_run_snapshots_and_render(planar_seq):
     assert psi.shape[0] == 4 and psi.shape[1:] == occ.shape == (33 + 2 * 20,) * 2
     for name in ("occupancy.png", "features.png", "memory.json"):
         assert (mem / name).stat().st_size > 0
+    seen = np.load(mem / "observed.npy")     # the cells the registered view fields covered (not the occupancy LSTM)
+    assert seen.shape == occ.shape and seen.dtype == np.uint8 and 0 < seen.sum() < seen.size
+    assert "seen" not in json.loads((mem / "memory.json").read_text())
     import cv2
     top = cv2.imread(str(mem / "topview.png"))          # the model has a (here untrained) top-view decoder
     assert top.shape == (33 + 2 * 20, 33 + 2 * 20, 3)

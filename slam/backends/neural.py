@@ -19,7 +19,8 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
 
 ``fitness`` of a step is the pose field's maximum probability (1 = certain). The memory (features
 and occupancy, ``.npy``) and PNG pictures of the occupancy (stretched to its own range) and of the
-memory's three principal feature components on the observed cells (:func:`observed_cells`) are
+memory's three principal feature components on the observed cells (those some registered view field
+covered, ``observed.npy``; not the occupancy LSTM's output, see :mod:`slam.neural.model`) are
 written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`), with the decoded top view
 (``topview.png``: the trained per-cell colour read-out of :mod:`slam.neural.topview`, row 0 = ahead of
 the first frame) when the model has one.
@@ -168,7 +169,7 @@ class NeuralBackend(RegistrationBackend):
             est.append((row, col, kk * 2 * math.pi / r))
             conf.append(p)
         key_poses = [allocentric_to_world(T0, a, b, y, w.cell_m) for a, b, y in est]
-        self._snap = {"psi": out["psi"], "occ": out["occ"], "cell_m": w.cell_m,
+        self._snap = {"psi": out["psi"], "occ": out["occ"], "seen": out["seen"], "cell_m": w.cell_m,
                       "T0": T0, "model": str(folder), "steps": [int(indices[s]) for s in steps],
                       "estimates": [list(map(float, e)) for e in est]}
         return self._all_frames(reader, indices, steps, key_poses, est, conf, T0, w.cell_m)
@@ -191,7 +192,8 @@ class NeuralBackend(RegistrationBackend):
         return results
 
     def save_outputs(self, out: Path) -> None:
-        """RUN/memory/: memory.npy (n, U, U) features, occupancy.npy (U, U), memory.json (cell size, first
+        """RUN/memory/: memory.npy (n, U, U) features, occupancy.npy (U, U), observed.npy (U, U) uint8 (1 on the cells
+        a registered view field covered), memory.json (cell size, first
         pose, model, memory steps and their allocentric estimates), occupancy.png, features.png, and topview.png
         (the decoded colour floor plan, unobserved cells dimmed) when the model has a top-view decoder."""
         if self._snap is None:
@@ -200,13 +202,14 @@ class NeuralBackend(RegistrationBackend):
         d = Path(out) / "memory"
         d.mkdir(parents=True, exist_ok=True)
         import io
-        for name in ("psi", "occ"):
+        for name, file, dtype in (("psi", "memory.npy", np.float32), ("occ", "occupancy.npy", np.float32),
+                                  ("seen", "observed.npy", np.uint8)):
             buf = io.BytesIO()
-            np.save(buf, self._snap[name].astype(np.float32))
-            atomic_write_bytes(d / ("memory.npy" if name == "psi" else "occupancy.npy"), buf.getvalue())
+            np.save(buf, self._snap[name].astype(dtype))
+            atomic_write_bytes(d / file, buf.getvalue())
         atomic_write_json(d / "memory.json", {k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                                              for k, v in self._snap.items() if k not in ("psi", "occ")})
-        occ, seen = self._snap["occ"], observed_cells(self._snap["occ"])
+                                              for k, v in self._snap.items() if k not in ("psi", "occ", "seen")})
+        occ, seen = self._snap["occ"], self._snap["seen"]
         span = max(float(occ.max() - occ.min()), 1e-9)
         atomic_write_image(d / "occupancy.png", ((occ - occ.min()) / span * 255).astype(np.uint8))
         atomic_write_image(d / "features.png", memory_picture(self._snap["psi"], seen))
@@ -214,15 +217,6 @@ class NeuralBackend(RegistrationBackend):
         dec = load_topview(self._snap["model"], self._snap["psi"].shape[0])
         if dec is not None:      # the model's trained top-view decoder: the map's colours
             atomic_write_image(d / "topview.png", topview_picture(decode_topview(dec, self._snap["psi"], occ), seen))
-
-
-def observed_cells(occ: np.ndarray) -> np.ndarray:
-    """(U, U) bool: cells whose occupancy moved away from that of a cell no view reached (the memory's
-    corner) by more than a tenth of the occupancy's range. The occupancy LSTM's output is not a
-    calibrated probability (untouched cells sit near 0.6 for the shipped weights), so a fixed 0.5
-    threshold would call every cell observed."""
-    span = float(occ.max() - occ.min())
-    return np.abs(occ - occ[0, 0]) > 0.1 * span if span > 0 else np.zeros(occ.shape, bool)
 
 
 def memory_picture(psi: np.ndarray, seen: np.ndarray) -> np.ndarray:

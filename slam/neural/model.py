@@ -14,7 +14,14 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   bank: a soft, differentiable placement; uncertainty blurs ô_t), and the registered view mask.
 * **memorise**: psi_t = LSTM(psi_{t-1}, ô_t) with one LSTM cell shared by every memory cell (each cell
   updated independently, as MapNet); a second shared LSTM cell updates the occupancy b_t from the
-  registered view mask.
+  registered view mask (its input detached: the mask's loss trains that LSTM only). ``seen`` is the
+  registered view masks binarised and accumulated - what was observed -, which the backend's snapshot pictures
+  use. The thesis trains b_t implicitly; here, with :attr:`MemoryConfig.occupancy` ``affine``, b_t = (h_t + 1) / 2
+  is trained to ``seen`` (BCE, L_occ - a deviation). Models trained before 2026-11-27 (``occupancy = sigmoid``)
+  have a defect measured then: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73), and their training gave
+  that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
+  ``no_grad``) - its weights are PyTorch's init, b_t near-flat (0.36-0.41 on a 3D run); their hallucinator and
+  L_corrupt read it as a soft, roughly constant mask (the 2D module still lowered hallucination L1 0.170 -> 0.116).
 * **anamnesis (recall)**: for a requested pose, the q x q window of psi at that position, turned back by
   its heading (geometric culling), masked by the view field (-1 outside, thesis Eq. 4.7), goes
   through the decoder (a shallow ResNet) to an image.
@@ -120,6 +127,11 @@ class MemoryConfig:
     k = 0..3, so E'(rot90^j(x)) = rot90^j(roll(E'(x), -j groups)) (:func:`turn_features`): orientation is kept in
     which group responds. The rotation bank and the culling turn features by that same action; ``features`` must
     be a multiple of 4."""
+    occupancy: str = "sigmoid"
+    """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
+    (0.27, 0.73): the models trained before 2026-11-27, whose occupancy LSTM got no gradient) or ``affine``
+    (b = (h + 1) / 2, in (0, 1): trained to the observed cells ``seen`` by L_occ,
+    :attr:`slam.neural.train.NeuralTrainConfig.occ_weight`)."""
 
 
 class ResBlock(nn.Module):
@@ -390,6 +402,8 @@ class NeuralMemory(nn.Module):
             raise ValueError("an equivariant encoder needs square grid inputs and 4 headings (2D)")
         if cfg.equivariance == "regular" and cfg.features % 4:
             raise ValueError(f"equivariance regular needs features divisible by 4, got {cfg.features}")
+        if cfg.occupancy not in ("sigmoid", "affine"):
+            raise ValueError(f"occupancy must be sigmoid or affine, got {cfg.occupancy!r}")
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
             self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)
@@ -454,7 +468,9 @@ class NeuralMemory(nn.Module):
         LSTMs then update every memory cell, as MapNet does (cells outside the registered view get a zero
         input).
 
-        Returns dict: psi (B, n, U, U), occ (B, 1, U, U), logits (B, T, r, P, P) local logits (t = 0 zeros),
+        Returns dict: psi (B, n, U, U), occ (B, 1, U, U), seen (B, 1, U, U) 1 on the cells some step's
+        registered view field covered (more than half: the occupancy LSTM's input, binarised, accumulated),
+        logits (B, T, r, P, P) local logits (t = 0 zeros),
         fields (B, T, r, P, P), centres (B, T, 2) allocentric centre of each window, estimates (B, T, 3)."""
         B, T = obs.shape[:2]
         cfg = self.cfg
@@ -480,6 +496,7 @@ class NeuralMemory(nn.Module):
         c = obs.new_zeros(B * Up * Up, n)
         oh = obs.new_zeros(B * Up * Up, 1)
         oc = obs.new_zeros(B * Up * Up, 1)
+        seen = obs.new_zeros(B * Up * Up, 1)
         est = torch.zeros(B, 3, dtype=torch.long, device=obs.device)            # (row, col, heading)
         bi = torch.arange(B, device=obs.device)[:, None, None]
         off = torch.arange(Wc, device=obs.device)
@@ -511,15 +528,18 @@ class NeuralMemory(nn.Module):
             x = obs.new_zeros(B, Up, Up, n).index_put((bi, ri, ci), reg.permute(0, 2, 3, 1))
             xm = obs.new_zeros(B, Up, Up, 1).index_put((bi, ri, ci), regm.permute(0, 2, 3, 1))
             h, c = self.lstm(x.view(-1, n), (h, c))                             # every cell, shared weights
-            oh, oc = self.occ_lstm(xm.view(-1, 1), (oh, oc))
+            oh, oc = self.occ_lstm(xm.detach().view(-1, 1), (oh, oc))    # the mask's loss stays in its LSTM
+            seen = torch.maximum(seen, (xm.view(-1, 1) > 0.5).to(seen.dtype))
             est = peak_poses(field, centre).detach()
             logits.append(lg)
             fields.append(field)
             centres.append(centre)
             ests.append(est)
         psi = h.view(B, U, U, n).permute(0, 3, 1, 2)
-        occ = torch.sigmoid(oh.view(B, U, U, 1).permute(0, 3, 1, 2))
-        return {"psi": psi, "occ": occ, "logits": torch.stack(logits, 1), "fields": torch.stack(fields, 1),
+        oh = oh.view(B, U, U, 1).permute(0, 3, 1, 2)
+        occ = (oh + 1) / 2 if cfg.occupancy == "affine" else torch.sigmoid(oh)
+        seen = seen.view(B, U, U, 1).permute(0, 3, 1, 2)
+        return {"psi": psi, "occ": occ, "seen": seen, "logits": torch.stack(logits, 1), "fields": torch.stack(fields, 1),
                 "centres": torch.stack(centres, 1), "estimates": torch.stack(ests, 1), "features": feats}
 
     def _score(self, window: torch.Tensor, bank: torch.Tensor, m: torch.Tensor) -> torch.Tensor:

@@ -73,6 +73,10 @@ class NeuralTrainConfig:
     gradient on the encoder is 17-350 x L_anam's (on the memory LSTM 5-75 x), so at 1 the shared encoder and LSTM
     are trained for localisation and recall is left to the decoder; 0.02 (the 2D ``cpu-long`` preset) recalls with
     L1 0.096 instead of 0.122 for 58 instead of 65 % of the poses within 1 px (slam/neural/weights/README.md)."""
+    occ_weight: float = 0.0
+    """Weight of L_occ (BCE of the occupancy mask b against the observed cells ``seen``, memory phases) and, if > 0,
+    the model's occupancy mask is ``affine`` (:attr:`slam.neural.model.MemoryConfig.occupancy`). 0 = the models
+    trained before 2026-11-27: no loss reached the occupancy LSTM (its weights stayed at their init)."""
     lstm_forget_bias: float = 0.0
     """If not 0: the forget-gate slice of both memory LSTMs' input biases is set to this value (their other
     weights keep PyTorch's LSTM init, uniform +-1/sqrt(n): the thesis' N(0, 0.02) is for the convolutions).
@@ -136,6 +140,10 @@ class NeuralTrainConfig:
             raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
+        if not (self.occ_weight >= 0 and np.isfinite(self.occ_weight)):
+            raise ConfigError(f"occ_weight must be >= 0, got {self.occ_weight}")
+        if not (self.loc_weight > 0 and np.isfinite(self.loc_weight)):
+            raise ConfigError(f"loc_weight must be > 0, got {self.loc_weight}")
         if not 0.0 < self.lr_final <= 1.0:
             raise ConfigError(f"lr_final must be in (0, 1], got {self.lr_final}")
         if not 1 <= self.observe < self.steps:
@@ -202,13 +210,18 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
                         camera_height_m=float(g["camera_height_m"]), cell_m=w.cell_m, max_range_m=w.max_range_m)
         return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
                             width=cfg.width, rotations=w.rotations, search=4, input="image",
-                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation, **rays)
+                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
+                            **rays)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
                         correlation=cfg.correlation, equivariance=cfg.equivariance,
-                        search=min(3 * q // 4 + 5, (U - q) // 2))
+                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg))
+
+
+def _occupancy(cfg: NeuralTrainConfig) -> str:
+    return "affine" if cfg.occ_weight > 0 else "sigmoid"
 
 
 @dataclass
@@ -226,6 +239,12 @@ def lr_factor(cfg: NeuralTrainConfig, step: int) -> float:
         return 1.0
     t = (step - a) / max(cfg.iterations - 1 - a, 1)
     return 1.0 + (cfg.lr_final - 1.0) * min(t, 1.0)
+
+
+OCC_LR = 5e-2
+"""Learning rate of the occupancy LSTM (with ``occ_weight``; constant): its 16 weights must move far - forget gate
+open, input gate saturated - which the memory's 2e-4 does not do in a CPU budget (tiny 2D model, 400 memory steps:
+L_occ 0.86 -> 0.20 at 1e-2, -> 0.004-0.04 at 5e-2)."""
 
 
 def _loc_loss(logits, truth_field):
@@ -246,6 +265,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     """Train; returns (model, discriminator, TrainLog). 3D: ``simulate`` makes missing training rooms
     (:data:`slam.neural.data3d.Simulator`)."""
     import torch
+    import torch.nn.functional as F
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
     from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
@@ -270,8 +290,11 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
                 cell.bias_ih[hs:2 * hs].fill_(float(cfg.lstm_forget_bias))    # gate order: input, forget, cell, output
     disc = PatchDiscriminator(mcfg).to(dev)
     init_weights(disc)
-    main_params = [p for n, p in model.named_parameters() if not n.startswith("hallucinator")]
+    occ_own = cfg.occ_weight > 0        # the occupancy LSTM learns on its own optimiser, at OCC_LR
+    main_params = [p for n, p in model.named_parameters()
+                   if not n.startswith("hallucinator") and not (occ_own and n.startswith("occ_lstm"))]
     opt = torch.optim.Adam(main_params, lr=cfg.lr, betas=(0.5, 0.999))
+    opt_occ = torch.optim.Adam(model.occ_lstm.parameters(), lr=OCC_LR, betas=(0.5, 0.999)) if occ_own else None
     opt_h = torch.optim.Adam(model.hallucinator.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(cfg.seed)
@@ -295,6 +318,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     start = 0
     ck = Path(checkpoint) if checkpoint else None
     parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
+    if opt_occ is not None:
+        parts["opt_occ"] = opt_occ
     if ck is not None and ck.is_file():
         from slam.neural.checkpoint import load_training_state
         start, tlog.steps = load_training_state(ck, parts, rng, "training checkpoint", map_location=dev)
@@ -346,9 +371,16 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
             loss = cfg.loc_weight * l_loc + l_anam
             losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
+            if cfg.occ_weight > 0:       # its gradient reaches the occupancy LSTM only (its input is detached)
+                l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
+                loss = loss + cfg.occ_weight * l_occ
+                losses["occ"] = float(l_occ.detach())
+                opt_occ.zero_grad(set_to_none=True)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
+            if opt_occ is not None:
+                opt_occ.step()
             if step >= cfg.hallucination_from:
                 losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
                                                   exact_t))
