@@ -539,7 +539,8 @@ class NeuralMemory(nn.Module):
         oh = oh.view(B, U, U, 1).permute(0, 3, 1, 2)
         occ = (oh + 1) / 2 if cfg.occupancy == "affine" else torch.sigmoid(oh)
         seen = seen.view(B, U, U, 1).permute(0, 3, 1, 2)
-        return {"psi": psi, "occ": occ, "seen": seen, "logits": torch.stack(logits, 1), "fields": torch.stack(fields, 1),
+        return {"psi": psi, "occ": occ, "seen": seen, "logits": torch.stack(logits, 1),
+                "fields": torch.stack(fields, 1),
                 "centres": torch.stack(centres, 1), "estimates": torch.stack(ests, 1), "features": feats}
 
     def _score(self, window: torch.Tensor, bank: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
