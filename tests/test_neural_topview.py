@@ -179,6 +179,26 @@ def test_every_train_preset_exists_in_both_modes():
     assert c.pretrain_steps < c.hallucination_from < c.iterations and c.topview_steps > 0
 
 
+def test_2d_cpu_long_preset_is_the_shipped_front_2d_recipe():
+    """The shipped front_2d weights were trained by the 2D ``cpu-long`` preset (its decoder refinement included):
+    every field of the preset equals what neural.json ``train`` records, and the refinement recorded is the
+    preset's."""
+    import json
+    from dataclasses import asdict
+    from pathlib import Path
+
+    from data_tools.config import config_from_dict
+    from slam.neural.train import TRAIN_PRESETS, NeuralTrainConfig
+    meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+                       / "neural.json").read_text())
+    preset = asdict(TRAIN_PRESETS["cpu-long"])
+    assert preset == asdict(config_from_dict(NeuralTrainConfig, meta["train"]))     # fields added later: defaults
+    assert {k: preset[k] for k in meta["train"]} == meta["train"]
+    ref = meta["info"]["decoder_refinement"]["config"]
+    assert (preset["refine_steps"], preset["refine_pool_batches"], preset["seed"]) == \
+        (ref["steps"], ref["pool_batches"], ref["seed"])
+
+
 def test_3d_cpu_long_preset_is_the_shipped_planar_3d_recipe():
     """The shipped planar_3d weights record the configuration they were trained with (neural.json ``train``); the
     ``cpu-long`` 3D preset must be that configuration (its memory phases; the decoder refinement, run afterwards

@@ -17,8 +17,8 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   registered view mask (its input detached: the mask's loss trains that LSTM only). ``seen`` is the
   registered view masks binarised and accumulated - what was observed -, which the backend's snapshot pictures
   use. The thesis trains b_t implicitly; here, with :attr:`MemoryConfig.occupancy` ``affine``, b_t = (h_t + 1) / 2
-  is trained to ``seen`` (BCE, L_occ - a deviation). Models trained before 2026-11-27 (``occupancy = sigmoid``)
-  have a defect measured then: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73), and their training gave
+  is trained to ``seen`` (BCE, L_occ - a deviation). Models trained without it (``occupancy = sigmoid``; both
+  shipped models) have a defect measured 2026-11-27: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73), and their training gave
   that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
   ``no_grad``) - its weights are PyTorch's init, b_t near-flat (0.36-0.41 on a 3D run); their hallucinator and
   L_corrupt read it as a soft, roughly constant mask (the 2D module still lowered hallucination L1 0.170 -> 0.116).
@@ -129,7 +129,7 @@ class MemoryConfig:
     be a multiple of 4."""
     occupancy: str = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
-    (0.27, 0.73): the models trained before 2026-11-27, whose occupancy LSTM got no gradient) or ``affine``
+    (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
     (b = (h + 1) / 2, in (0, 1): trained to the observed cells ``seen`` by L_occ,
     :attr:`slam.neural.train.NeuralTrainConfig.occ_weight`)."""
 
