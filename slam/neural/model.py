@@ -18,8 +18,8 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   registered view masks binarised and accumulated - what was observed -, which the backend's snapshot pictures
   use. The thesis trains b_t implicitly; here, with :attr:`MemoryConfig.occupancy` ``affine``, b_t = (h_t + 1) / 2
   is trained to ``seen`` (BCE, L_occ - a deviation). Models trained without it (``occupancy = sigmoid``; both
-  shipped models) have a defect measured 2026-11-27: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73), and their training gave
-  that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
+  shipped models) have a defect measured 2026-11-27: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73),
+  and their training gave that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
   ``no_grad``) - its weights are PyTorch's init, b_t near-flat (0.36-0.41 on a 3D run); their hallucinator and
   L_corrupt read it as a soft, roughly constant mask (the 2D module still lowered hallucination L1 0.170 -> 0.116).
 * **anamnesis (recall)**: for a requested pose, the q x q window of psi at that position, turned back by
