@@ -21,7 +21,8 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   shipped models) have a defect measured 2026-11-27: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73),
   and their training gave that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
   ``no_grad``) - its weights are PyTorch's init, b_t near-flat (0.36-0.41 on a 3D run); their hallucinator and
-  L_corrupt read it as a soft, roughly constant mask (the 2D module still lowered hallucination L1 0.170 -> 0.116).
+  L_corrupt read it as a soft, roughly constant mask (the shipped 2D module still lowers hallucination L1 0.195 ->
+  0.109; the 2D model retrained with the mask trained: 0.175 -> 0.111, no gain - slam/neural/weights/README.md).
 * **anamnesis (recall)**: for a requested pose, the q x q window of psi at that position, turned back by
   its heading (geometric culling), masked by the view field (-1 outside, thesis Eq. 4.7), goes
   through the decoder (a shallow ResNet) to an image.
