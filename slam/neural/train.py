@@ -170,9 +170,9 @@ steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its L
 the larger configuration, decaying over its last third and with the forget bias, cpu-long's L_loc weight and its
 trained occupancy by analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the
 ``cpu`` one with a memory of 16 features, ResNets of width 32 and L_loc weighted 0.01 (~78 min on one core with
-its refinement; anamnesis L1 0.087 vs 0.134, APE mean 5.5 vs 5.4 px;
-L_loc at 0.02: 0.096, 4.9 px; at 1: 0.122, 4.3 px - slam/neural/weights/README.md, "Localisation against
-recall"). ``cpu`` and ``cpu-long`` keep ``occ_weight`` 0, the recipes their numbers were measured with."""
+its refinement; anamnesis L1 0.087 vs 0.134, APE mean 5.5 vs 5.4 px; L_loc at 0.02: 0.096, 4.9 px; at 1: 0.122,
+4.3 px - slam/neural/weights/README.md, "Localisation against recall"). ``cpu`` and ``cpu-long`` keep
+``occ_weight`` 0, the recipes their numbers were measured with."""
 
 
 _CPU_3D = NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
@@ -295,7 +295,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
                 cell.bias_ih[hs:2 * hs].fill_(float(cfg.lstm_forget_bias))    # gate order: input, forget, cell, output
     disc = PatchDiscriminator(mcfg).to(dev)
     init_weights(disc)
-    occ_own = cfg.occ_weight > 0        # the occupancy LSTM learns on its own optimiser, at OCC_LR
+    occ_own = _occupancy(cfg) == "affine"       # a trained mask: its LSTM learns on its own optimiser, at OCC_LR
     main_params = [p for n, p in model.named_parameters()
                    if not n.startswith("hallucinator") and not (occ_own and n.startswith("occ_lstm"))]
     opt = torch.optim.Adam(main_params, lr=cfg.lr, betas=(0.5, 0.999))
@@ -323,7 +323,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     start = 0
     ck = Path(checkpoint) if checkpoint else None
     parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
-    if opt_occ is not None:
+    if occ_own:
         parts["opt_occ"] = opt_occ
     if ck is not None and ck.is_file():
         from slam.neural.checkpoint import load_training_state
@@ -376,7 +376,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
             loss = cfg.loc_weight * l_loc + l_anam
             losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
-            if cfg.occ_weight > 0:       # its gradient reaches the occupancy LSTM only (its input is detached)
+            if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
                 l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
                 loss = loss + cfg.occ_weight * l_occ
                 losses["occ"] = float(l_occ.detach())
@@ -384,7 +384,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            if opt_occ is not None:
+            if occ_own:
                 opt_occ.step()
             if step >= cfg.hallucination_from:
                 losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
