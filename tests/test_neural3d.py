@@ -384,3 +384,46 @@ def test_neural_backend_motion_prior_config():
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):
             NeuralConfig(**bad).validate()
+
+
+def test_more_headings_search_the_same_turns_and_finer_ones_between():
+    """set_headings(24) on a model built with 12: no weight changes, and the first localisation's content scores
+    at the 24 headings' even ones equal the 12 headings' (the same turned projections against the same memory
+    of the first view), the odd ones are the 15 deg turns in between."""
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    torch.manual_seed(0)
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
+                                      input="image", image_size=(30, 40)))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    rng = np.random.default_rng(5)
+    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    depths = [rng.uniform(0.5, 2.3, (30, 40)) for _ in range(2)]
+    R = level_rotation(_cam(0, 0, 0.3))
+    obs = torch.from_numpy(rng.uniform(-1, 1, (1, 2, 4, 30, 40)).astype(np.float32))
+    vm = torch.ones(33, 33)
+
+    def logits(r):
+        c = np.stack([egocentric_cells(d, intr, R, 0.15, 33, 2.4, rotations=r) for d in depths])
+        with torch.no_grad():
+            return model(obs, vm, None, cells=torch.from_numpy(c)[None])["logits"][0, 1]
+    l12 = logits(12)
+    assert model.set_headings(24) is model and model.cfg.rotations == 24
+    l24 = logits(24)
+    assert l24.shape == (24, 5, 5)
+    np.testing.assert_allclose(l24[0::2].numpy(), l12.numpy(), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(l24[1::2].numpy(), l12.numpy())
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, before[k]), k
+    with pytest.raises(ValueError, match="headings"):
+        model.set_headings(0)
+
+
+def test_neural_backend_headings_config():
+    from data_tools.errors import ConfigError
+    from slam.backends.neural import NeuralConfig
+    assert NeuralConfig(headings=72).validate().motion_prior(0.15, 72) == pytest.approx((1.0, 1.5))
+    for bad in (-1, 2.5):
+        with pytest.raises(ConfigError, match="headings"):
+            NeuralConfig(headings=bad).validate()

@@ -152,6 +152,19 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     assert row["neural"]["frames"] == row["icp"]["frames"] == row["neural_no_motion_prior"]["frames"] == 40
     assert "neural_no_motion_prior" in res["localisation"]
     assert row["icp"]["ate_m"]["rmse"] < 0.1                   # icp tracks a simulated room
+    # the heading error beside a trajectory that never turns: for a camera of fixed pitch and roll, the rotation
+    # angle between frame t and frame 0 is the yaw turned
+    from data_tools.sequence import SequenceReader
+    from slam.neural.geometry3d import planar_relative
+    from slam.neural.data3d import default_worlds_dir
+    root = tmp_path / "worlds" if (tmp_path / "worlds").is_dir() else default_worlds_dir(world)   # as evaluate_3d
+    P = SequenceReader(root / "test_000").poses
+    yaw = np.degrees([abs(planar_relative(P[0], T, 0.15)[2]) for T in P])
+    assert yaw.max() > 5                                       # the planar path turns
+    assert row["heading_fixed_baseline_deg"]["mean"] == pytest.approx(yaw.mean(), abs=1e-6)
+    assert row["icp"]["ape_rotation_deg"]["mean"] < 2 < row["heading_fixed_baseline_deg"]["mean"]
+    assert res["localisation"]["heading_fixed_baseline_deg_mean"] == row["heading_fixed_baseline_deg"]["mean"]
+    assert res["localisation"]["neural"]["ape_rotation_deg_mean"] == row["neural"]["ape_rotation_deg"]["mean"]
     for key in ("anamnesis", "hallucination", "baseline_tsdf_inpainting", "ablation_no_localisation_anamnesis"):
         assert 0.0 <= res[key]["l1"] <= 1.0 and -1.0 <= res[key]["ssim_thesis"] <= 1.0, key
     # the ray decoder's culling is its view frustum: the "no culling" ablation does not apply to it

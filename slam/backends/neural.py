@@ -62,6 +62,12 @@ class NeuralConfig:
     chosen for the shipped 49-cell model on six held-out rooms (procedural rooms 48-53, used by no training),
     mean ATE 0.27 m against 0.30 m at 15 deg (slam/neural/weights/README.md)."""
 
+    headings: int = 0
+    """Headings the pose field searches, 360 / ``headings`` degrees apart (0 = the model's own: 12 for the shipped
+    planar_3d). No weight depends on it - the rotation bank is the pixels ground-projected into each turned grid -,
+    so a model trained with 12 can search 72 (5 deg); measured on six held-out rooms (slam/neural/weights/README.md):
+    not better than the model's own here."""
+
     def validate(self) -> "NeuralConfig":
         if int(self.stride) < 1:
             raise ConfigError(f"neural.stride must be >= 1, got {self.stride}")
@@ -70,6 +76,8 @@ class NeuralConfig:
         if not (self.prior_move_m >= 0 and self.prior_turn_deg >= 0):
             raise ConfigError(f"neural.prior_move_m and neural.prior_turn_deg must be >= 0, got "
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
+        if int(self.headings) < 0 or int(self.headings) != self.headings:
+            raise ConfigError(f"neural.headings must be a whole number >= 0, got {self.headings}")
         if (self.prior_move_m == 0) != (self.prior_turn_deg == 0):
             raise ConfigError("neural.prior_move_m and neural.prior_turn_deg: set both > 0 (a motion prior) or both "
                               "to 0 (none)")
@@ -129,6 +137,10 @@ class NeuralBackend(RegistrationBackend):
         self.config.validate()
         model, tcfg, folder = self._load()
         w = tcfg.world
+        if int(self.config.headings) > 0:      # a finer (or coarser) rotation bank: the weights do not depend on it
+            import dataclasses
+            w = dataclasses.replace(w, rotations=int(self.config.headings))
+            model.set_headings(int(self.config.headings))
         T0 = reader.poses[indices[0]]
         if not np.all(np.isfinite(T0)):
             raise FormatError(reader.path, "the neural backend needs the first frame's pose (groundtruth.txt): it "

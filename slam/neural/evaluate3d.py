@@ -4,8 +4,10 @@
   (``procedural_room`` seeds never used in training) and, when given, extra planar sequences
   (e.g. the built-in ``room``): ``slam run --backend neural`` and ``--backend icp`` on the same
   frames; APE (first poses aligned, evo's ``--align_origin``) and ATE (SE(3) alignment), metres and
-  in memory cells; and the ablation ``neural_no_motion_prior`` (the backend's motion prior off: the
-  thesis' plain pose field).
+  in memory cells; the heading error: APE of the rotation angle (degrees, first poses aligned; height, pitch and
+  roll are the first frame's, so it is the yaw error), beside that of the first pose held for every frame
+  (``heading_fixed_baseline_deg``: what an estimate that never turns scores); and the ablation
+  ``neural_no_motion_prior`` (the backend's motion prior off: the thesis' plain pose field).
 * **Images** on 10-step samples of the test rooms (frames ``stride`` apart): anamnesis - the
   observed views recalled from the memory the model registered itself (predicted poses) - and
   hallucination - the last ``steps - observe`` views, unseen when the memory of the first
@@ -84,6 +86,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     import torch
 
     from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import Trajectory
     from slam.metrics import ape, ate
     from slam.neural.data3d import WorldBank, build_worlds, cache_name, default_worlds_dir, load_sequence_arrays
     from slam.pipeline import make_config, run_slam
@@ -108,15 +111,23 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             est = run.trajectory
             a = ape(gt, est, align="origin")
             t = ate(gt, est)
+            rot = ape(gt, est, relation="rotation_angle_deg", align="origin")
             row[name] = {"ape_m": a.stats, "ate_m": t.stats, "ate_rmse_cells": t.stats["rmse"] / w.cell_m,
+                         "ape_rotation_deg": rot.stats,
                          "seconds": time.perf_counter() - t0, "frames": len(reader)}
+        fixed = np.repeat(gt.poses[:1], len(gt.poses), 0)          # a trajectory that never turns nor moves
+        row["heading_fixed_baseline_deg"] = ape(gt, Trajectory(gt.timestamps.copy(), fixed),
+                                                relation="rotation_angle_deg", align="origin").stats
         row["neural_minus_icp_ate_cells"] = row["neural"]["ate_rmse_cells"] - row["icp"]["ate_rmse_cells"]
         res["sequences"][seq.name] = row
     seqs = res["sequences"].values()
     res["localisation"] = {
         b: {"ape_median_m": float(np.median([s[b]["ape_m"]["median"] for s in seqs])),
-            "ate_rmse_m_mean": float(np.mean([s[b]["ate_m"]["rmse"] for s in seqs]))}
+            "ate_rmse_m_mean": float(np.mean([s[b]["ate_m"]["rmse"] for s in seqs])),
+            "ape_rotation_deg_mean": float(np.mean([s[b]["ape_rotation_deg"]["mean"] for s in seqs]))}
         for b in ("neural", "icp", "neural_no_motion_prior")}
+    res["localisation"]["heading_fixed_baseline_deg_mean"] = float(np.mean([s["heading_fixed_baseline_deg"]["mean"]
+                                                                           for s in seqs]))
     res["localisation"]["within_2_cells_of_icp"] = bool(all(s["neural_minus_icp_ate_cells"] <= 2 for s in seqs))
     # ---------------------------------------------------------------- images on short samples
     arrays = [load_sequence_arrays(s, w, s / cache_name(w), progress=progress) for s in tests]

@@ -416,6 +416,20 @@ class NeuralMemory(nn.Module):
         self.log_beta = nn.Parameter(torch.tensor(0.0))
         init_weights(self)
 
+    def set_headings(self, r: int) -> "NeuralMemory":
+        """Search (and recall at) ``r`` headings, 2 pi / r apart, instead of the trained ``cfg.rotations`` (3D image
+        input only): no weight depends on r - the rotation bank is the pixels projected into each turned grid, given
+        as ``cells`` (B, T, r, H * W) for the new r. Poses are then in units of 2 pi / r. Returns the model."""
+        import dataclasses
+        if self.cfg.input != "image":
+            raise ValueError("only a 3D (image input) memory can change its headings: a 2D one turns by quarter turns")
+        if int(r) < 1:
+            raise ValueError(f"headings must be >= 1, got {r}")
+        self.cfg = dataclasses.replace(self.cfg, rotations=int(r))
+        if isinstance(self.decoder, RayDecoder):
+            self.decoder.rotations = int(r)
+        return self
+
     def one_hot(self, poses: torch.Tensor) -> torch.Tensor:
         """(B, 3) allocentric poses (row offset, col offset, heading) -> (B, r, U, U) one-hot fields."""
         B = poses.shape[0]
