@@ -79,8 +79,9 @@ def _ate_bars(path: Path, res: dict) -> Path:
     n = np.array([seqs[s]["neural"]["ate_rmse_cells"] for s in names])
     i = np.array([seqs[s]["icp"]["ate_rmse_cells"] for s in names])
     p = np.array([seqs[s]["neural_no_motion_prior"]["ate_rmse_cells"] for s in names])
-    fig = _figure(max(5.0, 1.4 * len(names) + 2), 4.0)
-    ax = fig.add_subplot(1, 1, 1)
+    heading = all("ape_rotation_deg" in seqs[s]["neural"] for s in names)
+    fig = _figure(max(5.0, 1.4 * len(names) + 2) * (2 if heading else 1), 4.0)
+    ax = fig.add_subplot(1, 2 if heading else 1, 1)
     x = np.arange(len(names))
     ax.bar(x - 0.3, p, 0.3, label="neural, no motion prior", color="tab:gray")
     ax.bar(x, n, 0.3, label="neural", color="tab:orange")
@@ -92,6 +93,19 @@ def _ate_bars(path: Path, res: dict) -> Path:
     ax.grid(True, axis="y", alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title("3D localisation: neural vs icp on the same frames", fontsize=10)
+    if heading:       # the heading error (mean, degrees) beside a trajectory that never turns
+        ax = fig.add_subplot(1, 2, 2)
+        for off, key, lab, col in ((-0.3, "neural_no_motion_prior", "neural, no motion prior", "tab:gray"),
+                                   (0.0, "neural", "neural", "tab:orange"), (0.3, "icp", "icp", "tab:blue")):
+            ax.bar(x + off, [seqs[s][key]["ape_rotation_deg"]["mean"] for s in names], 0.3, label=lab, color=col)
+        ax.plot(x, [seqs[s]["heading_fixed_baseline_deg"]["mean"] for s in names], "k_", ms=18, mew=1.5,
+                label="never turning")
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, fontsize=8)
+        ax.set_ylabel("heading error, mean [deg]")
+        ax.grid(True, axis="y", alpha=0.3)
+        ax.legend(fontsize=8)
+        ax.set_title("3D heading (yaw) error, first poses aligned", fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
 
