@@ -6,6 +6,9 @@ sequence's ground truth with :mod:`slam.metrics`:
 
 * ``ate_rmse_m``: ATE, RMS of the position error after SE(3) alignment (metres);
 * ``ape_median_m``: median of the same absolute position errors (metres);
+* ``ape_rot_rmse_deg``: RMS of the absolute rotation error (angle, degrees) after the same alignment (evo
+  ``evo_ape --pose_relation angle_deg --align``): a trajectory whose positions are right but whose heading is not
+  shows here, not in the ATE;
 * ``rpe_trans_rmse_m`` / ``rpe_rot_rmse_deg``: RPE between consecutive registered frames
   (evo's default, delta = 1 frame), translation (metres) and rotation angle (degrees);
 * ``frames_per_second`` and the failed frames from the run's stats.json.
@@ -76,6 +79,7 @@ class JobResult:
     frames_per_second: float | None = None
     ate_rmse_m: float | None = None
     ape_median_m: float | None = None
+    ape_rot_rmse_deg: float | None = None
     rpe_trans_rmse_m: float | None = None
     rpe_rot_rmse_deg: float | None = None
     pairs: int = 0
@@ -120,6 +124,8 @@ def _score(res: JobResult, job: BatchJob, est, camera: Camera | None) -> None:
     ref = reader.trajectory
     a = metrics.ate(ref, est, align="se3", ref_name="ground truth", est_name=job.backend)
     res.ate_rmse_m, res.ape_median_m, res.pairs = a.stats["rmse"], a.stats["median"], a.pairs
+    res.ape_rot_rmse_deg = metrics.ape(ref, est, relation="rotation_angle_deg", align="se3", ref_name="ground truth",
+                                       est_name=job.backend).stats["rmse"]
     if a.pairs >= 2:
         rt = metrics.rpe(ref, est, delta=1, delta_unit="frames", relation="translation")
         rr = metrics.rpe(ref, est, delta=1, delta_unit="frames", relation="rotation_angle_deg")
@@ -333,6 +339,7 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
             "backends": list(backends), "created": time.strftime("%Y-%m-%d %H:%M:%S"),
             "metrics": {"ate_rmse_m": "ATE: RMS position error after SE(3) alignment, metres",
                         "ape_median_m": "median absolute position error after SE(3) alignment, metres",
+                        "ape_rot_rmse_deg": "RMS absolute rotation error (angle) after SE(3) alignment, degrees",
                         "rpe_trans_rmse_m": "RPE translation RMS, consecutive registered frames, metres",
                         "rpe_rot_rmse_deg": "RPE rotation RMS, consecutive registered frames, degrees",
                         "frames_per_second": "frames processed per second (read + register + fuse)"}}
@@ -394,22 +401,23 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
     backends = list(dict.fromkeys(r["backend"] for r in report.results))
     tab = report.table()
     rows = []
-    head = "".join(f'<th colspan="5">{html.escape(b)}</th>' for b in backends)
-    sub = "".join("<th>ATE rmse [cm]</th><th>APE median [cm]</th><th>RPE [mm, deg]</th>"
+    head = "".join(f'<th colspan="6">{html.escape(b)}</th>' for b in backends)
+    sub = "".join("<th>ATE rmse [cm]</th><th>APE median [cm]</th><th>APE rot rmse [deg]</th><th>RPE [mm, deg]</th>"
                   "<th>frames/s</th><th>failed</th>" for _ in backends)
     for n in names:
         cells = []
         for b in backends:
             r = tab.get((n, b))
             if r is None:
-                cells.append('<td colspan="5">&ndash;</td>')
+                cells.append('<td colspan="6">&ndash;</td>')
             elif not r["ok"]:
                 msg = html.escape((r["error"] or "").splitlines()[0] if r["error"] else "failed")
-                cells.append(f'<td colspan="5" class="l err">{msg}</td>')
+                cells.append(f'<td colspan="6" class="l err">{msg}</td>')
             else:
                 rpe = (f'{_fmt(r["rpe_trans_rmse_m"], 1000, 1)}, {_fmt(r["rpe_rot_rmse_deg"], 1, 2)}'
                        if r["rpe_trans_rmse_m"] is not None else "&ndash;")
                 cells.append(f'<td>{_fmt(r["ate_rmse_m"], 100)}</td><td>{_fmt(r["ape_median_m"], 100)}</td>'
+                             f'<td>{_fmt(r.get("ape_rot_rmse_deg"), 1, 2)}</td>'
                              f'<td>{rpe}</td><td>{_fmt(r["frames_per_second"], 1, 1)}</td>'
                              f'<td>{r["frames_failed"]}/{r["frames"]}</td>')
         rows.append(f'<tr><td class="l"><a href="{html.escape(n)}.html">{html.escape(n)}</a></td>{"".join(cells)}</tr>')
@@ -420,7 +428,8 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
            f"({meta['workers']} workers, {meta['threads_per_job']} thread(s) per job), {meta['seconds']:.0f} s, "
            f"{html.escape(meta['created'])}. Numbers: <a href='results.json'>results.json</a>.</p>"
            f"<table><tr><th class='l' rowspan='2'>sequence</th>{head}</tr><tr>{sub}</tr>{''.join(rows)}</table>"
-           f"<p>ATE: RMS position error after SE(3) alignment; APE median: median of the same errors; "
+           f"<p>ATE: RMS position error after SE(3) alignment; APE median: median of the same errors; APE rot: "
+           f"RMS rotation angle error after the same alignment; "
            f"RPE: RMS between consecutive registered frames; failed: frames the backend could not "
            f"register (left out of the trajectory).</p></body></html>")
     from data_tools.results import atomic_write_text
@@ -443,6 +452,7 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
         parts.append("<table>" + "".join(
             f"<tr><th class='l'>{k}</th><td>{v}</td></tr>" for k, v in [
                 ("ATE rmse", _fmt(r["ate_rmse_m"], 100, 2, " cm")), ("APE median", _fmt(r["ape_median_m"], 100, 2, " cm")),
+                ("APE rotation rmse", _fmt(r.get("ape_rot_rmse_deg"), 1, 3, " deg")),
                 ("RPE translation rmse", _fmt(r["rpe_trans_rmse_m"], 1000, 2, " mm")),
                 ("RPE rotation rmse", _fmt(r["rpe_rot_rmse_deg"], 1, 3, " deg")),
                 ("frames/s", _fmt(r["frames_per_second"], 1, 1)),

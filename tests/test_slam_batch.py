@@ -11,7 +11,7 @@ from slam.pipeline import make_config
 from tests.slam_scenes import camera_path, render_frames, room_scene, write_sequence
 
 NUMBERS = ("frames", "frames_tracked", "frames_failed", "failed_timestamps", "ate_rmse_m",
-           "ape_median_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "pairs")
+           "ape_median_m", "ape_rot_rmse_deg", "rpe_trans_rmse_m", "rpe_rot_rmse_deg", "pairs")
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +94,24 @@ def test_negative_threads_per_job_is_a_config_error(tmp_path, two_sequences):
         run_batch(two_sequences[:1], ["icp"], tmp_path / "rep", _configs(), workers=1, progress=False,
                   threads_per_job=-1)
     assert not (tmp_path / "rep").exists()              # refused before anything is written
+
+
+def test_score_reports_a_heading_error_the_ate_does_not_see(two_sequences):
+    """Positions exact, every camera turned by 0.1 t rad about its own optical axis: the SE(3) alignment of the
+    positions is the identity, ATE 0, and the absolute rotation error is 0.1 t rad per frame - its RMS by hand."""
+    import numpy as np
+
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import Trajectory
+    from slam.batch import BatchJob, JobResult, _score
+    gt = SequenceReader(two_sequences[0]).trajectory
+    theta = 0.1 * np.arange(len(gt.poses))
+    est = gt.poses.copy()
+    for t, a in enumerate(theta):
+        c, s = np.cos(a), np.sin(a)
+        est[t, :3, :3] = gt.poses[t, :3, :3] @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    job = BatchJob(str(two_sequences[0]), "a", "test", "", {})
+    res = JobResult(job.sequence, "a", "test", "", ok=False)
+    _score(res, job, Trajectory(gt.timestamps.copy(), est), None)
+    assert res.ate_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert res.ape_rot_rmse_deg == pytest.approx(np.degrees(np.sqrt(np.mean(theta ** 2))), rel=1e-9)

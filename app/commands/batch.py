@@ -9,7 +9,7 @@ NAME = "batch"
 HELP = "run SLAM backends on several sequences; REPORT/index.html + results.json"
 DESCRIPTION = ("Run every --backends entry on every sequence (jobs in a local process pool or on a "
                "Ray cluster), score each run against the sequence's ground truth (ATE rmse, APE "
-               "median, RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
+               "median, APE rotation, RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
                "backend table, one page per sequence) and REPORT/results.json. Runs go to "
                "REPORT/runs/<sequence>/<backend>; re-running resumes unfinished runs.")
 
@@ -19,16 +19,17 @@ def _cm(x) -> str:
 
 
 def _table(results) -> tuple[list[str], list[list[str]]]:
-    """The sequence x backend table printed after a batch (ATE and APE in cm)."""
+    """The sequence x backend table printed after a batch (ATE and APE in cm, APE rotation in degrees)."""
     rows = []
     for r in results:
         if r["ok"]:
             fps = f"{r['frames_per_second']:.1f}" if r["frames_per_second"] else "-"
-            rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), fps,
+            rot = "-" if r.get("ape_rot_rmse_deg") is None else f"{r['ape_rot_rmse_deg']:.2f}"
+            rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), rot, fps,
                          f"{r['frames_failed']}/{r['frames']}"])
         else:
-            rows.append([r["name"], r["backend"], "error: " + (r["error"] or "").splitlines()[0], "", "", ""])
-    return ["sequence", "backend", "ATE cm", "APE med cm", "fps", "failed"], rows
+            rows.append([r["name"], r["backend"], "error: " + (r["error"] or "").splitlines()[0], "", "", "", ""])
+    return ["sequence", "backend", "ATE cm", "APE med cm", "APE rot deg", "fps", "failed"], rows
 
 
 def _run(args) -> int:
