@@ -97,8 +97,9 @@ def test_negative_threads_per_job_is_a_config_error(tmp_path, two_sequences):
 
 
 def test_score_reports_a_heading_error_the_ate_does_not_see(two_sequences):
-    """Positions exact, every camera turned by 0.1 t rad about its own optical axis: the SE(3) alignment of the
-    positions is the identity, ATE 0, and the absolute rotation error is 0.1 t rad per frame - its RMS by hand."""
+    """Positions exact, every camera turned by 0.1 t rad about its own optical axis (the first not at all, so the
+    first poses align by the identity): ATE 0, and the absolute rotation error is 0.1 t rad per frame - its RMS by
+    hand."""
     import numpy as np
 
     from data_tools.sequence import SequenceReader
