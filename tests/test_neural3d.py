@@ -301,8 +301,8 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
 
 
-@pytest.mark.parametrize("decoder", ["rays", "learned"])
-def test_train_3d_all_phases_and_resume(tmp_path, decoder):
+@pytest.mark.parametrize("decoder,subcell", [("rays", False), ("learned", False), ("learned", True)])
+def test_train_3d_all_phases_and_resume(tmp_path, decoder, subcell):
     """``train_memory`` in 3D on a tiny simulated room goes through pre-training, memory + recall and the
     hallucination GAN (the rays decoder takes its camera from the room), and a re-run resumes from the
     checkpoint of the last step (same weights)."""
@@ -314,10 +314,11 @@ def test_train_3d_all_phases_and_resume(tmp_path, decoder):
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
     cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
                             pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
-                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"), decoder=decoder)
+                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"), decoder=decoder,
+                            subcell=subcell)
     sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
     model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
-    assert model.cfg.decoder == decoder
+    assert model.cfg.decoder == decoder and model.cfg.subcell == subcell
     if decoder == "rays":
         assert model.cfg.camera[0] == pytest.approx(580.0 * 20 / 640)
         assert model.cfg.camera_height_m == pytest.approx(1.0, abs=1e-6)
@@ -427,3 +428,59 @@ def test_neural_backend_headings_config():
     for bad in (-1, 2.5):
         with pytest.raises(ConfigError, match="headings"):
             NeuralConfig(headings=bad).validate()
+
+
+def test_splat_field_by_hand_and_refine_pose_inverts_it():
+    """A real pose splats trilinearly over 2 x 2 cells and 2 headings (wrapping past the last heading); the refined
+    peak of a splat is the pose again (inside the window), in any window centre."""
+    import torch
+
+    from slam.neural.model import refine_pose, splat_field
+    c = torch.tensor([[2, -1]])
+    f = splat_field(torch.tensor([[2.25, -0.5, 11.5]]), c, 5, 12)      # field index (2.25, 2.5), heading 11.5
+    assert f.shape == (1, 12, 5, 5) and float(f.sum()) == pytest.approx(1.0)
+    for k in (11, 0):
+        np.testing.assert_allclose(f[0, k, 2:4, 2:4].numpy(), [[0.375 * 0.5, 0.375 * 0.5], [0.125 * 0.5, 0.125 * 0.5]])
+    assert float(f[0, 1:11].abs().sum()) == 0
+    rng = np.random.default_rng(0)
+    poses = torch.from_numpy(np.c_[rng.uniform(-3, 3, (50, 2)), rng.uniform(0, 12, 50)]).float()
+    centres = torch.from_numpy(rng.integers(-1, 2, (50, 2)))
+    back = refine_pose(splat_field(poses, centres, 9, 12), centres)
+    np.testing.assert_allclose(back[:, :2].numpy(), poses[:, :2].numpy(), atol=1e-5)
+    dk = (back[:, 2] - poses[:, 2] + 6) % 12 - 6
+    np.testing.assert_allclose(dk.numpy(), 0, atol=1e-5)
+    assert float(splat_field(torch.tensor([[9.0, 0.0, 0.0]]), c, 5, 12).sum()) == 0      # outside the window
+
+
+def test_a_real_teacher_on_the_grid_is_the_integer_teacher():
+    """Registering at real poses that are whole cells and headings gives the memory of the integer teacher (the
+    splat of a grid pose is its one-hot); half a cell away it differs."""
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    torch.manual_seed(0)
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
+                                      input="image", image_size=(30, 40), subcell=True))
+    rng = np.random.default_rng(2)
+    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    cells = np.stack([egocentric_cells(rng.uniform(0.5, 2.3, (30, 40)), intr, level_rotation(_cam(0, 0, 0.3)), 0.15,
+                                       33, 2.4, rotations=12) for _ in range(3)])
+    obs = torch.from_numpy(rng.uniform(-1, 1, (1, 3, 4, 30, 40)).astype(np.float32))
+    c = torch.from_numpy(cells)[None]
+    vm = torch.ones(33, 33)
+    grid = torch.tensor([[[0, 0, 0], [1, -1, 1], [2, -1, 11]]])
+    with torch.no_grad():
+        a = model(obs, vm, grid, cells=c)["psi"]
+        b = model(obs, vm, grid.float(), cells=c)["psi"]
+        half = model(obs, vm, grid.float() + torch.tensor([0.0, 0.5, 0.0]), cells=c)["psi"]
+        free = model(obs, vm, None, cells=c)
+    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-6)
+    assert not np.allclose(a.numpy(), half.numpy(), atol=1e-4)
+    assert torch.isfinite(free["psi"]).all() and free["estimates"].dtype == torch.long
+
+
+def test_subcell_is_a_3d_option():
+    from data_tools.errors import ConfigError
+    from slam.neural.train import NeuralTrainConfig
+    with pytest.raises(ConfigError, match="subcell"):
+        NeuralTrainConfig(mode="2d", subcell=True).validate()

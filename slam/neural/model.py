@@ -66,7 +66,7 @@ from torch import nn
 
 __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
            "PatchDiscriminator", "rotation_bank", "rotate_grid", "turn_features", "memory_index", "peak_poses",
-           "init_weights", "correlate", "register"]
+           "init_weights", "correlate", "register", "refine_pose", "splat_field"]
 
 from dataclasses import dataclass
 
@@ -128,6 +128,15 @@ class MemoryConfig:
     k = 0..3, so E'(rot90^j(x)) = rot90^j(roll(E'(x), -j groups)) (:func:`turn_features`): orientation is kept in
     which group responds. The rotation bank and the culling turn features by that same action; ``features`` must
     be a multiple of 4."""
+    subcell: bool = False
+    """3D: register views below the grid's resolution - a pose field is turned into the trilinear splat of one
+    real pose (row, col, heading) over its 2 x 2 x 2 neighbouring cells and headings, so a move or turn smaller than
+    a cell or a heading step is written where it happened instead of rounded away. Training (``teacher`` poses real)
+    registers at the exact poses and L_loc's target is the splat of the exact pose; inference registers at the
+    field's peak refined by its 3 x 3 centroid and the neighbouring headings (:func:`refine_pose`), and the motion
+    prior is centred there. A deviation from the thesis (MapNet registers with the soft field on the grid): a view
+    moved 0.1 m and turned 15 deg from the last lies in the same 15 cm / 30 deg bin, so a memory registered on the
+    grid learns "no move" and never turns (slam/neural/weights/README.md, "The 3D heading")."""
     occupancy: str = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
     (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
@@ -382,6 +391,56 @@ def peak_poses(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     return torch.stack([centre[..., 0] + rem // P - R, centre[..., 1] + rem % P - R, k], -1)
 
 
+def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """(B, 3) float allocentric (row, col, heading in steps) of local pose fields (B, r, P, P) centred on ``centre``
+    (B, 2): the maximum refined by the centroid of its 3 x 3 neighbours (position) and by the two neighbouring
+    headings' mass (heading), as the ``neural`` backend's ``refine_peak``."""
+    B, r, P, _ = field.shape
+    b = torch.arange(B, device=field.device)
+    flat = field.flatten(1).argmax(1)
+    k, rem = flat // (P * P), flat % (P * P)
+    i, j = rem // P, rem % P
+    pad = F.pad(field, (1, 1, 1, 1))
+    d = torch.arange(-1, 2, device=field.device)
+    ii = i[:, None, None] + 1 + d[None, :, None]
+    jj = j[:, None, None] + 1 + d[None, None, :]
+
+    def window(kk):
+        return pad[b[:, None, None], (kk % r)[:, None, None], ii, jj]          # (B, 3, 3)
+    w0 = window(k)
+    s0 = w0.sum((1, 2)).clamp(min=1e-12)
+    di = (w0 * d[None, :, None]).sum((1, 2)) / s0
+    dj = (w0 * d[None, None, :]).sum((1, 2)) / s0
+    sm, sp = window(k - 1).sum((1, 2)), window(k + 1).sum((1, 2))
+    dk = (sp - sm) / (sm + w0.sum((1, 2)) + sp).clamp(min=1e-12)
+    R = P // 2
+    return torch.stack([centre[:, 0].float() + i.float() + di - R, centre[:, 1].float() + j.float() + dj - R,
+                        k.float() + dk], 1)
+
+
+def splat_field(poses: torch.Tensor, centre: torch.Tensor, P: int, r: int) -> torch.Tensor:
+    """(B, r, P, P) local pose fields centred on ``centre`` (B, 2) holding the trilinear splat of the real
+    allocentric ``poses`` (B, 3) (row, col, heading in steps of 2 pi / r): weights over the 2 x 2 neighbouring cells
+    and the 2 neighbouring headings (wrapping), summing to 1 (renormalised when part falls outside the window; all
+    zero when all does)."""
+    B = poses.shape[0]
+    R = P // 2
+    b = torch.arange(B, device=poses.device)
+    x = poses.float()
+    fi, fj, fk = x[:, 0] - centre[:, 0].float() + R, x[:, 1] - centre[:, 1].float() + R, x[:, 2]
+    i0, j0, k0 = fi.floor(), fj.floor(), fk.floor()
+    ai, aj, ak = fi - i0, fj - j0, fk - k0
+    out = torch.zeros(B, r, P, P, device=poses.device)
+    for di, wi in ((0, 1 - ai), (1, ai)):
+        for dj, wj in ((0, 1 - aj), (1, aj)):
+            ri, rj = (i0 + di).long(), (j0 + dj).long()
+            inside = ((ri >= 0) & (ri < P) & (rj >= 0) & (rj < P)).float()
+            for dk, wk in ((0, 1 - ak), (1, ak)):
+                out.index_put_((b, (k0.long() + dk) % r, ri.clamp(0, P - 1), rj.clamp(0, P - 1)),
+                               wi * wj * wk * inside, accumulate=True)
+    return out / out.flatten(1).sum(1).clamp(min=1e-12)[:, None, None, None]
+
+
 def register(field: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
     """The adjoint of :func:`correlate`: a pose field (B, r, P, P) placing the bank (B, r, c, q, q) ->
     (B, c, P + q - 1, P + q - 1); a one-hot field pastes bank[k] at (i, j)."""
@@ -469,7 +528,8 @@ class NeuralMemory(nn.Module):
 
         obs (B, T, C, q, q) in [-1, 1] (3D: images (B, T, C, H, W) with ``cells`` (B, T, H * W), see
         :meth:`encode`); view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at these
-        allocentric poses instead of the predicted field (training warm-up), or None; ``memory``: side
+        allocentric poses instead of the predicted field (training warm-up), or None - integers (a one-hot
+        field) or reals (:func:`splat_field`: below the grid, :attr:`MemoryConfig.subcell`); ``memory``: side
         U of the memory for this call (default the configuration's; the model is the same for any U);
         ``motion_prior`` = (sigma_cells, sigma_headings): add the log of a Gaussian on the move from the previous
         estimate (cells, heading steps) to the localisation logits before the softmax - the field (and the
@@ -516,12 +576,17 @@ class NeuralMemory(nn.Module):
         bi = torch.arange(B, device=obs.device)[:, None, None]
         off = torch.arange(Wc, device=obs.device)
         logits, fields, centres, ests = [], [], [], []
+        cont = est.float()             # the real pose the motion prior is centred on (subcell: the refined peak)
         for t in range(T):
             if image:
                 bank = self._image_bank(f_img[:, t], cells[:, t]) * mbank         # (B, r, n, q, q)
             else:
                 bank = rotation_bank(feats[:, t] * m, r, cfg.equivariance == "regular")  # (B, r, n, q, q)
-            want = est[:, :2].clone() if teacher is None or t == 0 else teacher[:, t - 1, :2].clone()
+            if teacher is None or t == 0:
+                want = est[:, :2].clone()
+            else:
+                want = teacher[:, t - 1, :2]
+                want = torch.round(want).long() if want.is_floating_point() else want.clone()
             # the window starts R + q//2 cells before the wanted centre, moved inside the memory at its borders;
             # ``centre`` is the allocentric position of the window's middle (field index R, R)
             start = (want + U // 2 - R - h2).clamp(0, U - Wc)
@@ -534,18 +599,26 @@ class NeuralMemory(nn.Module):
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
                 lg = self._score(hw, bank, m)
-                post = lg if motion_prior is None else lg + self._log_motion_prior(est, centre, Wp, motion_prior)
+                post = lg if motion_prior is None else lg + self._log_motion_prior(cont, centre, Wp, motion_prior)
                 field = torch.softmax(post.flatten(1), 1).view_as(lg)
-                if teacher is not None:
+                if teacher is not None and teacher.is_floating_point():
+                    field = splat_field(teacher[:, t], centre, Wp, r)
+                elif teacher is not None:
                     field = self._local_one_hot(teacher[:, t], centre, Wp)
-            reg = register(field, bank)                                         # (B, n, Wc, Wc)
-            regm = register(field, mbank).clamp(0, 1)
+            rfield = field          # the field the view is registered with
+            if cfg.subcell and teacher is None and t > 0:     # at the refined peak, below the grid
+                cont = refine_pose(field.detach(), centre)
+                rfield = splat_field(cont, centre, Wp, r)
+            reg = register(rfield, bank)                                        # (B, n, Wc, Wc)
+            regm = register(rfield, mbank).clamp(0, 1)
             x = obs.new_zeros(B, Up, Up, n).index_put((bi, ri, ci), reg.permute(0, 2, 3, 1))
             xm = obs.new_zeros(B, Up, Up, 1).index_put((bi, ri, ci), regm.permute(0, 2, 3, 1))
             h, c = self.lstm(x.view(-1, n), (h, c))                             # every cell, shared weights
             oh, oc = self.occ_lstm(xm.detach().view(-1, 1), (oh, oc))    # the mask's loss stays in its LSTM
             seen = torch.maximum(seen, (xm.view(-1, 1) > 0.5).to(seen.dtype))
             est = peak_poses(field, centre).detach()
+            if not (cfg.subcell and teacher is None and t > 0):
+                cont = est.float()
             logits.append(lg)
             fields.append(field)
             centres.append(centre)
@@ -583,7 +656,7 @@ class NeuralMemory(nn.Module):
         dr = (centre[:, 0] - prev[:, 0]).float()[:, None] + ar[None]                 # (B, Wp)
         dc = (centre[:, 1] - prev[:, 1]).float()[:, None] + ar[None]
         ks = torch.arange(r, device=prev.device)
-        dk = ((ks[None] - prev[:, 2:3]) % r).float()
+        dk = ((ks[None] - prev[:, 2:3].float()) % r).float()
         dk = torch.minimum(dk, r - dk)                                             # (B, r)
         lp = -(dr[:, :, None] ** 2 + dc[:, None, :] ** 2) / (2 * sc * sc)         # (B, Wp, Wp)
         return lp[:, None] - (dk ** 2 / (2 * sk * sk))[:, :, None, None]

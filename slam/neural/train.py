@@ -104,6 +104,10 @@ class NeuralTrainConfig:
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
     :class:`slam.neural.model.MemoryConfig`. Measured with the cpu preset (slam/neural/weights/README.md): the
     two are equal within noise at this training budget, so the measured recipe stays the default."""
+    subcell: bool = False
+    """3D mode: register below the grid's resolution (:attr:`slam.neural.model.MemoryConfig.subcell`): teacher
+    registration at the exact poses, L_loc's target the trilinear splat of the exact pose instead of a one-hot at
+    the rounded one, and the model then registers at its refined peak at inference."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
@@ -141,6 +145,8 @@ class NeuralTrainConfig:
                               "not square top views")
         if self.equivariance == "regular" and self.features % 4:
             raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
+        if self.subcell and self.mode != "3d":
+            raise ConfigError("subcell registration is for --mode 3d (2D poses are whole pixels and quarter turns)")
         if self.decoder not in ("rays", "learned"):
             raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not (self.occ_weight >= 0 and np.isfinite(self.occ_weight)):
@@ -216,7 +222,7 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
         return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
                             width=cfg.width, rotations=w.rotations, search=4, input="image",
                             image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
-                            **rays)
+                            subcell=bool(cfg.subcell), **rays)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
@@ -273,7 +279,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     import torch.nn.functional as F
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
+    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index, splat_field
     cfg.validate()
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
@@ -366,11 +372,16 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         else:
             s = step - cfg.pretrain_steps
             p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
-            teacher = allo_t if rng.random() < p_teacher else None
+            target = exact_t if cfg.subcell else allo_t         # subcell: real poses, splatted
+            teacher = target if rng.random() < p_teacher else None
             out = model(obs_t, vm, teacher, cells=cells_t)
             Wp = out["logits"].shape[-1]
-            truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
-                                 for t in range(cfg.steps)], 1)
+            if cfg.subcell:
+                truth = torch.stack([splat_field(exact_t[:, t], out["centres"][:, t], Wp, model.cfg.rotations)
+                                     for t in range(cfg.steps)], 1)
+            else:
+                truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+                                     for t in range(cfg.steps)], 1)
             l_loc = _loc_loss(out["logits"], truth)
             rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
