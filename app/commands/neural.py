@@ -30,6 +30,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--equivariance", choices=("none", "invariant", "regular"),
                    help="2d: an encoder exactly equivariant to quarter turns (regular: the regular representation of "
                         "C4, features a multiple of 4; invariant: averaged over the turns); default: the preset's")
+    p.add_argument("--subcell", action="store_true", default=None,
+                   help="3d: register below the grid (real teacher poses splatted, L_loc's target the splat of the "
+                        "exact pose; the model then registers at its refined peak); default: the preset's (off)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -84,7 +87,7 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance")
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell")
             if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
