@@ -92,23 +92,15 @@ class NeuralConfig:
 
 def refine_peak(field: np.ndarray, centre: np.ndarray, refine: bool = True) -> tuple[float, float, float, float]:
     """(row, col, heading index (fractional), peak probability) of a local pose field (r, P, P) whose
-    middle is the allocentric ``centre`` (2,)."""
-    r, P, _ = field.shape
-    k, i, j = np.unravel_index(int(np.argmax(field)), field.shape)
-    p = float(field[k, i, j])
-    R = P // 2
-    row, col, kk = float(centre[0] + i - R), float(centre[1] + j - R), float(k)
-    if refine:
-        i0, i1, j0, j1 = max(i - 1, 0), min(i + 2, P), max(j - 1, 0), min(j + 2, P)
-        w = field[k, i0:i1, j0:j1]
-        ii, jj = np.mgrid[i0:i1, j0:j1]
-        if w.sum() > 0:
-            row = float(centre[0] + (w * ii).sum() / w.sum() - R)
-            col = float(centre[1] + (w * jj).sum() / w.sum() - R)
-        wm, w0, wp = field[(k - 1) % r, i0:i1, j0:j1].sum(), w.sum(), field[(k + 1) % r, i0:i1, j0:j1].sum()
-        if wm + w0 + wp > 0:
-            kk = k + float((wp - wm) / (wm + w0 + wp))
-    return row, col, kk, p
+    middle is the allocentric ``centre`` (2,): the maximum, refined (``refine``) by
+    :func:`slam.neural.model.refine_pose` (centroid of its 3 x 3 neighbours, the two neighbouring headings)."""
+    import torch
+
+    from slam.neural.model import peak_poses, refine_pose
+    f = torch.from_numpy(np.asarray(field, np.float32))[None]
+    c = torch.from_numpy(np.asarray(centre, np.int64))[None]
+    pose = (refine_pose(f, c) if refine else peak_poses(f, c).float())[0].tolist()
+    return float(pose[0]), float(pose[1]), float(pose[2]), float(f.max())
 
 
 @register_backend

@@ -394,7 +394,7 @@ def peak_poses(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
 def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     """(B, 3) float allocentric (row, col, heading in steps) of local pose fields (B, r, P, P) centred on ``centre``
     (B, 2): the maximum refined by the centroid of its 3 x 3 neighbours (position) and by the two neighbouring
-    headings' mass (heading), as the ``neural`` backend's ``refine_peak``."""
+    headings' mass (heading); the ``neural`` backend's estimates (``refine_peak``)."""
     B, r, P, _ = field.shape
     b = torch.arange(B, device=field.device)
     flat = field.flatten(1).argmax(1)
