@@ -435,7 +435,7 @@ def test_splat_field_by_hand_and_refine_pose_inverts_it():
     peak of a splat is the pose again (inside the window), in any window centre."""
     import torch
 
-    from slam.neural.model import refine_pose, splat_field
+    from slam.neural.fields import refine_pose, splat_field
     c = torch.tensor([[2, -1]])
     f = splat_field(torch.tensor([[2.25, -0.5, 11.5]]), c, 5, 12)      # field index (2.25, 2.5), heading 11.5
     assert f.shape == (1, 12, 5, 5) and float(f.sum()) == pytest.approx(1.0)

@@ -90,19 +90,6 @@ class NeuralConfig:
         return self.prior_move_m / cell_m, self.prior_turn_deg / (360.0 / rotations)
 
 
-def refine_peak(field: np.ndarray, centre: np.ndarray, refine: bool = True) -> tuple[float, float, float, float]:
-    """(row, col, heading index (fractional), peak probability) of a local pose field (r, P, P) whose
-    middle is the allocentric ``centre`` (2,): the maximum, refined (``refine``) by
-    :func:`slam.neural.model.refine_pose` (centroid of its 3 x 3 neighbours, the two neighbouring headings)."""
-    import torch
-
-    from slam.neural.model import peak_poses, refine_pose
-    f = torch.from_numpy(np.asarray(field, np.float32))[None]
-    c = torch.from_numpy(np.asarray(centre, np.int64))[None]
-    pose = (refine_pose(f, c) if refine else peak_poses(f, c).float())[0].tolist()
-    return float(pose[0]), float(pose[1]), float(pose[2]), float(f.max())
-
-
 @register_backend
 class NeuralBackend(RegistrationBackend):
     name = "neural"
@@ -125,6 +112,7 @@ class NeuralBackend(RegistrationBackend):
 
     def run_offline(self, reader, indices, progress=True):
         from slam.neural.data3d import frame_arrays, view_geometry
+        from slam.neural.fields import refine_peak
         from slam.neural.geometry3d import allocentric_to_world
         self.config.validate()
         model, tcfg, folder = self._load()

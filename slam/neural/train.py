@@ -279,7 +279,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     import torch.nn.functional as F
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index, splat_field
+    from slam.neural.fields import splat_field
+    from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
     cfg.validate()
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():

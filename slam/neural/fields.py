@@ -1,0 +1,81 @@
+"""Local pose fields of the neural memory (B, r, P, P): probability over r headings x P x P positions around an
+allocentric ``centre`` (B, 2) (field index (P // 2, P // 2) = the centre). Their peak, its sub-cell refinement and
+the inverse, the splat of a real pose (:attr:`slam.neural.model.MemoryConfig.subcell`). Poses are (row, col) in
+memory cells and the heading in steps of 2 pi / r."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["peak_poses", "refine_pose", "refine_peak", "splat_field"]
+
+
+def peak_poses(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """(..., 3) long allocentric (row, col, heading) of the maxima of local pose fields or logits (..., r, P, P)
+    whose middle cell is the allocentric ``centre`` (..., 2)."""
+    P = field.shape[-1]
+    idx = field.flatten(-3).argmax(-1)
+    k, rem = idx // (P * P), idx % (P * P)
+    R = P // 2
+    return torch.stack([centre[..., 0] + rem // P - R, centre[..., 1] + rem % P - R, k], -1)
+
+
+def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """(B, 3) float allocentric (row, col, heading in steps) of local pose fields (B, r, P, P) centred on ``centre``
+    (B, 2): the maximum refined by the centroid of its 3 x 3 neighbours (position) and by the two neighbouring
+    headings' mass (heading); the ``neural`` backend's estimates (``refine_peak``)."""
+    B, r, P, _ = field.shape
+    b = torch.arange(B, device=field.device)
+    flat = field.flatten(1).argmax(1)
+    k, rem = flat // (P * P), flat % (P * P)
+    i, j = rem // P, rem % P
+    pad = F.pad(field, (1, 1, 1, 1))
+    d = torch.arange(-1, 2, device=field.device)
+    ii = i[:, None, None] + 1 + d[None, :, None]
+    jj = j[:, None, None] + 1 + d[None, None, :]
+
+    def window(kk):
+        return pad[b[:, None, None], (kk % r)[:, None, None], ii, jj]          # (B, 3, 3)
+    w0 = window(k)
+    s0 = w0.sum((1, 2)).clamp(min=1e-12)
+    di = (w0 * d[None, :, None]).sum((1, 2)) / s0
+    dj = (w0 * d[None, None, :]).sum((1, 2)) / s0
+    sm, sp = window(k - 1).sum((1, 2)), window(k + 1).sum((1, 2))
+    dk = (sp - sm) / (sm + w0.sum((1, 2)) + sp).clamp(min=1e-12)
+    R = P // 2
+    return torch.stack([centre[:, 0].float() + i.float() + di - R, centre[:, 1].float() + j.float() + dj - R,
+                        k.float() + dk], 1)
+
+
+def splat_field(poses: torch.Tensor, centre: torch.Tensor, P: int, r: int) -> torch.Tensor:
+    """(B, r, P, P) local pose fields centred on ``centre`` (B, 2) holding the trilinear splat of the real
+    allocentric ``poses`` (B, 3) (row, col, heading in steps of 2 pi / r): weights over the 2 x 2 neighbouring cells
+    and the 2 neighbouring headings (wrapping), summing to 1 (renormalised when part falls outside the window; all
+    zero when all does)."""
+    B = poses.shape[0]
+    R = P // 2
+    b = torch.arange(B, device=poses.device)
+    x = poses.float()
+    fi, fj, fk = x[:, 0] - centre[:, 0].float() + R, x[:, 1] - centre[:, 1].float() + R, x[:, 2]
+    i0, j0, k0 = fi.floor(), fj.floor(), fk.floor()
+    ai, aj, ak = fi - i0, fj - j0, fk - k0
+    out = torch.zeros(B, r, P, P, device=poses.device)
+    for di, wi in ((0, 1 - ai), (1, ai)):
+        for dj, wj in ((0, 1 - aj), (1, aj)):
+            ri, rj = (i0 + di).long(), (j0 + dj).long()
+            inside = ((ri >= 0) & (ri < P) & (rj >= 0) & (rj < P)).float()
+            for dk, wk in ((0, 1 - ak), (1, ak)):
+                out.index_put_((b, (k0.long() + dk) % r, ri.clamp(0, P - 1), rj.clamp(0, P - 1)),
+                               wi * wj * wk * inside, accumulate=True)
+    return out / out.flatten(1).sum(1).clamp(min=1e-12)[:, None, None, None]
+
+
+def refine_peak(field, centre, refine: bool = True) -> tuple[float, float, float, float]:
+    """(row, col, heading index (fractional), peak probability) of one local pose field (r, P, P) array whose middle
+    is the allocentric ``centre`` (2,): the maximum, refined (``refine``) by :func:`refine_pose` - the ``neural``
+    registration backend's estimate of a memory step."""
+    import numpy as np
+    f = torch.from_numpy(np.asarray(field, np.float32))[None]
+    c = torch.from_numpy(np.asarray(centre, np.int64))[None]
+    pose = (refine_pose(f, c) if refine else peak_poses(f, c).float())[0].tolist()
+    return float(pose[0]), float(pose[1]), float(pose[2]), float(f.max())
