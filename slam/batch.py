@@ -419,7 +419,7 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
                 rpe = (f'{_fmt(r["rpe_trans_rmse_m"], 1000, 1)}, {_fmt(r["rpe_rot_rmse_deg"], 1, 2)}'
                        if r["rpe_trans_rmse_m"] is not None else "&ndash;")
                 cells.append(f'<td>{_fmt(r["ate_rmse_m"], 100)}</td><td>{_fmt(r["ape_median_m"], 100)}</td>'
-                             f'<td>{_fmt(r.get("ape_rot_rmse_deg"), 1, 2)}</td>'
+                             f'<td>{_fmt(r["ape_rot_rmse_deg"], 1, 2)}</td>'
                              f'<td>{rpe}</td><td>{_fmt(r["frames_per_second"], 1, 1)}</td>'
                              f'<td>{r["frames_failed"]}/{r["frames"]}</td>')
         rows.append(f'<tr><td class="l"><a href="{html.escape(n)}.html">{html.escape(n)}</a></td>{"".join(cells)}</tr>')
@@ -454,7 +454,7 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
         parts.append("<table>" + "".join(
             f"<tr><th class='l'>{k}</th><td>{v}</td></tr>" for k, v in [
                 ("ATE rmse", _fmt(r["ate_rmse_m"], 100, 2, " cm")), ("APE median", _fmt(r["ape_median_m"], 100, 2, " cm")),
-                ("APE rotation rmse", _fmt(r.get("ape_rot_rmse_deg"), 1, 3, " deg")),
+                ("APE rotation rmse", _fmt(r["ape_rot_rmse_deg"], 1, 3, " deg")),
                 ("RPE translation rmse", _fmt(r["rpe_trans_rmse_m"], 1000, 2, " mm")),
                 ("RPE rotation rmse", _fmt(r["rpe_rot_rmse_deg"], 1, 3, " deg")),
                 ("frames/s", _fmt(r["frames_per_second"], 1, 1)),

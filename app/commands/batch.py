@@ -24,7 +24,7 @@ def _table(results) -> tuple[list[str], list[list[str]]]:
     for r in results:
         if r["ok"]:
             fps = f"{r['frames_per_second']:.1f}" if r["frames_per_second"] else "-"
-            rot = "-" if r.get("ape_rot_rmse_deg") is None else f"{r['ape_rot_rmse_deg']:.2f}"
+            rot = "-" if r["ape_rot_rmse_deg"] is None else f"{r['ape_rot_rmse_deg']:.2f}"
             rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), rot, fps,
                          f"{r['frames_failed']}/{r['frames']}"])
         else:

@@ -10,14 +10,20 @@ import torch.nn.functional as F
 __all__ = ["peak_poses", "refine_pose", "refine_peak", "splat_field"]
 
 
+def _peak_index(field: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(heading k, row i, column j) field indices (...,) of the maxima of fields (..., r, P, P)."""
+    P = field.shape[-1]
+    idx = field.flatten(-3).argmax(-1)
+    rem = idx % (P * P)
+    return idx // (P * P), rem // P, rem % P
+
+
 def peak_poses(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     """(..., 3) long allocentric (row, col, heading) of the maxima of local pose fields or logits (..., r, P, P)
     whose middle cell is the allocentric ``centre`` (..., 2)."""
-    P = field.shape[-1]
-    idx = field.flatten(-3).argmax(-1)
-    k, rem = idx // (P * P), idx % (P * P)
-    R = P // 2
-    return torch.stack([centre[..., 0] + rem // P - R, centre[..., 1] + rem % P - R, k], -1)
+    R = field.shape[-1] // 2
+    k, i, j = _peak_index(field)
+    return torch.stack([centre[..., 0] + i - R, centre[..., 1] + j - R, k], -1)
 
 
 def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
@@ -26,9 +32,7 @@ def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     headings' mass (heading); the ``neural`` backend's estimates (``refine_peak``)."""
     B, r, P, _ = field.shape
     b = torch.arange(B, device=field.device)
-    flat = field.flatten(1).argmax(1)
-    k, rem = flat // (P * P), flat % (P * P)
-    i, j = rem // P, rem % P
+    k, i, j = _peak_index(field)
     pad = F.pad(field, (1, 1, 1, 1))
     d = torch.arange(-1, 2, device=field.device)
     ii = i[:, None, None] + 1 + d[None, :, None]

@@ -73,39 +73,38 @@ def _ape_cdf(path: Path, ape: np.ndarray, kinds: np.ndarray, names: tuple) -> Pa
     return _save(fig, path)
 
 
-def _ate_bars(path: Path, res: dict) -> Path:
-    seqs = res["sequences"]
-    names = list(seqs)
-    n = np.array([seqs[s]["neural"]["ate_rmse_cells"] for s in names])
-    i = np.array([seqs[s]["icp"]["ate_rmse_cells"] for s in names])
-    p = np.array([seqs[s]["neural_no_motion_prior"]["ate_rmse_cells"] for s in names])
-    heading = all("ape_rotation_deg" in seqs[s]["neural"] for s in names)
-    fig = _figure(max(5.0, 1.4 * len(names) + 2) * (2 if heading else 1), 4.0)
-    ax = fig.add_subplot(1, 2 if heading else 1, 1)
+_BACKENDS = (("neural_no_motion_prior", "neural, no motion prior", "tab:gray"), ("neural", "neural", "tab:orange"),
+             ("icp", "icp", "tab:blue"))
+
+
+def _bar_panel(ax, names: list, per_backend, mark, mark_label: str, ylabel: str, title: str) -> None:
+    """Bars of the three backends per sequence (``per_backend(key)``: their values), a black tick per sequence at
+    ``mark`` labelled ``mark_label``."""
     x = np.arange(len(names))
-    ax.bar(x - 0.3, p, 0.3, label="neural, no motion prior", color="tab:gray")
-    ax.bar(x, n, 0.3, label="neural", color="tab:orange")
-    ax.bar(x + 0.3, i, 0.3, label="icp", color="tab:blue")
-    ax.plot(x, i + 2, "k_", ms=18, mew=1.5, label="icp + 2 cells (target)")
+    for off, (key, label, colour) in zip((-0.3, 0.0, 0.3), _BACKENDS):
+        ax.bar(x + off, per_backend(key), 0.3, label=label, color=colour)
+    ax.plot(x, mark, "k_", ms=18, mew=1.5, label=mark_label)
     ax.set_xticks(x)
     ax.set_xticklabels(names, fontsize=8)
-    ax.set_ylabel(f"ATE RMSE [cells of {res['cell_m']:g} m]")
+    ax.set_ylabel(ylabel)
     ax.grid(True, axis="y", alpha=0.3)
     ax.legend(fontsize=8)
-    ax.set_title("3D localisation: neural vs icp on the same frames", fontsize=10)
-    if heading:       # the heading error (mean, degrees) beside a trajectory that never turns
-        ax = fig.add_subplot(1, 2, 2)
-        for off, key, lab, col in ((-0.3, "neural_no_motion_prior", "neural, no motion prior", "tab:gray"),
-                                   (0.0, "neural", "neural", "tab:orange"), (0.3, "icp", "icp", "tab:blue")):
-            ax.bar(x + off, [seqs[s][key]["ape_rotation_deg"]["mean"] for s in names], 0.3, label=lab, color=col)
-        ax.plot(x, [seqs[s]["heading_fixed_baseline_deg"]["mean"] for s in names], "k_", ms=18, mew=1.5,
-                label="never turning")
-        ax.set_xticks(x)
-        ax.set_xticklabels(names, fontsize=8)
-        ax.set_ylabel("heading error, mean [deg]")
-        ax.grid(True, axis="y", alpha=0.3)
-        ax.legend(fontsize=8)
-        ax.set_title("3D heading (yaw) error, first poses aligned", fontsize=10)
+    ax.set_title(title, fontsize=10)
+
+
+def _ate_bars(path: Path, res: dict) -> Path:
+    """Two panels per sequence: the ATE in memory cells (with icp + 2 cells, the target) and the mean heading error
+    (with that of a trajectory that never turns)."""
+    seqs = res["sequences"]
+    names = list(seqs)
+    fig = _figure(2 * max(5.0, 1.4 * len(names) + 2), 4.0)
+    icp = np.array([seqs[s]["icp"]["ate_rmse_cells"] for s in names])
+    _bar_panel(fig.add_subplot(1, 2, 1), names, lambda k: [seqs[s][k]["ate_rmse_cells"] for s in names], icp + 2,
+               "icp + 2 cells (target)", f"ATE RMSE [cells of {res['cell_m']:g} m]",
+               "3D localisation: neural vs icp on the same frames")
+    _bar_panel(fig.add_subplot(1, 2, 2), names, lambda k: [seqs[s][k]["ape_rotation_deg"]["mean"] for s in names],
+               [seqs[s]["heading_fixed_baseline_deg"]["mean"] for s in names], "never turning",
+               "heading error, mean [deg]", "3D heading (yaw) error, first poses aligned")
     fig.tight_layout()
     return _save(fig, path)
 

@@ -547,8 +547,9 @@ class NeuralMemory(nn.Module):
                     field = splat_field(teacher[:, t], centre, Wp, r)
                 elif teacher is not None:
                     field = self._local_one_hot(teacher[:, t], centre, Wp)
+            subcell = cfg.subcell and teacher is None and t > 0
             rfield = field          # the field the view is registered with
-            if cfg.subcell and teacher is None and t > 0:     # at the refined peak, below the grid
+            if subcell:             # at the refined peak, below the grid
                 cont = refine_pose(field.detach(), centre)
                 rfield = splat_field(cont, centre, Wp, r)
             reg = register(rfield, bank)                                        # (B, n, Wc, Wc)
@@ -559,7 +560,7 @@ class NeuralMemory(nn.Module):
             oh, oc = self.occ_lstm(xm.detach().view(-1, 1), (oh, oc))    # the mask's loss stays in its LSTM
             seen = torch.maximum(seen, (xm.view(-1, 1) > 0.5).to(seen.dtype))
             est = peak_poses(field, centre).detach()
-            if not (cfg.subcell and teacher is None and t > 0):
+            if not subcell:
                 cont = est.float()
             logits.append(lg)
             fields.append(field)
