@@ -380,7 +380,7 @@ def test_motion_prior_tight_pins_the_estimate_wide_changes_nothing():
 def test_neural_backend_motion_prior_config():
     from data_tools.errors import ConfigError
     from slam.backends.neural import NeuralConfig
-    assert NeuralConfig().motion_prior(0.15, 12) == pytest.approx((1.0, 0.25))   # 7.5 deg / 30 deg
+    assert NeuralConfig().motion_prior(0.15, 12) == pytest.approx((1.0, 0.5))   # 15 deg / 30 deg
     assert NeuralConfig(prior_move_m=0, prior_turn_deg=0).validate().motion_prior(0.15, 12) is None
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):
@@ -424,7 +424,7 @@ def test_more_headings_search_the_same_turns_and_finer_ones_between():
 def test_neural_backend_headings_config():
     from data_tools.errors import ConfigError
     from slam.backends.neural import NeuralConfig
-    assert NeuralConfig(headings=72).validate().motion_prior(0.15, 72) == pytest.approx((1.0, 1.5))
+    assert NeuralConfig(headings=72).validate().motion_prior(0.15, 72) == pytest.approx((1.0, 3.0))   # 15 / 5 deg
     for bad in (-1, 2.5):
         with pytest.raises(ConfigError, match="headings"):
             NeuralConfig(headings=bad).validate()
@@ -484,3 +484,64 @@ def test_subcell_is_a_3d_option():
     from slam.neural.train import NeuralTrainConfig
     with pytest.raises(ConfigError, match="subcell"):
         NeuralTrainConfig(mode="2d", subcell=True).validate()
+
+
+def test_overlap_score_by_hand_and_blind_to_unobserved_cells():
+    """A memory that agrees with the view wherever it was observed scores every pose that overlaps it alike
+    (the mean agreement per overlapping cell, times the view's cell count): the plain sum scores the pose with
+    the largest overlap highest. Never-observed cells do not enter the overlap score."""
+    import torch
+
+    from slam.neural.model import MemoryConfig, NeuralMemory, rotation_bank
+    model = NeuralMemory(MemoryConfig(channels=4, features=1, view=3, memory=15, width=4, rotations=4, search=1,
+                                      input="image", image_size=(30, 40)))
+    m = torch.ones(1, 1, 3, 3)                                  # a full 3 x 3 view
+    mbank = rotation_bank(m, 4)                                # (1, 4, 1, 3, 3)
+    bank = mbank.clone()                                       # the view: feature 1 on every cell
+    window = torch.ones(1, 1, 5, 5)                           # memory window of the 3 x 3 positions (search 1)
+    seen = torch.zeros(1, 1, 5, 5)
+    seen[..., :, :3] = 1                                       # observed: the window's 3 left columns
+    beta = float(torch.exp(model.log_beta))
+    with torch.no_grad():
+        plain = model._score(window * seen, bank, m)[0, 0]
+        over = model._overlap_score(window, seen, bank, mbank, m)[0, 0]
+    # the view at column offset -1 / 0 / +1 covers 3 / 2 / 1 observed columns (9 / 6 / 3 cells), agreeing on
+    # each; the score's scale is beta / sqrt(n q) = beta / sqrt(3)
+    np.testing.assert_allclose(plain.numpy(), np.tile([9.0, 6.0, 3.0], (3, 1)) * beta / 3 ** 0.5, rtol=1e-5)
+    np.testing.assert_allclose(over.numpy(), np.full((3, 3), 9.0 * beta / 3 ** 0.5), rtol=1e-5)
+    noisy = window + 5 * (1 - seen) * torch.randn(1, 1, 5, 5)  # anything on the never-observed cells
+    with torch.no_grad():
+        np.testing.assert_allclose(model._overlap_score(noisy, seen, bank, mbank, m).numpy(),
+                                   model._overlap_score(window, seen, bank, mbank, m).numpy(), rtol=1e-6)
+        assert not torch.allclose(model._score(noisy, bank, m), model._score(window, bank, m))
+
+
+def test_overlap_score_in_a_sequence_and_its_config():
+    """forward(score="overlap") on real projections (the same view twice): the scored step's logits differ from
+    the sum's, step 0 is not scored; a bad name is an error; the backend validates its ``score`` option."""
+    import torch
+
+    from data_tools.errors import ConfigError
+    from slam.backends.neural import NeuralConfig
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    torch.manual_seed(0)
+    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
+                                      input="image", image_size=(30, 40)))
+    rng = np.random.default_rng(3)
+    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    depth = rng.uniform(0.5, 2.3, (30, 40))
+    c = egocentric_cells(depth, intr, level_rotation(_cam(0, 0, 0.3)), 0.15, 33, 2.4, rotations=12)
+    img = rng.uniform(-1, 1, (1, 1, 4, 30, 40)).astype(np.float32)
+    obs = torch.from_numpy(np.concatenate([img, img], 1))
+    cells = torch.from_numpy(np.stack([c, c]))[None]
+    vm = torch.ones(33, 33)
+    with torch.no_grad():
+        s = model(obs, vm, None, cells=cells)
+        o = model(obs, vm, None, cells=cells, score="overlap")
+    assert not torch.allclose(s["logits"][0, 1], o["logits"][0, 1])
+    assert torch.equal(s["logits"][0, 0], o["logits"][0, 0])          # step 0: the origin, no scoring
+    with pytest.raises(ValueError, match="score"):
+        model(obs, vm, None, cells=cells, score="mean")
+    assert NeuralConfig().validate().score in ("sum", "overlap")
+    with pytest.raises(ConfigError, match="score"):
+        NeuralConfig(score="mean").validate()

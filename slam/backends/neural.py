@@ -9,8 +9,10 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
    (:mod:`slam.neural.data3d`, :mod:`slam.neural.geometry3d`);
 2. the trained model (``model``, default the project's shipped ``slam/neural/weights/planar_3d``)
    registers the steps one after the other: the pose field of each step against the memory so far
-   (searched around the previous estimate, times a Gaussian motion prior on the move from it:
-   ``prior_move_m``, ``prior_turn_deg``; 0 = the thesis' plain field), then the LSTM memory update;
+   (searched around the previous estimate; each pose scored on the memory cells observed so far,
+   ``score`` ``overlap``, not the thesis' sum over the whole view, ``sum``; times a Gaussian motion
+   prior on the move from it: ``prior_move_m``, ``prior_turn_deg``; 0 and ``sum`` = the thesis'
+   plain field), then the LSTM memory update;
 3. the pose of a step is the field's maximum refined to sub-cell / sub-heading precision by the
    centroid of the field over its 3 x 3 neighbours and the two neighbouring headings (the grid
    itself is ``cell_m`` = 15 cm and 30 deg coarse);
@@ -56,17 +58,23 @@ class NeuralConfig:
     """Motion prior: standard deviation of the planar move between two memory steps, metres (0 = no prior,
     the thesis' field). The default is the training rooms' motion at ``stride`` 10 (RMS 0.10 m per step)
     widened by the grid's rounding (one 15 cm cell); scale it with ``stride`` and the robot's speed."""
-    prior_turn_deg: float = 7.5
-    """Motion prior: standard deviation of the turn between two memory steps, degrees (0 = no prior). The
-    default is half the training rooms' RMS turn at ``stride`` 10 (15 deg, half a heading step of the model):
-    chosen for the shipped 49-cell model on six held-out rooms (procedural rooms 48-53, used by no training),
-    mean ATE 0.27 m against 0.30 m at 15 deg (slam/neural/weights/README.md)."""
+    prior_turn_deg: float = 15.0
+    """Motion prior: standard deviation of the turn between two memory steps, degrees (0 = no prior): half a
+    heading step of the shipped model. Chosen with ``score`` ``overlap`` on six held-out rooms (procedural rooms
+    48-53, used by no training) among 10 / 15 / 20 / 30 deg: mean ATE 0.270 m, heading error 17.0 deg against
+    0.290 / 39.6, 0.277 / 33.9 and 0.300 / 72.0 (slam/neural/weights/README.md, "The 3D heading")."""
 
     headings: int = 0
     """Headings the pose field searches, 360 / ``headings`` degrees apart (0 = the model's own: 12 for the shipped
     planar_3d). No weight depends on it - the rotation bank is the pixels ground-projected into each turned grid -,
     so a model trained with 12 can search 72 (5 deg); measured on six held-out rooms (slam/neural/weights/README.md):
     not better than the model's own here."""
+
+    score: str = "overlap"
+    """How a pose is scored against the memory: ``overlap`` (the view's agreement with the memory averaged over the
+    view cells that fall on observed memory cells; not in the thesis) or ``sum`` (the thesis' correlation summed
+    over the whole view). With ``sum`` the shipped model's heading never leaves the first frame's: the pose whose
+    view re-covers the last written one scores highest (slam/neural/weights/README.md, "The 3D heading")."""
 
     def validate(self) -> "NeuralConfig":
         if int(self.stride) < 1:
@@ -78,6 +86,8 @@ class NeuralConfig:
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
         if int(self.headings) < 0 or int(self.headings) != self.headings:
             raise ConfigError(f"neural.headings must be a whole number >= 0, got {self.headings}")
+        if self.score not in ("overlap", "sum"):
+            raise ConfigError(f"neural.score must be 'overlap' or 'sum', got {self.score!r}")
         if (self.prior_move_m == 0) != (self.prior_turn_deg == 0):
             raise ConfigError("neural.prior_move_m and neural.prior_turn_deg: set both > 0 (a motion prior) or both "
                               "to 0 (none)")
@@ -148,7 +158,8 @@ class NeuralBackend(RegistrationBackend):
         reach = int(math.ceil(self.config.max_reach_m / w.cell_m))
         from slam.neural.run import register_sequence
         out = register_sequence(model, np.stack(imgs), np.stack(cells), wedge, w.view + 2 * reach,
-                                motion_prior=self.config.motion_prior(w.cell_m, model.cfg.rotations))
+                                motion_prior=self.config.motion_prior(w.cell_m, model.cfg.rotations),
+                                score=self.config.score)
         fields, centres = out["fields"], out["centres"]
         r = model.cfg.rotations
         est, conf = [], []

@@ -7,7 +7,8 @@
   in memory cells; the heading error: APE of the rotation angle (degrees, first poses aligned; height, pitch and
   roll are the first frame's, so it is the yaw error), beside that of the first pose held for every frame
   (``heading_fixed_baseline_deg``: what an estimate that never turns scores); and the ablation
-  ``neural_no_motion_prior`` (the backend's motion prior off: the thesis' plain pose field).
+  ``neural_no_motion_prior`` (the backend's motion prior off and its score the thesis' sum: the thesis' plain
+  pose field).
 * **Images** on 10-step samples of the test rooms (frames ``stride`` apart): anamnesis - the
   observed views recalled from the memory the model registered itself (predicted poses) - and
   hallucination - the last ``steps - observe`` views, unseen when the memory of the first
@@ -104,7 +105,8 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             backend = "icp" if name == "icp" else "neural"
             over = {"backend_config.model": str(Path(model_dir).resolve())} if backend == "neural" else {}
             if name == "neural_no_motion_prior":
-                over.update({"backend_config.prior_move_m": 0.0, "backend_config.prior_turn_deg": 0.0})
+                over.update({"backend_config.prior_move_m": 0.0, "backend_config.prior_turn_deg": 0.0,
+                             "backend_config.score": "sum"})
             cfg = make_config(backend, overrides=over)
             t0 = time.perf_counter()
             run = run_slam(reader, out_dir / "runs" / f"{name}_{seq.name}", cfg, progress=progress)

@@ -36,7 +36,10 @@ thesis' +-45 deg agent needs resampling); the hallucination AE has one self-atte
 two (CPU budget); memory cells are image pixels (bin = 1 px) in 2D. At inference the ``neural`` registration
 backend may multiply the pose field by a Gaussian motion prior around the previous estimate
 (``forward(..., motion_prior=...)``; the thesis has none): without it one wrong registration corrupts the memory
-and the next steps follow it (measured on the 3D test rooms: ATE 0.27-0.55 m without, 0.16-0.29 m with).
+and the next steps follow it (measured on the 3D test rooms: ATE 0.27-0.55 m without, 0.16-0.29 m with); it
+may also score a pose on the observed memory cells only (``forward(..., score="overlap")``,
+:meth:`NeuralMemory._overlap_score`; the thesis sums over the whole view, which in 3D keeps the heading at the
+first frame's).
 The shipped 3D model's recall decoder is refined after the memory's training, the memory frozen, on 48 rooms
 instead of 12 and with an SSIM term beside the thesis' L1 (:mod:`slam.neural.refine`).
 Optionally (2D, :attr:`MemoryConfig.equivariance`) the encoder is made exactly equivariant to quarter turns
@@ -465,7 +468,7 @@ class NeuralMemory(nn.Module):
 
     def forward(self, obs: torch.Tensor, view_mask: torch.Tensor, teacher: torch.Tensor | None = None,
                 cells: torch.Tensor | None = None, memory: int | None = None,
-                motion_prior: tuple[float, float] | None = None):
+                motion_prior: tuple[float, float] | None = None, score: str = "sum"):
         """Register a sequence.
 
         obs (B, T, C, q, q) in [-1, 1] (3D: images (B, T, C, H, W) with ``cells`` (B, T, H * W), see
@@ -477,6 +480,9 @@ class NeuralMemory(nn.Module):
         estimate (cells, heading steps) to the localisation logits before the softmax - the field (and the
         estimates and the registration) become p(pose | view, memory, previous pose), see
         :meth:`_log_motion_prior`; the returned ``logits`` stay the content scores; None = the thesis' field.
+        ``score``: ``sum`` (the thesis: the correlation summed over the whole view) or ``overlap`` (summed over the
+        view cells that fall on observed memory cells only, over their number, times the view's cell count:
+        :meth:`_overlap_score`).
 
         Localisation searches a window of (2 R + 1)^2 positions (R = :attr:`MemoryConfig.search`) around the
         previous estimate (the agent moves at most 3/4 of its view per step): a grouped convolution of
@@ -497,6 +503,8 @@ class NeuralMemory(nn.Module):
         Wc = Wp + 2 * h2               # memory cells per axis touched by the window
         if Wc > U:
             raise ValueError(f"search window {Wc} cells is larger than the memory {U}")
+        if score not in ("sum", "overlap"):
+            raise ValueError(f"score must be 'sum' or 'overlap', got {score!r}")
         Up = U
         image = cfg.input == "image"
         if image:
@@ -540,7 +548,11 @@ class NeuralMemory(nn.Module):
                 lg = obs.new_zeros(B, r, Wp, Wp)
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
-                lg = self._score(hw, bank, m)
+                if score == "overlap":
+                    sw = seen.view(B, Up, Up, 1)[bi, ri, ci].permute(0, 3, 1, 2)  # (B, 1, Wc, Wc) observed cells
+                    lg = self._overlap_score(hw, sw, bank, mbank, m)
+                else:
+                    lg = self._score(hw, bank, m)
                 post = lg if motion_prior is None else lg + self._log_motion_prior(cont, centre, Wp, motion_prior)
                 field = torch.softmax(post.flatten(1), 1).view_as(lg)
                 if teacher is not None and teacher.is_floating_point():
@@ -582,6 +594,19 @@ class NeuralMemory(nn.Module):
             b = F.normalize(bank, dim=2, eps=1e-6)
             return correlate(w, b) * (20.0 * torch.exp(self.log_beta) / m[0].sum().clamp(min=1))
         return correlate(window, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
+
+    def _overlap_score(self, window: torch.Tensor, seen: torch.Tensor, bank: torch.Tensor, mbank: torch.Tensor,
+                       m: torch.Tensor) -> torch.Tensor:
+        """Localisation logits (B, r, P, P) scored on the observed memory only: :meth:`_score` of the window
+        (B, n, W, W) with its never-observed cells (``seen`` (B, 1, W, W) = 0) zeroed, divided by the number of
+        view cells (the turned view masks ``mbank`` (B, r, 1, q, q)) that land on observed cells and multiplied
+        by the view's cell count (``m`` (B, 1, q, q)), so the trained temperature keeps its scale: the mean
+        agreement per overlapping cell instead of the sum over the view. Not in the thesis. Why: the sum also
+        scores the LSTM state of never-observed cells (its constant response to zero input) and grows with the
+        overlap, so the pose that re-covers the last written view wins - measured on the shipped 3D model, the
+        heading then never leaves the first frame's (slam/neural/weights/README.md, "The 3D heading")."""
+        overlap = correlate(seen, mbank)                                       # (B, r, P, P) view cells on seen
+        return self._score(window * seen, bank, m) * (m[0].sum() / overlap.clamp(min=1.0))
 
     def _log_motion_prior(self, prev: torch.Tensor, centre: torch.Tensor, Wp: int,
                           sigmas: tuple[float, float]) -> torch.Tensor:

@@ -175,11 +175,11 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
     return res
 
 
-def register_sequence(model, images, cells, wedge, memory: int, motion_prior=None) -> dict:
+def register_sequence(model, images, cells, wedge, memory: int, motion_prior=None, score: str = "sum") -> dict:
     """Run a 3D model over one sequence of memory steps: images (T, 4, H, W), cells (T, r, H * W), the view
     wedge (q, q) bool, a memory of side ``memory`` cells, ``motion_prior`` (sigma cells, sigma heading steps) or
-    None (:meth:`slam.neural.model.NeuralMemory.forward`). Returns numpy arrays: fields (T, r, P, P) local
-    pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U), occ (U, U) and seen (U, U) bool
+    None, ``score`` sum | overlap (:meth:`slam.neural.model.NeuralMemory.forward`). Returns numpy arrays: fields
+    (T, r, P, P) local pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U), occ (U, U) and seen (U, U) bool
     (the cells a registered view field covered)."""
     import numpy as np
     import torch
@@ -187,7 +187,7 @@ def register_sequence(model, images, cells, wedge, memory: int, motion_prior=Non
     with torch.no_grad():
         out = model(torch.from_numpy(np.asarray(images, np.float32))[None], vm, None,
                     cells=torch.from_numpy(np.asarray(cells, np.int64))[None], memory=int(memory),
-                    motion_prior=motion_prior)
+                    motion_prior=motion_prior, score=score)
     return {"fields": out["fields"][0].numpy(), "centres": out["centres"][0].numpy(),
             "psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy(), "seen": out["seen"][0, 0].numpy() > 0}
 
