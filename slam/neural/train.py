@@ -200,9 +200,9 @@ simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-tra
 ``cpu`` schedule with a grid that reaches the walls (49 cells of 15 cm, depth to 3.6 m, instead of 33 cells to
 2.4 m: 0-16 % of the test rooms' depth pixels left out instead of 35-54 %), the learning rate falling over the
 last 400 steps and the decoder refined on 48 rooms (48 min wall on 2 cores + 18 min of refinement on one; the 12
-training rooms' 49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior (turn
-7.5 deg: ATE within 2 cells of icp on all four evaluation sequences; slam/neural/weights/README.md). ``gpu``: the
-larger configuration."""
+training rooms' 49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior and
+overlap score (``NeuralConfig``: ATE within 2 cells of icp on all four evaluation sequences, heading error below
+that of never turning; slam/neural/weights/README.md). ``gpu``: the larger configuration."""
 
 
 def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
