@@ -179,8 +179,8 @@ def register_sequence(model, images, cells, wedge, memory: int, motion_prior=Non
     """Run a 3D model over one sequence of memory steps: images (T, 4, H, W), cells (T, r, H * W), the view
     wedge (q, q) bool, a memory of side ``memory`` cells, ``motion_prior`` (sigma cells, sigma heading steps) or
     None, ``score`` sum | overlap (:meth:`slam.neural.model.NeuralMemory.forward`). Returns numpy arrays: fields
-    (T, r, P, P) local pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U), occ (U, U) and seen (U, U) bool
-    (the cells a registered view field covered)."""
+    (T, r, P, P) local pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U), occ (U, U) and
+    seen (U, U) bool (the cells a registered view field covered)."""
     import numpy as np
     import torch
     vm = torch.from_numpy(np.asarray(wedge, np.float32))
