@@ -12,6 +12,17 @@ from data_tools.geometry import look_at
 from slam.neural.geometry3d import (allocentric_to_world, egocentric_cells, level_rotation, planar_relative,
                                     planar_state, project_max, view_wedge)
 
+_INTR = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+"""The small camera (40 x 30 px) the 3D unit tests project with."""
+
+
+def _image_model(**kw):
+    """The small 3D (image input) memory the unit tests share: 3 features, 33-cell view, 45-cell memory, 12 headings,
+    search 2, 30 x 40 images; ``kw`` overrides :class:`MemoryConfig` fields."""
+    from slam.neural.model import MemoryConfig, NeuralMemory
+    return NeuralMemory(MemoryConfig(**{**dict(channels=4, features=3, view=33, memory=45, width=4, rotations=12,
+                                               search=2, input="image", image_size=(30, 40)), **kw}))
+
 
 def _cam(x, y, yaw, z=1.0, pitch_deg=-10.0):
     p = math.radians(pitch_deg)
@@ -29,7 +40,7 @@ def _ego_offset(T_w_c, X, cell):
 def test_plane_fills_expected_cells():
     """A fronto-parallel wall 2 m ahead of a level camera lands in the grid row 2 m / cell ahead,
     across the columns of the camera's horizontal field of view."""
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     T = _cam(0, 0, 0.0, pitch_deg=0.0)
     R = level_rotation(T)
     np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
@@ -94,7 +105,7 @@ def test_project_max_and_its_gradient():
 
 
 def test_view_wedge_is_the_horizontal_field_of_view():
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     m = view_wedge(intr, np.eye(3), 0.1, 51, 2.5)
     c = 25
     assert m[c, c] and m[c - 10, c] and not m[c + 1, c] and not m[c - 1, 0]
@@ -121,14 +132,12 @@ def test_image_bank_turns_the_projection_exactly():
     unturned ground projection."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
     rng = np.random.default_rng(1)
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     depth = rng.uniform(0.5, 2.3, (30, 40))
     cells = egocentric_cells(depth, intr, level_rotation(_cam(0, 0, 0.3)), 0.15, 33, 2.4, rotations=12)
     assert cells.shape == (12, 1200)
-    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
-                                      input="image", image_size=(30, 40)))
+    model = _image_model()
     f = torch.from_numpy(rng.normal(size=(1, 3, 30, 40)).astype(np.float32))
     bank = model._image_bank(f, torch.from_numpy(cells)[None])
     np.testing.assert_allclose(bank[0, 3].numpy(), torch.rot90(bank[0, 0], 1, (1, 2)).numpy())
@@ -355,12 +364,10 @@ def test_motion_prior_is_a_gaussian_on_the_move_from_the_previous_estimate():
 def test_motion_prior_tight_pins_the_estimate_wide_changes_nothing():
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
     torch.manual_seed(0)
-    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
-                                      input="image", image_size=(30, 40)))
+    model = _image_model()
     rng = np.random.default_rng(3)
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     cells = np.stack([egocentric_cells(rng.uniform(0.5, 2.3, (30, 40)), intr, level_rotation(_cam(0, 0, 0.3)), 0.15,
                                        33, 2.4, rotations=12) for _ in range(4)])
     obs = torch.from_numpy(rng.uniform(-1, 1, (1, 4, 4, 30, 40)).astype(np.float32))
@@ -393,13 +400,11 @@ def test_more_headings_search_the_same_turns_and_finer_ones_between():
     of the first view), the odd ones are the 15 deg turns in between."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
     torch.manual_seed(0)
-    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
-                                      input="image", image_size=(30, 40)))
+    model = _image_model()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     rng = np.random.default_rng(5)
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     depths = [rng.uniform(0.5, 2.3, (30, 40)) for _ in range(2)]
     R = level_rotation(_cam(0, 0, 0.3))
     obs = torch.from_numpy(rng.uniform(-1, 1, (1, 2, 4, 30, 40)).astype(np.float32))
@@ -457,12 +462,10 @@ def test_a_real_teacher_on_the_grid_is_the_integer_teacher():
     splat of a grid pose is its one-hot); half a cell away it differs."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
     torch.manual_seed(0)
-    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
-                                      input="image", image_size=(30, 40), subcell=True))
+    model = _image_model(subcell=True)
     rng = np.random.default_rng(2)
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     cells = np.stack([egocentric_cells(rng.uniform(0.5, 2.3, (30, 40)), intr, level_rotation(_cam(0, 0, 0.3)), 0.15,
                                        33, 2.4, rotations=12) for _ in range(3)])
     obs = torch.from_numpy(rng.uniform(-1, 1, (1, 3, 4, 30, 40)).astype(np.float32))
@@ -523,12 +526,10 @@ def test_overlap_score_in_a_sequence_and_its_config():
 
     from data_tools.errors import ConfigError
     from slam.backends.neural import NeuralConfig
-    from slam.neural.model import MemoryConfig, NeuralMemory
     torch.manual_seed(0)
-    model = NeuralMemory(MemoryConfig(channels=4, features=3, view=33, memory=45, width=4, rotations=12, search=2,
-                                      input="image", image_size=(30, 40)))
+    model = _image_model()
     rng = np.random.default_rng(3)
-    intr = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
+    intr = _INTR
     depth = rng.uniform(0.5, 2.3, (30, 40))
     c = egocentric_cells(depth, intr, level_rotation(_cam(0, 0, 0.3)), 0.15, 33, 2.4, rotations=12)
     img = rng.uniform(-1, 1, (1, 1, 4, 30, 40)).astype(np.float32)
