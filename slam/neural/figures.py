@@ -73,8 +73,8 @@ def _ape_cdf(path: Path, ape: np.ndarray, kinds: np.ndarray, names: tuple) -> Pa
     return _save(fig, path)
 
 
-_BACKENDS = (("neural_no_motion_prior", "neural, no motion prior", "tab:gray"), ("neural", "neural", "tab:orange"),
-             ("icp", "icp", "tab:blue"))
+_BACKENDS = (("neural_no_motion_prior", "neural, thesis field (no prior, summed score)", "tab:gray"),
+             ("neural", "neural", "tab:orange"), ("icp", "icp", "tab:blue"))
 
 
 def _bar_panel(ax, names: list, per_backend, mark, mark_label: str, ylabel: str, title: str) -> None:
