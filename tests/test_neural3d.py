@@ -572,3 +572,18 @@ def test_shipped_3d_model_turns_with_the_overlap_score(tmp_path):
         return ape(gt, read_tum(out / "trajectory.txt"), relation="rotation_angle_deg", align="origin").stats["mean"]
     assert abs(heading(NeuralConfig(score="sum", prior_turn_deg=7.5)) - fixed) < 1.0
     assert heading(NeuralConfig()) < 0.5 * fixed
+
+
+def test_evaluation_says_when_the_trainings_rooms_folder_is_gone(tmp_path, monkeypatch):
+    """The 3D evaluation reads the test rooms from the training's worlds_dir; when that folder is gone it falls back
+    to the default cache and says so in one line (the rooms are re-made from their seeds there)."""
+    from slam.neural.evaluate3d import worlds_root
+    from slam.neural.train import NeuralTrainConfig
+    monkeypatch.setenv("REALGAP_CACHE", str(tmp_path / "cache"))
+    default = tmp_path / "cache" / "neural_worlds" / f"f{NeuralTrainConfig().world.frames}"
+    said = []
+    assert worlds_root(NeuralTrainConfig(mode="3d"), said.append) == default and said == []
+    assert worlds_root(NeuralTrainConfig(mode="3d", worlds_dir=str(tmp_path)), said.append) == tmp_path and said == []
+    gone = tmp_path / "gone"
+    assert worlds_root(NeuralTrainConfig(mode="3d", worlds_dir=str(gone)), said.append) == default
+    assert len(said) == 1 and str(gone) in said[0] and str(default) in said[0]

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["evaluate_3d"]
+__all__ = ["evaluate_3d", "worlds_root"]
 
 
 def _metrics(pred: np.ndarray, true: np.ndarray, max_range_m: float) -> tuple[float, float, float, float]:
@@ -80,6 +80,21 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
     return out
 
 
+def worlds_root(tcfg, log=None) -> Path:
+    """The folder of the test rooms: the training's ``worlds_dir`` if it still exists, else the default one
+    (:func:`slam.neural.data3d.default_worlds_dir`; the rooms are re-simulated there from their seeds if missing) -
+    said through ``log`` when the training's folder is gone, so that a re-simulation is not a surprise."""
+    from slam.neural.data3d import default_worlds_dir
+    default = default_worlds_dir(tcfg.world)
+    if not tcfg.worlds_dir:
+        return default
+    if Path(tcfg.worlds_dir).is_dir():
+        return Path(tcfg.worlds_dir)
+    if log is not None:
+        log(f"the training's rooms folder {tcfg.worlds_dir} is gone; test rooms from {default} (simulated if missing)")
+    return default
+
+
 def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_sequences=(), samples: int = 24,
                 seed: int = 12345, progress: bool = True, log=None, simulate=None, examples: dict | None = None) -> dict:
     """The numbers of the module docstring; ``examples``: a dict filled with two samples' images for the figures
@@ -89,11 +104,11 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     from data_tools.sequence import SequenceReader
     from data_tools.trajectory import Trajectory
     from slam.metrics import ape, ate
-    from slam.neural.data3d import WorldBank, build_worlds, cache_name, default_worlds_dir, load_sequence_arrays
+    from slam.neural.data3d import WorldBank, build_worlds, cache_name, load_sequence_arrays
     from slam.pipeline import make_config, run_slam
     out_dir = Path(out_dir)
     w = tcfg.world
-    root = Path(tcfg.worlds_dir) if tcfg.worlds_dir and Path(tcfg.worlds_dir).is_dir() else default_worlds_dir(w)
+    root = worlds_root(tcfg, log)
     tests = build_worlds(root, w, "test", simulate=simulate, log=log)
     res: dict = {"cell_m": w.cell_m, "sequences": {}}
     # ---------------------------------------------------------------- localisation on whole sequences
