@@ -79,7 +79,8 @@ class NeuralTrainConfig:
     learning rate (:func:`loc_factor`); 1 = constant. Lets localisation be learnt at ``loc_weight`` first and recall
     take the encoder over at the end (0.005 from the start never localised). Measured on the 2D cpu-long recipe, 0.25
     (0.01 -> 0.0025 over the last 700 steps): recall the same (anamnesis L1 0.088 vs 0.087), localisation worse
-    (APE median 1.41 vs 1.0 px) - not in any preset (slam/neural/weights/README.md)."""
+    (APE median 1.41 vs 1.0 px); 0 (-> no L_loc at the last step): anamnesis 0.086, APE mean 6.0 vs 5.5 px - within
+    one seed's noise, not in any preset (slam/neural/weights/README.md)."""
     occ_weight: float = 0.0
     """Weight of L_occ (BCE of the occupancy mask b against the observed cells ``seen``, memory phases) and, if > 0,
     the model's occupancy mask is ``affine`` (:attr:`slam.neural.model.MemoryConfig.occupancy`). 0 = as before
