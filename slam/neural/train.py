@@ -252,7 +252,7 @@ class TrainLog:
 
 
 def _ramp(cfg: NeuralTrainConfig, step: int, final: float) -> float:
-    """1 until ``lr_decay_from``, then linear to ``final`` at the last step (0 = never falls)."""
+    """1 until ``lr_decay_from``, then linear to ``final`` at the last step (``lr_decay_from`` 0: always 1)."""
     a = int(cfg.lr_decay_from)
     if a <= 0 or step < a:
         return 1.0
