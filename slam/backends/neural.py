@@ -87,8 +87,9 @@ class NeuralConfig:
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
         if int(self.headings) < 0 or int(self.headings) != self.headings:
             raise ConfigError(f"neural.headings must be a whole number >= 0, got {self.headings}")
-        if self.score not in ("overlap", "sum"):
-            raise ConfigError(f"neural.score must be 'overlap' or 'sum', got {self.score!r}")
+        from slam.neural import POSE_SCORES
+        if self.score not in POSE_SCORES:
+            raise ConfigError(f"neural.score must be one of {POSE_SCORES}, got {self.score!r}")
         if (self.prior_move_m == 0) != (self.prior_turn_deg == 0):
             raise ConfigError("neural.prior_move_m and neural.prior_turn_deg: set both > 0 (a motion prior) or both "
                               "to 0 (none)")

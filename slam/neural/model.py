@@ -73,6 +73,7 @@ __all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder",
 
 from dataclasses import dataclass
 
+from slam.neural import POSE_SCORES
 from slam.neural.fields import peak_poses, refine_pose, splat_field
 
 
@@ -503,8 +504,8 @@ class NeuralMemory(nn.Module):
         Wc = Wp + 2 * h2               # memory cells per axis touched by the window
         if Wc > U:
             raise ValueError(f"search window {Wc} cells is larger than the memory {U}")
-        if score not in ("sum", "overlap"):
-            raise ValueError(f"score must be 'sum' or 'overlap', got {score!r}")
+        if score not in POSE_SCORES:
+            raise ValueError(f"score must be one of {POSE_SCORES}, got {score!r}")
         Up = U
         image = cfg.input == "image"
         if image:
