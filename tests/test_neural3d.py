@@ -495,9 +495,8 @@ def test_overlap_score_by_hand_and_blind_to_unobserved_cells():
     the largest overlap highest. Never-observed cells do not enter the overlap score."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory, rotation_bank
-    model = NeuralMemory(MemoryConfig(channels=4, features=1, view=3, memory=15, width=4, rotations=4, search=1,
-                                      input="image", image_size=(30, 40)))
+    from slam.neural.model import rotation_bank
+    model = _image_model(features=1, view=3, memory=15, rotations=4, search=1)
     m = torch.ones(1, 1, 3, 3)                                  # a full 3 x 3 view
     mbank = rotation_bank(m, 4)                                # (1, 4, 1, 3, 3)
     bank = mbank.clone()                                       # the view: feature 1 on every cell
