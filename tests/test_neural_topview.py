@@ -165,7 +165,8 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     assert row["icp"]["ape_rotation_deg"]["mean"] < 2 < row["heading_fixed_baseline_deg"]["mean"]
     assert res["localisation"]["heading_fixed_baseline_deg_mean"] == row["heading_fixed_baseline_deg"]["mean"]
     assert res["localisation"]["neural"]["ape_rotation_deg_mean"] == row["neural"]["ape_rotation_deg"]["mean"]
-    for key in ("anamnesis", "hallucination", "baseline_tsdf_inpainting", "ablation_no_localisation_anamnesis"):
+    for key in ("anamnesis", "anamnesis_backend_registration", "hallucination", "baseline_tsdf_inpainting",
+                "ablation_no_localisation_anamnesis"):
         assert 0.0 <= res[key]["l1"] <= 1.0 and -1.0 <= res[key]["ssim_thesis"] <= 1.0, key
     # the ray decoder's culling is its view frustum: the "no culling" ablation does not apply to it
     assert res["decoder"] == "rays" and res["ablation_no_culling_hallucination"] is None

@@ -10,7 +10,9 @@
   ``neural_no_motion_prior`` (the backend's motion prior off and its score the thesis' sum: the thesis' plain
   pose field).
 * **Images** on 10-step samples of the test rooms (frames ``stride`` apart): anamnesis - the
-  observed views recalled from the memory the model registered itself (predicted poses) - and
+  observed views recalled from the memory the model registered itself (predicted poses, the thesis' plain pose
+  field; ``anamnesis_backend_registration``: registered as ``slam run --backend neural`` does, with the
+  backend's default score and motion prior, i.e. what ``slam render`` of a neural run recalls) - and
   hallucination - the last ``steps - observe`` views, unseen when the memory of the first
   ``observe`` was built, decoded after the hallucination module filled it; L1 of RGB in [0, 1] and
   of depth (metres), SSIM as in the thesis (5 x 5 windows, c1 = 0.001, c2 = 0.003) and by
@@ -153,8 +155,10 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     rng = np.random.default_rng(seed)
     vm = torch.from_numpy(bank.wedge.astype(np.float32))
     k, T = tcfg.observe, tcfg.steps
-    rows = {key: [] for key in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "tsdf_inpainting",
-                                "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
+    bcfg = make_config("neural").backend_config     # the defaults `slam run --backend neural` registers with
+    prior = bcfg.motion_prior(w.cell_m, model.cfg.rotations)
+    rows = {key: [] for key in ("anam", "anam_backend", "anam_true_poses", "hallu", "hallu_no_module",
+                                "tsdf_inpainting", "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
     rays = model.cfg.decoder == "rays"      # its culling is the view frustum itself: "no culling" does not apply
     from slam.neural.topview import load_topview, topview_targets
@@ -173,10 +177,12 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         a = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))      # recall at the exact poses
         with torch.no_grad():
             out = model(obs, vm, None, cells=cells)
+            own = model(obs, vm, None, cells=cells, motion_prior=prior, score=bcfg.score)
             tru = model(obs, vm, allo, cells=cells)
             part = model(obs[:, :k], vm, allo[:, :k], cells=cells[:, :k])
             filled = model.hallucinate(part["psi"], part["occ"])
             rec = model.recall(out["psi"].expand(T, -1, -1, -1), a, vm).numpy()
+            rec_b = model.recall(own["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             rec_t = model.recall(tru["psi"].expand(T, -1, -1, -1), a, vm).numpy()
             hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
@@ -206,6 +212,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
                 ("TSDF depth", [None] * k + [depth(x) for x in base])]})
         for t in range(T):
             rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
+            rows["anam_backend"].append(_metrics(rec_b[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
             rows["anam_no_localisation"].append(_metrics(rec_nl[t], true[t], w.max_range_m))
             if not rays:
@@ -222,6 +229,7 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         return {"l1": float(np.nanmean(v[:, 0])), "ssim_thesis": float(np.nanmean(v[:, 1])),
                 "ssim_skimage": float(np.nanmean(v[:, 2])), "depth_l1_m": float(np.nanmean(v[:, 3]))}
     res.update({"samples": samples, "steps": T, "observe": k, "decoder": model.cfg.decoder, "anamnesis": images("anam"),
+                "anamnesis_backend_registration": images("anam_backend"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),
                 "ablation_no_hallucination_module": images("hallu_no_module"),
                 "baseline_tsdf_inpainting": images("tsdf_inpainting"),

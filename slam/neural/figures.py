@@ -23,7 +23,8 @@ from slam.plots import _figure, _save
 
 __all__ = ["write_figures"]
 
-_IMAGE_ROWS = (("anamnesis", "recall (own poses)"), ("anamnesis_true_poses", "recall (true poses)"),
+_IMAGE_ROWS = (("anamnesis", "recall (own poses)"), ("anamnesis_backend_registration", "recall (backend's poses)"),
+               ("anamnesis_true_poses", "recall (true poses)"),
                ("ablation_no_localisation_anamnesis", "recall, no localisation"),
                ("ablation_no_culling_anamnesis", "recall, no culling"),
                ("baseline_mosaic_anamnesis", "mosaic (true poses)"),
