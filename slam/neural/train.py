@@ -98,7 +98,9 @@ class NeuralTrainConfig:
     seed: int = 0
     device: str = "cpu"
     features: int = 8
-    """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step at 0.77 s)."""
+    """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step at 0.77 s). 32 in the 2D cpu-long
+    recipe trained slower than 16 (training recall 0.134 vs 0.126 over steps 1250-1600 on the same batches; stopped
+    there, slam/neural/weights/README.md)."""
     width: int = 16
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
