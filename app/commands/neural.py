@@ -68,6 +68,25 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a model already in OUT")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_refine, on_interrupt=RESUMES)
+    p = sub.add_parser("refine-hallucination", help="train a model's occupancy mask and retrain its hallucination "
+                                                    "module (memory frozen)",
+                       description="Copy a model into OUT with its occupancy mask trained to the observed cells "
+                                   "(L_occ) and its hallucination module retrained (L_hallu + L_corrupt + GAN) on "
+                                   "its training data. Encoder, localisation, memory LSTM and recall decoder are "
+                                   "unchanged, so localisation and recall are identical; a 3d model's top-view "
+                                   "decoder, which reads the occupancy, is retrained. Resumable: re-run with the "
+                                   "same --out.")
+    p.add_argument("model", metavar="MODEL")
+    add_shared(p, "--out", "the retrained model's folder", required=True, metavar="OUT")
+    p.add_argument("--occ-steps", type=int, default=400, help="steps of the occupancy stage (default 400)")
+    p.add_argument("--steps", type=int, default=600, help="steps of the hallucination GAN (default 600)")
+    p.add_argument("--topview-steps", type=int, default=300,
+                   help="3d: steps of the top-view decoder's retraining (default 300; 0 = none)")
+    p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training rooms (default: the model's)")
+    add_shared(p, "--seed", "(default 0)", default=0)
+    add_shared(p, "--overwrite", "a model already in OUT")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_refine_hallucination, on_interrupt=RESUMES)
     p = sub.add_parser("eval", help="localisation, recall and hallucination metrics + baselines (JSON)")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "folder for neural_eval.json", metavar="DIR")
@@ -127,6 +146,23 @@ def _refine(args) -> int:
     last = info["log"][-1] if info["log"] else {}
     print(f"{args.out}: recall decoder refined ({rcfg.steps} steps, {info['seconds']:.0f} s this run); last L1 "
           f"{last.get('l1', float('nan')):.3f}, SSIM loss {last.get('ssim_loss', float('nan')):.3f}")
+    return 0
+
+
+def _refine_hallucination(args) -> int:
+    from slam.neural.refine_hallucination import HallucinationConfig
+    from slam.neural.run import refine_hallucination_folder
+    from app.pipelines import simulate_planar_room
+    hcfg = HallucinationConfig(occ_steps=args.occ_steps, steps=args.steps, seed=args.seed).validate()
+    info = refine_hallucination_folder(args.model, args.out, hcfg, topview_steps=args.topview_steps,
+                                       worlds=args.worlds, overwrite=args.overwrite, progress=not args.no_progress,
+                                       log=lambda m: print(f"realgap: {m}", file=sys.stderr),
+                                       simulate=simulate_planar_room)
+    occ = info["occ_log"][-1]["occ"] if info["occ_log"] else float("nan")
+    last = info["log"][-1] if info["log"] else {}
+    print(f"{args.out}: occupancy and hallucination retrained ({hcfg.occ_steps} + {hcfg.steps} steps, "
+          f"{info['seconds']:.0f} s this run); last L_occ {occ:.4f}, L_hallu {last.get('hallu', float('nan')):.3f}, "
+          f"L_corrupt {last.get('corrupt', float('nan')):.4f}")
     return 0
 
 

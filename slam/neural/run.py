@@ -7,9 +7,11 @@ from typing import Callable
 
 from data_tools.errors import ConfigError
 
-__all__ = ["train_to_folder", "train_topview_into", "add_topview", "refine_into", "refine_folder", "evaluate_folder"]
+__all__ = ["train_to_folder", "train_topview_into", "add_topview", "refine_into", "refine_folder",
+           "refine_hallucination_folder", "evaluate_folder"]
 
 REFINE_CHECKPOINT = "refine_checkpoint.pt"
+HALLU_CHECKPOINT = "hallucination_checkpoint.pt"
 
 
 def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progress: bool = True,
@@ -136,6 +138,47 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     (folder / REFINE_CHECKPOINT).unlink(missing_ok=True)
     clear_incomplete(folder)
     return rinfo
+
+
+def refine_hallucination_folder(model_dir, out, hcfg, topview_steps: int = 300, worlds: str | None = None,
+                                overwrite: bool = False, progress: bool = True, log=None, simulate=None) -> dict:
+    """``neural refine-hallucination``: a copy of the model folder ``model_dir`` in ``out`` with a trained
+    occupancy mask and a retrained hallucination module (:mod:`slam.neural.refine_hallucination`; every other
+    weight copied unchanged). The top-view decoder of a 3D model reads the occupancy: it is retrained for
+    ``topview_steps`` steps on the same rooms (0 = none is written). Resumable: a re-run with the same ``out``
+    continues from its checkpoint. Returns the stage's info."""
+    import dataclasses
+
+    from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
+    from slam.neural.refine import Walks2D
+    from slam.neural.refine_hallucination import refine_hallucination
+    from slam.neural.topview import TOPVIEW_FILE
+    from slam.neural.train import load_model, save_model, worlds_3d
+    hcfg.validate()
+    if topview_steps < 0:
+        raise ConfigError(f"--topview-steps must be >= 0, got {topview_steps}")
+    model, cfg, info = load_model(model_dir)
+    if Path(out).resolve() == Path(model_dir).resolve():
+        raise ConfigError(f"--out {out} is the model folder itself: the retrained model goes into a new folder")
+    folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
+    if overwrite:
+        for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
+            (folder / name).unlink(missing_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    mark_incomplete(folder, "realgap neural refine-hallucination", 0, hcfg.occ_steps + hcfg.steps, unit="steps")
+    run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
+    bank = worlds_3d(run_cfg, simulate, progress, log) if cfg.mode == "3d" else Walks2D(cfg.agent, cfg.image)
+    hinfo = refine_hallucination(model, bank, cfg, hcfg, folder / HALLU_CHECKPOINT, progress=progress, log=log)
+    hinfo["command"] = (f"realgap neural refine-hallucination MODEL --out OUT --occ-steps {hcfg.occ_steps} "
+                        f"--steps {hcfg.steps} --seed {hcfg.seed}")
+    if cfg.mode == "3d" and topview_steps > 0:
+        hinfo["topview"] = train_topview_into(folder, model, run_cfg, topview_steps, progress=progress, log=log,
+                                              simulate=simulate, command=hinfo["command"])
+    new_info = {**info, "hallucination_retraining": hinfo}
+    save_model(folder, model, cfg, new_info)
+    (folder / HALLU_CHECKPOINT).unlink(missing_ok=True)
+    clear_incomplete(folder)
+    return hinfo
 
 
 def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | None = None, overwrite: bool = False,

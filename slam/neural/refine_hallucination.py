@@ -1,0 +1,165 @@
+"""Retraining the occupancy mask and the hallucination module of a trained memory, the memory frozen.
+
+Why: a model trained with ``occ_weight`` 0 (every shipped model until 2026-11-27) has an occupancy LSTM that no
+loss reached; its mask b = sigmoid(h) lies in (0.27, 0.73) and, measured on ``planar_3d``, in 0.36-0.42 on every
+cell, observed or not. The hallucination module mixes ``b * psi + (1 - b) * filled``, so with that mask it cannot
+pass observed cells through: measured on 8 samples of the test rooms, the shipped 3D module changed the observed
+cells by 0.061 (mean |filled - psi|, about half their magnitude 0.127) and the never-observed ones by 0.0035 - the
+opposite of its job - and its hallucination scored the same as no module at all (0.141 / 0.703 / 0.597 both, 96
+samples). About half of the cells a later view culls were never observed by the first five (52 %), so a module
+that fills them has room to help.
+
+Two stages, on the model's own training data (3D: its training rooms; 2D: training walks), every other weight
+(encoder, localisation, memory LSTM, recall decoder) frozen and byte-identical - localisation and anamnesis do not
+change:
+
+1. **occupancy** (``occ_steps``): the model switched to the ``affine`` mask b = (h + 1) / 2 and its occupancy LSTM
+   trained alone to the observed cells ``seen`` (L_occ, BCE - the deviation documented in
+   :mod:`slam.neural.model`), Adam at :data:`slam.neural.train.OCC_LR`, memories registered at the true poses.
+2. **hallucination** (``steps``): the module and a new patch discriminator, both re-initialised N(0, 0.02), trained
+   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train._hallucination_step`, the same step
+   as the memory training's last phase), Adam (beta1 0.5) at ``lr`` falling linearly to a tenth over the stage -
+   as the hallucination phase of the 3D ``cpu-long`` recipe, which lies wholly inside its learning-rate decay.
+
+The top-view decoder (:mod:`slam.neural.topview`) reads the occupancy, so a 3D model's is retrained afterwards by
+:func:`slam.neural.run.refine_hallucination_folder`. Checkpointed every ``checkpoint_every`` steps of either stage
+(occupancy LSTM, module, discriminator, their optimisers, the batch generator); a re-run continues.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Callable
+
+import numpy as np
+
+from data_tools.errors import ConfigError
+
+__all__ = ["HallucinationConfig", "refine_hallucination"]
+
+
+@dataclass
+class HallucinationConfig:
+    """How the occupancy mask and the hallucination module are retrained (saved in the model's neural.json)."""
+
+    occ_steps: int = 400
+    """Steps of stage 1 (L_occ; measured on planar_3d, batch 8: L_occ 0.385 after 25 steps, 0.009 after 250)."""
+    steps: int = 600
+    """Steps of stage 2 (the hallucination GAN; the 3D ``cpu-long`` memory training gives it 400)."""
+    lr: float = 2e-4
+    """Stage 2's initial learning rate (thesis: 2e-4), falling linearly to a tenth."""
+    seed: int = 0
+    """Seeds the batches and the re-initialised weights."""
+    checkpoint_every: int = 100
+
+    def validate(self) -> "HallucinationConfig":
+        for k in ("occ_steps", "steps", "checkpoint_every"):
+            if int(getattr(self, k)) < (0 if k == "occ_steps" else 1):
+                raise ConfigError(f"{k} must be >= {0 if k == 'occ_steps' else 1}, got {getattr(self, k)}")
+        if not (self.lr > 0 and np.isfinite(self.lr)):
+            raise ConfigError(f"lr must be > 0, got {self.lr}")
+        return self
+
+
+def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint: str | Path | None = None,
+                         progress: bool = True, log: Callable[[str], None] | None = None) -> dict:
+    """Retrain ``model``'s occupancy LSTM (switching it to the ``affine`` mask) and hallucination module in place on
+    ``bank`` (3D: :class:`slam.neural.data3d.WorldBank`; 2D: :class:`slam.neural.refine.Walks2D`); ``cfg``: the
+    model's :class:`slam.neural.train.NeuralTrainConfig` (batch, steps, observe). Returns the info saved with the
+    model (config, losses, seconds)."""
+    import torch
+    import torch.nn.functional as F
+
+    from slam.neural.model import PatchDiscriminator, init_weights
+    from slam.neural.train import OCC_LR, _hallucination_step, lr_factor
+    hcfg.validate()
+    torch.manual_seed(hcfg.seed)
+    dev = next(model.parameters()).device
+    model.cfg.occupancy = "affine"
+    init_weights(model.hallucinator)
+    disc = PatchDiscriminator(model.cfg).to(dev)
+    init_weights(disc)
+    for p in model.parameters():
+        p.requires_grad_(False)
+    for p in (*model.occ_lstm.parameters(), *model.hallucinator.parameters()):
+        p.requires_grad_(True)
+    opt_occ = torch.optim.Adam(model.occ_lstm.parameters(), lr=OCC_LR, betas=(0.5, 0.999))
+    opt_h = torch.optim.Adam(model.hallucinator.parameters(), lr=hcfg.lr, betas=(0.5, 0.999))
+    opt_d = torch.optim.Adam(disc.parameters(), lr=hcfg.lr, betas=(0.5, 0.999))
+    rng = np.random.default_rng(hcfg.seed + 2)
+    vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
+    img_mask = 1.0 if model.cfg.input == "image" else vm        # 3D recalls whole images, 2D the view field
+    parts = {"occ_lstm": model.occ_lstm, "hallucinator": model.hallucinator, "disc": disc, "opt_occ": opt_occ,
+             "opt_h": opt_h, "opt_d": opt_d}
+    start, hist = 0, []
+    ck = Path(checkpoint) if checkpoint else None
+    if ck is not None and ck.is_file():
+        from slam.neural.checkpoint import load_training_state
+        start, hist = load_training_state(ck, parts, rng, "hallucination checkpoint", map_location=dev)
+        if log is not None:
+            log(f"resuming the hallucination training at step {start} of {hcfg.occ_steps + hcfg.steps} from {ck}")
+
+    def save(step: int) -> None:
+        if ck is not None:
+            from slam.neural.checkpoint import save_training_state
+            save_training_state(ck, parts, rng, step, hist)
+
+    def batch():
+        imgs, cells, allo, poses = bank.sample(rng, cfg.batch, cfg.steps)
+        exact = np.stack([bank.exact(p) for p in poses]).astype(np.float32)
+        return (torch.from_numpy(np.asarray(imgs, np.float32)).to(dev),
+                None if cells is None else torch.from_numpy(cells).to(dev),
+                torch.from_numpy(np.asarray(allo)).to(dev), torch.from_numpy(exact).to(dev))
+
+    total = hcfg.occ_steps + hcfg.steps
+    sched = SimpleNamespace(lr_decay_from=1, iterations=hcfg.steps, lr_final=0.1)      # linear from stage 2's start
+    bar = None
+    if progress:
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=total, initial=start, desc="training occupancy + hallucination", unit="step")
+    acc: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for step in range(start, total):
+        obs, cells, allo, exact = batch()
+        losses = {}
+        if step < hcfg.occ_steps:
+            model.eval()
+            out = model(obs, vm, allo, cells=cells)
+            l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
+            opt_occ.zero_grad(set_to_none=True)
+            l_occ.backward()
+            opt_occ.step()
+            losses["occ"] = float(l_occ.detach())
+        else:
+            lr = hcfg.lr * lr_factor(sched, step - hcfg.occ_steps)
+            for o in (opt_h, opt_d):
+                for g in o.param_groups:
+                    g["lr"] = lr
+            model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
+            losses = _hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
+            model.eval()
+        for k, v in losses.items():
+            acc[k] = acc.get(k, 0.0) + v
+        acc["n"] = acc.get("n", 0) + 1
+        if (step + 1) % 25 == 0 or step + 1 in (hcfg.occ_steps, total):
+            rec = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
+            hist.append(rec)
+            acc = {}
+            if bar is not None:
+                bar.set_postfix_str(" ".join(f"{k} {v:.4f}" for k, v in rec.items() if k != "step"))
+        if (step + 1) % hcfg.checkpoint_every == 0 and step + 1 < total:
+            save(step + 1)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    save(total)          # a re-run after an interruption in a later phase (the top-view decoder) skips this one
+    model.eval()
+    for p in model.parameters():
+        p.requires_grad_(True)
+    occ_log = [h for h in hist if "occ" in h]
+    hal_log = [h for h in hist if "hallu" in h]
+    return {"config": asdict(hcfg), "occ_log": occ_log[-4:], "log": hal_log[-8:],
+            "seconds": round(time.perf_counter() - t0, 1), "resumed_from_step": start}
