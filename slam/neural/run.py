@@ -103,6 +103,25 @@ def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simul
     return info
 
 
+def _model_copy_folder(model_dir, out, overwrite: bool, command: str, total: int):
+    """(model, cfg, info, folder) for the commands that write a retrained copy of the model ``model_dir`` into ``out``:
+    the model loaded, ``out`` checked (not the model itself; a finished model there only with ``overwrite``) and
+    marked incomplete until the copy is saved."""
+    from data_tools.outputs import check_output_dir, mark_incomplete
+    from slam.neural.topview import TOPVIEW_FILE
+    from slam.neural.train import load_model
+    model, cfg, info = load_model(model_dir)
+    if Path(out).resolve() == Path(model_dir).resolve():
+        raise ConfigError(f"--out {out} is the model folder itself: the new model goes into a new folder")
+    folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
+    if overwrite:
+        for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
+            (folder / name).unlink(missing_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    mark_incomplete(folder, command, 0, total, unit="steps")
+    return model, cfg, info, folder
+
+
 def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bool = False, progress: bool = True,
                   log=None, simulate=None) -> dict:
     """``neural refine-decoder``: a copy of the model folder ``model_dir`` in ``out`` whose recall decoder is
@@ -111,19 +130,12 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     import dataclasses
     import shutil
 
-    from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
+    from data_tools.outputs import clear_incomplete
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import load_model, save_model
+    from slam.neural.train import save_model
     rcfg.validate()
-    model, cfg, info = load_model(model_dir)
-    if Path(out).resolve() == Path(model_dir).resolve():
-        raise ConfigError(f"--out {out} is the model folder itself: the refined model goes into a new folder")
-    folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
-    if overwrite:
-        for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
-            (folder / name).unlink(missing_ok=True)
-    folder.mkdir(parents=True, exist_ok=True)
-    mark_incomplete(folder, "realgap neural refine-decoder", 0, rcfg.steps, unit="steps")
+    model, cfg, info, folder = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-decoder",
+                                                  rcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
     rooms = f" --rooms {rcfg.rooms}" if cfg.mode == "3d" else ""
     rinfo = refine_into(folder, model, run_cfg, rcfg, progress=progress, log=log, simulate=simulate,
@@ -149,28 +161,20 @@ def refine_hallucination_folder(model_dir, out, hcfg, topview_steps: int = 300, 
     continues from its checkpoint. Returns the stage's info."""
     import dataclasses
 
-    from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
+    from data_tools.outputs import clear_incomplete
     from slam.neural.refine import Walks2D
     from slam.neural.refine_hallucination import refine_hallucination
-    from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import load_model, save_model, worlds_3d
+    from slam.neural.train import save_model, worlds_3d
     hcfg.validate()
     if topview_steps < 0:
         raise ConfigError(f"--topview-steps must be >= 0, got {topview_steps}")
-    model, cfg, info = load_model(model_dir)
-    if Path(out).resolve() == Path(model_dir).resolve():
-        raise ConfigError(f"--out {out} is the model folder itself: the retrained model goes into a new folder")
-    folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
-    if overwrite:
-        for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
-            (folder / name).unlink(missing_ok=True)
-    folder.mkdir(parents=True, exist_ok=True)
-    mark_incomplete(folder, "realgap neural refine-hallucination", 0, hcfg.occ_steps + hcfg.steps, unit="steps")
+    model, cfg, info, folder = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-hallucination",
+                                                  hcfg.occ_steps + hcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
     bank = worlds_3d(run_cfg, simulate, progress, log) if cfg.mode == "3d" else Walks2D(cfg.agent, cfg.image)
     hinfo = refine_hallucination(model, bank, cfg, hcfg, folder / HALLU_CHECKPOINT, progress=progress, log=log)
     hinfo["command"] = (f"realgap neural refine-hallucination MODEL --out OUT --occ-steps {hcfg.occ_steps} "
-                        f"--steps {hcfg.steps} --seed {hcfg.seed}")
+                        f"--steps {hcfg.steps} --topview-steps {topview_steps} --seed {hcfg.seed}")
     if cfg.mode == "3d" and topview_steps > 0:
         hinfo["topview"] = train_topview_into(folder, model, run_cfg, topview_steps, progress=progress, log=log,
                                               simulate=simulate, command=hinfo["command"])
