@@ -73,7 +73,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     import torch.nn.functional as F
 
     from slam.neural.model import PatchDiscriminator, init_weights
-    from slam.neural.train import OCC_LR, _hallucination_step, lr_factor
+    from slam.neural.train import OCC_LR, _hallucination_step, bank_batch, lr_factor
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -106,13 +106,6 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             from slam.neural.checkpoint import save_training_state
             save_training_state(ck, parts, rng, step, hist)
 
-    def batch():
-        imgs, cells, allo, poses = bank.sample(rng, cfg.batch, cfg.steps)
-        exact = np.stack([bank.exact(p) for p in poses]).astype(np.float32)
-        return (torch.from_numpy(np.asarray(imgs, np.float32)).to(dev),
-                None if cells is None else torch.from_numpy(cells).to(dev),
-                torch.from_numpy(np.asarray(allo)).to(dev), torch.from_numpy(exact).to(dev))
-
     total = hcfg.occ_steps + hcfg.steps
     sched = SimpleNamespace(lr_decay_from=1, iterations=hcfg.steps, lr_final=0.1)      # linear from stage 2's start
     bar = None
@@ -122,7 +115,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     acc: dict[str, float] = {}
     t0 = time.perf_counter()
     for step in range(start, total):
-        obs, cells, allo, exact = batch()
+        obs, cells, allo, exact = bank_batch(bank, rng, cfg.batch, cfg.steps, dev)
         losses = {}
         if step < hcfg.occ_steps:
             model.eval()

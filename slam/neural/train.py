@@ -338,10 +338,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
 
         def batch():
-            imgs, cells, allo, poses = bank.sample(rng, cfg.batch, cfg.steps)
-            exact = np.stack([bank.exact(p) for p in poses]).astype(np.float32)
-            return (torch.from_numpy(imgs).to(dev), torch.from_numpy(cells).to(dev), torch.from_numpy(allo).to(dev),
-                    torch.from_numpy(exact).to(dev))
+            return bank_batch(bank, rng, cfg.batch, cfg.steps, dev)
     else:
         agent = AGENTS[cfg.agent]
         vm = torch.from_numpy(view_mask(agent).astype(np.float32)).to(dev)
@@ -444,6 +441,18 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     save(cfg.iterations)
     model.eval()
     return model, disc, tlog
+
+
+def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
+    """One training batch of ``bank`` (:class:`slam.neural.data3d.WorldBank` or :class:`slam.neural.refine.Walks2D`)
+    as tensors on ``dev``: (images (B, T, C, H, W) float32, cells (B, T, r, H*W) int64 or None, allocentric poses
+    (B, T, 3) int64, exact poses (B, T, 3) float32 - row, col in cells, heading in units of 2 pi / r)."""
+    import torch
+    imgs, cells, allo, poses = bank.sample(rng, batch, steps)
+    exact = np.stack([bank.exact(p) for p in poses]).astype(np.float32)
+    return (torch.from_numpy(np.asarray(imgs, np.float32)).to(dev),
+            None if cells is None else torch.from_numpy(cells).to(dev),
+            torch.from_numpy(np.asarray(allo)).to(dev), torch.from_numpy(exact).to(dev))
 
 
 def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
