@@ -55,9 +55,9 @@ class HallucinationConfig:
     checkpoint_every: int = 100
 
     def validate(self) -> "HallucinationConfig":
-        for k in ("occ_steps", "steps", "checkpoint_every"):
-            if int(getattr(self, k)) < (0 if k == "occ_steps" else 1):
-                raise ConfigError(f"{k} must be >= {0 if k == 'occ_steps' else 1}, got {getattr(self, k)}")
+        for k, least in (("occ_steps", 0), ("steps", 1), ("checkpoint_every", 1)):
+            if int(getattr(self, k)) < least:
+                raise ConfigError(f"{k} must be >= {least}, got {getattr(self, k)}")
         if not (self.lr > 0 and np.isfinite(self.lr)):
             raise ConfigError(f"lr must be > 0, got {self.lr}")
         return self
