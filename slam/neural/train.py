@@ -214,7 +214,7 @@ last 400 steps and the decoder refined on 48 rooms (48 min wall on 2 cores + 18 
 training rooms' 49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior and
 overlap score (``NeuralConfig``: ATE within 2 cells of icp on all four evaluation sequences, heading error below
 that of never turning; slam/neural/weights/README.md); the shipped weights then had their occupancy mask trained
-and hallucination module retrained (``neural refine-hallucination``, ~40 min on one core: the preset keeps
+and hallucination module retrained (``neural refine-hallucination``, ~60 min on one core: the preset keeps
 ``occ_weight`` 0, the recipe its memory was measured with). ``gpu``: the larger configuration."""
 
 
