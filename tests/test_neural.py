@@ -237,7 +237,8 @@ def test_neural_eval_writes_json_and_figures(tmp_path):
     kinds = res["ape_px_by_environment"]
     assert sum(v["poses"] for v in kinds.values()) == 6 * (cfg.steps - 1) and set(kinds) <= {"picture", "face", "floor plan"}
     # the image metrics per kind: every view counted once, and their view-weighted mean is the overall one
-    for key, per in (("anamnesis", cfg.steps), ("hallucination", cfg.steps - cfg.observe)):
+    for key, per in (("anamnesis", cfg.steps), ("hallucination", cfg.steps - cfg.observe),
+                     ("anamnesis_true_poses", cfg.steps)):
         by = res[f"{key}_by_environment"]
         assert sum(v["views"] for v in by.values()) == 6 * per and set(by) == set(kinds)
         assert sum(v["l1"] * v["views"] for v in by.values()) / (6 * per) == pytest.approx(res[key]["l1"])
