@@ -217,6 +217,36 @@ def test_train_2d_all_phases_pretraining_recalls_single_views(tmp_path):
     assert torch.equal(a, b)
 
 
+def test_interrupted_training_marker_counts_the_checkpointed_steps(tmp_path, monkeypatch):
+    """``neural train`` interrupted after its checkpoint at step 4 of 6 (+ 4 of decoder refinement) leaves the
+    folder marked incomplete at 4 / 10 steps - not at 0 -, the re-run continues from there, and a finished folder
+    has no marker."""
+    import slam.neural.data2d as data2d
+    from data_tools.outputs import read_incomplete
+    from slam.neural.run import train_to_folder
+    from slam.neural.train import NeuralTrainConfig
+    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=6,
+                            pretrain_steps=1, teacher_steps=1, hallucination_from=4, checkpoint_every=2,
+                            refine_steps=4, refine_pool_batches=1)
+    real, calls = data2d.make_batch, {"n": 0}
+
+    def interrupted(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] == 5:             # the 5th training batch: steps 2 and 4 are checkpointed
+            raise KeyboardInterrupt
+        return real(*a, **kw)
+    monkeypatch.setattr(data2d, "make_batch", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_to_folder(cfg, tmp_path / "m", progress=False)
+    mark = read_incomplete(tmp_path / "m")
+    assert (mark["done"], mark["total"], mark["command"]) == (4, 10, "realgap neural train")
+    monkeypatch.setattr(data2d, "make_batch", real)
+    logs = []
+    _, tlog, folder = train_to_folder(cfg, tmp_path / "m", progress=False, log=logs.append)
+    assert tlog.resumed_from == 4 and any("resuming training at step 4" in m for m in logs)
+    assert read_incomplete(folder) is None and (folder / "neural.json").is_file()
+
+
 def test_neural_eval_writes_json_and_figures(tmp_path):
     """``neural eval MODEL --out DIR`` (2D): neural_eval.json with the APE per kind of environment, and the figures
     it lists (readable PNGs) beside it."""

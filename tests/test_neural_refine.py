@@ -85,12 +85,14 @@ def test_refinement_resumes_exactly(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*a)
     monkeypatch.setattr(refine, "_pairs", interrupted)
+    marks = []                          # on_checkpoint: what the command's progress marker is told
     with pytest.raises(KeyboardInterrupt):
-        refine_decoder(_tiny_model(), _Bank(), rc, 4, 2, checkpoint=ck, progress=False)
+        refine_decoder(_tiny_model(), _Bank(), rc, 4, 2, checkpoint=ck, progress=False, on_checkpoint=marks.append)
+    assert marks == [5]
     monkeypatch.setattr(refine, "_pairs", real)
     again = _tiny_model()
-    info = refine_decoder(again, _Bank(), rc, 4, 2, checkpoint=ck, progress=False)
-    assert info["resumed_from_step"] == 5
+    info = refine_decoder(again, _Bank(), rc, 4, 2, checkpoint=ck, progress=False, on_checkpoint=marks.append)
+    assert info["resumed_from_step"] == 5 and marks == [5, 5]      # the last step is not checkpointed
     for (k, a), b in zip(whole.state_dict().items(), again.state_dict().values()):
         assert torch.equal(a, b), k
 

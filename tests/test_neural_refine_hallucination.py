@@ -71,12 +71,14 @@ def test_resumes_exactly(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(self, *a)
     monkeypatch.setattr(Walks2D, "sample", interrupted)
+    marks = []                          # on_checkpoint: what the command's progress marker is told
     with pytest.raises(KeyboardInterrupt):
-        refine_hallucination(_tiny_2d(), _walks(), _CFG, hc, checkpoint=ck, progress=False)
+        refine_hallucination(_tiny_2d(), _walks(), _CFG, hc, checkpoint=ck, progress=False, on_checkpoint=marks.append)
+    assert marks == [3, 6]
     monkeypatch.setattr(Walks2D, "sample", real)
     again = _tiny_2d()
-    info = refine_hallucination(again, _walks(), _CFG, hc, checkpoint=ck, progress=False)
-    assert info["resumed_from_step"] == 6
+    info = refine_hallucination(again, _walks(), _CFG, hc, checkpoint=ck, progress=False, on_checkpoint=marks.append)
+    assert info["resumed_from_step"] == 6 and marks[2:] == [6, 9, 10]
     for (k, a), b in zip(whole.state_dict().items(), again.state_dict().values()):
         assert torch.equal(a, b), k
 

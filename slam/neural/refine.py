@@ -150,10 +150,11 @@ def _pairs(pool: dict, rng: np.random.Generator, n: int):
 
 def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, observe: int,
                    checkpoint: str | Path | None = None, progress: bool = True,
-                   log: Callable[[str], None] | None = None) -> dict:
+                   log: Callable[[str], None] | None = None,
+                   on_checkpoint: Callable[[int], None] | None = None) -> dict:
     """Refine ``model.decoder`` in place on ``bank`` (3D: :class:`slam.neural.data3d.WorldBank` of ``rcfg.rooms``
     rooms; 2D: :class:`Walks2D`, ``rooms`` unused), every other weight frozen; returns the info saved with the
-    model (config, losses, seconds)."""
+    model (config, losses, seconds). ``on_checkpoint(step)``: called after each checkpoint (and on a resume)."""
     import torch
     from kornia.losses import ssim_loss
 
@@ -173,6 +174,8 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     if ck is not None and ck.is_file():
         from slam.neural.checkpoint import load_training_state
         start, hist = load_training_state(ck, parts, rng, "refinement checkpoint")
+        if on_checkpoint is not None:
+            on_checkpoint(start)
         if log is not None:
             log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {ck}")
     t0 = time.perf_counter()
@@ -195,6 +198,8 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
         if ck is not None:
             from slam.neural.checkpoint import save_training_state
             save_training_state(ck, parts, rng, step, hist)
+            if on_checkpoint is not None:
+                on_checkpoint(step)
 
     dec.train()
     for step in range(start, rcfg.steps):

@@ -64,11 +64,12 @@ class HallucinationConfig:
 
 
 def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint: str | Path | None = None,
-                         progress: bool = True, log: Callable[[str], None] | None = None) -> dict:
+                         progress: bool = True, log: Callable[[str], None] | None = None,
+                         on_checkpoint: Callable[[int], None] | None = None) -> dict:
     """Retrain ``model``'s occupancy LSTM (switching it to the ``affine`` mask) and hallucination module in place on
     ``bank`` (3D: :class:`slam.neural.data3d.WorldBank`; 2D: :class:`slam.neural.refine.Walks2D`); ``cfg``: the
     model's :class:`slam.neural.train.NeuralTrainConfig` (batch, steps, observe). Returns the info saved with the
-    model (config, losses, seconds)."""
+    model (config, losses, seconds). ``on_checkpoint(step)``: called after each checkpoint (and on a resume)."""
     import torch
     import torch.nn.functional as F
 
@@ -98,6 +99,8 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     if ck is not None and ck.is_file():
         from slam.neural.checkpoint import load_training_state
         start, hist = load_training_state(ck, parts, rng, "hallucination checkpoint", map_location=dev)
+        if on_checkpoint is not None:
+            on_checkpoint(start)
         if log is not None:
             log(f"resuming the hallucination training at step {start} of {hcfg.occ_steps + hcfg.steps} from {ck}")
 
@@ -105,6 +108,8 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
         if ck is not None:
             from slam.neural.checkpoint import save_training_state
             save_training_state(ck, parts, rng, step, hist)
+            if on_checkpoint is not None:
+                on_checkpoint(step)
 
     total = hcfg.occ_steps + hcfg.steps
     sched = SimpleNamespace(lr_decay_from=1, iterations=hcfg.steps, lr_final=0.1)      # linear from stage 2's start

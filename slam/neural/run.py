@@ -24,8 +24,14 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
         for name in ("neural.json", "weights.pt", "checkpoint.pt"):
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
-    mark_incomplete(folder, "realgap neural train", 0, cfg.iterations, unit="steps")
-    model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate)
+    total = cfg.iterations + cfg.refine_steps
+    unit = "steps (memory training, then decoder refinement)" if cfg.refine_steps else "steps"
+
+    def mark(done: int) -> None:
+        mark_incomplete(folder, "realgap neural train", done, total, unit=unit)
+    mark(0)
+    model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate,
+                                      on_checkpoint=mark)
     info = {}
     if cfg.refine_steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
@@ -33,7 +39,8 @@ def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progre
         rcfg = RefineConfig(rooms=cfg.refine_rooms, steps=cfg.refine_steps, pool_batches=cfg.refine_pool_batches,
                             seed=cfg.seed)
         info["decoder_refinement"] = refine_into(folder, model, cfg, rcfg, progress=progress, log=log,
-                                                 simulate=simulate, command=f"realgap neural train --mode {cfg.mode}")
+                                                 simulate=simulate, command=f"realgap neural train --mode {cfg.mode}",
+                                                 on_checkpoint=lambda s: mark(cfg.iterations + s))
     if cfg.mode == "3d" and cfg.topview_steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
         train_topview_into(folder, model, cfg, cfg.topview_steps, progress=progress, log=log, simulate=simulate)
@@ -84,10 +91,11 @@ def add_topview(model_dir, steps: int, overwrite: bool = False, worlds: str | No
                               command=f"realgap neural train-topview MODEL --steps {steps}")
 
 
-def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simulate=None, command: str = "") -> dict:
+def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simulate=None, command: str = "",
+                on_checkpoint=None) -> dict:
     """Refine the recall decoder of ``model`` (:mod:`slam.neural.refine`) - 3D: on ``rcfg.rooms`` training rooms of
-    ``cfg``'s world (simulated where missing); 2D: on training walks -, checkpointing to FOLDER/refine_checkpoint.pt;
-    returns its info."""
+    ``cfg``'s world (simulated where missing); 2D: on training walks -, checkpointing to FOLDER/refine_checkpoint.pt
+    (``on_checkpoint(step)`` after each); returns its info."""
     import dataclasses
 
     from slam.neural.refine import Walks2D, refine_decoder
@@ -98,15 +106,16 @@ def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simul
     else:
         bank = Walks2D(cfg.agent, cfg.image)
     info = refine_decoder(model, bank, rcfg, cfg.steps, cfg.observe, Path(folder) / REFINE_CHECKPOINT,
-                          progress=progress, log=log)
+                          progress=progress, log=log, on_checkpoint=on_checkpoint)
     info["command"] = command
     return info
 
 
 def _model_copy_folder(model_dir, out, overwrite: bool, command: str, total: int):
-    """(model, cfg, info, folder) for the commands that write a retrained copy of the model ``model_dir`` into ``out``:
-    the model loaded, ``out`` checked (not the model itself; a finished model there only with ``overwrite``) and
-    marked incomplete until the copy is saved."""
+    """(model, cfg, info, folder, mark) for the commands that write a retrained copy of the model ``model_dir`` into
+    ``out``: the model loaded, ``out`` checked (not the model itself; a finished model there only with
+    ``overwrite``) and marked incomplete until the copy is saved; ``mark(done)`` updates that marker to ``done`` of
+    ``total`` steps."""
     from data_tools.outputs import check_output_dir, mark_incomplete
     from slam.neural.topview import TOPVIEW_FILE
     from slam.neural.train import load_model
@@ -118,8 +127,11 @@ def _model_copy_folder(model_dir, out, overwrite: bool, command: str, total: int
         for name in ("neural.json", "weights.pt", TOPVIEW_FILE):
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
-    mark_incomplete(folder, command, 0, total, unit="steps")
-    return model, cfg, info, folder
+
+    def mark(done: int) -> None:
+        mark_incomplete(folder, command, done, total, unit="steps")
+    mark(0)
+    return model, cfg, info, folder, mark
 
 
 def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bool = False, progress: bool = True,
@@ -134,13 +146,14 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     from slam.neural.topview import TOPVIEW_FILE
     from slam.neural.train import save_model
     rcfg.validate()
-    model, cfg, info, folder = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-decoder",
-                                                  rcfg.steps)
+    model, cfg, info, folder, mark = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-decoder",
+                                                        rcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
     rooms = f" --rooms {rcfg.rooms}" if cfg.mode == "3d" else ""
     rinfo = refine_into(folder, model, run_cfg, rcfg, progress=progress, log=log, simulate=simulate,
                         command=f"realgap neural refine-decoder MODEL --out OUT{rooms} --steps {rcfg.steps} "
-                                f"--pool-batches {rcfg.pool_batches} --ssim-weight {rcfg.ssim_weight:g}")
+                                f"--pool-batches {rcfg.pool_batches} --ssim-weight {rcfg.ssim_weight:g}",
+                        on_checkpoint=mark)
     if (Path(model_dir) / TOPVIEW_FILE).is_file():
         shutil.copyfile(Path(model_dir) / TOPVIEW_FILE, folder / TOPVIEW_FILE)
     new_info = {**info, "decoder_refinement": rinfo}
@@ -168,11 +181,13 @@ def refine_hallucination_folder(model_dir, out, hcfg, topview_steps: int = 300, 
     hcfg.validate()
     if topview_steps < 0:
         raise ConfigError(f"--topview-steps must be >= 0, got {topview_steps}")
-    model, cfg, info, folder = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-hallucination",
-                                                  hcfg.occ_steps + hcfg.steps)
+    model, cfg, info, folder, mark = _model_copy_folder(model_dir, out, overwrite,
+                                                        "realgap neural refine-hallucination",
+                                                        hcfg.occ_steps + hcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
     bank = worlds_3d(run_cfg, simulate, progress, log) if cfg.mode == "3d" else Walks2D(cfg.agent, cfg.image)
-    hinfo = refine_hallucination(model, bank, cfg, hcfg, folder / HALLU_CHECKPOINT, progress=progress, log=log)
+    hinfo = refine_hallucination(model, bank, cfg, hcfg, folder / HALLU_CHECKPOINT, progress=progress, log=log,
+                                 on_checkpoint=mark)
     hinfo["command"] = (f"realgap neural refine-hallucination MODEL --out OUT --occ-steps {hcfg.occ_steps} "
                         f"--steps {hcfg.steps} --topview-steps {topview_steps} --seed {hcfg.seed}")
     if cfg.mode == "3d" and topview_steps > 0:

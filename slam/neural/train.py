@@ -296,9 +296,11 @@ def _loc_loss(logits, truth_field):
 
 
 def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, progress: bool = True,
-                 log: Callable[[str], None] | None = None, simulate=None):
+                 log: Callable[[str], None] | None = None, simulate=None,
+                 on_checkpoint: Callable[[int], None] | None = None):
     """Train; returns (model, discriminator, TrainLog). 3D: ``simulate`` makes missing training rooms
-    (:data:`slam.neural.data3d.Simulator`)."""
+    (:data:`slam.neural.data3d.Simulator`). ``on_checkpoint(step)`` is called after each checkpoint is written
+    (and with the resumed step on a resume): the command's progress marker follows it."""
     import torch
     import torch.nn.functional as F
 
@@ -357,6 +359,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         from slam.neural.checkpoint import load_training_state
         start, tlog.steps = load_training_state(ck, parts, rng, "training checkpoint", map_location=dev)
         tlog.resumed_from = start
+        if on_checkpoint is not None:
+            on_checkpoint(start)
         if log is not None:
             log(f"resuming training at step {start} of {cfg.iterations} from {ck}")
 
@@ -364,6 +368,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         if ck is not None:
             from slam.neural.checkpoint import save_training_state
             save_training_state(ck, parts, rng, step, tlog.steps)
+            if on_checkpoint is not None:
+                on_checkpoint(step)
 
     bar = None
     if progress:
