@@ -30,6 +30,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--equivariance", choices=("none", "invariant", "regular"),
                    help="2d: an encoder exactly equivariant to quarter turns (regular: the regular representation of "
                         "C4, features a multiple of 4; invariant: averaged over the turns); default: the preset's")
+    p.add_argument("--colour-skip", action="store_true", default=None,
+                   help="the observation itself as the last 3 (2d) / 4 (3d) memory features beside the encoder's "
+                        "(the thesis' encoder keeps no absolute colour); default: the preset's (off)")
     p.add_argument("--subcell", action="store_true", default=None,
                    help="3d: register below the grid (real teacher poses splatted, L_loc's target the splat of the "
                         "exact pose; the model then registers at its refined peak); default: the preset's (off)")
@@ -106,7 +109,8 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell")
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell",
+                                           "colour_skip")
             if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)

@@ -143,6 +143,14 @@ class MemoryConfig:
     prior is centred there. A deviation from the thesis (MapNet registers with the soft field on the grid): a view
     moved 0.1 m and turned 15 deg from the last lies in the same 15 cm / 30 deg bin, so a memory registered on the
     grid learns "no move" and never turns (slam/neural/weights/README.md, "The 3D heading")."""
+    colour_skip: bool = False
+    """The last ``channels`` of the encoder's ``features`` are the observation itself (colour, and depth in 3D,
+    in [-1, 1]; ground-projected like the others), the ResNet giving the other ``features - channels``. A
+    deviation from the thesis' plain ResNet: with its N(0, 0.02) weights and instance norm in every residual
+    branch, the encoder's output carries almost no absolute colour - a linear probe recovers none of the chroma
+    of a view from the features of the shipped 2D encoder (R^2 <= 0.02) nor of an untrained one - so recalled
+    floor plans come back grey (89 % of their chroma lost; pictures 41 %) and 3D walls in an average colour
+    (slam/neural/weights/README.md, "Where the colour goes"). False: the thesis' encoder (the shipped models)."""
     occupancy: str = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
     (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
@@ -161,24 +169,29 @@ class ResBlock(nn.Module):
 
 
 class Encoder(nn.Module):
-    """x (B, C, q, q) in [-1, 1] -> o (B, n, q, q); made equivariant to quarter turns by
-    :attr:`MemoryConfig.equivariance` (square inputs only)."""
+    """x (B, C, q, q) in [-1, 1] (3D: (B, C, H, W)) -> o (B, n, q, q); made equivariant to quarter turns by
+    :attr:`MemoryConfig.equivariance` (square inputs only); with :attr:`MemoryConfig.colour_skip` the last C
+    channels of o are x."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         w = cfg.width
         self.equivariance = cfg.equivariance
-        out = cfg.features // 4 if cfg.equivariance == "regular" else cfg.features
+        self.colour_skip = bool(cfg.colour_skip)
+        n = cfg.features - (cfg.channels if self.colour_skip else 0)
+        out = n // 4 if cfg.equivariance == "regular" else n
         self.net = nn.Sequential(nn.Conv2d(cfg.channels, w, 3, padding=1), nn.LeakyReLU(0.2),
                                  *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, out, 1))
 
     def forward(self, x):
         if self.equivariance == "none":
-            return self.net(x)
-        B = x.shape[0]
-        f = self.net(torch.cat([torch.rot90(x, k, (-2, -1)) for k in range(4)], 0))
-        turned = [torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)]
-        return sum(turned) / 4.0 if self.equivariance == "invariant" else torch.cat(turned, 1)
+            f = self.net(x)
+        else:
+            B = x.shape[0]
+            f = self.net(torch.cat([torch.rot90(x, k, (-2, -1)) for k in range(4)], 0))
+            turned = [torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)]
+            f = sum(turned) / 4.0 if self.equivariance == "invariant" else torch.cat(turned, 1)
+        return torch.cat([f, x], 1) if self.colour_skip else f
 
 
 class Decoder(nn.Module):
@@ -410,6 +423,9 @@ class NeuralMemory(nn.Module):
             raise ValueError(f"equivariance regular needs features divisible by 4, got {cfg.features}")
         if cfg.occupancy not in ("sigmoid", "affine"):
             raise ValueError(f"occupancy must be sigmoid or affine, got {cfg.occupancy!r}")
+        if cfg.colour_skip and (cfg.features <= cfg.channels or cfg.equivariance == "regular"):
+            raise ValueError(f"colour_skip needs more features than the {cfg.channels} image channels (got "
+                             f"{cfg.features}) and no regular equivariance")
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
             self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)

@@ -108,6 +108,9 @@ class NeuralTrainConfig:
     equivariance: str = "none"
     """2D mode: ``none``, ``invariant`` or ``regular`` - an encoder exactly equivariant to quarter turns
     (:attr:`slam.neural.model.MemoryConfig.equivariance`)."""
+    colour_skip: bool = False
+    """The observation itself as the last C (3 in 2D, 4 in 3D) of the ``features`` memory channels, beside the
+    ResNet's (:attr:`slam.neural.model.MemoryConfig.colour_skip`): the thesis' encoder keeps no absolute colour."""
     decoder: str = "learned"
     """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
@@ -152,6 +155,9 @@ class NeuralTrainConfig:
         if self.equivariance != "none" and self.mode != "2d":
             raise ConfigError("equivariance (an encoder equivariant to quarter turns) is for --mode 2d: 3D images are "
                               "not square top views")
+        if self.colour_skip and (self.equivariance == "regular" or self.features <= (4 if self.mode == "3d" else 3)):
+            raise ConfigError(f"colour_skip needs more features than image channels (got {self.features}) and no "
+                              "regular equivariance")
         if self.equivariance == "regular" and self.features % 4:
             raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
         if self.subcell and self.mode != "3d":
@@ -235,13 +241,14 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
         return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
                             width=cfg.width, rotations=w.rotations, search=4, input="image",
                             image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
-                            subcell=bool(cfg.subcell), **rays)
+                            subcell=bool(cfg.subcell), colour_skip=bool(cfg.colour_skip), **rays)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
                         correlation=cfg.correlation, equivariance=cfg.equivariance,
-                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg))
+                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg),
+                        colour_skip=bool(cfg.colour_skip))
 
 
 def _occupancy(cfg: NeuralTrainConfig) -> str:
