@@ -451,3 +451,57 @@ def test_regular_culling_undoes_the_bank_turn():
         torch.testing.assert_close(win[:, :8], o, rtol=0, atol=0)
         if k:
             assert not torch.equal(turn_features(o, k, 4, False), turn_features(o, k, 4, True))
+
+
+def test_colour_skip_writes_the_observation_into_the_memory(tmp_path):
+    """``colour_skip``: the last 3 feature channels of a view are the view itself (the ResNet gives the others), so
+    a memory registered at the true poses holds, on every observed cell, the colour some step saw there - a
+    cell seen once holds exactly its colour in the LSTM's input. It survives save -> load, works with the
+    invariant encoder, and a model without enough features for it, or with the regular encoder, is refused."""
+    from data_tools.errors import ConfigError
+    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
+    torch.manual_seed(0)
+    cfg = NeuralTrainConfig(image=23, features=7, width=4, colour_skip=True).validate()
+    model = NeuralMemory(memory_config(cfg)).eval()
+    assert model.encoder.net[-1].out_channels == 4
+    agent = AGENTS[cfg.agent]
+    _, obs, _, allo = make_batch(np.random.default_rng(3), 2, agent, 4, 23)
+    o = torch.from_numpy(obs)
+    with torch.no_grad():
+        f = model.encode(o)
+        assert f.shape == (2, 4, 7, agent.view, agent.view) and torch.equal(f[:, :, 4:], o)
+        inv = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=7, width=4, colour_skip=True,
+                                                           equivariance="invariant"))).eval()
+        x = torch.randn(2, 3, 15, 15)
+        fx = inv.encoder(x)
+        torch.testing.assert_close(inv.encoder(torch.rot90(x, 1, (-2, -1))), torch.rot90(fx, 1, (-2, -1)),
+                                   rtol=0, atol=1e-5)
+    save_model(tmp_path / "m", model, cfg)
+    back, cfg2, _ = load_model(tmp_path / "m")
+    assert back.cfg.colour_skip and cfg2.colour_skip
+    with torch.no_grad():
+        assert torch.equal(back.encode(o), f)
+    for bad in (dict(features=3), dict(features=8, equivariance="regular")):
+        with pytest.raises(ConfigError, match="colour_skip"):
+            NeuralTrainConfig(image=23, width=4, colour_skip=True, **bad).validate()
+    with pytest.raises(ValueError, match="colour_skip"):
+        NeuralMemory(MemoryConfig(features=3, colour_skip=True))
+
+
+def test_colour_skip_in_3d_projects_the_pixels_colour_and_depth():
+    """3D (image input): the last 4 channels of a ground-projected view are the max over each cell's pixels of the
+    observation (RGB-D in [-1, 1]): a cell that one pixel lands in holds that pixel."""
+    from slam.neural.train import NeuralTrainConfig, memory_config
+    from slam.neural.data3d import World3DConfig
+    cfg = NeuralTrainConfig(mode="3d", features=6, width=4, colour_skip=True,
+                            world=World3DConfig(image_h=6, image_w=8)).validate()
+    model = NeuralMemory(memory_config(cfg)).eval()
+    q = model.cfg.view
+    img = torch.rand(1, 1, 4, 6, 8) * 2 - 1
+    cells = torch.full((1, 1, 48), -1, dtype=torch.long)
+    cells[0, 0, 5] = 3 * q + 4                  # pixel (0, 5) -> cell (3, 4); pixels (2, 1), (2, 2) -> cell (7, 7)
+    cells[0, 0, 17] = cells[0, 0, 18] = 7 * q + 7
+    with torch.no_grad():
+        f = model.encode(img, cells)[0, 0]
+    torch.testing.assert_close(f[2:, 3, 4], img[0, 0, :, 0, 5])
+    torch.testing.assert_close(f[2:, 7, 7], torch.maximum(img[0, 0, :, 2, 1], img[0, 0, :, 2, 2]))
