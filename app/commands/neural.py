@@ -33,6 +33,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--colour-skip", action="store_true", default=None,
                    help="the observation itself as the last 3 (2d) / 4 (3d) memory features beside the encoder's "
                         "(the thesis' encoder keeps no absolute colour); default: the preset's (off)")
+    p.add_argument("--decoder-skip", action="store_true", default=None,
+                   help="2d: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's "
+                        "ResNet; default: the preset's (off)")
     p.add_argument("--subcell", action="store_true", default=None,
                    help="3d: register below the grid (real teacher poses splatted, L_loc's target the splat of the "
                         "exact pose; the model then registers at its refined peak); default: the preset's (off)")
@@ -110,7 +113,7 @@ def _train(args) -> int:
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
     over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell",
-                                           "colour_skip")
+                                           "colour_skip", "decoder_skip")
             if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)

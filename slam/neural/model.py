@@ -151,6 +151,11 @@ class MemoryConfig:
     of a view from the features of the shipped 2D encoder (R^2 <= 0.02) nor of an untrained one - so recalled
     floor plans come back grey (89 % of their chroma lost; pictures 41 %) and 3D walls in an average colour
     (slam/neural/weights/README.md, "Where the colour goes"). False: the thesis' encoder (the shipped models)."""
+    decoder_skip: bool = False
+    """2D (``grid`` input): a 1 x 1 convolution from the culled window straight to the decoder's output, added
+    before its tanh, beside the ResNet - a linear path from a memory cell to the colour of its pixel that no
+    instance norm rescales (the ResNet's branches are normalised per image, so an image-dependent mean colour can
+    only pass its small first-layer skip). A deviation from the thesis' decoder; False: the shipped models."""
     occupancy: str = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
     (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
@@ -195,16 +200,20 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """culled window (B, n + 1, q, q) (features + view-field channel) -> image (B, C, q, q) in [-1, 1]."""
+    """culled window (B, n + 1, q, q) (features + view-field channel) -> image (B, C, q, q) in [-1, 1]; with
+    :attr:`MemoryConfig.decoder_skip` a 1 x 1 convolution of the window is added before the tanh."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         w = cfg.width
         self.net = nn.Sequential(nn.Conv2d(cfg.features + 1, w, 3, padding=1), nn.LeakyReLU(0.2),
                                  *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.channels, 3, padding=1), nn.Tanh())
+        self.skip = nn.Conv2d(cfg.features + 1, cfg.channels, 1) if cfg.decoder_skip else None
 
     def forward(self, x):
-        return self.net(x)
+        if self.skip is None:
+            return self.net(x)
+        return torch.tanh(self.net[:-1](x) + self.skip(x))
 
 
 class ImageDecoder(nn.Module):
@@ -423,6 +432,8 @@ class NeuralMemory(nn.Module):
             raise ValueError(f"equivariance regular needs features divisible by 4, got {cfg.features}")
         if cfg.occupancy not in ("sigmoid", "affine"):
             raise ValueError(f"occupancy must be sigmoid or affine, got {cfg.occupancy!r}")
+        if cfg.decoder_skip and cfg.input != "grid":
+            raise ValueError("decoder_skip is for the 2D (grid input) decoder")
         if cfg.colour_skip and (cfg.features <= cfg.channels or cfg.equivariance == "regular"):
             raise ValueError(f"colour_skip needs more features than the {cfg.channels} image channels (got "
                              f"{cfg.features}) and no regular equivariance")

@@ -111,6 +111,9 @@ class NeuralTrainConfig:
     colour_skip: bool = False
     """The observation itself as the last C (3 in 2D, 4 in 3D) of the ``features`` memory channels, beside the
     ResNet's (:attr:`slam.neural.model.MemoryConfig.colour_skip`): the thesis' encoder keeps no absolute colour."""
+    decoder_skip: bool = False
+    """2D mode: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's ResNet
+    (:attr:`slam.neural.model.MemoryConfig.decoder_skip`)."""
     decoder: str = "learned"
     """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
@@ -155,6 +158,8 @@ class NeuralTrainConfig:
         if self.equivariance != "none" and self.mode != "2d":
             raise ConfigError("equivariance (an encoder equivariant to quarter turns) is for --mode 2d: 3D images are "
                               "not square top views")
+        if self.decoder_skip and self.mode != "2d":
+            raise ConfigError("decoder_skip is for --mode 2d (the 3D decoders map a top view to an image)")
         if self.colour_skip and (self.equivariance == "regular" or self.features <= (4 if self.mode == "3d" else 3)):
             raise ConfigError(f"colour_skip needs more features than image channels (got {self.features}) and no "
                               "regular equivariance")
@@ -248,7 +253,7 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
     return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
                         correlation=cfg.correlation, equivariance=cfg.equivariance,
                         search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg),
-                        colour_skip=bool(cfg.colour_skip))
+                        colour_skip=bool(cfg.colour_skip), decoder_skip=bool(cfg.decoder_skip))
 
 
 def _occupancy(cfg: NeuralTrainConfig) -> str:
