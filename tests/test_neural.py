@@ -505,3 +505,32 @@ def test_colour_skip_in_3d_projects_the_pixels_colour_and_depth():
         f = model.encode(img, cells)[0, 0]
     torch.testing.assert_close(f[2:, 3, 4], img[0, 0, :, 0, 5])
     torch.testing.assert_close(f[2:, 7, 7], torch.maximum(img[0, 0, :, 2, 1], img[0, 0, :, 2, 2]))
+
+
+def test_decoder_skip_is_a_linear_path_beside_the_resnet(tmp_path):
+    """``decoder_skip`` (2D): the recalled image is tanh(ResNet(window) + W window + b) - with W, b = 0 exactly the
+    plain decoder's; a constant window shifts the output's pre-activation by W's column sums, whatever the instance
+    norms do. Saved and loaded; refused for 3D."""
+    import dataclasses
+
+    from data_tools.errors import ConfigError
+    from slam.neural.model import Decoder
+    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
+    torch.manual_seed(0)
+    cfg = NeuralTrainConfig(image=23, features=5, width=4, decoder_skip=True).validate()
+    model = NeuralMemory(memory_config(cfg)).eval()
+    plain = Decoder(dataclasses.replace(model.cfg, decoder_skip=False)).eval()
+    plain.net.load_state_dict(model.decoder.net.state_dict())
+    x = torch.randn(2, 6, 15, 15)
+    with torch.no_grad():
+        pre = torch.atanh(plain(x).clamp(-0.999999, 0.999999))
+        torch.testing.assert_close(model.decoder(x), torch.tanh(pre + model.decoder.skip(x)), rtol=0, atol=1e-4)
+        model.decoder.skip.weight.zero_()
+        model.decoder.skip.bias.zero_()
+        assert torch.equal(model.decoder(x), plain(x))
+        model.decoder.skip.bias.fill_(0.5)
+        save_model(tmp_path / "m", model, cfg)
+        back, _, _ = load_model(tmp_path / "m")
+        assert back.cfg.decoder_skip and torch.equal(back.decoder(x), model.decoder(x))
+    with pytest.raises(ConfigError, match="decoder_skip"):
+        NeuralTrainConfig(mode="3d", features=8, decoder_skip=True).validate()
