@@ -144,18 +144,13 @@ class MemoryConfig:
     moved 0.1 m and turned 15 deg from the last lies in the same 15 cm / 30 deg bin, so a memory registered on the
     grid learns "no move" and never turns (slam/neural/weights/README.md, "The 3D heading")."""
     colour_skip: bool = False
-    """The last ``channels`` of the encoder's ``features`` are the observation itself (colour, and depth in 3D,
-    in [-1, 1]; ground-projected like the others), the ResNet giving the other ``features - channels``. A
-    deviation from the thesis' plain ResNet: with its N(0, 0.02) weights and instance norm in every residual
-    branch, the encoder's output carries almost no absolute colour - a linear probe recovers none of the chroma
-    of a view from the features of the shipped 2D encoder (R^2 <= 0.02) nor of an untrained one - so recalled
-    floor plans come back grey (89 % of their chroma lost; pictures 41 %) and 3D walls in an average colour
+    """The last ``channels`` of the ``features`` are the observation itself (RGB(-D) in [-1, 1], ground-projected
+    like the rest). A deviation: the thesis' encoder (N(0, 0.02) weights, instance norm in every residual branch)
+    keeps no absolute colour - a linear probe finds no chroma in its features, recalled floor plans come back grey
     (slam/neural/weights/README.md, "Where the colour goes"). False: the thesis' encoder (the shipped models)."""
     decoder_skip: bool = False
-    """2D (``grid`` input): a 1 x 1 convolution from the culled window straight to the decoder's output, added
-    before its tanh, beside the ResNet - a linear path from a memory cell to the colour of its pixel that no
-    instance norm rescales (the ResNet's branches are normalised per image, so an image-dependent mean colour can
-    only pass its small first-layer skip). A deviation from the thesis' decoder; False: the shipped models."""
+    """2D: a 1 x 1 convolution of the culled window added before the decoder's tanh, beside its ResNet (a linear
+    path no instance norm rescales). A deviation from the thesis' decoder; False: the shipped models."""
     occupancy: str = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
     (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
@@ -175,8 +170,7 @@ class ResBlock(nn.Module):
 
 class Encoder(nn.Module):
     """x (B, C, q, q) in [-1, 1] (3D: (B, C, H, W)) -> o (B, n, q, q); made equivariant to quarter turns by
-    :attr:`MemoryConfig.equivariance` (square inputs only); with :attr:`MemoryConfig.colour_skip` the last C
-    channels of o are x."""
+    :attr:`MemoryConfig.equivariance` (square inputs only); :attr:`MemoryConfig.colour_skip`: o[:, -C:] = x."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
@@ -200,8 +194,7 @@ class Encoder(nn.Module):
 
 
 class Decoder(nn.Module):
-    """culled window (B, n + 1, q, q) (features + view-field channel) -> image (B, C, q, q) in [-1, 1]; with
-    :attr:`MemoryConfig.decoder_skip` a 1 x 1 convolution of the window is added before the tanh."""
+    """culled window (B, n + 1, q, q) (features + view-field channel) -> image (B, C, q, q) in [-1, 1]."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
@@ -210,10 +203,8 @@ class Decoder(nn.Module):
                                  *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.channels, 3, padding=1), nn.Tanh())
         self.skip = nn.Conv2d(cfg.features + 1, cfg.channels, 1) if cfg.decoder_skip else None
 
-    def forward(self, x):
-        if self.skip is None:
-            return self.net(x)
-        return torch.tanh(self.net[:-1](x) + self.skip(x))
+    def forward(self, x):     # decoder_skip: a 1 x 1 convolution of the window added before the tanh
+        return self.net(x) if self.skip is None else torch.tanh(self.net[:-1](x) + self.skip(x))
 
 
 class ImageDecoder(nn.Module):
@@ -435,8 +426,7 @@ class NeuralMemory(nn.Module):
         if cfg.decoder_skip and cfg.input != "grid":
             raise ValueError("decoder_skip is for the 2D (grid input) decoder")
         if cfg.colour_skip and (cfg.features <= cfg.channels or cfg.equivariance == "regular"):
-            raise ValueError(f"colour_skip needs more features than the {cfg.channels} image channels (got "
-                             f"{cfg.features}) and no regular equivariance")
+            raise ValueError(f"colour_skip needs features > {cfg.channels} channels and no regular equivariance")
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
             self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)

@@ -196,8 +196,9 @@ TRAIN_PRESETS = {
 }
 """2D presets. ``cpu``: the 30-minute recipe (2200 steps, ~37 min on one core, then 5000 steps of decoder
 refinement on 900 pool batches, ~6 min on one core; the whole command 24.6 min wall on 2 cores, measured); its
-learning rate falls linearly to a tenth over the last 700 steps - measured against the constant rate: APE median 1.0 vs 3.2 px - and its LSTMs' forget gates start at 1
-(within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139; slam/neural/weights/README.md). ``gpu``:
+learning rate falls linearly to a tenth over the last 700 steps - measured against the constant rate: APE median
+1.0 vs 3.2 px - and its LSTMs' forget gates start at 1 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139;
+slam/neural/weights/README.md). ``gpu``:
 the larger configuration, decaying over its last third and with the forget bias, cpu-long's L_loc weight and its
 trained occupancy by analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the
 ``cpu`` one with a memory of 16 features, ResNets of width 32 and L_loc weighted 0.01 (~78 min on one core with
