@@ -284,6 +284,22 @@ def test_learning_rate_schedule_is_a_function_of_the_step():
     assert lr_factor(NeuralTrainConfig(iterations=11), 10) == 1.0
 
 
+def test_loss_means_by_hand_and_set_lr():
+    """The training logs' running means: sums over the steps added since the last record (a loss that joined
+    mid-way divided by all of them), rounded to 5 decimals, reset after each record; set_lr sets every group."""
+    from slam.neural.train import LossMeans, set_lr
+    m = LossMeans()
+    m.add({"loc": 1.0, "anam": 0.2})
+    m.add({"loc": 2.0, "anam": 0.4, "hallu": 0.3})
+    assert m.record(50) == {"step": 50, "loc": 1.5, "anam": 0.3, "hallu": 0.15}
+    m.add({"loc": 1.0 / 3.0})
+    assert m.record(100) == {"step": 100, "loc": 0.33333}
+    a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    opts = (torch.optim.Adam(a.parameters(), lr=1.0), torch.optim.Adam([{"params": [b.weight]}, {"params": [b.bias]}]))
+    set_lr(opts, 0.25)
+    assert [g["lr"] for o in opts for g in o.param_groups] == [0.25, 0.25, 0.25]
+
+
 def test_loc_weight_follows_the_learning_rate_schedule_to_its_own_final_value():
     """L_loc's weight factor: 1 until lr_decay_from, then linear to loc_weight_final (1 = constant, the default)."""
     from data_tools.errors import ConfigError

@@ -158,7 +158,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     import torch
     from kornia.losses import ssim_loss
 
-    from slam.neural.train import lr_factor
+    from slam.neural.train import lr_factor, set_lr
     rcfg.validate()
     torch.manual_seed(rcfg.seed)
     for p in model.parameters():
@@ -203,8 +203,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
 
     dec.train()
     for step in range(start, rcfg.steps):
-        for g in opt.param_groups:
-            g["lr"] = rcfg.lr * lr_factor(sched, step)
+        set_lr((opt,), rcfg.lr * lr_factor(sched, step))
         mem, poses, y = (x.to(dev) for x in _pairs(pool, rng, rcfg.batch))      # the pool stays in host memory
         pred = model.recall(mem, poses, vm)
         l1 = ((pred - y).abs() * img_mask).mean()

@@ -74,7 +74,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     import torch.nn.functional as F
 
     from slam.neural.model import PatchDiscriminator, init_weights
-    from slam.neural.train import OCC_LR, _hallucination_step, bank_batch, lr_factor
+    from slam.neural.train import OCC_LR, LossMeans, _hallucination_step, bank_batch, lr_factor, set_lr
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -117,7 +117,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     if progress:
         from data_tools.progress import progress_bar
         bar = progress_bar(total=total, initial=start, desc="training occupancy + hallucination", unit="step")
-    acc: dict[str, float] = {}
+    means = LossMeans()
     t0 = time.perf_counter()
     for step in range(start, total):
         obs, cells, allo, exact = bank_batch(bank, rng, cfg.batch, cfg.steps, dev)
@@ -131,20 +131,14 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             opt_occ.step()
             losses["occ"] = float(l_occ.detach())
         else:
-            lr = hcfg.lr * lr_factor(sched, step - hcfg.occ_steps)
-            for o in (opt_h, opt_d):
-                for g in o.param_groups:
-                    g["lr"] = lr
+            set_lr((opt_h, opt_d), hcfg.lr * lr_factor(sched, step - hcfg.occ_steps))
             model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
             losses = _hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
             model.eval()
-        for k, v in losses.items():
-            acc[k] = acc.get(k, 0.0) + v
-        acc["n"] = acc.get("n", 0) + 1
+        means.add(losses)
         if (step + 1) % 25 == 0 or step + 1 in (hcfg.occ_steps, total):
-            rec = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
+            rec = means.record(step + 1)
             hist.append(rec)
-            acc = {}
             if bar is not None:
                 bar.set_postfix_str(" ".join(f"{k} {v:.4f}" for k, v in rec.items() if k != "step"))
         if (step + 1) % hcfg.checkpoint_every == 0 and step + 1 < total:

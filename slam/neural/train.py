@@ -35,6 +35,8 @@ __all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "train_memo
 
 CKPT_FORMAT = "realgap-neural-memory"
 CKPT_VERSION = 1
+IMAGE_CHANNELS = {"2d": 3, "3d": 4}
+"""Channels C of a mode's observations: 2D RGB views, 3D RGB-D images."""
 
 
 @dataclass
@@ -163,7 +165,7 @@ class NeuralTrainConfig:
                               "not square top views")
         if self.decoder_skip and self.mode != "2d":
             raise ConfigError("decoder_skip is for --mode 2d (the 3D decoders map a top view to an image)")
-        if self.colour_skip and (self.equivariance == "regular" or self.features <= (4 if self.mode == "3d" else 3)):
+        if self.colour_skip and (self.equivariance == "regular" or self.features <= IMAGE_CHANNELS[self.mode]):
             raise ConfigError(f"colour_skip needs more features than image channels (got {self.features}) and no "
                               "regular equivariance")
         if self.equivariance == "regular" and self.features % 4:
@@ -247,14 +249,14 @@ def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
             g = geometry or default_ray_geometry(w)
             rays = dict(decoder="rays", camera=tuple(g["camera"]), level_rotation=tuple(g["level_rotation"]),
                         camera_height_m=float(g["camera_height_m"]), cell_m=w.cell_m, max_range_m=w.max_range_m)
-        return MemoryConfig(channels=4, features=cfg.features, view=w.view, memory=w.view + 2 * reach,
-                            width=cfg.width, rotations=w.rotations, search=4, input="image",
+        return MemoryConfig(channels=IMAGE_CHANNELS["3d"], features=cfg.features, view=w.view,
+                            memory=w.view + 2 * reach, width=cfg.width, rotations=w.rotations, search=4, input="image",
                             image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
                             subcell=bool(cfg.subcell), colour_skip=bool(cfg.colour_skip), **rays)
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
-    return MemoryConfig(channels=3, features=cfg.features, view=q, memory=U, width=cfg.width,
+    return MemoryConfig(channels=IMAGE_CHANNELS["2d"], features=cfg.features, view=q, memory=U, width=cfg.width,
                         correlation=cfg.correlation, equivariance=cfg.equivariance,
                         search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg),
                         colour_skip=bool(cfg.colour_skip), decoder_skip=bool(cfg.decoder_skip))
@@ -391,14 +393,11 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     if progress:
         from data_tools.progress import progress_bar
         bar = progress_bar(total=cfg.iterations, initial=start, desc="training neural memory", unit="step")
-    acc: dict[str, float] = {}
+    means = LossMeans()
     t0 = time.perf_counter()
     model.train()
     for step in range(start, cfg.iterations):
-        lr = cfg.lr * lr_factor(cfg, step)
-        for o in (opt, opt_h, opt_d):
-            for g in o.param_groups:
-                g["lr"] = lr
+        set_lr((opt, opt_h, opt_d), cfg.lr * lr_factor(cfg, step))
         obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
         B, T = obs_t.shape[:2]
         img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
@@ -444,13 +443,10 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             if step >= cfg.hallucination_from:
                 losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
                                                   exact_t))
-        for k, v in losses.items():
-            acc[k] = acc.get(k, 0.0) + v
-        acc["n"] = acc.get("n", 0) + 1
+        means.add(losses)
         if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.iterations:
-            rec_ = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
+            rec_ = means.record(step + 1)
             tlog.steps.append(rec_)
-            acc = {}
             if bar is not None:
                 bar.set_postfix_str(" ".join(f"{k} {v:.3f}" for k, v in rec_.items() if k != "step"))
         if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
@@ -463,6 +459,32 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     save(cfg.iterations)
     model.eval()
     return model, disc, tlog
+
+
+def set_lr(optimisers, lr: float) -> None:
+    """Set the learning rate of every parameter group of ``optimisers`` (the training loops' schedules)."""
+    for o in optimisers:
+        for g in o.param_groups:
+            g["lr"] = lr
+
+
+class LossMeans:
+    """Named losses summed between two log records; :meth:`record` gives each sum over the number of steps added
+    (a loss that joined mid-way is divided by all of them), rounded to 5 decimals, and starts again."""
+
+    def __init__(self):
+        self.sums: dict[str, float] = {}
+        self.n = 0
+
+    def add(self, losses: dict) -> None:
+        for k, v in losses.items():
+            self.sums[k] = self.sums.get(k, 0.0) + v
+        self.n += 1
+
+    def record(self, step: int) -> dict:
+        rec = {"step": step, **{k: round(v / self.n, 5) for k, v in self.sums.items()}}
+        self.sums, self.n = {}, 0
+        return rec
 
 
 def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
