@@ -424,6 +424,7 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
                              f'<td>{r["frames_failed"]}/{r["frames"]}</td>')
         rows.append(f'<tr><td class="l"><a href="{html.escape(n)}.html">{html.escape(n)}</a></td>{"".join(cells)}</tr>')
         _sequence_page(out, n, [tab[(n, b)] for b in backends if (n, b) in tab])
+    comparison = _comparison_plot(out, names, backends, tab)
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>realgap batch</title><style>{_CSS}</style>"
            f"</head><body><h1>SLAM batch report</h1>"
            f"<p>{len(names)} sequence(s) x {len(backends)} backend(s), executor <b>{html.escape(meta['executor'])}</b> "
@@ -433,7 +434,8 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
            f"<p>ATE: RMS position error after SE(3) alignment; APE median: median of the same errors; APE rot: "
            f"RMS rotation angle error, first poses aligned; "
            f"RPE: RMS between consecutive registered frames; failed: frames the backend could not "
-           f"register (left out of the trajectory).</p></body></html>")
+           f"register (left out of the trajectory).</p>"
+           + (f"<p><img src='{html.escape(comparison)}' width='720'></p>" if comparison else "") + "</body></html>")
     from data_tools.results import atomic_write_text
     atomic_write_text(out / "index.html", doc)
     return out / "index.html"
@@ -470,6 +472,19 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
     parts.append("</body></html>")
     from data_tools.results import atomic_write_text
     atomic_write_text(out / f"{name}.html", "".join(parts))
+
+
+def _comparison_plot(out: Path, names: list[str], backends: list[str], tab: dict) -> str | None:
+    """plots/comparison.png: ATE, APE median and frames/s of every backend on every sequence, side by side
+    (:func:`slam.plots.plot_backend_comparison`; failed runs marked n/a). None when nothing ran."""
+    values = {k: r for k, r in tab.items() if r["ok"]}
+    if not values:
+        return None
+    from slam import plots
+    (out / "plots").mkdir(exist_ok=True)
+    plots.plot_backend_comparison(out / "plots" / "comparison.png", names, backends, values,
+                                  title=f"{len(names)} sequence(s) x {len(backends)} backend(s)")
+    return "plots/comparison.png"
 
 
 def _plot(out: Path, name: str, r: dict) -> str | None:

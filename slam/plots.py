@@ -106,3 +106,37 @@ def plot_errors_over_time(path: str | os.PathLike,
         axs[0].set_title(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def plot_backend_comparison(path: str | os.PathLike, sequences: Sequence[str], backends: Sequence[str],
+                            values: dict[tuple[str, str], dict[str, float | None]], *, title: str = "") -> Path:
+    """The batch report's comparison: one panel per metric (ATE rmse [cm], APE median [cm], frames/s), a group of
+    bars per sequence, one colour per backend. ``values[(sequence, backend)]``: ``ate_rmse_m``, ``ape_median_m``
+    (metres) and ``frames_per_second``; a missing pair or a None value (a failed run) is left out and marked
+    "n/a" at the bar's place. Returns the PNG path."""
+    metrics = (("ate_rmse_m", "ATE rmse [cm]", 100.0), ("ape_median_m", "APE median [cm]", 100.0),
+               ("frames_per_second", "frames/s", 1.0))
+    fig = _figure(max(6.0, 1.2 + 0.9 * len(sequences) * max(1, len(backends)) / 2), 7.5)
+    axs = fig.subplots(len(metrics), 1, sharex=True, squeeze=False)[:, 0]
+    x = np.arange(len(sequences), dtype=np.float64)
+    width = 0.8 / max(1, len(backends))
+    for ax, (key, label, scale) in zip(axs, metrics):
+        for j, b in enumerate(backends):
+            xs = x - 0.4 + width * (j + 0.5)
+            v = [values.get((s, b), {}).get(key) for s in sequences]
+            h = np.array([np.nan if u is None else float(u) * scale for u in v])
+            ax.bar(xs, np.nan_to_num(h), width, label=b, color=f"C{j}")
+            for xi, hi in zip(xs, h):
+                if np.isnan(hi):
+                    ax.text(xi, 0, "n/a", ha="center", va="bottom", fontsize=7, rotation=90)
+        ax.set_ylabel(label)
+        ax.grid(True, axis="y", alpha=0.3)
+    axs[0].legend(loc="best", fontsize=8, title="backend", title_fontsize=8)
+    axs[-1].set_xticks(x)
+    axs[-1].set_xticklabels(sequences, rotation=30 if len(sequences) > 4 else 0, ha="right" if len(sequences) > 4
+                            else "center", fontsize=8)
+    axs[-1].set_xlabel("sequence")
+    if title:
+        axs[0].set_title(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

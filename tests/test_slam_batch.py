@@ -45,6 +45,24 @@ def test_local_batch_writes_report(tmp_path, two_sequences):
     assert "a.html" in index and "b.html" in index and "rgbd_odometry" in index
     assert (tmp_path / "rep" / "b.html").is_file()
     assert (tmp_path / "rep" / "runs" / "a" / "icp" / "trajectory.txt").is_file()
+    # one comparison plot of every backend on every sequence (ATE, APE, frames/s), shown on the index page
+    import cv2
+    assert "plots/comparison.png" in index
+    im = cv2.imread(str(tmp_path / "rep" / "plots" / "comparison.png"))
+    assert im is not None and im.shape[0] > 400 and im.std() > 1
+
+
+def test_comparison_plot_leaves_failed_runs_out(tmp_path):
+    """A backend that failed on a sequence (None values, or no entry) gets no bar there, the others are drawn."""
+    import cv2
+
+    from slam.plots import plot_backend_comparison
+    values = {("a", "icp"): {"ate_rmse_m": 0.01, "ape_median_m": 0.008, "frames_per_second": 20.0},
+              ("a", "neural"): {"ate_rmse_m": None, "ape_median_m": None, "frames_per_second": None},
+              ("b", "icp"): {"ate_rmse_m": 0.02, "ape_median_m": 0.01, "frames_per_second": 15.0}}
+    p = plot_backend_comparison(tmp_path / "c.png", ["a", "b"], ["icp", "neural"], values)
+    im = cv2.imread(str(p))
+    assert im is not None and im.shape[0] > 400 and im.std() > 1
 
 
 def test_ray_executor_gives_the_same_numbers_as_local(tmp_path, two_sequences):
