@@ -1,0 +1,7 @@
+"""SynDA (thesis chapter 5): a generator h_G that maps real-like inputs into the clean synthetic
+domain the recogniser was trained on, trained only on online-augmented synthetic data.
+
+config.py (no torch), model.py (h_G), loss.py, augment.py (the augmentation A, draw/apply),
+shading.py (Blinn-Phong of Algorithm 5.1), noise.py (procedural textures), polygons.py
+(occluders of Algorithm 5.2), io.py (save/load with a version + domain header).
+"""
