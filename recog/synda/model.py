@@ -49,6 +49,11 @@ def _dec(c_in: int, c_out: int, dropout: float) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def _head(c_in: int, c_out: int) -> nn.Sequential:
+    """conv 4x4 stride 1 keeping the side (padding 1 before, 2 after: a 4-tap kernel has no centre)."""
+    return nn.Sequential(nn.ZeroPad2d((1, 2, 1, 2)), nn.Conv2d(c_in, c_out, 4))
+
+
 class SelfAttention(nn.Module):
     """SAGAN self-attention on a (B, C, H, W) map: query/key 1x1 convs to C/8 channels, value 1x1
     conv to C, attention softmax over the H W positions, out = x + gamma * attended (gamma a
@@ -86,7 +91,7 @@ class _Decoder(nn.Module):
             blocks.append(_dec(c, c_out, cfg.dropout if i < cfg.dropout_blocks else 0.0))
             c = c_out + (w[n - 2 - i] if cfg.skips and i < n - 1 else 0)
         self.blocks = nn.ModuleList(blocks)
-        self.head = nn.Conv2d(c, out_channels, 4, 1, padding="same")
+        self.head = _head(c, out_channels)
 
     def forward(self, feats: list[torch.Tensor]) -> torch.Tensor:
         n = len(feats)
@@ -108,7 +113,7 @@ class _Distiller(nn.Module):
                                        for m in cfg.decoders})
         self.attend = nn.ModuleDict({m: SelfAttention(w) if cfg.attention else nn.Identity() for m in cfg.decoders})
         self.decode = nn.Sequential(_dec(w, w, 0.0), _dec(w, w, 0.0))
-        self.head = nn.Conv2d(w, out_channels, 4, 1, padding="same")
+        self.head = _head(w, out_channels)
 
     def forward(self, maps: dict[str, torch.Tensor]) -> torch.Tensor:
         total = None
