@@ -49,7 +49,8 @@ from recog.synda.noise import NOISE_KINDS, draw_noise, eval_noise, pixel_coords
 from recog.synda.polygons import polygon_masks, random_polygons
 from recog.synda.shading import blinn_phong
 
-__all__ = ["SensorHook", "Augmenter", "load_image_bank", "select_params", "select", "BANK_SIDE", "IMAGE_SUFFIXES"]
+__all__ = ["SensorHook", "Augmenter", "load_image_bank", "select_params", "select", "BLUR_FILTERS", "BANK_SIDE",
+           "IMAGE_SUFFIXES"]
 
 SensorHook = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """(B, 1, S, S) composited depth in [-1, 1], (B,) int64 per-sample seeds -> (B, 1, S, S) depth
@@ -153,7 +154,8 @@ class Augmenter:
         n_img = 1 if self.images is None else len(self.images)
         p["bg.image"] = torch.randint(n_img, (b,), generator=gen)
         side = _uniform(gen, b, (0.25, 1.0)) * (BANK_SIDE - 1)
-        x0, y0 = torch.rand(b, generator=gen) * (BANK_SIDE - 1 - side), torch.rand(b, generator=gen) * (BANK_SIDE - 1 - side)
+        x0 = torch.rand(b, generator=gen) * (BANK_SIDE - 1 - side)
+        y0 = torch.rand(b, generator=gen) * (BANK_SIDE - 1 - side)
         p["bg.box"] = torch.stack([torch.stack([x0, y0], 1), torch.stack([x0 + side, y0], 1),
                                    torch.stack([x0 + side, y0 + side], 1), torch.stack([x0, y0 + side], 1)], 1)
         o_max, v_max = int(c.occluders[1]), int(c.vertices[1])
@@ -279,19 +281,21 @@ class Augmenter:
 
     def _blur(self, x: torch.Tensor, p: dict) -> torch.Tensor:
         out = x.clone()
-        for name in ("gaussian", "box", "median"):
+        for name, blur in BLUR_FILTERS.items():
             kind = BLURS.index(name)
             for k in torch.unique(p["blur.kernel"][p["blur.kind"] == kind]).tolist():
                 idx = torch.nonzero((p["blur.kind"] == kind) & (p["blur.kernel"] == k)).flatten()
-                xi = x[idx]
-                if name == "gaussian":
-                    sig = p["blur.sigma"][idx].to(x.dtype)
-                    out[idx] = kornia.filters.gaussian_blur2d(xi, (k, k), torch.stack([sig, sig], 1))
-                elif name == "box":
-                    out[idx] = kornia.filters.box_blur(xi, (k, k))
-                else:
-                    out[idx] = kornia.filters.median_blur(xi, (k, k))
+                out[idx] = blur(x[idx], int(k), p["blur.sigma"][idx].to(x.dtype))
         return out
+
+
+BLUR_FILTERS: dict[str, Callable[[torch.Tensor, int, torch.Tensor], torch.Tensor]] = {
+    "gaussian": lambda x, k, sigma: kornia.filters.gaussian_blur2d(x, (k, k), torch.stack([sigma, sigma], 1)),
+    "box": lambda x, k, sigma: kornia.filters.box_blur(x, (k, k)),
+    "median": lambda x, k, sigma: kornia.filters.median_blur(x, (k, k)),
+}
+"""Blur kind -> (images (B, C, S, S), odd kernel side, (B,) Gaussian sigmas) -> blurred images
+(kornia's filters; ``none`` is the absence of an entry)."""
 
 
 def select(sample: dict[str, torch.Tensor], idx) -> dict[str, torch.Tensor]:

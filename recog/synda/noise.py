@@ -17,7 +17,7 @@ import math
 
 import torch
 
-__all__ = ["NOISE_KINDS", "PERLIN_RES", "VORONOI_POINTS", "WHITE_RES", "draw_noise", "eval_noise", "select",
+__all__ = ["NOISE_KINDS", "PERLIN_RES", "VORONOI_POINTS", "WHITE_RES", "draw_noise", "eval_noise", "select", "NOISE",
            "pixel_coords"]
 
 NOISE_KINDS = ("perlin", "voronoi", "white")
@@ -104,19 +104,22 @@ def eval_noise(p: dict[str, torch.Tensor], coords: torch.Tensor) -> torch.Tensor
     c = p["white"].shape[1]
     b, h, w = coords.shape[:3]
     out = coords.new_zeros(b, c, h, w)
-    for k, name in enumerate(NOISE_KINDS):
+    for k, name in enumerate(NOISE_KINDS):  # NOISE_KINDS fixes the index of each kind in the draws
         idx = torch.nonzero(p["kind"] == k).flatten()
         if len(idx) == 0:
             continue
-        q, xy = select(p, idx), coords[idx]
-        if name == "perlin":
-            val = sum(_perlin(q[f"perlin{r}"].to(xy), xy) * (PERLIN_RES[0] / r) for r in PERLIN_RES)
-        elif name == "voronoi":
-            val = _voronoi(q["voronoi"].to(xy), xy)
-        else:
-            val = _white(q["white"].to(xy), xy)
-        out[idx] = _normalise(val)
+        out[idx] = _normalise(NOISE[name](select(p, idx), coords[idx]))
     return out
+
+
+def _fractal_perlin(q: dict[str, torch.Tensor], xy: torch.Tensor) -> torch.Tensor:
+    return sum(_perlin(q[f"perlin{r}"].to(xy), xy) * (PERLIN_RES[0] / r) for r in PERLIN_RES)
+
+
+NOISE = {"perlin": _fractal_perlin,
+         "voronoi": lambda q, xy: _voronoi(q["voronoi"].to(xy), xy),
+         "white": lambda q, xy: _white(q["white"].to(xy), xy)}
+"""Kind -> (draws of the samples, coords (B, H, W, 2)) -> raw (B, C, H, W) values."""
 
 
 def pixel_coords(batch: int, h: int, w: int, device=None) -> torch.Tensor:
