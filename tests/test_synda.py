@@ -315,6 +315,38 @@ def test_generator_output_shapes_for_every_ablation(name, domain):
         assert has_sa == cfg.attention
 
 
+@pytest.mark.parametrize("preset", ["cpu", "gpu"])
+def test_preset_generators_follow_figure_5_4(preset):
+    """Shapes only (on torch's meta device: no memory, no arithmetic): encoder 64 -> 1x1 code,
+    the gpu decoder's concatenated blocks 2x2x1024 ... 32x32x128 as in Fig. 5.4."""
+    cfg = synda_preset(preset, "rgb")
+    with torch.device("meta"):
+        net = Generator(cfg.generator, "rgb")
+        x = torch.empty(2, 3, 64, 64)
+        feats = net.encode(x)
+        seen = []
+        dec = net.decoders["normals"]
+        net_out = dec(feats)
+        y = feats[-1]
+        for i, block in enumerate(dec.blocks[:-1]):
+            y = torch.cat([block(y), feats[len(feats) - 2 - i]], 1)
+            seen.append(tuple(y.shape[1:]))
+    w = cfg.generator.widths
+    assert [tuple(f.shape[1:]) for f in feats] == [(c, 64 >> (i + 1), 64 >> (i + 1)) for i, c in enumerate(w)]
+    assert net_out.shape == (2, 3, 64, 64)
+    if preset == "gpu":
+        assert seen == [(1024, 2, 2), (1024, 4, 4), (512, 8, 8), (256, 16, 16), (128, 32, 32)]
+
+
+def test_cpu_depth_generator_fits_the_shipping_budget():
+    """The generator shipped for the depth domain must stay under 20 MB (float32 weights)."""
+    cfg = synda_preset("cpu", "depth")
+    with torch.device("meta"):
+        net = Generator(cfg.generator, "depth")
+    size = sum(t.numel() * 4 for t in list(net.parameters()) + list(net.buffers()) if t.is_floating_point())
+    assert size < 20e6
+
+
 def test_skips_change_the_decoder_inputs():
     with_skips = Generator(TINY)
     without = Generator(dataclasses.replace(TINY, skips=False))
