@@ -223,6 +223,42 @@ def test_every_augmentation_kind_is_deterministic_and_in_range(bank, kw):
     assert o1["input"].shape == (4, 3, S, S)
 
 
+def test_light_directions_respect_their_angle_range(bank):
+    p = augmenter(bank=bank, light_angle_deg=(10.0, 40.0)).draw(200, 0)
+    assert torch.allclose(p["light"].norm(dim=1), torch.ones(200), atol=1e-6)
+    angle = torch.rad2deg(torch.acos(-p["light"][:, 2]))                    # from the camera's side
+    assert float(angle.min()) >= 10 - 1e-3 and float(angle.max()) <= 40 + 1e-3
+    for name, (lo, hi) in {"ambient": (0.05, 0.3), "diffuse": (0.1, 0.8), "specular": (0.0, 0.1)}.items():
+        assert p[name].shape == (200, 3) and float(p[name].min()) >= lo and float(p[name].max()) <= hi
+
+
+def test_textures_are_indexed_by_the_normals(bank):
+    """Pixels with the same normal get the same hue and saturation wherever they are."""
+    a = augmenter(bank=bank, textures=("perlin", "voronoi", "white"), occluders=(0, 0), blurs=("none",))
+    x = sphere(6)
+    n = torch.tensor([0.3, -0.2, -0.9])
+    x["normals"] = (n / n.norm()).view(1, 3, 1, 1).expand(6, 3, S, S).contiguous()
+    rgb = (a(x, 3)[0]["input"] + 1) / 2
+    import kornia
+    hls = kornia.color.rgb_to_hls(rgb)
+    fg = x["mask"][:, 0] > 0.5
+    for i in range(6):
+        assert float(hls[i, 0][fg[i]].std()) < 1e-3 and float(hls[i, 2][fg[i]].std()) < 1e-3
+
+
+def test_background_lightness_is_homogenised(bank):
+    x = sphere(8)
+    fg = x["mask"] > 0.5
+    gap = {}
+    for on in (True, False):
+        a = augmenter(bank=bank, occluders=(0, 0), blurs=("none",), homogenise_background=on)
+        out = a(x, 9)[0]
+        import kornia
+        light = kornia.color.rgb_to_hls((out["input"] + 1) / 2)[:, 1:2]
+        gap[on] = [float(light[i][~fg[i]].mean() - light[i][fg[i]].mean()) for i in range(8)]
+    assert np.mean(np.abs(gap[True])) < 0.05 < np.mean(np.abs(gap[False]))
+
+
 @pytest.mark.parametrize("kind", ["gaussian", "box", "median"])
 def test_blur_smooths_the_same_draw(bank, kind):
     """The draws do not depend on the allowed kinds' count, so one seed gives the same image
