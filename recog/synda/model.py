@@ -22,6 +22,8 @@ Deviations from Fig. 5.4, on purpose:
 * The mask enters h_R as probabilities in [-1, 1] (2 sigmoid - 1, or 2 softmax - 1 for
   classes), the same range as the other modalities; its decoder output stays logits.
 * The last decoder block outputs ``widths[0]`` channels (the figure: C_m) before the 4x4 conv.
+* Dropout acts in training only (``eval()`` turns it off; pix2pix keeps it at test time as its
+  noise source, which a mapping in front of a recogniser should not have: outputs are repeatable).
 """
 from __future__ import annotations
 
