@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -94,6 +95,17 @@ def test_config_errors_are_one_line(change, words):
     with pytest.raises(RealgapError) as e:
         cfg.validate()
     assert words in one_line(e)
+
+
+def test_config_round_trips_through_json_and_overrides():
+    from data_tools.config import config_from_dict, config_replace, config_to_dict
+    cfg = synda_preset("cpu", "depth")
+    assert config_from_dict(SyndaConfig, json.loads(json.dumps(config_to_dict(cfg)))) == cfg
+    cfg2 = config_replace(cfg, {"generator.skips": "false", "augment.blurs": ["none", "median"]})
+    assert cfg2.generator.skips is False and cfg2.augment.blurs == ("none", "median")
+    with pytest.raises(RealgapError) as e:
+        config_replace(cfg, {"generator.decoders": ["normals", "lightness"]})
+    assert "no lightness" in one_line(e)
 
 
 def test_unknown_preset_is_one_line():
@@ -305,6 +317,14 @@ def test_bad_augmentation_input_is_one_line(bank):
     with pytest.raises(RealgapError) as e:
         a({"normals": torch.zeros(2, 3, 16, 16), "mask": torch.zeros(2, 1, 16, 16)}, 0)
     assert "mask of shape (B, 1, 32, 32), got (2, 1, 16, 16)" in one_line(e)
+
+
+@pytest.mark.slow
+def test_image_bank_of_scikit_image():
+    """The default backgrounds: the colour and grey sample images scikit-image ships (~5 s)."""
+    bank = load_image_bank("skimage")
+    assert bank.shape[0] >= 10 and bank.shape[1:] == (3, 128, 128)
+    assert float(bank.min()) >= 0 and float(bank.max()) <= 1 and float(bank.std()) > 0.1
 
 
 def test_image_bank_from_a_folder(tmp_path):
