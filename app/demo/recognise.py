@@ -21,15 +21,16 @@ SHIPPED_RECOGNISER = Path(__file__).resolve().parents[2] / "recog" / "weights" /
 
 
 def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str:
-    """Up to ``n`` scans (depth as grey) with the recognised CAD model's vertices projected at the
-    estimated pose (green: right object, red: wrong): ``out``."""
+    """Up to ``n`` scans (as many of each object; depth in grey) with the recognised CAD model drawn at
+    the estimated pose (green: right object, red: wrong): ``out``."""
     from data_tools.camera import read_camera_json
     from data_tools.results import atomic_save_figure, new_figure
     from data_tools.sequence import read_depth_png
     cam = read_camera_json(testset / "camera.json")
     intr = cam.intrinsics
     rows = [json.loads(line) for line in (eval_dir / "predictions.jsonl").read_text().splitlines() if line.strip()]
-    rows = rows[:: max(1, len(rows) // n)][:n]
+    per = max(1, n // max(1, len({r["object"] for r in rows})))        # the same number of scans of each object
+    rows = [r for k, r in enumerate(rows) if sum(q["object"] == r["object"] for q in rows[:k]) < per][:n]
     fig = new_figure(3.2 * len(rows), 3.4)
     axes = np.atleast_1d(fig.subplots(1, len(rows)))
     for ax, r in zip(axes, rows):
@@ -38,13 +39,7 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
         im = ax.imshow(shown, cmap="gray_r")
         T = np.asarray(r["pose"], float)
         obj = model.object(model.index_of(r["predicted"]))
-        V = np.concatenate([m.vertices for m in obj.meshes])
-        V = V[np.random.default_rng(0).permutation(len(V))[:4000]]
-        P = V @ T[:3, :3].T + T[:3, 3]
-        P = P[P[:, 2] > 0.05]
-        u = intr.fx * P[:, 0] / P[:, 2] + intr.cx
-        v = intr.fy * P[:, 1] / P[:, 2] + intr.cy
-        ax.scatter(u, v, s=0.3, c="tab:green" if r["correct"] else "tab:red", alpha=0.5, linewidths=0)
+        _draw_mesh(ax, obj.meshes, T, intr, "tab:green" if r["correct"] else "tab:red")
         x0, y0, x1, y1 = _bbox(testset, r["file"])
         ax.set_xlim(max(0, x0 - 20), min(intr.width, x1 + 20))
         ax.set_ylim(min(intr.height, y1 + 20), max(0, y0 - 20))
@@ -59,6 +54,22 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
                  fontsize=10)
     atomic_save_figure(fig, out, dpi=90)
     return str(out)
+
+
+def _draw_mesh(ax, meshes, T: np.ndarray, intr, colour: str) -> None:
+    """The meshes' triangles projected at object-to-camera pose ``T`` (4x4), filled semi-transparent:
+    the CAD model as the recogniser placed it (triangles behind the camera are left out)."""
+    from matplotlib.collections import PolyCollection
+    polys = []
+    for m in meshes:
+        P = m.vertices @ T[:3, :3].T + T[:3, 3]
+        tri = P[m.triangles]                                          # (F, 3, 3) camera frame, metres
+        tri = tri[(tri[:, :, 2] > 0.05).all(axis=1)]
+        uv = np.stack([intr.fx * tri[:, :, 0] / tri[:, :, 2] + intr.cx,
+                       intr.fy * tri[:, :, 1] / tri[:, :, 2] + intr.cy], axis=-1)
+        polys.append(uv)
+    if polys:
+        ax.add_collection(PolyCollection(np.concatenate(polys), facecolors=colour, edgecolors="none", alpha=0.18))
 
 
 def _bbox(testset: Path, file: str) -> list[int]:
