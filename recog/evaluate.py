@@ -10,7 +10,7 @@ symmetry-aware (``rot_err_deg``: the minimum over the object's symmetry group, s
 between estimated and true object centres (the origin of the model frame), metres.
 
     OUT/eval.json            the numbers (one result header; top level = after ICP)
-    OUT/predictions.jsonl    one line per scan
+    OUT/predictions.jsonl    one line per scan (with the estimated 4x4 object-to-camera ``pose``)
     OUT/figures/cdf_rotation.png, cdf_translation.png, confusion.png
 """
 from __future__ import annotations
@@ -75,7 +75,8 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
         desc_correct += int(pred.descriptor_object == sc.object)
         row = {"file": sc.file, "object": sc.object, "predicted": pred.object, "correct": gi == pi,
                "descriptor_predicted": pred.descriptor_object, "verification": pred.verification,
-               "distance": pred.distance, "icp_accepted": pred.icp_accepted}
+               "distance": pred.distance, "icp_accepted": pred.icp_accepted,
+               "pose": np.asarray(pred.pose, float).round(6).tolist()}
         if gi == pi:
             sym = model.objects[gi].get("symmetry") or {}
             for key, T in (("before", pred.pose_initial), ("after", pred.pose)):

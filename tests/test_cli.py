@@ -46,11 +46,11 @@ def test_corrupt_sequence_is_one_line(tmp_path):
     assert r.returncode == 1 and "not sorted" in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
 
-def test_demo_refuses_too_few_frames_before_writing(tmp_path, capsys):
+def test_demo_refuses_a_bad_option_before_writing(tmp_path, capsys):
     from app.cli import main
-    assert main(["demo", "--frames", "2", "--out", str(tmp_path / "d")]) == 1
+    assert main(["demo", "--room-frames", "10", "--out", str(tmp_path / "d")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--frames must be at least 3" in err[0]
+    assert len(err) == 1 and "room_frames must be at least 30" in err[0]
     assert not (tmp_path / "d").exists()
 
 

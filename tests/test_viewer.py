@@ -125,7 +125,7 @@ def test_a_second_sequence_is_shown_as_the_simulation(seq_and_run, offscreen_ok,
     expect = SequenceReader(sim).read_depth(7)
     np.testing.assert_array_equal(np.nan_to_num(simd), expect)
     both = np.isfinite(meas) & np.isfinite(simd)
-    np.testing.assert_allclose(res[both], (simd[both] - meas[both]) * 1000.0, rtol=1e-5, atol=1e-3)
+    np.testing.assert_allclose(res[both], (meas[both] - simd[both]) * 1000.0, rtol=1e-5, atol=1e-3)  # as report.html
     assert 0 < np.nanmedian(np.abs(res)) < 50                       # sensor noise: millimetres
     v.p.close()
     other = tmp_path / "other"
@@ -182,3 +182,17 @@ def test_movie_and_bad_input(seq_and_run, offscreen_ok, tmp_path, capsys):
     capsys.readouterr()
     assert main(["view", str(run), "--screenshot", str(tmp_path / "w.png")]) == 1
     assert "trajectory.txt" in capsys.readouterr().err
+
+
+def test_off_screen_run_is_quiet_and_counts_frames_as_the_flag_does(seq_and_run, offscreen_ok, tmp_path, capfd):
+    """No VTK "bad X server connection" line on an off-screen run; ``--frame 3`` is shown as frame 3."""
+    png = tmp_path / "s.png"
+    assert main(["view", str(seq_and_run / "icp"), "--screenshot", str(png), "--frame", "3", "--size", "400x250"]) == 0
+    err = capfd.readouterr().err
+    assert "X server" not in err and "WARN" not in err, err
+    from app.viewer.data import load_session
+    from app.viewer.window import Viewer
+    v = Viewer(load_session([str(seq_and_run / "icp")]), off_screen=True, window_size=(400, 250))
+    v.set_frame(3)
+    assert v._status().startswith(f"frame 3 (0-{len(v.s) - 1})")
+    v.p.close()

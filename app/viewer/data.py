@@ -313,8 +313,8 @@ class LabSession:
 
     def simulate(self, i: int) -> dict:
         """Measured depth, simulated depth (the model with the current on/off switches, the lab's
-        seed; the lab's own convention: frame k uses seed + its index) and the residual simulated -
-        measured in millimetres (NaN where either is a hole)."""
+        seed; the lab's own convention: frame k uses seed + its index) and the residual measured -
+        simulated in millimetres (NaN where either is a hole; the sign of the lab's report.html)."""
         import dataclasses
         effects = [e.replace() for e in self.config.effects]
         for e in effects:
@@ -322,7 +322,7 @@ class LabSession:
         cfg = dataclasses.replace(self.config, effects=effects)
         sim = self.measured.simulate(cfg, seed=self.seed, frames=[i])[0]
         meas = self.measured.measured_depth(i)
-        res = np.where((meas > 0) & (sim > 0), (sim - meas) * 1000.0, np.nan).astype(np.float32)
+        res = np.where((meas > 0) & (sim > 0), (meas - sim) * 1000.0, np.nan).astype(np.float32)
         return {"measured": meas, "simulated": sim, "residual_mm": res}
 
     def breakdown_figure(self) -> Path | None:

@@ -49,6 +49,7 @@ def check_offscreen() -> None:
         import pyvista as pv
     except ImportError:
         raise RealgapError("the viewer needs pyvista (pip install pyvista); 'make setup' installs it") from None
+    quiet_vtk_warnings()
     try:
         p = pv.Plotter(off_screen=True, window_size=(32, 32))
         p.screenshot(return_img=True)
@@ -56,6 +57,29 @@ def check_offscreen() -> None:
     except Exception as e:
         raise RealgapError(f"no display and no off-screen rendering (EGL/OSMesa) here: {type(e).__name__}: "
                            f"{str(e).splitlines()[0] if str(e) else ''}".strip()) from None
+
+
+def _separate_bar_title(plotter, title: str) -> None:
+    """Keep a colour bar's title clear of its tick labels: labels on the far side of the bar from the
+    title (below a horizontal bar, left of a vertical one) and a gap between bar and title; a horizontal
+    bar needs the height for its labels below it."""
+    if not title or title not in plotter.scalar_bars.keys():
+        return
+    bar = plotter.scalar_bars[title]
+    bar.SetTextPositionToPrecedeScalarBar()
+    bar.SetVerticalTitleSeparation(8)
+    if not bar.GetOrientation():              # horizontal: a thinner bar leaves its labels room below it
+        bar.SetBarRatio(0.25)
+
+
+def quiet_vtk_warnings() -> None:
+    """VTK logs a coloured "bad X server connection" warning on stderr whenever a render window
+    starts without a display, although off-screen EGL rendering then works: show VTK's errors only."""
+    try:
+        from vtkmodules.vtkCommonCore import vtkLogger
+        vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
+    except ImportError:                       # an older VTK without vtkLogger prints nothing of the kind
+        pass
 
 
 def _set_text(actor, text: str) -> None:
@@ -142,8 +166,9 @@ class Viewer:
                 self._actors[pane] = self.p.add_mesh(
                     g, scalars="value", cmap=cmap or "turbo", clim=clim, nan_color="black",
                     scalar_bar_args={"title": bar or "", "vertical": True, "position_x": 0.86, "position_y": 0.08,
-                                     "height": 0.8, "width": 0.08, "title_font_size": 12, "label_font_size": 10,
+                                     "height": 0.74, "width": 0.08, "title_font_size": 12, "label_font_size": 10,
                                      "color": "white", "n_labels": 4, "fmt": "%.2f"})
+                _separate_bar_title(self.p, bar or "")
             self._grids[pane] = g
             self.p.view_xy()
             self.p.enable_parallel_projection()
@@ -211,7 +236,8 @@ class Viewer:
                                 render_points_as_spheres=True, show_scalar_bar=not bar_done,
                                 scalar_bar_args={"title": "APE (cm), origin-aligned", "color": "white",
                                                  "title_font_size": 12, "label_font_size": 10, "position_x": 0.05,
-                                                 "position_y": 0.05, "width": 0.4, "fmt": "%.1f"})
+                                                 "position_y": 0.05, "width": 0.4, "height": 0.1, "fmt": "%.1f"})
+                _separate_bar_title(self.p, "APE (cm), origin-aligned")
                 bar_done = True
             if len(r.failed_timestamps) and s.gt is not None:
                 idx = np.clip(np.searchsorted(s.gt.timestamps, r.failed_timestamps), 0, len(s.gt) - 1)
@@ -221,9 +247,11 @@ class Viewer:
         if any(len(r.failed_timestamps) for r in s.runs):
             legend.append(["failed frames", (1.0, 0.0, 0.0)])
         legend.append(["virtual camera", TRACK_COLOURS["virtual camera"]])
-        wide = 0.32 if "simulated" not in self.panes else 0.26      # the 3D pane is narrower beside 3 columns
-        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(wide, 0.05 * len(legend) + 0.02),
-                          loc="upper right" if "simulated" not in self.panes else "center left", face="line")
+        # the legend box's size sets its font size: small, inside the 3D pane's lower right corner (the
+        # APE colour bar holds the lower left), so no entry is cut by the image panes beside it
+        wide = 0.2 if "simulated" not in self.panes else 0.24       # the 3D pane is narrower beside 3 columns
+        self.p.add_legend(legend, bcolor=(0.12, 0.12, 0.12), border=True, size=(wide, 0.035 * len(legend) + 0.01),
+                          loc="lower right", face="line")
         extent = float(np.ptp(mesh.vertices, axis=0).max()) if mesh is not None else \
             (float(np.ptp(s.gt.positions, axis=0).max()) if s.gt is not None else 1.0)
         self._frustum_size = max(0.04 * extent, 0.08)
@@ -301,7 +329,7 @@ class Viewer:
     def _status(self) -> str:
         s = self.s
         ts = s.reader.timestamps[self.frame]
-        parts = [f"frame {self.frame + 1}/{len(s)}  t = {ts:.3f} s   model: {self._model_label}"]
+        parts = [f"frame {self.frame} (0-{len(s) - 1})  t = {ts:.3f} s   model: {self._model_label}"]
         for name, st in s.frame_state(self.frame).items():
             if st["failed"]:
                 parts.append(f"{name}: FAILED")
@@ -344,9 +372,9 @@ class Viewer:
                 ds = np.where(sim > 0, sim, np.nan)
                 self._image("simulated", ds, f"simulated depth ({s.simulated_path.name})", "turbo",
                             (0.0, max(hi, 0.5)), "depth (m)")
-                res = np.where((sim > 0) & (depth > 0), (sim - depth) * 1000.0, np.nan)
+                res = np.where((sim > 0) & (depth > 0), (depth - sim) * 1000.0, np.nan)
                 lim = float(np.nanpercentile(np.abs(res), 95)) if np.isfinite(res).any() else 1.0
-                self._image("residual", res, "simulated - measured", "RdBu_r", (-max(lim, 1.0), max(lim, 1.0)),
+                self._image("residual", res, "measured - simulated", "RdBu_r", (-max(lim, 1.0), max(lim, 1.0)),
                             "residual (mm)")
         self._grow_cloud()
         self._frusta()
@@ -416,12 +444,12 @@ class Viewer:
         sim = np.where(r["simulated"] > 0, r["simulated"], np.nan)
         both = np.concatenate([meas[np.isfinite(meas)], sim[np.isfinite(sim)]])
         clim = (float(np.percentile(both, 1)), float(np.percentile(both, 99))) if both.size else (0.0, 1.0)
-        self._image("measured", meas, f"measured depth, frame {self.frame + 1}/{len(self.s)}", "turbo", clim,
+        self._image("measured", meas, f"measured depth, frame {self.frame} (0-{len(self.s) - 1})", "turbo", clim,
                     "depth (m)")
         self._image("simulated", sim, "simulated depth (model below)", "turbo", clim, "depth (m)")
         res = r["residual_mm"]
         lim = float(np.nanpercentile(np.abs(res), 95)) if np.isfinite(res).any() else 1.0
-        self._image("residual", res, "simulated - measured", "RdBu_r", (-max(lim, 1.0), max(lim, 1.0)),
+        self._image("residual", res, "measured - simulated", "RdBu_r", (-max(lim, 1.0), max(lim, 1.0)),
                     "residual (mm)")
         self._message("effects", self._effects_text())
 
@@ -446,7 +474,7 @@ class Viewer:
         colour = "#33cc33" if sc["correct"] else "#ff3333"
         self._actors["model"] = self.p.add_mesh(pv.PolyData(m.vertices, faces), color=colour, opacity=0.7)
         summ = self.s.summary
-        text = (f"scan {self.frame + 1}/{len(self.s)}  {sc['file']}\ntrue: {sc['object']}   recognised: "
+        text = (f"scan {self.frame} (0-{len(self.s) - 1})  {sc['file']}\ntrue: {sc['object']}   recognised: "
                 f"{sc['predicted']}  ({'right' if sc['correct'] else 'WRONG'})\nevaluation: accuracy "
                 f"{100 * (summ.get('accuracy') or 0):.1f} % on {summ.get('n_scans')} scans")
         if "status" in self._actors:
