@@ -151,6 +151,14 @@ class FitConfig:
     ``differential_evolution`` (``scipy.optimize.differential_evolution``, seeded, the start in
     its initial population, no polishing). All three share the budget, the cache and the start;
     ``benchmarks/bench_fit_recovery.py --method`` compares them."""
+    screen: bool | None = None
+    """Screen the parameters first (:mod:`synth.lab.screen`: each moved alone by ``screen_step`` of its
+    range), freeze those whose move the data cannot see (named in ``FitResult.frozen``) and search the
+    others, most useful first. None (default) = only when the first sweep's scan of every parameter
+    (``grid_points`` each) would not fit in ``max_evaluations`` (e.g. the 22 parameters of a
+    structured-light physical pipeline), so a search that could scan them all is unchanged."""
+    screen_step: float = 0.25
+    """Probe distance of the screen, a fraction of each parameter's search range."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -171,6 +179,8 @@ class FitConfig:
             raise ConfigError("fit: need grid_points >= 2, refine_iterations >= 0, sweeps >= 1")
         if not self.tolerance >= 0:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
+        if not 0 < float(self.screen_step) <= 0.5:
+            raise ConfigError(f"fit: screen_step must be in (0, 0.5], got {self.screen_step}")
         if self.method not in SEARCH_METHODS:
             raise ConfigError(f"fit: method must be one of {', '.join(SEARCH_METHODS)}, got {self.method!r}")
         self.compare.validate()
@@ -243,6 +253,14 @@ class FitResult:
     reverted: list = field(default_factory=list)
     """Parameters the search moved but :attr:`FitConfig.revert_check` put back at their start value (the
     move did not hold on the evaluation set)."""
+    frozen: dict = field(default_factory=dict)
+    """{"effect.param": reason}: parameters the screen (:attr:`FitConfig.screen`) left at their start
+    because the data does not constrain them (their interval is their search bounds)."""
+    sensitivity: dict = field(default_factory=dict)
+    """{"effect.param": gap change / gap noise} of the screen, every parameter (empty without screen)."""
+    stages: dict = field(default_factory=dict)
+    """{stage: {"seconds": s, "evaluations": n}} of the fit's stages (start, screen, search, revert,
+    intervals, evaluation): where the time went."""
 
     @property
     def at_bound(self) -> dict[str, str]:
@@ -276,7 +294,8 @@ class FitResult:
                 "intervals": {k: list(v) for k, v in self.intervals.items()}, "gap_noise": self.gap_noise,
                 "intervals_one_at_a_time": {k: list(v) for k, v in self.intervals_one_at_a_time.items()},
                 "inflation": dict(self.inflation), "correlations": dict(self.correlations),
-                "reverted": list(self.reverted)}
+                "reverted": list(self.reverted), "frozen": dict(self.frozen),
+                "sensitivity": dict(self.sensitivity), "stages": dict(self.stages)}
 
 
 # ------------------------------------------------------------------------------------------
@@ -545,6 +564,15 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     """
     fc = (fit_config or FitConfig()).validate()
     t0 = time.perf_counter()
+    stages: dict = {}
+    mark = [t0, 0]
+
+    def stage(name: str) -> None:        # close the stage that ran since the last mark
+        n = obj.evaluations + (ev.evaluations if ev is not None else 0)
+        now = time.perf_counter()
+        stages[name] = {"seconds": round(now - mark[0], 3), "evaluations": n - mark[1]}
+        mark[:] = [now, n]
+    ev = None
     specs = param_specs(config, names)
     n = len(measured)
     if n == 0:
@@ -568,6 +596,17 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names)
         stats: dict = {}
+        stage("start")
+        all_specs, scr = specs, None
+        if specs and (fc.screen if fc.screen is not None
+                      else len(specs) * int(fc.grid_points) > int(fc.max_evaluations)):
+            from synth.lab.screen import screen_parameters
+            scr = screen_parameters(_gap_of(measured, obj, start_cfg, fc), specs, get_params(start_cfg, specs),
+                                    g_start, float(fc.screen_step))
+            specs = [s for k in scr.order for s in all_specs if s.key == k]
+            if bar is not None:
+                bar.update(scr.evaluations)
+            stage("screen")
         if specs:
             best_x, g_best, _ = search(obj, start_cfg, specs, fc, bar.update if bar else None, start_gap=g_start,
                                        stats=stats)
@@ -576,30 +615,40 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     finally:
         if bar is not None:
             bar.close()
+    stage("search")
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         best_x, reverted = _revert_moves(ev, start_cfg, specs, best_x)
         if reverted:
             g_best = obj(set_params(start_cfg, best_x))
-    best_cfg = set_params(start_cfg, best_x) if specs else config
+        stage("revert")
+    best_cfg = set_params(start_cfg, best_x) if specs else start_cfg
     intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:
         from synth.lab.intervals import profile_intervals
-
-        def gap_of(vals, seed_offset: int = 0) -> float:
-            o = obj if not seed_offset else Objective(measured, frames, obj.compare_config, fc.seed + seed_offset)
-            return o(set_params(start_cfg, vals))
+        gap_of = _gap_of(measured, obj, start_cfg, fc)
         intervals, noise = profile_intervals(gap_of, specs, best_x, g_best, fc.interval_steps)
         single = dict(intervals)
         if fc.joint_intervals:
             from synth.lab.intervals import joint_intervals
             intervals, inflation, correlations = joint_intervals(gap_of, specs, best_x, g_best, noise, single)
+        stage("intervals")
     before = ev(config)
-    after = ev(best_cfg) if specs else before
+    after = ev(best_cfg) if best_cfg is not config else before
     kept = False
     if after > before:
         best_cfg, best_x, after, kept = config, get_params(config, specs), before, True
+    stage("evaluation")
+    frozen = {}
+    if scr is not None:        # the frozen parameters: reported at their start, interval = their bounds
+        frozen = dict(scr.frozen)
+        for sp in all_specs:
+            if sp.key in frozen:
+                best_x[sp.key] = get_params(best_cfg, [sp])[sp.key]
+                if intervals and not kept:
+                    intervals[sp.key] = single[sp.key] = (sp.low, sp.high)
+        specs = all_specs
     return FitResult(best_cfg, float(before), float(after), {k: float(v) for k, v in best_x.items()},
                      {s.key: s.value for s in specs}, obj.evaluations + ev.evaluations,
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
@@ -607,5 +656,16 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
                      single if not kept else {}, inflation if not kept else {}, correlations if not kept else {},
-                     reverted)
+                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, stages)
+
+
+def _gap_of(measured, obj: Objective, base_cfg, fc: FitConfig) -> Callable:
+    """``gap_of(values, seed_offset=0)``: the gap of ``base_cfg`` with ``values`` set, on the search
+    frames and pixels of ``obj`` with the simulation seeds shifted by ``seed_offset``."""
+    def gap_of(vals, seed_offset: int = 0) -> float:
+        if not seed_offset:
+            return obj(set_params(base_cfg, vals))
+        obj.evaluations += 1                        # counted with the search frames' evaluations
+        return Objective(measured, obj.frames, obj.compare_config, fc.seed + seed_offset)(set_params(base_cfg, vals))
+    return gap_of
 
