@@ -43,6 +43,11 @@ phase of the disparity levels, which is the preset's reference depth):
 4. further sweeps (``sweeps``) scan every parameter in a bracket of one grid spacing around
    its current value, until a sweep improves the gap by less than ``tolerance`` (relative).
 
+Many parameters (``FitConfig.screen``): a sensitivity screen first
+(:func:`synth.lab.intervals.screen_parameters`) freezes what the data does not constrain
+(``FitResult.frozen`` says which and why) and orders the rest, most useful first. On a planar
+target the objective adds the noise-vs-distance term (``FitConfig.noise_curve_weight``).
+
 The budget is a number of evaluations (``max_evaluations``), never a time: the same data, model,
 settings and seed give the same fit on any machine under any load. (``max_seconds`` is an
 optional safety guard, off by default; a result it cut short says so in ``time_capped``.)
@@ -71,6 +76,7 @@ the data.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -82,7 +88,8 @@ from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
-from synth.lab.params import ParamSpec, _effect, config_parameters, get_params, param_specs, set_params  # noqa: F401
+from synth.lab.params import (ParamSpec, _effect, config_parameters, get_params, param_specs, set_params,  # noqa: F401
+                              start_values)
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
            "Objective", "search", "config_parameters", "start_values"]
@@ -152,13 +159,20 @@ class FitConfig:
     its initial population, no polishing). All three share the budget, the cache and the start;
     ``benchmarks/bench_fit_recovery.py --method`` compares them."""
     screen: bool | None = None
-    """Screen the parameters first (:mod:`synth.lab.screen`: each moved alone by ``screen_step`` of its
+    """Screen the parameters first (:func:`synth.lab.intervals.screen_parameters`: each moved alone by ``screen_step`` of its
     range), freeze those whose move the data cannot see (named in ``FitResult.frozen``) and search the
     others, most useful first. None (default) = only when the first sweep's scan of every parameter
     (``grid_points`` each) would not fit in ``max_evaluations`` (e.g. the 22 parameters of a
-    structured-light physical pipeline), so a search that could scan them all is unchanged."""
+    structured-light physical pipeline), so a search that could scan them all is unchanged. A
+    screened search's budget is raised, when needed, to scan every fitted parameter once
+    (``grid_points`` + 1 evaluations each) plus two golden-section refinements."""
     screen_step: float = 0.25
     """Probe distance of the screen, a fraction of each parameter's search range."""
+    noise_curve_weight: float = 1.0
+    """On a sequence with a planar reference (``data make-reference --plane``): weight of the
+    noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
+    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m), so the fit honours the
+    curve sensor people calibrate first; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -179,6 +193,8 @@ class FitConfig:
             raise ConfigError("fit: need grid_points >= 2, refine_iterations >= 0, sweeps >= 1")
         if not self.tolerance >= 0:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
+        if not float(self.noise_curve_weight) >= 0:
+            raise ConfigError(f"fit: noise_curve_weight must be >= 0, got {self.noise_curve_weight}")
         if not 0 < float(self.screen_step) <= 0.5:
             raise ConfigError(f"fit: screen_step must be in (0, 0.5], got {self.screen_step}")
         if self.method not in SEARCH_METHODS:
@@ -258,6 +274,11 @@ class FitResult:
     because the data does not constrain them (their interval is their search bounds)."""
     sensitivity: dict = field(default_factory=dict)
     """{"effect.param": gap change / gap noise} of the screen, every parameter (empty without screen)."""
+    noise_curve: dict = field(default_factory=dict)
+    """On a sequence with a planar reference: {"weight", "term_before", "term", "bins": [{"bin_m",
+    "measured_mm", "simulated_mm", "simulated_mm_before", "ratio", "pixels"}]}: the noise-vs-distance
+    curve of the evaluation set (:mod:`synth.lab.calibration`); ``gap_before`` / ``gap`` include
+    weight x term. Empty elsewhere."""
     stages: dict = field(default_factory=dict)
     """{stage: {"seconds": s, "evaluations": n}} of the fit's stages (start, screen, search, revert,
     intervals, evaluation): where the time went."""
@@ -295,34 +316,8 @@ class FitResult:
                 "intervals_one_at_a_time": {k: list(v) for k, v in self.intervals_one_at_a_time.items()},
                 "inflation": dict(self.inflation), "correlations": dict(self.correlations),
                 "reverted": list(self.reverted), "frozen": dict(self.frozen),
-                "sensitivity": dict(self.sensitivity), "stages": dict(self.stages)}
-
-
-# ------------------------------------------------------------------------------------------
-# Starting values measured from the data (the parameter space itself: synth.lab.params)
-# ------------------------------------------------------------------------------------------
-
-def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
-    """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
-    ``config``, restricted to the parameters that are fitted for this sensor, the effects' data
-    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str) and the
-    choices made from the data (``Effect.START_ONLY_PARAMS``, e.g. a window shape). Effects are
-    started in :attr:`~synth.sensor.registry.Effect.START_PRIORITY` order; the starts of an effect
-    with a negative priority (the lens warp) are applied to the config the later ones see."""
-    out = {}
-    cfg = config
-    for n in sorted(names, key=lambda n: _effect(config, n).START_PRIORITY):    # stable: the given order otherwise
-        start = _effect(cfg, n).fit_start(measured, cfg, frames)
-        if start:
-            known = {s.key for s in param_specs(cfg, [n])}
-            e = _effect(cfg, n)
-            known |= {f"{n}.{k}" for k in (*e.FILE_PARAMS, *e.START_ONLY_PARAMS)}   # a learned map, a shape
-            new = {k: v for k, v in start.items() if k in known}
-            out.update(new)
-            numeric = {k: v for k, v in new.items() if not isinstance(v, str)}
-            if numeric and _effect(cfg, n).START_PRIORITY < 0:      # later starts see this one
-                cfg = set_params(cfg, numeric)
-    return out
+                "sensitivity": dict(self.sensitivity), "stages": dict(self.stages),
+                "noise_curve": dict(self.noise_curve)}
 
 
 # ------------------------------------------------------------------------------------------
@@ -330,15 +325,25 @@ def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) 
 # ------------------------------------------------------------------------------------------
 
 class Objective:
-    """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values)."""
+    """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values).
 
-    def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0):
+    ``noise_weight`` > 0 on a sequence with a planar reference (``MeasuredSequence.has_plane_reference``)
+    adds ``noise_weight`` x the noise-vs-distance term of :mod:`synth.lab.calibration` (mean
+    |ln(simulated / measured std)| over the distance bins) to the gap; elsewhere it is ignored."""
+
+    def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0,
+                 noise_weight: float = 0.0):
         self.measured = measured
         self.frames = list(frames)
         self.compare_config = compare_config
         self.seed = int(seed)
         self.evaluations = 0
         self.last_result = None
+        self.noise_weight = float(noise_weight) if getattr(measured, "has_plane_reference", False) else 0.0
+        """Weight of the noise-curve term (0: off, also on sequences without a planar reference)."""
+        self.last_curve = None
+        """(term, observations) of the last evaluation when the noise-curve term is on."""
+        self._curve_measured = None
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
         self.journal = getattr(measured, "eval_journal", None)
@@ -364,6 +369,14 @@ class Objective:
         obs = self.measured.observations(sims, self.frames)
         self.last_result = compare(obs, self.compare_config, cache=self.cache)
         g = float(self.last_result.gap)
+        if self.noise_weight > 0:
+            from synth.lab.calibration import curve_term, noise_curve
+            px = self.compare_config.max_pixels_per_frame
+            if self._curve_measured is None:
+                self._curve_measured = noise_curve(obs, "measured", px, self.seed)[0]
+            term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed)[0])
+            self.last_curve = (term, obs)
+            g += self.noise_weight * term
         return g if math.isfinite(g) else float("inf")
 
 
@@ -579,7 +592,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         raise RealgapError(f"{measured.seq_dir}: no frames to fit")
     frames = spread(n, fc.max_frames)
     eval_frames = spread(n, fc.eval_frames)
-    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
+    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed,
+                    fc.noise_curve_weight)
     bar = None
     if progress:
         from data_tools.progress import progress_bar
@@ -600,15 +614,19 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         all_specs, scr = specs, None
         if specs and (fc.screen if fc.screen is not None
                       else len(specs) * int(fc.grid_points) > int(fc.max_evaluations)):
-            from synth.lab.screen import screen_parameters
+            from synth.lab.intervals import screen_parameters
             scr = screen_parameters(_gap_of(measured, obj, start_cfg, fc), specs, get_params(start_cfg, specs),
                                     g_start, float(fc.screen_step))
             specs = [s for k in scr.order for s in all_specs if s.key == k]
             if bar is not None:
                 bar.update(scr.evaluations)
             stage("screen")
+        sfc = fc
+        if scr is not None:     # enough to scan every fitted parameter once, plus two refinements
+            need = len(specs) * (int(fc.grid_points) + 1) + 2 * int(fc.refine_iterations)
+            sfc = dataclasses.replace(fc, max_evaluations=max(int(fc.max_evaluations), need))
         if specs:
-            best_x, g_best, _ = search(obj, start_cfg, specs, fc, bar.update if bar else None, start_gap=g_start,
+            best_x, g_best, _ = search(obj, start_cfg, specs, sfc, bar.update if bar else None, start_gap=g_start,
                                        stats=stats)
         else:
             best_x, g_best = {}, g_start
@@ -616,7 +634,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         if bar is not None:
             bar.close()
     stage("search")
-    ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+    ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
+                   fc.noise_curve_weight)
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         best_x, reverted = _revert_moves(ev, start_cfg, specs, best_x)
@@ -635,10 +654,18 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             intervals, inflation, correlations = joint_intervals(gap_of, specs, best_x, g_best, noise, single)
         stage("intervals")
     before = ev(config)
+    curve_before = ev.last_curve
     after = ev(best_cfg) if best_cfg is not config else before
+    curve_after = ev.last_curve
     kept = False
     if after > before:
         best_cfg, best_x, after, kept = config, get_params(config, specs), before, True
+        curve_after = curve_before
+    noise_curve = {}
+    if ev.noise_weight > 0 and curve_before is not None and curve_after is not None:
+        from synth.lab.calibration import noise_curve_report
+        noise_curve = noise_curve_report(ev.noise_weight, curve_before, curve_after, ev.compare_config.max_pixels_per_frame,
+                                         ev.seed)
     stage("evaluation")
     frozen = {}
     if scr is not None:        # the frozen parameters: reported at their start, interval = their bounds
@@ -656,16 +683,16 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
                      single if not kept else {}, inflation if not kept else {}, correlations if not kept else {},
-                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, stages)
+                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, stages, noise_curve)
 
 
-def _gap_of(measured, obj: Objective, base_cfg, fc: FitConfig) -> Callable:
+def _gap_of(measured, obj: Objective, base_cfg, fc) -> Callable:
     """``gap_of(values, seed_offset=0)``: the gap of ``base_cfg`` with ``values`` set, on the search
     frames and pixels of ``obj`` with the simulation seeds shifted by ``seed_offset``."""
     def gap_of(vals, seed_offset: int = 0) -> float:
         if not seed_offset:
             return obj(set_params(base_cfg, vals))
         obj.evaluations += 1                        # counted with the search frames' evaluations
-        return Objective(measured, obj.frames, obj.compare_config, fc.seed + seed_offset)(set_params(base_cfg, vals))
+        return Objective(measured, obj.frames, obj.compare_config, fc.seed + seed_offset,
+                         fc.noise_curve_weight)(set_params(base_cfg, vals))
     return gap_of
-

@@ -246,6 +246,13 @@ class MeasuredSequence:
         """The sequence has per-frame masks (e.g. a planar-target capture)."""
         return bool(self._reader.has_masks)
 
+    @property
+    def has_plane_reference(self) -> bool:
+        """The sequence is a planar-target capture with its reference (``plane_reference.json``, written
+        by ``realgap data make-reference --plane``): fits add the noise-vs-distance term
+        (:mod:`synth.lab.noise_curve`)."""
+        return (self.seq_dir / "plane_reference.json").is_file()
+
     def mask(self, k: int) -> np.ndarray | None:
         """(H, W) bool mask of kept frame k (FORMATS.md section 4), None when the sequence has none.
         Comparisons, fits and diagnoses use only masked-in pixels: :meth:`observation` sets the
