@@ -223,3 +223,56 @@ def noise_curve_report(weight: float, before, after, max_pixels, seed: int) -> d
     for row, rb in zip(ta, tb):
         row["simulated_mm_before"] = rb["simulated_mm"]
     return {"weight": float(weight), "term_before": float(before[0]), "term": float(after[0]), "bins": ta}
+
+
+def curve_start(config, objective, specs) -> dict[str, float]:
+    """A starting point that puts the model's noise curve on the measured one, when the model
+    has ``axial_noise`` (of its fitted ``specs``): the classic planar calibration (Nguyen et al.
+    2012's form sigma0 + sigma2 (z - z_offset)^2) fitted to the measured curve, less what the
+    model's other effects already contribute.
+
+    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) scores
+    ``config`` once; per distance bin (centre z) the measured std m and the simulated s give the
+    axial part wanted, a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources
+    add in variance (an approximation for the robust std) - less the model's own sigma1 z.
+    sigma0, sigma2 >= 0 then minimise the relative squared error (the term's log ratio to first
+    order) by non-negative least squares for each z_offset on a 0.025 m grid over its bounds,
+    each clipped to its search bounds. {} when axial_noise is not fitted, the term is off, or
+    fewer than 3 bins have data."""
+    from scipy.optimize import nnls
+    keys = {s.key: s for s in specs}
+    k0, k2, ko = "axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m"
+    if k2 not in keys or getattr(objective, "noise_weight", 0) <= 0:
+        return {}
+    objective(config)
+    if objective.last_curve is None:
+        return {}
+    obs = objective.last_curve[1]
+    px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
+    m, _ = noise_curve(obs, "measured", px, seed)
+    s, _ = noise_curve(obs, "simulated", px, seed)
+    e = np.asarray(BIN_EDGES_M)
+    zc = 0.5 * (e[:-1] + e[1:])
+    p = next(x for x in config.effects if x.name == "axial_noise").params
+    now = p.sigma0_m + p.sigma1 * zc + p.sigma2_per_m * (zc - p.z_offset_m) ** 2
+    other2 = np.where(np.isfinite(s), np.maximum(np.nan_to_num(s) ** 2 - now ** 2, 0.0), 0.0)
+    want = np.sqrt(np.maximum(m ** 2 - other2, 0.0)) - p.sigma1 * zc
+    ok = np.isfinite(m) & (want > 0)
+    if ok.sum() < 3:
+        return {}
+    z, t = zc[ok], want[ok]
+    lo, hi = (keys[ko].low, keys[ko].high) if ko in keys else (p.z_offset_m, p.z_offset_m)
+    best = None
+    for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
+        cols = [(z - off) ** 2] if k0 not in keys else [np.ones_like(z), (z - off) ** 2]
+        A = np.stack(cols, 1) / t[:, None]
+        x, r = nnls(A, np.ones_like(t))
+        if best is None or r < best[0]:
+            best = (r, off, x)
+    _, off, x = best
+    out = {k2: float(x[-1])}
+    if k0 in keys:
+        out[k0] = float(x[0])
+    if ko in keys:
+        out[ko] = float(off)
+    return {k: float(min(max(v, keys[k].low), keys[k].high)) for k, v in out.items()}

@@ -577,15 +577,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     """
     fc = (fit_config or FitConfig()).validate()
     t0 = time.perf_counter()
-    stages: dict = {}
-    mark = [t0, 0]
+    stages, mark, ev = {}, [t0, 0], None
 
     def stage(name: str) -> None:        # close the stage that ran since the last mark
-        n = obj.evaluations + (ev.evaluations if ev is not None else 0)
-        now = time.perf_counter()
+        n, now = obj.evaluations + (ev.evaluations if ev is not None else 0), time.perf_counter()
         stages[name] = {"seconds": round(now - mark[0], 3), "evaluations": n - mark[1]}
         mark[:] = [now, n]
-    ev = None
     specs = param_specs(config, names)
     n = len(measured)
     if n == 0:
@@ -609,6 +606,11 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             if g < g_start:
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names)
+        if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
+            from synth.lab.calibration import curve_start
+            cs = curve_start(start_cfg, obj, specs)
+            if cs and (g := obj(cand := set_params(start_cfg, cs))) < g_start:
+                start_cfg, g_start, specs = cand, g, param_specs(cand, names)
         stats: dict = {}
         stage("start")
         all_specs, scr = specs, None
