@@ -38,7 +38,7 @@ def hand_made_plane_capture(out: Path, distances: Sequence[float], sigma_m: Call
     from data_tools.scene_spec import Material, SceneSpec
     from data_tools.sequence import Frame, SequenceWriter
     from synth.sensor.testscenes import quad_mesh
-    f = 580.0 * width / 640.0
+    f = 580.0                                   # Kinect v1's focal length: the preset cropped to width x height
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     cam = Camera(Intrinsics(width, height, f, f, cx, cy), 5000.0, SensorSpec("structured_light", 0.075, (0.075, 0, 0)))
     scene = SceneSpec([quad_mesh([0, 0, 0], [6, 0, 0], [0, 6, 0], "target", "target", 2)],

@@ -685,7 +685,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
                      single if not kept else {}, inflation if not kept else {}, correlations if not kept else {},
-                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, stages, noise_curve)
+                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, noise_curve, stages)
 
 
 def _gap_of(measured, obj: Objective, base_cfg, fc) -> Callable:
