@@ -231,8 +231,8 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     2012's form sigma0 + sigma2 (z - z_offset)^2) fitted to the measured curve, less what the
     model's other effects already contribute.
 
-    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) scores
-    ``config`` once; per distance bin (centre z) the measured std m and the simulated s give the
+    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) gives the
+    curves of ``config`` (its last evaluation's, or one more simulation); per distance bin (centre z) the measured std m and the simulated s give the
     axial part wanted, a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources
     add in variance (an approximation for the robust std) - less the model's own sigma1 z.
     sigma0, sigma2 >= 0 then minimise the relative squared error (the term's log ratio to first
@@ -244,10 +244,7 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     k0, k2, ko = "axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m"
     if k2 not in keys or getattr(objective, "noise_weight", 0) <= 0:
         return {}
-    objective(config)
-    if objective.last_curve is None:
-        return {}
-    obs = objective.last_curve[1]
+    obs = objective.curve(config)[1]
     px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
     m, _ = noise_curve(obs, "measured", px, seed)
     s, _ = noise_curve(obs, "simulated", px, seed)

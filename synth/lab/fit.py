@@ -342,7 +342,7 @@ class Objective:
         self.noise_weight = float(noise_weight) if getattr(measured, "has_plane_reference", False) else 0.0
         """Weight of the noise-curve term (0: off, also on sequences without a planar reference)."""
         self.last_curve = None
-        """(term, observations) of the last evaluation when the noise-curve term is on."""
+        """(term, observations, config) of the last evaluation simulated when the noise-curve term is on."""
         self._curve_measured = None
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
@@ -355,7 +355,8 @@ class Objective:
         key = None
         if self.journal is not None:
             key = self.journal.key(config, [self.measured.frame_indices[k] for k in self.frames],
-                                   self.compare_config, self.seed, self.measured.seq_dir)
+                                   self.compare_config, self.seed, self.measured.seq_dir,
+                                   {"noise_weight": self.noise_weight} if self.noise_weight > 0 else None)
             g = self.journal.get(key)
             if g is not None:
                 return g
@@ -375,9 +376,16 @@ class Objective:
             if self._curve_measured is None:
                 self._curve_measured = noise_curve(obs, "measured", px, self.seed)[0]
             term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed)[0])
-            self.last_curve = (term, obs)
+            self.last_curve = (term, obs, config)
             g += self.noise_weight * term
         return g if math.isfinite(g) else float("inf")
+
+    def curve(self, config) -> tuple[float, list]:
+        """(noise-curve term, observations) of ``config`` (simulated again when its last evaluation
+        was replayed from a journal or was of another config)."""
+        if self.last_curve is None or self.last_curve[2] is not config:
+            self._gap(config)
+        return self.last_curve[:2]
 
 
 class _Budget:
@@ -543,26 +551,6 @@ def _golden(f, x, s: ParamSpec, a: float, b: float, best: float, iters: int, bud
     return best, x
 
 
-def _revert_moves(ev, start_cfg, specs: Sequence[ParamSpec], best_x: dict) -> tuple[dict, list[str]]:
-    """``FitConfig.revert_check``: (values, keys put back) - every moved parameter, the largest move (in
-    search units) first, back at its start value while the evaluation gap ``ev`` does not rise."""
-    start = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
-    moved = [s for s in specs if abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])) > 1e-12]
-    if not moved:
-        return best_x, []
-    moved.sort(key=lambda s: -abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])))
-    g_cur = ev(set_params(start_cfg, best_x))
-    out, back = dict(best_x), []
-    for s in moved:
-        trial = dict(out)
-        trial[s.key] = start[s.key]
-        g = ev(set_params(start_cfg, trial))
-        if g <= g_cur:
-            out, g_cur = trial, g
-            back.append(s.key)
-    return out, back
-
-
 # ------------------------------------------------------------------------------------------
 # The fit
 # ------------------------------------------------------------------------------------------
@@ -640,7 +628,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                    fc.noise_curve_weight)
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
-        best_x, reverted = _revert_moves(ev, start_cfg, specs, best_x)
+        from synth.lab.intervals import revert_moves
+        best_x, reverted = revert_moves(ev, start_cfg, specs, best_x)
         if reverted:
             g_best = obj(set_params(start_cfg, best_x))
         stage("revert")
@@ -656,9 +645,9 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             intervals, inflation, correlations = joint_intervals(gap_of, specs, best_x, g_best, noise, single)
         stage("intervals")
     before = ev(config)
-    curve_before = ev.last_curve
+    curve_before = ev.curve(config) if ev.noise_weight > 0 else None
     after = ev(best_cfg) if best_cfg is not config else before
-    curve_after = ev.last_curve
+    curve_after = ev.curve(best_cfg) if ev.noise_weight > 0 else None
     kept = False
     if after > before:
         best_cfg, best_x, after, kept = config, get_params(config, specs), before, True

@@ -1,6 +1,7 @@
 """What the data constrains in a fit: before the search, the sensitivity screen of every parameter
-(:func:`screen_parameters`); after it, the profile interval of each fitted parameter (model.json's
-fit record, the CLI line and the lab report).
+(:func:`screen_parameters`); after it, the moves the evaluation set does not support put back
+(:func:`revert_moves`) and the profile interval of each fitted parameter (model.json's fit record,
+the CLI line and the lab report).
 
 The screen: a one-at-a-time sensitivity screen run before the search when the model has more
 parameters than the search budget can scan
@@ -31,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-__all__ = ["profile_intervals", "joint_intervals", "Screen", "screen_parameters", "gap_noise"]
+__all__ = ["profile_intervals", "joint_intervals", "Screen", "screen_parameters", "gap_noise", "revert_moves"]
 
 
 def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4) -> tuple[dict, float]:
@@ -280,3 +281,25 @@ def screen_parameters(gap_of: Callable, specs: Sequence, start: dict, g_start: f
     res.order = [k for *_, k in sorted(scored)]
     res.evaluations = n0
     return res
+
+
+def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict) -> tuple[dict, list[str]]:
+    """``FitConfig.revert_check`` of :func:`synth.lab.fit.fit_model`: (values, keys put back) - every
+    moved parameter, the largest move (in search units) first, back at its start value while the
+    evaluation gap ``ev`` does not rise."""
+    from synth.lab.params import set_params
+    start = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
+    moved = [s for s in specs if abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])) > 1e-12]
+    if not moved:
+        return best_x, []
+    moved.sort(key=lambda s: -abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])))
+    g_cur = ev(set_params(start_cfg, best_x))
+    out, back = dict(best_x), []
+    for s in moved:
+        trial = dict(out)
+        trial[s.key] = start[s.key]
+        g = ev(set_params(start_cfg, trial))
+        if g <= g_cur:
+            out, g_cur = trial, g
+            back.append(s.key)
+    return out, back
