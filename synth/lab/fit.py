@@ -77,6 +77,7 @@ the data.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -344,6 +345,8 @@ class Objective:
         self.last_curve = None
         """(term, observations, config) of the last evaluation simulated when the noise-curve term is on."""
         self._curve_measured = None
+        self.memo: dict | None = None
+        """{config key: gap} when a dict: a config scored again is not simulated again (``fit_model``'s evaluation set)."""
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
         self.journal = getattr(measured, "eval_journal", None)
@@ -351,6 +354,9 @@ class Objective:
         command (None: no journal). Replayed evaluations leave ``last_result`` unchanged."""
 
     def __call__(self, config) -> float:
+        mk = _config_key(config) if self.memo is not None else None
+        if mk in (self.memo or {}):
+            return self.memo[mk]
         self.evaluations += 1
         key = None
         if self.journal is not None:
@@ -363,6 +369,8 @@ class Objective:
         g = self._gap(config)
         if key is not None:
             self.journal.put(key, g)
+        if mk is not None:
+            self.memo[mk] = g
         return g
 
     def _gap(self, config) -> float:
@@ -376,16 +384,20 @@ class Objective:
             if self._curve_measured is None:
                 self._curve_measured = noise_curve(obs, "measured", px, self.seed)[0]
             term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed)[0])
-            self.last_curve = (term, obs, config)
+            self.last_curve = (term, obs, _config_key(config))
             g += self.noise_weight * term
         return g if math.isfinite(g) else float("inf")
 
     def curve(self, config) -> tuple[float, list]:
         """(noise-curve term, observations) of ``config`` (simulated again when its last evaluation
         was replayed from a journal or was of another config)."""
-        if self.last_curve is None or self.last_curve[2] is not config:
+        if self.last_curve is None or self.last_curve[2] != _config_key(config):
             self._gap(config)
         return self.last_curve[:2]
+
+
+def _config_key(config) -> str:
+    return json.dumps(config.to_json(), sort_keys=True, default=str)     # a model's identity
 
 
 class _Budget:
@@ -604,8 +616,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         all_specs, scr = specs, None
         if specs and (fc.screen if fc.screen is not None
                       else len(specs) * int(fc.grid_points) > int(fc.max_evaluations)):
-            from synth.lab.intervals import screen_parameters
-            scr = screen_parameters(_gap_of(measured, obj, start_cfg, fc), specs, get_params(start_cfg, specs),
+            from synth.lab.intervals import screen_parameters, seeded_gap_of
+            scr = screen_parameters(seeded_gap_of(obj, start_cfg), specs, get_params(start_cfg, specs),
                                     g_start, float(fc.screen_step))
             specs = [s for k in scr.order for s in all_specs if s.key == k]
             if bar is not None:
@@ -626,6 +638,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     stage("search")
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
                    fc.noise_curve_weight)
+    ev.memo = {}
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         from synth.lab.intervals import revert_moves
@@ -636,8 +649,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     best_cfg = set_params(start_cfg, best_x) if specs else start_cfg
     intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:
-        from synth.lab.intervals import profile_intervals
-        gap_of = _gap_of(measured, obj, start_cfg, fc)
+        from synth.lab.intervals import profile_intervals, seeded_gap_of
+        gap_of = seeded_gap_of(obj, start_cfg)
         intervals, noise = profile_intervals(gap_of, specs, best_x, g_best, fc.interval_steps)
         single = dict(intervals)
         if fc.joint_intervals:
@@ -658,9 +671,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         noise_curve = noise_curve_report(ev.noise_weight, curve_before, curve_after, ev.compare_config.max_pixels_per_frame,
                                          ev.seed)
     stage("evaluation")
-    frozen = {}
+    frozen = dict(scr.frozen) if scr is not None else {}
     if scr is not None:        # the frozen parameters: reported at their start, interval = their bounds
-        frozen = dict(scr.frozen)
         for sp in all_specs:
             if sp.key in frozen:
                 best_x[sp.key] = get_params(best_cfg, [sp])[sp.key]
@@ -675,15 +687,3 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
                      single if not kept else {}, inflation if not kept else {}, correlations if not kept else {},
                      reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, noise_curve, stages)
-
-
-def _gap_of(measured, obj: Objective, base_cfg, fc) -> Callable:
-    """``gap_of(values, seed_offset=0)``: the gap of ``base_cfg`` with ``values`` set, on the search
-    frames and pixels of ``obj`` with the simulation seeds shifted by ``seed_offset``."""
-    def gap_of(vals, seed_offset: int = 0) -> float:
-        if not seed_offset:
-            return obj(set_params(base_cfg, vals))
-        obj.evaluations += 1                        # counted with the search frames' evaluations
-        return Objective(measured, obj.frames, obj.compare_config, fc.seed + seed_offset,
-                         fc.noise_curve_weight)(set_params(base_cfg, vals))
-    return gap_of

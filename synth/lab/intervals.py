@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-__all__ = ["profile_intervals", "joint_intervals", "Screen", "screen_parameters", "gap_noise", "revert_moves"]
+__all__ = ["profile_intervals", "joint_intervals", "Screen", "screen_parameters", "gap_noise", "revert_moves",
+           "seeded_gap_of"]
 
 
 def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4) -> tuple[dict, float]:
@@ -303,3 +304,19 @@ def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict) -> tuple[dict, li
             out, g_cur = trial, g
             back.append(s.key)
     return out, back
+
+
+def seeded_gap_of(obj, base_cfg) -> Callable:
+    """The ``gap_of(values, seed_offset=0)`` of the screen and the intervals: ``obj`` (a
+    :class:`synth.lab.fit.Objective`) scoring ``base_cfg`` with ``values`` set; with a
+    ``seed_offset``, an objective of the same frames, pixels and noise-curve weight whose
+    simulation seeds are shifted by it (counted in ``obj.evaluations``)."""
+    from synth.lab.params import set_params
+
+    def gap_of(vals, seed_offset: int = 0) -> float:
+        if not seed_offset:
+            return obj(set_params(base_cfg, vals))
+        obj.evaluations += 1
+        other = type(obj)(obj.measured, obj.frames, obj.compare_config, obj.seed + seed_offset, obj.noise_weight)
+        return other(set_params(base_cfg, vals))
+    return gap_of

@@ -114,14 +114,17 @@ class SensorSimulator:
         renderer: an :class:`synth.render.IdealRenderer` to reuse (built from ``scene`` if None).
         pattern: override the preset's pattern (a path or a ``DotPattern``).
         shared: a dict shared by the simulators of one scene and renderer (e.g. every model a fit
-            evaluates on a measured sequence): the pattern, reference images and ray grids they
-            compute are kept there, keyed by everything they depend on (preset, effect
-            parameters), so a new simulator of another model does not rebuild them (the results
-            are the same: the same inputs give the same arrays).
+            evaluates on a measured sequence): the pattern, reference images, ray grids and the
+            seeded background draws they compute are kept there, keyed by everything they depend
+            on (preset, effect parameters, seed), so a new simulator of another model does not
+            rebuild them (the results are the same: the same inputs give the same arrays).
     """
 
     SHARED_REFERENCES = 8
     """Most reference images kept in a ``shared`` dict (the most recently used)."""
+    SHARED_DRAWS = 12
+    """Most frames whose background draws (``DRAW_FROM_SHAPE`` effects) a ``shared`` dict keeps (the
+    most recently used; ~5 MB per VGA frame of a physical model)."""
 
     def __init__(self, preset_or_config: Any = "kinect_v1", effects=None, scene=None, *, renderer=None,
                  pattern=None, shared: dict | None = None):
@@ -385,8 +388,21 @@ class SensorSimulator:
         if not effects:
             return None
         ctx = DrawContext(self.preset, self.preset.intrinsics, self.config.physical)
-        fut = _draw_executor().submit(_draw_all, effects, int(seed), ctx)
-        return fut, {e.name for e in effects}
+        names = {e.name for e in effects}
+        if self._shared is None:
+            return _draw_executor().submit(_draw_all, effects, int(seed), ctx), names
+        # shared: the draws depend on the seed, the effect and the context only (the lab's common
+        # random numbers: never on the parameters), so a model evaluated again on the same frame
+        # reuses them; the effects never write into their draws
+        key = ("draws", int(seed), repr(ctx), tuple(sorted((e.name, type(e).__qualname__) for e in effects)))
+        fut = self._shared.pop(key, None)
+        if fut is None:
+            fut = _draw_executor().submit(_draw_all, effects, int(seed), ctx)
+        self._shared[key] = fut                              # most recently used last
+        draws = [k for k in self._shared if k[0] == "draws"]
+        for k in draws[:max(len(draws) - self.SHARED_DRAWS, 0)]:
+            del self._shared[k]
+        return fut, names
 
     def simulate_sequence(self, poses_c2w: np.ndarray, seed: int = 0, motion: bool = True):
         """Yield one SimResult per pose; frame i uses seed ``seed + i`` and, with ``motion``,
