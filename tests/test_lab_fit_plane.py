@@ -61,23 +61,25 @@ def test_masked_frames_are_served_by_the_compare_cache(curve_ref):
 
 
 def test_screen_sensitivities_by_hand():
-    """gap = (a - 0.3)^2 + 0 b + 0.001 c from a = 0.8, b = c = 0.5 (linear scales on [0, 1]):
-    tau = 2 % of 0.25 = 0.005 (the gap does not depend on the seed); a's probes at 0.55 and 1.0
-    (0.25 of the range; the upper bound is within it) change the gap by -0.1875 and +0.24:
-    sensitivity 48; b: 0; c: 0.00025 / 0.005 = 0.05 -> b and c frozen."""
+    """gap = (a - 0.3)^2 + 0 b + 0.001 c + 10 (d - 0.5)^2 from a = 0.8, b = c = d = 0.5 (linear
+    scales on [0, 1]): tau = 2 % of 0.2505 (the gap does not depend on the seed); a's probes at
+    0.55 and 1.0 (0.25 of the range; the upper bound is within it) change the gap by -0.1875 and
+    +0.24; b: 0; c: 0.00025 -> b and c frozen; d's probes at 0.25 and 0.75 both raise it by 0.625:
+    bracketed (scanned locally), fitted after a (a probe of a lowered the gap)."""
     from synth.lab.intervals import screen_parameters
-    specs = [ParamSpec("e.a", 0.0, 1.0, 0.8), ParamSpec("e.b", 0.0, 1.0, 0.5), ParamSpec("e.c", 0.0, 1.0, 0.5)]
+    specs = [ParamSpec(f"e.{k}", 0.0, 1.0, 0.8 if k == "a" else 0.5) for k in "abcd"]
 
     def gap_of(v, seed_offset=0):
-        return (v["e.a"] - 0.3) ** 2 + 0.001 * v["e.c"]
-    start = {"e.a": 0.8, "e.b": 0.5, "e.c": 0.5}
+        return (v["e.a"] - 0.3) ** 2 + 0.001 * v["e.c"] + 10 * (v["e.d"] - 0.5) ** 2
+    start = {"e.a": 0.8, "e.b": 0.5, "e.c": 0.5, "e.d": 0.5}
     scr = screen_parameters(gap_of, specs, start, gap_of(start))
     assert scr.tau == pytest.approx(0.02 * 0.2505)
     assert scr.sensitivity["e.a"] == pytest.approx(0.24 / scr.tau)
     assert scr.improvement["e.a"] == pytest.approx(0.1875)
     assert scr.sensitivity["e.b"] == 0.0 and scr.sensitivity["e.c"] == pytest.approx(0.00025 / scr.tau)
-    assert scr.order == ["e.a"] and set(scr.frozen) == {"e.b", "e.c"} and "does not constrain" in scr.frozen["e.b"]
-    assert scr.evaluations == 2 + 6
+    assert scr.sensitivity["e.d"] == pytest.approx(0.625 / scr.tau) and scr.bracketed == ["e.d"]
+    assert scr.order == ["e.a", "e.d"] and set(scr.frozen) == {"e.b", "e.c"}
+    assert "does not constrain" in scr.frozen["e.b"] and scr.evaluations == 2 + 8
 
 
 def test_fit_freezes_an_inert_parameter_and_says_so(curve_ref):

@@ -421,13 +421,14 @@ class _Budget:
 
 def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: FitConfig,
            progress=None, start_gap: float | None = None, refine_below: float | None = None,
-           local: bool = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
+           local: bool | frozenset = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
     """Bounded coordinate descent (module docstring). Returns (best values, best gap, evaluations).
 
     ``start_gap``: the already known gap of the starting values. ``refine_below``: only
     parameters whose scan reached a gap below this value are refined (a candidate effect that
     cannot beat the model without it costs only its scans). ``local``: skip the coarse grid,
-    every sweep scans one grid spacing around the current values (polishing a good start).
+    every sweep scans one grid spacing around the current values (polishing a good start); a set
+    of keys: only for those parameters.
     ``stats``: a dict that receives ``time_capped`` (True when the wall-clock guard
     ``FitConfig.max_seconds`` stopped the search) and ``evaluations``.
     """
@@ -480,7 +481,7 @@ def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, 
                 continue
             cur_t = s.to_t(x[s.key])
             ga, gb = s.grid_t_bounds
-            if sweep == 0 and not local:
+            if sweep == 0 and not (local is True or (local and s.key in local)):
                 grid = [min(max(t, a), b) for t in np.linspace(ga, gb, int(fc.grid_points))]
             else:
                 h = (gb - ga) / max(int(fc.grid_points) - 1, 1) / 2
@@ -629,7 +630,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             sfc = dataclasses.replace(fc, max_evaluations=max(int(fc.max_evaluations), need))
         if specs:
             best_x, g_best, _ = search(obj, start_cfg, specs, sfc, bar.update if bar else None, start_gap=g_start,
-                                       stats=stats)
+                                       stats=stats, local=frozenset(scr.bracketed) if scr is not None else False)
         else:
             best_x, g_best = {}, g_start
     finally:

@@ -18,7 +18,9 @@ below). A parameter with sensitivity below 1 is *frozen* at its start:
 moving it by a quarter of its range changes nothing the data can see, so fitting it would fit
 noise and spend evaluations. The others are fitted in the order of how much a probe lowered the
 gap (a decrease within tau counts as none), then of sensitivity: what the data asks to change
-most is settled first.
+most is settled first. A parameter whose two probes both raise the gap by more than tau is
+*bracketed*: its optimum lies within a probe step of the start, and the search scans it locally
+rather than over its whole range.
 
 Approximation: one parameter at a time from the start - a parameter that only matters once
 another has moved (e.g. a speckle filter once the noise is right) can be frozen; the fit report
@@ -217,6 +219,10 @@ class Screen:
     """{"effect.param": largest gap decrease over the probes} (0 when no probe lowered it)."""
     tau: float = float("nan")
     """The gap's noise level used (see the module docstring)."""
+    bracketed: list[str] = field(default_factory=list)
+    """Fitted parameters whose every probe raised the gap by more than tau: the start lies within a
+    probe step of their optimum, so the search scans them locally (one grid spacing around the
+    start) instead of over their whole range."""
     evaluations: int = 0
     """Gap evaluations the screen made."""
 
@@ -279,6 +285,8 @@ def screen_parameters(gap_of: Callable, specs: Sequence, start: dict, g_start: f
                                   f"{sens:.2f} x its noise ({res.tau:.3g}); the data does not constrain it")
         else:   # a gain within the noise is no evidence: those are ordered by sensitivity alone
             scored.append((-(gain / res.tau if gain > res.tau else 0.0), -sens, sp.key))
+            if len(changes) == 2 and min(changes) > res.tau:
+                res.bracketed.append(sp.key)
     res.order = [k for *_, k in sorted(scored)]
     res.evaluations = n0
     return res
