@@ -106,7 +106,7 @@ def held_out_gap(ref: Path, config, pixels: int = 20000, seed: int = 0) -> tuple
     ms = MeasuredSequence.load(ref, frame_slice="1::2")
     obj = Objective(ms, range(len(ms)), FitConfig().compare_config(pixels), seed, noise_weight=1.0)
     obj(config)
-    term, obs = obj.last_curve
+    term, obs = obj.curve(config)
     return float(obj.last_result.gap), float(term), [r["ratio"] for r in curve_table(obs, pixels, seed)]
 
 
