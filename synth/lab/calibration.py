@@ -232,9 +232,10 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     model's other effects already contribute.
 
     ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) gives the
-    curves of ``config`` (its last evaluation's, or one more simulation); per distance bin (centre z) the measured std m and the simulated s give the
-    axial part wanted, a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources
-    add in variance (an approximation for the robust std) - less the model's own sigma1 z.
+    curves of ``config`` (its last evaluation's, or one more simulation); per distance bin
+    (centre z) the measured std m and the simulated s give the axial part wanted,
+    a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources add in variance (an
+    approximation for the robust std) - less the model's own sigma1 z.
     sigma0, sigma2 >= 0 then minimise the relative squared error (the term's log ratio to first
     order) by non-negative least squares for each z_offset on a 0.025 m grid over its bounds,
     each clipped to its search bounds. {} when axial_noise is not fitted, the term is off, or

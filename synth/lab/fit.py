@@ -160,9 +160,9 @@ class FitConfig:
     its initial population, no polishing). All three share the budget, the cache and the start;
     ``benchmarks/bench_fit_recovery.py --method`` compares them."""
     screen: bool | None = None
-    """Screen the parameters first (:func:`synth.lab.intervals.screen_parameters`: each moved alone by ``screen_step`` of its
-    range), freeze those whose move the data cannot see (named in ``FitResult.frozen``) and search the
-    others, most useful first. None (default) = only when the first sweep's scan of every parameter
+    """Screen the parameters first (:func:`synth.lab.intervals.screen_parameters`: each moved alone
+    by ``screen_step`` of its range), freeze those whose move the data cannot see (named in
+    ``FitResult.frozen``) and search the others, most useful first. None (default) = only when the first sweep's scan of every parameter
     (``grid_points`` each) would not fit in ``max_evaluations`` (e.g. the 22 parameters of a
     structured-light physical pipeline), so a search that could scan them all is unchanged. A
     screened search's budget is raised, when needed, to scan every fitted parameter once
@@ -346,7 +346,8 @@ class Objective:
         """(term, observations, config) of the last evaluation simulated when the noise-curve term is on."""
         self._curve_measured = None
         self.memo: dict | None = None
-        """{config key: gap} when a dict: a config scored again is not simulated again (``fit_model``'s evaluation set)."""
+        """{config key: gap} when a dict: a config scored again is not simulated again (the
+        evaluation set of ``fit_model``)."""
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
         self.journal = getattr(measured, "eval_journal", None)
@@ -669,8 +670,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     noise_curve = {}
     if ev.noise_weight > 0 and curve_before is not None and curve_after is not None:
         from synth.lab.calibration import noise_curve_report
-        noise_curve = noise_curve_report(ev.noise_weight, curve_before, curve_after, ev.compare_config.max_pixels_per_frame,
-                                         ev.seed)
+        noise_curve = noise_curve_report(ev.noise_weight, curve_before, curve_after,
+                                         ev.compare_config.max_pixels_per_frame, ev.seed)
     stage("evaluation")
     frozen = dict(scr.frozen) if scr is not None else {}
     if scr is not None:        # the frozen parameters: reported at their start, interval = their bounds
