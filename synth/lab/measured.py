@@ -149,7 +149,7 @@ class MeasuredSequence:
         self._material_names = material_table_from_scene(scene)
         self.compare_cache = CompareCache()
         self._sim_shared: dict = {}
-        """What the simulators of this sequence's models share (pattern, reference images, rays:
+        """What the simulators of this sequence's models share (pattern, reference images, rays, draws:
         :class:`~synth.sensor.simulator.SensorSimulator` ``shared``)."""
 
     # ------------------------------------------------------------------ loading
@@ -250,7 +250,7 @@ class MeasuredSequence:
     def has_plane_reference(self) -> bool:
         """The sequence is a planar-target capture with its reference (``plane_reference.json``, written
         by ``realgap data make-reference --plane``): fits add the noise-vs-distance term
-        (:mod:`synth.lab.noise_curve`)."""
+        (:mod:`synth.lab.calibration`)."""
         return (self.seq_dir / "plane_reference.json").is_file()
 
     def mask(self, k: int) -> np.ndarray | None:
