@@ -16,11 +16,14 @@ Two fits from ``--effects physical`` with the default :class:`~synth.lab.fit.Fit
 * ``old``: the search over every parameter (``screen=False``), a new simulator resource set
   per evaluation (pattern, reference image and ray grid rebuilt each time) and a new masked ideal
   depth per comparison (the compare cache missed every frame of a masked sequence), as before #43;
-* ``new``: the default path - the sensitivity screen (:func:`synth.lab.intervals.screen_parameters`) freezes what the
-  data does not constrain and fits the rest in sensitivity order; simulators share the pattern,
-  reference images and rays of the sequence; the compare cache serves the masked frames.
-  It adds the noise-vs-distance term of a planar reference (``noise_curve_weight``; the old one
-  has the gap alone).
+* ``new``: the default path - the sensitivity screen (:func:`synth.lab.intervals.screen_parameters`)
+  freezes what the data does not constrain and fits the rest in sensitivity order; simulators
+  share the pattern, reference images, rays and seeded draws of the sequence; the compare cache
+  serves the masked frames. It adds the noise-vs-distance term of a planar reference
+  (``noise_curve_weight``; the old one has the gap alone).
+
+(The old path here still scores the fitted model once on the evaluation set instead of twice, a
+few seconds in its favour.)
 
 Prints the wall and CPU seconds of each fit (load averages: the machine may be shared), the
 evaluations, the gap on the fitted frames and on the held-out frames (all 24, 20000 pixels each,
