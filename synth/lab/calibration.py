@@ -10,6 +10,32 @@
   the pixel is on the target, mm - the fixed spatial pattern (Smisek et al. 2011; Herrera et al.
   2012's disparity distortion) that a per-frame noise figure averages away; the same for the
   simulation beside it.
+
+The noise-vs-distance curve as a term of the fit's objective (:func:`noise_curve`,
+:func:`curve_term`; :class:`synth.lab.fit.Objective` with ``FitConfig.noise_curve_weight``):
+The noise-vs-distance curve of planar-target captures, as a term of the fit's objective.
+
+Sensor people calibrate noise against distance first (Khoshelham & Elberink 2012; Nguyen et al.
+2012): the spread of the depth about the target plane, per distance. The lab's gap compares error
+*distributions* per feature bin, pooled with other features; on a plane capture a model can lower
+the gap while its noise is 1.3-1.7 x too high far away. Where a sequence has a planar reference
+(``plane_reference.json``, written by ``realgap data make-reference --plane``), :func:`noise_curve`
+measures the curve of the measured and of the simulated depth the same way, and
+:func:`curve_term` scores their mismatch; :class:`synth.lab.fit.Objective` adds it to the gap
+(``FitConfig.noise_curve_weight``).
+
+The curve. Target pixels (ideal depth > 0: inside the frame's mask) are binned by their ideal
+depth into ``BIN_EDGES_M`` (0.5-3.0 m, 0.25 m wide). In each (frame, bin) group the residuals
+depth - ideal of the valid pixels have their median removed (a per-frame offset of the plane is
+a bias, not noise: the plane fit of a calibration removes it too), then per bin the pooled
+residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do not dominate it).
+A bin counts only when both sides have at least ``MIN_PIXELS`` valid residuals.
+
+The term: the mean over counted bins of |ln(s_simulated / s_measured)| (0.095 for a 10 % error
+in every bin; symmetric in too high / too low).
+
+Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
+0.25 m bin of a plane the tilt left is far below the noise of these sensors.
 """
 from __future__ import annotations
 
@@ -19,7 +45,8 @@ from typing import Sequence
 
 import numpy as np
 
-__all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section"]
+__all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section",
+           "BIN_EDGES_M", "noise_curve", "curve_term", "curve_table", "noise_curve_report"]
 
 
 def khoshelham_sigma_m(z: np.ndarray) -> np.ndarray:
@@ -110,3 +137,140 @@ def calibration_section(observations: Sequence, figs: str | os.PathLike) -> str:
             "<img src='figures/plane_residual_map.png' alt='mean residual map'>"
             "<table><tr><th>frame</th><th>distance (m)</th><th>measured (mm)</th><th>simulated (mm)</th>"
             f"<th>Nguyen (mm)</th></tr>{table}</table>")
+
+
+# ------------------------------------------------------------------------------------------
+# The noise-vs-distance curve as a fit term
+# ------------------------------------------------------------------------------------------
+
+BIN_EDGES_M = tuple(round(0.5 + 0.25 * k, 2) for k in range(11))
+"""Distance bin edges, metres: 0.5, 0.75, ..., 3.0."""
+MIN_PIXELS = 200
+"""Fewest valid residuals a bin needs on each side to count."""
+
+
+def _pixels(o, max_pixels: int | None, seed: int) -> np.ndarray:
+    """Flat indices of the target pixels of observation ``o`` (a seeded subset of ``max_pixels``)."""
+    flat = np.flatnonzero(o.ideal.ravel() > 0)
+    if max_pixels is not None and flat.size > max_pixels:
+        rng = np.random.default_rng([int(seed), int(o.index), 7])
+        flat = np.sort(rng.choice(flat, size=int(max_pixels), replace=False))
+    return flat
+
+
+def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
+                edges: Sequence[float] = BIN_EDGES_M) -> tuple[np.ndarray, np.ndarray]:
+    """(robust std per bin (m, NaN where a bin has too few pixels), valid pixels per bin) of the
+    ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring)."""
+    e = np.asarray(edges, float)
+    pooled: list[list[np.ndarray]] = [[] for _ in range(len(e) - 1)]
+    for o in observations:
+        flat = _pixels(o, max_pixels, seed)
+        z = o.ideal.reshape(-1)[flat].astype(np.float64)
+        d = getattr(o, side).reshape(-1)[flat].astype(np.float64)
+        ok = d > 0
+        b = np.searchsorted(e, z, side="right") - 1
+        for k in range(len(e) - 1):
+            sel = ok & (b == k)
+            if sel.sum() < 10:
+                continue
+            r = d[sel] - z[sel]
+            pooled[k].append(r - np.median(r))
+    std = np.full(len(e) - 1, np.nan)
+    count = np.zeros(len(e) - 1, int)
+    for k, parts in enumerate(pooled):
+        if parts:
+            r = np.concatenate(parts)
+            count[k] = r.size
+            if r.size >= MIN_PIXELS:
+                std[k] = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return std, count
+
+
+def curve_term(measured_std: np.ndarray, simulated_std: np.ndarray) -> float:
+    """Mean |ln(simulated / measured)| over the bins both sides have (0 when none; a simulation
+    without a valid pixel in a bin the measurement has counts ln 10 there)."""
+    m = np.asarray(measured_std, float)
+    s = np.asarray(simulated_std, float)
+    has = np.isfinite(m) & (m > 0)
+    if not has.any():
+        return 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lr = np.abs(np.log(s[has] / m[has]))
+    lr = np.where(np.isfinite(lr), lr, np.log(10.0))
+    return float(np.mean(lr))
+
+
+def curve_table(observations: Sequence, max_pixels: int | None = 20000, seed: int = 0,
+                edges: Sequence[float] = BIN_EDGES_M) -> list[dict]:
+    """Per bin with measured pixels: {"bin_m": [lo, hi], "measured_mm", "simulated_mm", "ratio",
+    "pixels"} (the fit report's noise curve)."""
+    m, n = noise_curve(observations, "measured", max_pixels, seed, edges)
+    s, _ = noise_curve(observations, "simulated", max_pixels, seed, edges)
+    out = []
+    for k in range(len(edges) - 1):
+        if np.isfinite(m[k]):
+            out.append({"bin_m": [float(edges[k]), float(edges[k + 1])], "measured_mm": 1000 * float(m[k]),
+                        "simulated_mm": 1000 * float(s[k]) if np.isfinite(s[k]) else None,
+                        "ratio": float(s[k] / m[k]) if np.isfinite(s[k]) and m[k] > 0 else None,
+                        "pixels": int(n[k])})
+    return out
+
+
+def noise_curve_report(weight: float, before, after, max_pixels, seed: int) -> dict:
+    """``FitResult.noise_curve`` from the evaluation set's (term, observations) of the start and the fit."""
+    tb, ta = curve_table(before[1], max_pixels, seed), curve_table(after[1], max_pixels, seed)
+    for row, rb in zip(ta, tb):
+        row["simulated_mm_before"] = rb["simulated_mm"]
+    return {"weight": float(weight), "term_before": float(before[0]), "term": float(after[0]), "bins": ta}
+
+
+def curve_start(config, objective, specs) -> dict[str, float]:
+    """A starting point that puts the model's noise curve on the measured one, when the model
+    has ``axial_noise`` (of its fitted ``specs``): the classic planar calibration (Nguyen et al.
+    2012's form sigma0 + sigma2 (z - z_offset)^2) fitted to the measured curve, less what the
+    model's other effects already contribute.
+
+    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) gives the
+    curves of ``config`` (its last evaluation's, or one more simulation); per distance bin
+    (centre z) the measured std m and the simulated s give the axial part wanted,
+    a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources add in variance (an
+    approximation for the robust std) - less the model's own sigma1 z.
+    sigma0, sigma2 >= 0 then minimise the relative squared error (the term's log ratio to first
+    order) by non-negative least squares for each z_offset on a 0.025 m grid over its bounds,
+    each clipped to its search bounds. {} when axial_noise is not fitted, the term is off, or
+    fewer than 3 bins have data."""
+    from scipy.optimize import nnls
+    keys = {s.key: s for s in specs}
+    k0, k2, ko = "axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m"
+    if k2 not in keys or getattr(objective, "noise_weight", 0) <= 0:
+        return {}
+    obs = objective.curve(config)[1]
+    px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
+    m, _ = noise_curve(obs, "measured", px, seed)
+    s, _ = noise_curve(obs, "simulated", px, seed)
+    e = np.asarray(BIN_EDGES_M)
+    zc = 0.5 * (e[:-1] + e[1:])
+    p = next(x for x in config.effects if x.name == "axial_noise").params
+    now = p.sigma0_m + p.sigma1 * zc + p.sigma2_per_m * (zc - p.z_offset_m) ** 2
+    other2 = np.where(np.isfinite(s), np.maximum(np.nan_to_num(s) ** 2 - now ** 2, 0.0), 0.0)
+    want = np.sqrt(np.maximum(m ** 2 - other2, 0.0)) - p.sigma1 * zc
+    ok = np.isfinite(m) & (want > 0)
+    if ok.sum() < 3:
+        return {}
+    z, t = zc[ok], want[ok]
+    lo, hi = (keys[ko].low, keys[ko].high) if ko in keys else (p.z_offset_m, p.z_offset_m)
+    best = None
+    for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
+        cols = [(z - off) ** 2] if k0 not in keys else [np.ones_like(z), (z - off) ** 2]
+        A = np.stack(cols, 1) / t[:, None]
+        x, r = nnls(A, np.ones_like(t))
+        if best is None or r < best[0]:
+            best = (r, off, x)
+    _, off, x = best
+    out = {k2: float(x[-1])}
+    if k0 in keys:
+        out[k0] = float(x[0])
+    if ko in keys:
+        out[ko] = float(off)
+    return {k: float(min(max(v, keys[k].low), keys[k].high)) for k, v in out.items()}

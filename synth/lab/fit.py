@@ -43,6 +43,11 @@ phase of the disparity levels, which is the preset's reference depth):
 4. further sweeps (``sweeps``) scan every parameter in a bracket of one grid spacing around
    its current value, until a sweep improves the gap by less than ``tolerance`` (relative).
 
+Many parameters (``FitConfig.screen``): a sensitivity screen first
+(:func:`synth.lab.intervals.screen_parameters`) freezes what the data does not constrain
+(``FitResult.frozen`` says which and why) and orders the rest, most useful first. On a planar
+target the objective adds the noise-vs-distance term (``FitConfig.noise_curve_weight``).
+
 The budget is a number of evaluations (``max_evaluations``), never a time: the same data, model,
 settings and seed give the same fit on any machine under any load. (``max_seconds`` is an
 optional safety guard, off by default; a result it cut short says so in ``time_capped``.)
@@ -71,6 +76,8 @@ the data.
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -82,7 +89,8 @@ from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
 from synth.lab.compare import CompareConfig, compare
-from synth.lab.params import ParamSpec, _effect, config_parameters, get_params, param_specs, set_params  # noqa: F401
+from synth.lab.params import (ParamSpec, _effect, config_parameters, get_params, param_specs, set_params,  # noqa: F401
+                              start_values)
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
            "Objective", "search", "config_parameters", "start_values"]
@@ -151,6 +159,21 @@ class FitConfig:
     ``differential_evolution`` (``scipy.optimize.differential_evolution``, seeded, the start in
     its initial population, no polishing). All three share the budget, the cache and the start;
     ``benchmarks/bench_fit_recovery.py --method`` compares them."""
+    screen: bool | None = None
+    """Screen the parameters first (:func:`synth.lab.intervals.screen_parameters`: each moved alone
+    by ``screen_step`` of its range), freeze those whose move the data cannot see (named in
+    ``FitResult.frozen``) and search the others, most useful first. None (default) = only when the first sweep's scan of every parameter
+    (``grid_points`` each) would not fit in ``max_evaluations`` (e.g. the 22 parameters of a
+    structured-light physical pipeline), so a search that could scan them all is unchanged. A
+    screened search's budget is raised, when needed, to scan every fitted parameter once
+    (``grid_points`` + 1 evaluations each) plus two golden-section refinements."""
+    screen_step: float = 0.25
+    """Probe distance of the screen, a fraction of each parameter's search range."""
+    noise_curve_weight: float = 1.0
+    """On a sequence with a planar reference (``data make-reference --plane``): weight of the
+    noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
+    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m), so the fit honours the
+    curve sensor people calibrate first; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -171,6 +194,10 @@ class FitConfig:
             raise ConfigError("fit: need grid_points >= 2, refine_iterations >= 0, sweeps >= 1")
         if not self.tolerance >= 0:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
+        if not float(self.noise_curve_weight) >= 0:
+            raise ConfigError(f"fit: noise_curve_weight must be >= 0, got {self.noise_curve_weight}")
+        if not 0 < float(self.screen_step) <= 0.5:
+            raise ConfigError(f"fit: screen_step must be in (0, 0.5], got {self.screen_step}")
         if self.method not in SEARCH_METHODS:
             raise ConfigError(f"fit: method must be one of {', '.join(SEARCH_METHODS)}, got {self.method!r}")
         self.compare.validate()
@@ -243,6 +270,19 @@ class FitResult:
     reverted: list = field(default_factory=list)
     """Parameters the search moved but :attr:`FitConfig.revert_check` put back at their start value (the
     move did not hold on the evaluation set)."""
+    frozen: dict = field(default_factory=dict)
+    """{"effect.param": reason}: parameters the screen (:attr:`FitConfig.screen`) left at their start
+    because the data does not constrain them (their interval is their search bounds)."""
+    sensitivity: dict = field(default_factory=dict)
+    """{"effect.param": gap change / gap noise} of the screen, every parameter (empty without screen)."""
+    noise_curve: dict = field(default_factory=dict)
+    """On a sequence with a planar reference: {"weight", "term_before", "term", "bins": [{"bin_m",
+    "measured_mm", "simulated_mm", "simulated_mm_before", "ratio", "pixels"}]}: the noise-vs-distance
+    curve of the evaluation set (:mod:`synth.lab.calibration`); ``gap_before`` / ``gap`` include
+    weight x term. Empty elsewhere."""
+    stages: dict = field(default_factory=dict)
+    """{stage: {"seconds": s, "evaluations": n}} of the fit's stages (start, screen, search, revert,
+    intervals, evaluation): where the time went."""
 
     @property
     def at_bound(self) -> dict[str, str]:
@@ -276,34 +316,9 @@ class FitResult:
                 "intervals": {k: list(v) for k, v in self.intervals.items()}, "gap_noise": self.gap_noise,
                 "intervals_one_at_a_time": {k: list(v) for k, v in self.intervals_one_at_a_time.items()},
                 "inflation": dict(self.inflation), "correlations": dict(self.correlations),
-                "reverted": list(self.reverted)}
-
-
-# ------------------------------------------------------------------------------------------
-# Starting values measured from the data (the parameter space itself: synth.lab.params)
-# ------------------------------------------------------------------------------------------
-
-def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
-    """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
-    ``config``, restricted to the parameters that are fitted for this sensor, the effects' data
-    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str) and the
-    choices made from the data (``Effect.START_ONLY_PARAMS``, e.g. a window shape). Effects are
-    started in :attr:`~synth.sensor.registry.Effect.START_PRIORITY` order; the starts of an effect
-    with a negative priority (the lens warp) are applied to the config the later ones see."""
-    out = {}
-    cfg = config
-    for n in sorted(names, key=lambda n: _effect(config, n).START_PRIORITY):    # stable: the given order otherwise
-        start = _effect(cfg, n).fit_start(measured, cfg, frames)
-        if start:
-            known = {s.key for s in param_specs(cfg, [n])}
-            e = _effect(cfg, n)
-            known |= {f"{n}.{k}" for k in (*e.FILE_PARAMS, *e.START_ONLY_PARAMS)}   # a learned map, a shape
-            new = {k: v for k, v in start.items() if k in known}
-            out.update(new)
-            numeric = {k: v for k, v in new.items() if not isinstance(v, str)}
-            if numeric and _effect(cfg, n).START_PRIORITY < 0:      # later starts see this one
-                cfg = set_params(cfg, numeric)
-    return out
+                "reverted": list(self.reverted), "frozen": dict(self.frozen),
+                "sensitivity": dict(self.sensitivity), "stages": dict(self.stages),
+                "noise_curve": dict(self.noise_curve)}
 
 
 # ------------------------------------------------------------------------------------------
@@ -311,15 +326,28 @@ def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) 
 # ------------------------------------------------------------------------------------------
 
 class Objective:
-    """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values)."""
+    """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values).
 
-    def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0):
+    ``noise_weight`` > 0 on a sequence with a planar reference (``MeasuredSequence.has_plane_reference``)
+    adds ``noise_weight`` x the noise-vs-distance term of :mod:`synth.lab.calibration` (mean
+    |ln(simulated / measured std)| over the distance bins) to the gap; elsewhere it is ignored."""
+
+    def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0,
+                 noise_weight: float = 0.0):
         self.measured = measured
         self.frames = list(frames)
         self.compare_config = compare_config
         self.seed = int(seed)
         self.evaluations = 0
         self.last_result = None
+        self.noise_weight = float(noise_weight) if getattr(measured, "has_plane_reference", False) else 0.0
+        """Weight of the noise-curve term (0: off, also on sequences without a planar reference)."""
+        self.last_curve = None
+        """(term, observations, config) of the last evaluation simulated when the noise-curve term is on."""
+        self._curve_measured = None
+        self.memo: dict | None = None
+        """{config key: gap} when a dict: a config scored again is not simulated again (the
+        evaluation set of ``fit_model``)."""
         self.cache = getattr(measured, "compare_cache", None)
         """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
         self.journal = getattr(measured, "eval_journal", None)
@@ -327,17 +355,23 @@ class Objective:
         command (None: no journal). Replayed evaluations leave ``last_result`` unchanged."""
 
     def __call__(self, config) -> float:
+        mk = _config_key(config) if self.memo is not None else None
+        if mk in (self.memo or {}):
+            return self.memo[mk]
         self.evaluations += 1
         key = None
         if self.journal is not None:
             key = self.journal.key(config, [self.measured.frame_indices[k] for k in self.frames],
-                                   self.compare_config, self.seed, self.measured.seq_dir)
+                                   self.compare_config, self.seed, self.measured.seq_dir,
+                                   {"noise_weight": self.noise_weight} if self.noise_weight > 0 else None)
             g = self.journal.get(key)
             if g is not None:
                 return g
         g = self._gap(config)
         if key is not None:
             self.journal.put(key, g)
+        if mk is not None:
+            self.memo[mk] = g
         return g
 
     def _gap(self, config) -> float:
@@ -345,7 +379,26 @@ class Objective:
         obs = self.measured.observations(sims, self.frames)
         self.last_result = compare(obs, self.compare_config, cache=self.cache)
         g = float(self.last_result.gap)
+        if self.noise_weight > 0:
+            from synth.lab.calibration import curve_term, noise_curve
+            px = self.compare_config.max_pixels_per_frame
+            if self._curve_measured is None:
+                self._curve_measured = noise_curve(obs, "measured", px, self.seed)[0]
+            term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed)[0])
+            self.last_curve = (term, obs, _config_key(config))
+            g += self.noise_weight * term
         return g if math.isfinite(g) else float("inf")
+
+    def curve(self, config) -> tuple[float, list]:
+        """(noise-curve term, observations) of ``config`` (simulated again when its last evaluation
+        was replayed from a journal or was of another config)."""
+        if self.last_curve is None or self.last_curve[2] != _config_key(config):
+            self._gap(config)
+        return self.last_curve[:2]
+
+
+def _config_key(config) -> str:
+    return json.dumps(config.to_json(), sort_keys=True, default=str)     # a model's identity
 
 
 class _Budget:
@@ -369,13 +422,14 @@ class _Budget:
 
 def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: FitConfig,
            progress=None, start_gap: float | None = None, refine_below: float | None = None,
-           local: bool = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
+           local: bool | frozenset = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
     """Bounded coordinate descent (module docstring). Returns (best values, best gap, evaluations).
 
     ``start_gap``: the already known gap of the starting values. ``refine_below``: only
     parameters whose scan reached a gap below this value are refined (a candidate effect that
     cannot beat the model without it costs only its scans). ``local``: skip the coarse grid,
-    every sweep scans one grid spacing around the current values (polishing a good start).
+    every sweep scans one grid spacing around the current values (polishing a good start); a set
+    of keys: only for those parameters.
     ``stats``: a dict that receives ``time_capped`` (True when the wall-clock guard
     ``FitConfig.max_seconds`` stopped the search) and ``evaluations``.
     """
@@ -428,7 +482,7 @@ def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, 
                 continue
             cur_t = s.to_t(x[s.key])
             ga, gb = s.grid_t_bounds
-            if sweep == 0 and not local:
+            if sweep == 0 and not (local is True or (local and s.key in local)):
                 grid = [min(max(t, a), b) for t in np.linspace(ga, gb, int(fc.grid_points))]
             else:
                 h = (gb - ga) / max(int(fc.grid_points) - 1, 1) / 2
@@ -511,26 +565,6 @@ def _golden(f, x, s: ParamSpec, a: float, b: float, best: float, iters: int, bud
     return best, x
 
 
-def _revert_moves(ev, start_cfg, specs: Sequence[ParamSpec], best_x: dict) -> tuple[dict, list[str]]:
-    """``FitConfig.revert_check``: (values, keys put back) - every moved parameter, the largest move (in
-    search units) first, back at its start value while the evaluation gap ``ev`` does not rise."""
-    start = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
-    moved = [s for s in specs if abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])) > 1e-12]
-    if not moved:
-        return best_x, []
-    moved.sort(key=lambda s: -abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])))
-    g_cur = ev(set_params(start_cfg, best_x))
-    out, back = dict(best_x), []
-    for s in moved:
-        trial = dict(out)
-        trial[s.key] = start[s.key]
-        g = ev(set_params(start_cfg, trial))
-        if g <= g_cur:
-            out, g_cur = trial, g
-            back.append(s.key)
-    return out, back
-
-
 # ------------------------------------------------------------------------------------------
 # The fit
 # ------------------------------------------------------------------------------------------
@@ -545,13 +579,20 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     """
     fc = (fit_config or FitConfig()).validate()
     t0 = time.perf_counter()
+    stages, mark, ev = {}, [t0, 0], None
+
+    def stage(name: str) -> None:        # close the stage that ran since the last mark
+        n, now = obj.evaluations + (ev.evaluations if ev is not None else 0), time.perf_counter()
+        stages[name] = {"seconds": round(now - mark[0], 3), "evaluations": n - mark[1]}
+        mark[:] = [now, n]
     specs = param_specs(config, names)
     n = len(measured)
     if n == 0:
         raise RealgapError(f"{measured.seq_dir}: no frames to fit")
     frames = spread(n, fc.max_frames)
     eval_frames = spread(n, fc.eval_frames)
-    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
+    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed,
+                    fc.noise_curve_weight)
     bar = None
     if progress:
         from data_tools.progress import progress_bar
@@ -567,39 +608,79 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             if g < g_start:
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names)
+        if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
+            from synth.lab.calibration import curve_start
+            cs = curve_start(start_cfg, obj, specs)
+            if cs and (g := obj(cand := set_params(start_cfg, cs))) < g_start:
+                start_cfg, g_start, specs = cand, g, param_specs(cand, names)
         stats: dict = {}
+        stage("start")
+        all_specs, scr = specs, None
+        if specs and (fc.screen if fc.screen is not None
+                      else len(specs) * int(fc.grid_points) > int(fc.max_evaluations)):
+            from synth.lab.intervals import screen_parameters, seeded_gap_of
+            scr = screen_parameters(seeded_gap_of(obj, start_cfg), specs, get_params(start_cfg, specs),
+                                    g_start, float(fc.screen_step))
+            specs = [s for k in scr.order for s in all_specs if s.key == k]
+            if bar is not None:
+                bar.update(scr.evaluations)
+            stage("screen")
+        sfc = fc
+        if scr is not None:     # enough to scan every fitted parameter once, plus two refinements
+            need = len(specs) * (int(fc.grid_points) + 1) + 2 * int(fc.refine_iterations)
+            sfc = dataclasses.replace(fc, max_evaluations=max(int(fc.max_evaluations), need))
         if specs:
-            best_x, g_best, _ = search(obj, start_cfg, specs, fc, bar.update if bar else None, start_gap=g_start,
-                                       stats=stats)
+            best_x, g_best, _ = search(obj, start_cfg, specs, sfc, bar.update if bar else None, start_gap=g_start,
+                                       stats=stats, local=frozenset(scr.bracketed) if scr is not None else False)
         else:
             best_x, g_best = {}, g_start
     finally:
         if bar is not None:
             bar.close()
-    ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+    stage("search")
+    ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
+                   fc.noise_curve_weight)
+    ev.memo = {}
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
-        best_x, reverted = _revert_moves(ev, start_cfg, specs, best_x)
+        from synth.lab.intervals import revert_moves
+        best_x, reverted = revert_moves(ev, start_cfg, specs, best_x)
         if reverted:
             g_best = obj(set_params(start_cfg, best_x))
-    best_cfg = set_params(start_cfg, best_x) if specs else config
+        stage("revert")
+    best_cfg = set_params(start_cfg, best_x) if specs else start_cfg
     intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:
-        from synth.lab.intervals import profile_intervals
-
-        def gap_of(vals, seed_offset: int = 0) -> float:
-            o = obj if not seed_offset else Objective(measured, frames, obj.compare_config, fc.seed + seed_offset)
-            return o(set_params(start_cfg, vals))
+        from synth.lab.intervals import profile_intervals, seeded_gap_of
+        gap_of = seeded_gap_of(obj, start_cfg)
         intervals, noise = profile_intervals(gap_of, specs, best_x, g_best, fc.interval_steps)
         single = dict(intervals)
         if fc.joint_intervals:
             from synth.lab.intervals import joint_intervals
             intervals, inflation, correlations = joint_intervals(gap_of, specs, best_x, g_best, noise, single)
+        stage("intervals")
     before = ev(config)
-    after = ev(best_cfg) if specs else before
+    curve_before = ev.curve(config) if ev.noise_weight > 0 else None
+    after = ev(best_cfg) if best_cfg is not config else before
+    curve_after = ev.curve(best_cfg) if ev.noise_weight > 0 else None
     kept = False
     if after > before:
         best_cfg, best_x, after, kept = config, get_params(config, specs), before, True
+        curve_after = curve_before
+    noise_curve = {}
+    if ev.noise_weight > 0 and curve_before is not None and curve_after is not None:
+        from synth.lab.calibration import noise_curve_report
+        noise_curve = noise_curve_report(ev.noise_weight, curve_before, curve_after,
+                                         ev.compare_config.max_pixels_per_frame, ev.seed)
+    stage("evaluation")
+    frozen = dict(scr.frozen) if scr is not None else {}
+    if scr is not None:        # the frozen parameters: reported at their start, interval = their bounds
+        for sp in all_specs:
+            if sp.key in frozen:
+                best_x[sp.key] = get_params(best_cfg, [sp])[sp.key]
+                if intervals and not kept:
+                    intervals[sp.key] = single[sp.key] = (sp.low, sp.high)
+        specs = all_specs
     return FitResult(best_cfg, float(before), float(after), {k: float(v) for k, v in best_x.items()},
                      {s.key: s.value for s in specs}, obj.evaluations + ev.evaluations,
                      time.perf_counter() - t0, float(g_start), float(g_best), kept,
@@ -607,5 +688,4 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                      [measured.frame_indices[k] for k in eval_frames], bool(stats.get("time_capped", False)),
                      {sp.key: (sp.low, sp.high) for sp in specs}, intervals if not kept else {}, noise,
                      single if not kept else {}, inflation if not kept else {}, correlations if not kept else {},
-                     reverted)
-
+                     reverted, frozen, dict(scr.sensitivity) if scr is not None else {}, noise_curve, stages)

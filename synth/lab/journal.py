@@ -39,12 +39,15 @@ class EvalJournal:
         """Evaluations found on disk when opened."""
 
     @staticmethod
-    def key(config, frame_indices, compare_config, seed: int, seq_dir) -> str:
-        """Identity of one evaluation: sensor config, absolute frame indices, compare settings, seed, sequence."""
+    def key(config, frame_indices, compare_config, seed: int, seq_dir, extra: dict | None = None) -> str:
+        """Identity of one evaluation: sensor config, absolute frame indices, compare settings, seed, sequence
+        (and ``extra`` objective settings, e.g. the noise-curve weight, when given)."""
         from data_tools.config import config_to_dict
-        blob = json.dumps({"config": config.to_json(), "frames": [int(i) for i in frame_indices],
-                           "compare": config_to_dict(compare_config), "seed": int(seed),
-                           "sequence": str(Path(seq_dir).resolve())}, sort_keys=True, default=str)
+        d = {"config": config.to_json(), "frames": [int(i) for i in frame_indices],
+             "compare": config_to_dict(compare_config), "seed": int(seed), "sequence": str(Path(seq_dir).resolve())}
+        if extra:
+            d["extra"] = extra
+        blob = json.dumps(d, sort_keys=True, default=str)
         return hashlib.sha256(blob.encode()).hexdigest()
 
     def get(self, key: str) -> float | None:

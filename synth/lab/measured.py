@@ -148,6 +148,9 @@ class MeasuredSequence:
         self._renderer = None
         self._material_names = material_table_from_scene(scene)
         self.compare_cache = CompareCache()
+        self._sim_shared: dict = {}
+        """What the simulators of this sequence's models share (pattern, reference images, rays, draws:
+        :class:`~synth.sensor.simulator.SensorSimulator` ``shared``)."""
 
     # ------------------------------------------------------------------ loading
     @classmethod
@@ -243,6 +246,13 @@ class MeasuredSequence:
         """The sequence has per-frame masks (e.g. a planar-target capture)."""
         return bool(self._reader.has_masks)
 
+    @property
+    def has_plane_reference(self) -> bool:
+        """The sequence is a planar-target capture with its reference (``plane_reference.json``, written
+        by ``realgap data make-reference --plane``): fits add the noise-vs-distance term
+        (:mod:`synth.lab.calibration`)."""
+        return (self.seq_dir / "plane_reference.json").is_file()
+
     def mask(self, k: int) -> np.ndarray | None:
         """(H, W) bool mask of kept frame k (FORMATS.md section 4), None when the sequence has none.
         Comparisons, fits and diagnoses use only masked-in pixels: :meth:`observation` sets the
@@ -263,6 +273,22 @@ class MeasuredSequence:
             r = self._render[k] = self.renderer.render(self.poses[k], self.intrinsics, with_rgb=False)
         return r
 
+    def _masked_ideal(self, k: int) -> np.ndarray:
+        """The ideal depth of kept frame k, 0 outside its mask when the sequence has masks (only the
+        masked-in pixels have reference geometry). Cached: the same array object every call, so
+        the :class:`~synth.lab.compare.CompareCache` (keyed by array identity) serves the frame's
+        comparisons of a fit from its cache."""
+        r = self.render(k)
+        mask = self.mask(k)
+        if mask is None:
+            return r.depth
+        if not hasattr(self, "_ideal_masked"):
+            self._ideal_masked = {}
+        d = self._ideal_masked.get(k)
+        if d is None:
+            d = self._ideal_masked[k] = np.where(mask, r.depth, np.float32(0.0)).astype(r.depth.dtype, copy=False)
+        return d
+
     def default_config(self, effects=None):
         """``SensorConfig.build(self.preset, effects)``."""
         from synth.sensor.config import SensorConfig
@@ -275,7 +301,7 @@ class MeasuredSequence:
         if tuple(config.preset.intrinsics.shape) != tuple(self.intrinsics.shape):
             raise RealgapError(f"{self.seq_dir}: the sensor model images {config.preset.width}x{config.preset.height} "
                                f"px but the measured depth is {self.intrinsics.width}x{self.intrinsics.height} px")
-        return SensorSimulator(config, scene=self.scene, renderer=self.renderer)
+        return SensorSimulator(config, scene=self.scene, renderer=self.renderer, shared=self._sim_shared)
 
     def simulate(self, config, seed: int = 0, frames: Sequence[int] | None = None,
                  simulator=None) -> list[np.ndarray]:
@@ -297,10 +323,7 @@ class MeasuredSequence:
         off = None if self.preset.type == "tof" else tuple(self.preset.projector_offset_m)
         if off is not None and not any(off):
             off = None
-        ideal = r.depth
-        mask = self.mask(k)
-        if mask is not None:       # only the masked-in pixels take part (they alone have reference geometry)
-            ideal = np.where(mask, ideal, np.float32(0.0)).astype(ideal.dtype, copy=False)
+        ideal = self._masked_ideal(k)
         return FrameObservation(self.measured_depth(k), simulated, ideal, r.normals_cam, r.instance_ids,
                                 self._material_names, self.intrinsics, off, self.frame_indices[k],
                                 float(self.timestamps[k]))

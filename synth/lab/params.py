@@ -12,7 +12,7 @@ import numpy as np
 
 from data_tools.errors import ConfigError
 
-__all__ = ["ParamSpec", "param_specs", "get_params", "set_params", "config_parameters"]
+__all__ = ["ParamSpec", "param_specs", "get_params", "set_params", "config_parameters", "start_values"]
 
 
 def config_parameters(config, effect) -> dict:
@@ -162,3 +162,26 @@ def set_params(config, values: dict[str, float]):
     for en, x, v in extra:
         cfg = x.set(cfg, _effect(cfg, en), v)
     return cfg
+
+
+def start_values(measured, config, names: Sequence[str], frames: Sequence[int]) -> dict[str, float]:
+    """Data-driven starting values (each effect's ``fit_start``) of the effects ``names`` in
+    ``config``, restricted to the parameters that are fitted for this sensor, the effects' data
+    files (``Effect.FILE_PARAMS``: the path of a map estimated from the data, a str) and the
+    choices made from the data (``Effect.START_ONLY_PARAMS``, e.g. a window shape). Effects are
+    started in :attr:`~synth.sensor.registry.Effect.START_PRIORITY` order; the starts of an effect
+    with a negative priority (the lens warp) are applied to the config the later ones see."""
+    out = {}
+    cfg = config
+    for n in sorted(names, key=lambda n: _effect(config, n).START_PRIORITY):    # stable: the given order otherwise
+        start = _effect(cfg, n).fit_start(measured, cfg, frames)
+        if start:
+            known = {s.key for s in param_specs(cfg, [n])}
+            e = _effect(cfg, n)
+            known |= {f"{n}.{k}" for k in (*e.FILE_PARAMS, *e.START_ONLY_PARAMS)}   # a learned map, a shape
+            new = {k: v for k, v in start.items() if k in known}
+            out.update(new)
+            numeric = {k: v for k, v in new.items() if not isinstance(v, str)}
+            if numeric and _effect(cfg, n).START_PRIORITY < 0:      # later starts see this one
+                cfg = set_params(cfg, numeric)
+    return out

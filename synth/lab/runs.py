@@ -595,4 +595,7 @@ def fit_sequence(req: LabRequest, out: str | Path, *, only: Sequence[str] | None
     header = req.header("lab.fit", res.config, timings, metrics, {"only": list(only) if only else None})
     path = save_model(res.config, out, fit_info=info, header=header)
     journal.unlink(missing_ok=True)
+    if log is not None and res.frozen:
+        log(f"{len(res.frozen)} of {len(res.params)} parameters frozen at their start (the data does not constrain "
+            f"them; fit record 'frozen'): {', '.join(res.frozen)}")
     return res, path

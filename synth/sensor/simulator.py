@@ -113,10 +113,21 @@ class SensorSimulator:
             explicit ``renderer``; a scene without meshes gives all-invalid frames).
         renderer: an :class:`synth.render.IdealRenderer` to reuse (built from ``scene`` if None).
         pattern: override the preset's pattern (a path or a ``DotPattern``).
+        shared: a dict shared by the simulators of one scene and renderer (e.g. every model a fit
+            evaluates on a measured sequence): the pattern, reference images, ray grids and the
+            seeded background draws they compute are kept there, keyed by everything they depend
+            on (preset, effect parameters, seed), so a new simulator of another model does not
+            rebuild them (the results are the same: the same inputs give the same arrays).
     """
 
+    SHARED_REFERENCES = 8
+    """Most reference images kept in a ``shared`` dict (the most recently used)."""
+    SHARED_DRAWS = 12
+    """Most frames whose background draws (``DRAW_FROM_SHAPE`` effects) a ``shared`` dict keeps (the
+    most recently used; ~5 MB per VGA frame of a physical model)."""
+
     def __init__(self, preset_or_config: Any = "kinect_v1", effects=None, scene=None, *, renderer=None,
-                 pattern=None):
+                 pattern=None, shared: dict | None = None):
         cfg = preset_or_config
         if isinstance(cfg, (str, os.PathLike)) and (str(cfg).endswith(".json") or os.path.sep in str(cfg)):
             cfg = SensorConfig.load(cfg)
@@ -135,6 +146,7 @@ class SensorSimulator:
         self._reference_key = None
         self._reference = None
         self._rays = None
+        self._shared = shared
 
     # -- properties ------------------------------------------------------------------------
     @property
@@ -169,34 +181,50 @@ class SensorSimulator:
 
     def pattern(self):
         """The projector's :class:`DotPattern` (loaded/generated once)."""
-        if self._pattern is None:
-            from synth.sensor.pattern import DotPattern, generate_dot_pattern, load_pattern
+        if self._pattern is None and self._shared is not None and self._pattern_override is None:
             p = self.preset
-            src = self._pattern_override if self._pattern_override is not None else p.pattern
-            if isinstance(src, DotPattern):
-                pat = src
-                if pat.size != tuple(p.pattern_size_px):
-                    raise ConfigError(f"pattern is {pat.size[0]}x{pat.size[1]} px but preset {p.name!r} "
-                                      f"expects {p.pattern_size_px[0]}x{p.pattern_size_px[1]} px")
-            elif src == "generated":
-                tw = p.pattern_size_px[0] // p.pattern_tiles[0]
-                th = p.pattern_size_px[1] // p.pattern_tiles[1]
-                if (tw * p.pattern_tiles[0], th * p.pattern_tiles[1]) != tuple(p.pattern_size_px):
-                    raise ConfigError(f"preset {p.name!r}: pattern_size_px {p.pattern_size_px} is not a "
-                                      f"multiple of pattern_tiles {p.pattern_tiles}")
-                pat = generate_dot_pattern((tw, th), p.pattern_tiles, p.pattern_density, p.pattern_seed)
-            else:
-                pat = load_pattern(src, p.pattern_size_px)
-            self._pattern = pat
+            key = ("pattern", repr((p.pattern, p.pattern_size_px, p.pattern_tiles, p.pattern_density,
+                                    p.pattern_seed)))
+            if key not in self._shared:
+                self._shared[key] = self._load_pattern()
+            self._pattern = self._shared[key]
+        if self._pattern is None:
+            self._pattern = self._load_pattern()
         return self._pattern
+
+    def _load_pattern(self):
+        """The pattern of the preset (or the override), loaded or generated now."""
+        from synth.sensor.pattern import DotPattern, generate_dot_pattern, load_pattern
+        p = self.preset
+        src = self._pattern_override if self._pattern_override is not None else p.pattern
+        if isinstance(src, DotPattern):
+            pat = src
+            if pat.size != tuple(p.pattern_size_px):
+                raise ConfigError(f"pattern is {pat.size[0]}x{pat.size[1]} px but preset {p.name!r} "
+                                  f"expects {p.pattern_size_px[0]}x{p.pattern_size_px[1]} px")
+        elif src == "generated":
+            tw = p.pattern_size_px[0] // p.pattern_tiles[0]
+            th = p.pattern_size_px[1] // p.pattern_tiles[1]
+            if (tw * p.pattern_tiles[0], th * p.pattern_tiles[1]) != tuple(p.pattern_size_px):
+                raise ConfigError(f"preset {p.name!r}: pattern_size_px {p.pattern_size_px} is not a "
+                                  f"multiple of pattern_tiles {p.pattern_tiles}")
+            pat = generate_dot_pattern((tw, th), p.pattern_tiles, p.pattern_density, p.pattern_seed)
+        else:
+            pat = load_pattern(src, p.pattern_size_px)
+        return pat
 
     def ray_dirs(self) -> np.ndarray:
         if self._rays is None:
-            if self.renderer is not None and hasattr(self.renderer, "ray_dirs_cam"):
+            key = ("rays", repr(self.preset.intrinsics))
+            if self._shared is not None and key in self._shared:
+                self._rays = self._shared[key]
+            elif self.renderer is not None and hasattr(self.renderer, "ray_dirs_cam"):
                 self._rays = self.renderer.ray_dirs_cam(self.preset.intrinsics)
             else:
                 from synth.render import pinhole_ray_dirs
                 self._rays = pinhole_ray_dirs(self.preset.intrinsics)
+            if self._shared is not None:
+                self._shared[key] = self._rays
         return self._rays
 
     # -- reference image --------------------------------------------------------------------
@@ -217,6 +245,12 @@ class SensorSimulator:
         key += repr(setup)
         if key == self._reference_key:
             return self._reference
+        shared = self._shared if self._pattern_override is None else None
+        skey = ("reference", key + repr(p))
+        if shared is not None and skey in shared:
+            self._reference_key, self._reference = key, shared.pop(skey)
+            shared[skey] = self._reference                     # most recently used last
+            return self._reference
         from synth.render import pinhole_ray_dirs
         from synth.sensor.state import FrameContext, SensorState, plane_view
         rintr = setup.reference_intrinsics(p.intrinsics)
@@ -230,6 +264,11 @@ class SensorSimulator:
         if st.ir8 is None:
             raise ConfigError("the reference image needs 'pattern_projection' and 'ir_capture' in the model")
         self._reference_key, self._reference = key, st.ir8
+        if shared is not None:
+            shared[skey] = st.ir8
+            refs = [k for k in shared if k[0] == "reference"]
+            for k in refs[:max(len(refs) - self.SHARED_REFERENCES, 0)]:
+                del shared[k]
         return st.ir8
 
     # -- simulation -------------------------------------------------------------------------
@@ -349,8 +388,21 @@ class SensorSimulator:
         if not effects:
             return None
         ctx = DrawContext(self.preset, self.preset.intrinsics, self.config.physical)
-        fut = _draw_executor().submit(_draw_all, effects, int(seed), ctx)
-        return fut, {e.name for e in effects}
+        names = {e.name for e in effects}
+        if self._shared is None:
+            return _draw_executor().submit(_draw_all, effects, int(seed), ctx), names
+        # shared: the draws depend on the seed, the effect and the context only (the lab's common
+        # random numbers: never on the parameters), so a model evaluated again on the same frame
+        # reuses them; the effects never write into their draws
+        key = ("draws", int(seed), repr(ctx), tuple(sorted((e.name, type(e).__qualname__) for e in effects)))
+        fut = self._shared.pop(key, None)
+        if fut is None:
+            fut = _draw_executor().submit(_draw_all, effects, int(seed), ctx)
+        self._shared[key] = fut                              # most recently used last
+        draws = [k for k in self._shared if k[0] == "draws"]
+        for k in draws[:max(len(draws) - self.SHARED_DRAWS, 0)]:
+            del self._shared[k]
+        return fut, names
 
     def simulate_sequence(self, poses_c2w: np.ndarray, seed: int = 0, motion: bool = True):
         """Yield one SimResult per pose; frame i uses seed ``seed + i`` and, with ``motion``,
