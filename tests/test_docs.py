@@ -86,6 +86,16 @@ def test_every_relative_link_resolves(doc):
 def test_readme_commands_parse(capsys):
     commands = [c for c in readme_commands(README.read_text()) if "--help" not in c]  # --help: run below
     assert len(commands) >= 20, "the README's tour lost its commands"
+    _assert_parse(commands, "README")
+
+
+@pytest.mark.parametrize("doc", [d for d in DOC_FILES if d != README], ids=lambda p: p.relative_to(REPO).as_posix())
+def test_docs_commands_parse(doc, capsys):
+    """The command lines of the docs pages and model cards too (placeholders like SEQ parse as paths)."""
+    _assert_parse([c for c in readme_commands(doc.read_text()) if "--help" not in c], doc.name)
+
+
+def _assert_parse(commands, where):
     parser = build_parser()
     bad = []
     for argv in commands:
@@ -96,7 +106,7 @@ def test_readme_commands_parse(capsys):
             continue
         if getattr(args, "func", None) is None:
             bad.append(" ".join(argv) + "  (no subcommand)")
-    assert not bad, "README command lines the CLI rejects:\n" + "\n".join(bad)
+    assert not bad, f"{where}: command lines the CLI rejects:\n" + "\n".join(bad)
 
 
 def test_parse_check_rejects_a_wrong_line():
