@@ -220,16 +220,17 @@ def test_cycle_finder_finds_a_cycle():
 
 
 # ------------------------------------------------------------------------------------------
-# README's "How the code is organised" matches the code
+# docs/architecture.md's "How the code is organised" matches the code
 # ------------------------------------------------------------------------------------------
 
 _PATH_TOKEN = re.compile(r"(?<![\w./-])([A-Za-z_][\w]*(?:\.py|/))(?=[\s,)]|$)")
 DESCRIBED_AS_A_GROUP = {"synth/sensor/effects", "slam/backends", "app/commands"}
-"""Folders the README describes as a whole ("one file per effect") instead of file by file."""
+"""Folders docs/architecture.md describes as a whole ("one file per effect") instead of file by file."""
 
 
 def readme_tree(text: str) -> set[str]:
-    """Paths named in the code block of the README's "How the code is organised" section: the
+    """Paths named in the code block of the "How the code is organised" section of
+    docs/architecture.md (the README links to it): the
     first path on a line is placed by its indentation (2 spaces per level); the other paths on
     the line are inside it when it is a folder, else beside it; lines that start with prose
     continue the line before."""
@@ -268,9 +269,9 @@ def test_readme_tree_parser_places_paths():
 
 
 def test_readme_describes_every_package_and_module():
-    named = readme_tree((REPO / "README.md").read_text())
+    named = readme_tree((REPO / "docs" / "architecture.md").read_text())
     missing_on_disk = sorted(p for p in named if not (REPO / p).exists())
-    assert not missing_on_disk, f"README names paths that do not exist: {missing_on_disk}"
+    assert not missing_on_disk, f"docs/architecture.md names paths that do not exist: {missing_on_disk}"
     unnamed = []
     for pkg in ["app", "data_tools", "synth", "slam", "recog"]:
         for f in sorted((REPO / pkg).rglob("*.py")):
@@ -284,11 +285,11 @@ def test_readme_describes_every_package_and_module():
                 continue
             if rel.as_posix() not in named:
                 unnamed.append(rel.as_posix())
-    assert not unnamed, f"README's 'How the code is organised' does not name: {unnamed}"
+    assert not unnamed, f"docs/architecture.md's 'How the code is organised' does not name: {unnamed}"
 
 
 MAX_MODULE_LINES = 700
-"""A library module longer than this usually holds two ideas (split it: see the README tree)."""
+"""A library module longer than this usually holds two ideas (split it: see docs/architecture.md)."""
 
 
 def test_library_modules_hold_one_idea_each():
