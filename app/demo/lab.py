@@ -54,7 +54,8 @@ def run_lab_part(out: Path, seed: int, frames: int, log: Callable[[str], None] =
     fitted = _compare(seq, out / "4_fitted", f"+ {best['effect']} (fitted)", out / "2_base", seed, log,
                       model=str(diag_dir / "best_model.json"))
     answer = json.loads((out / "answer.json").read_text())
-    history = json.loads((out / "4_fitted" / "history.json").read_text())
+    from synth.lab.history import load_history
+    history = load_history(out / "4_fitted")
     return {"sequence": str(seq), "hidden_effect": answer.get("effect"), "hidden_parameters": answer.get("parameters"),
             "found_effect": best["effect"], "found_gain": best.get("gain"), "evidence": best.get("evidence", ""),
             "fitted_parameters": best.get("params") or best.get("parameters") or {},
