@@ -22,8 +22,9 @@ class DemoConfig:
     """``procedural_room`` seed of the explored room (the neural model's first test room, never trained on)."""
     room_frames: int = 150
     """Frames of the room walk (30 frames/s; the neural backend registers every 10th)."""
-    novel_frame: int = 90
-    """Trajectory pose at which the TSDF and the neural memory render their novel views."""
+    novel_frame: int = 95
+    """Trajectory pose at which the TSDF and the neural memory render their novel views (not a multiple
+    of 10: a frame the memory never wrote)."""
     recog_scans: int = 4
     """Test scans per embedded chair, by the ``structure`` sensor (the recogniser was trained on kinect_v1)."""
     recog_model: str = ""
@@ -47,6 +48,6 @@ class DemoConfig:
         return self
 
 
-DEMO_PRESETS = {"default": DemoConfig(), "quick": DemoConfig(mystery_frames=4, room_frames=60, novel_frame=40,
+DEMO_PRESETS = {"default": DemoConfig(), "quick": DemoConfig(mystery_frames=4, room_frames=60, novel_frame=45,
                                                              recog_scans=2, screenshot=False)}
 """``default``: the story in about five minutes on 2 cores; ``quick``: the same story, smaller (tests)."""

@@ -69,7 +69,7 @@ measured by our full Kinect v1 simulation (projector, IR camera, block matching)
 every frame against a TSDF model; <code>neural</code> writes every tenth frame into an allocentric neural memory
 (thesis ch. 4) and localises in it. ATE after SE(3) alignment; APE median after the same alignment.</p>
 <table><tr><th>backend</th><th>ATE RMSE (cm)</th><th>APE median (cm)</th><th>frames/s</th><th></th></tr>{rows}</table>
-{_img(f['comparison_plot'], root, 'comparison plot', '70%')}
+{_img(f['comparison_plot'], root, 'comparison plot', '45%')}
 <p>Novel views at one pose: the TSDF ray cast copies what was seen; the memory recalls it from its features, and
 turned 90 deg to the right its hallucination module fills cells nobody observed.</p>
 {_img(f['views']['figure'], root, 'novel views')}

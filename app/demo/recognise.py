@@ -31,8 +31,13 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
     rows = [json.loads(line) for line in (eval_dir / "predictions.jsonl").read_text().splitlines() if line.strip()]
     per = max(1, n // max(1, len({r["object"] for r in rows})))        # the same number of scans of each object
     rows = [r for k, r in enumerate(rows) if sum(q["object"] == r["object"] for q in rows[:k]) < per][:n]
-    fig = new_figure(3.2 * len(rows), 3.4)
-    axes = np.atleast_1d(fig.subplots(1, len(rows)))
+    ncol = min(3, len(rows))
+    nrow = -(-len(rows) // ncol)
+    fig = new_figure(4.2 * ncol + 0.8, 3.9 * nrow + 0.4)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol)).ravel()
+    for ax in axes[len(rows):]:
+        ax.set_axis_off()
+    axes = axes[:len(rows)]
     for ax, r in zip(axes, rows):
         depth = read_depth_png(testset / r["file"], cam.depth_scale)
         shown = np.where(depth > 0, depth, np.nan)
@@ -49,7 +54,7 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
         ax.set_xlabel("u (px)", fontsize=8)
         ax.set_ylabel("v (px)", fontsize=8)
         ax.tick_params(labelsize=7)
-    fig.colorbar(im, ax=list(axes), shrink=0.8, label="measured depth (m)")
+    fig.colorbar(im, ax=list(axes), shrink=0.6, label="measured depth (m)")
     fig.suptitle("Recognised CAD model at its estimated pose over the scan (green: right chair, red: wrong)",
                  fontsize=10)
     atomic_save_figure(fig, out, dpi=90)
