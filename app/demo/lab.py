@@ -58,7 +58,8 @@ def run_lab_part(out: Path, seed: int, frames: int, log: Callable[[str], None] =
     history = load_history(out / "4_fitted")
     return {"sequence": str(seq), "hidden_effect": answer.get("effect"), "hidden_parameters": answer.get("parameters"),
             "found_effect": best["effect"], "found_gain": best.get("gain"), "evidence": best.get("evidence", ""),
-            "fitted_parameters": best.get("params") or best.get("parameters") or {},
+            "fitted_parameters": {k: v for k, v in (best.get("params") or {}).items()
+                                  if k.startswith(best["effect"] + ".")},
             "gap_ideal": ideal["gap"], "gap_base": base["gap"], "gap_fitted": fitted["gap"],
             "history": history, "report": str(out / "4_fitted" / "report.html"),
             "diagnosis": str(diag_dir / "diagnosis.html")}
