@@ -14,30 +14,17 @@ the trajectory and not fused. Re-localisation then tries other initial guesses a
 model at the last good pose: the static guess and an ORB/PnP guess from the last good frame
 (keyframe); a guess is accepted only if the dense ICP started from it passes the same checks.
 
-Why the defaults (measurements behind the ICPConfig fields):
+Why the defaults (one reason each; the ablations and their ATEs are in docs/slam.md):
 
-* ``refine_model``: the raw Open3D cast of a one-frame 1 cm volume lies 5.9 mm (median) in
-  front of the surface and 16 % of its pixels are more than 1 cm off, so in a weakly
-  constrained view (floor + round table, start of the demo sequence) the next pose is 1.0 cm
-  off even on exact depth (0.08 cm refined), and on the simulated Kinect ICP drifted 36 cm in
-  9 frames. ATE refined vs raw against metric ground truth: simulated kinect_v1 room (the demo,
-  60 frames, seeds 0/1/2) 0.17/0.14/0.28 cm vs 7.25/0.46/0.49 cm; TUM fr1/xyz 0.23 vs 0.60 cm.
-  On 7-Scenes chess (1000 frames; the reference is KinectFusion's own trajectory) the raw cast
-  agreed better while the residuals were unweighted (2.96 vs 4.48 cm): the unweighted fit was
-  dominated by far, coarsely quantised depth (25 mm steps at 3 m) and its sideways motion ran
-  6 % short of the reference. With the noise weights and ``repair_model`` the refined default
-  gives 2.86 cm there.
-* ``repair_model``: in a real Kinect model view about 10 % of the hits fail the check, mostly
-  on slanted surfaces (a quarter of the hits at 60-75 deg incidence); dropped, they leave the
-  surfaces that pin sideways motion under-represented. Chess 1000 frames: 2.86 cm repaired vs
-  3.03 cm dropped, for about 40 ms more CPU per frame.
-* ``disparity_noise_px``: on chess (half the pixels beyond 1.9 m) ATE over 1000 frames was
-  4.48 cm unweighted, 3.11 cm with the depth term alone, 3.05 cm with the incidence angle,
-  3.03 cm with the observation count; the simulated kinect_v1 room (seeds 0/1/2) stays at
-  0.18/0.15/0.28 cm. Open3D's kernel has no per-point weight, so the model normals are scaled
-  by sqrt(w): the rejection distance then applies to sqrt(w) x r (a far point is kept up to a
-  proportionally larger distance, as a test on r / sigma would); fitness and RMS residual of
-  the failure check stay unweighted.
+* ``refine_model``: Open3D's raw ray cast lies several millimetres in front of the surface and misses
+  some hits, which biases the pose in weakly constrained views; every hit is moved to the zero of the
+  trilinear TSDF.
+* ``repair_model``: dropping the hits that fail that check leaves slanted surfaces, which pin sideways
+  motion, under-represented; they are searched again instead.
+* ``disparity_noise_px``: far, coarsely quantised depth dominates an unweighted fit, so each point is
+  weighted by its sensor's depth noise. Open3D's kernel has no per-point weight: the model normals are
+  scaled by sqrt(w), so the rejection distance applies to sqrt(w) x r; the failure check's fitness and
+  RMS residual stay unweighted.
 """
 from __future__ import annotations
 
