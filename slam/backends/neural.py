@@ -60,22 +60,18 @@ class NeuralConfig:
     widened by the grid's rounding (one 15 cm cell); scale it with ``stride`` and the robot's speed."""
     prior_turn_deg: float = 15.0
     """Motion prior: standard deviation of the turn between two memory steps, degrees (0 = no prior): half a
-    heading step of the shipped model. Chosen with ``score`` ``overlap`` on six held-out rooms (procedural rooms
-    48-53, used by no training) among 10 / 15 / 20 / 30 deg: mean ATE 0.270 m, heading error 17.0 deg against
-    0.290 / 39.6, 0.277 / 33.9 and 0.300 / 72.0 (slam/neural/weights/README.md, "The overlap score")."""
+    heading step of the shipped model, chosen on held-out rooms no training used (docs/neural.md)."""
 
     headings: int = 0
     """Headings the pose field searches, 360 / ``headings`` degrees apart (0 = the model's own: 12 for the shipped
     planar_3d). No weight depends on it - the rotation bank is the pixels ground-projected into each turned grid -,
-    so a model trained with 12 can search 72 (5 deg); measured on six held-out rooms (slam/neural/weights/README.md):
-    not better than the model's own with ``score`` ``sum``, much worse with ``overlap`` (24 / 36 headings: heading
-    error 78-85 deg against 17)."""
+    so a model trained with 12 can search 72 (5 deg); finer searches measured worse (docs/not_kept.md)."""
 
     score: str = "overlap"
     """How a pose is scored against the memory: ``overlap`` (the view's agreement with the memory averaged over the
     view cells that fall on observed memory cells; not in the thesis) or ``sum`` (the thesis' correlation summed
     over the whole view). With ``sum`` the shipped model's heading never leaves the first frame's: the pose whose
-    view re-covers the last written one scores highest (slam/neural/weights/README.md, "The overlap score")."""
+    view re-covers the last written one scores highest (docs/neural.md)."""
 
     def validate(self) -> "NeuralConfig":
         if int(self.stride) < 1:

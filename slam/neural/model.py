@@ -17,12 +17,10 @@ For a sequence of observations x_t (C x q x q, the agent's view, heading up) and
   registered view mask (its input detached: the mask's loss trains that LSTM only). ``seen`` is the
   registered view masks binarised and accumulated - what was observed -, which the backend's snapshot pictures
   use. The thesis trains b_t implicitly; here, with :attr:`MemoryConfig.occupancy` ``affine``, b_t = (h_t + 1) / 2
-  is trained to ``seen`` (BCE, L_occ - a deviation). Models trained without it (``occupancy = sigmoid``; both
-  shipped models) have a defect measured 2026-11-27: b_t = sigmoid(h_t), h_t in (-1, 1), lies in (0.27, 0.73),
-  and their training gave that LSTM no gradient (no loss read ``occ`` with a gradient: the hallucination step memorises under
-  ``no_grad``) - its weights are PyTorch's init, b_t near-flat (0.36-0.41 on a 3D run); their hallucinator and
-  L_corrupt read it as a soft, roughly constant mask (the shipped 2D module still lowers hallucination L1 0.195 ->
-  0.109; the 2D model retrained with the mask trained: 0.175 -> 0.111, no gain - slam/neural/weights/README.md).
+  is trained to ``seen`` (BCE, L_occ - a deviation). Models trained without it (``occupancy = sigmoid``: the
+  shipped front_2d) have an untrained occupancy LSTM whose mask sigmoid(h_t) lies in (0.27, 0.73): no loss reads
+  ``occ`` with a gradient (see its model card); planar_3d's mask was trained afterwards (``neural
+  refine-hallucination``).
 * **anamnesis (recall)**: for a requested pose, the q x q window of psi at that position, turned back by
   its heading (geometric culling), masked by the view field (-1 outside, thesis Eq. 4.7), goes
   through the decoder (a shallow ResNet) to an image.
@@ -36,7 +34,7 @@ thesis' +-45 deg agent needs resampling); the hallucination AE has one self-atte
 two (CPU budget); memory cells are image pixels (bin = 1 px) in 2D. At inference the ``neural`` registration
 backend may multiply the pose field by a Gaussian motion prior around the previous estimate
 (``forward(..., motion_prior=...)``; the thesis has none): without it one wrong registration corrupts the memory
-and the next steps follow it (measured on the 3D test rooms: ATE 0.27-0.55 m without, 0.16-0.29 m with); it
+and the next steps follow it (docs/neural.md); it
 may also score a pose on the observed memory cells only (``forward(..., score="overlap")``,
 :meth:`NeuralMemory._overlap_score`; the thesis sums over the whole view, which in 3D keeps the heading at the
 first frame's).
@@ -142,12 +140,12 @@ class MemoryConfig:
     field's peak refined by its 3 x 3 centroid and the neighbouring headings (:func:`refine_pose`), and the motion
     prior is centred there. A deviation from the thesis (MapNet registers with the soft field on the grid): a view
     moved 0.1 m and turned 15 deg from the last lies in the same 15 cm / 30 deg bin, so a memory registered on the
-    grid learns "no move" and never turns (slam/neural/weights/README.md, "The 3D heading")."""
+    grid learns "no move" and never turns (docs/neural.md)."""
     colour_skip: bool = False
     """The last ``channels`` of the ``features`` are the observation itself (RGB(-D) in [-1, 1], ground-projected
     like the rest). A deviation: the thesis' encoder (N(0, 0.02) weights, instance norm in every residual branch)
     keeps no absolute colour - a linear probe finds no chroma in its features, recalled floor plans come back grey
-    (slam/neural/weights/README.md, "Where the colour goes"). False: the thesis' encoder (the shipped models)."""
+    (docs/not_kept.md). False: the thesis' encoder (the shipped models)."""
     decoder_skip: bool = False
     """2D: a 1 x 1 convolution of the culled window added before the decoder's tanh, beside its ResNet (a linear
     path no instance norm rescales). A deviation from the thesis' decoder; False: the shipped models."""
@@ -622,7 +620,7 @@ class NeuralMemory(nn.Module):
         agreement per overlapping cell instead of the sum over the view. Not in the thesis. Why: the sum also
         scores the LSTM state of never-observed cells (its constant response to zero input) and grows with the
         overlap, so the pose that re-covers the last written view wins - measured on the shipped 3D model, the
-        heading then never leaves the first frame's (slam/neural/weights/README.md, "The 3D heading")."""
+        heading then never leaves the first frame's (docs/neural.md)."""
         overlap = correlate(seen, mbank)                                       # (B, r, P, P) view cells on seen
         return self._score(window * seen, bank, m) * (m[0].sum() / overlap.clamp(min=1.0))
 

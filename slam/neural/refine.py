@@ -57,7 +57,7 @@ class RefineConfig:
     """Batches of ``batch`` samples memorised once for the pool (3600 samples of 10 views by default)."""
     steps: int = 1500
     """Optimiser steps (3D, in an experiment with this pool size: the test rooms' SSIM was flat from 500 to 1500
-    steps; 2D: 5000 steps on 900 batches beat 1500 on 450, slam/neural/weights/README.md)."""
+    steps)."""
     batch: int = 32
     """(memory, pose) pairs per step."""
     lr: float = 2e-4

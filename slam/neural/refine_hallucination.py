@@ -1,6 +1,6 @@
 """Retraining the occupancy mask and the hallucination module of a trained memory, the memory frozen.
 
-Why: a model trained with ``occ_weight`` 0 (every shipped model until 2026-11-27) has an occupancy LSTM that no
+Why: a model trained with ``occ_weight`` 0 (both shipped memories were) has an occupancy LSTM that no
 loss reached; its mask b = sigmoid(h) lies in (0.27, 0.73) and, measured on ``planar_3d``, in 0.36-0.42 on every
 cell, observed or not. The hallucination module mixes ``b * psi + (1 - b) * filled``, so with that mask it cannot
 pass observed cells through: measured on 8 samples of the test rooms, the shipped 3D module changed the observed

@@ -71,24 +71,18 @@ class NeuralTrainConfig:
     lr_final: float = 0.1
     """The learning rate at the last step over ``lr`` (with ``lr_decay_from``)."""
     loc_weight: float = 1.0
-    """Weight of L_loc against L_anam (weight 1) in the memory phases. Measured on the shipped 2D model: L_loc's
-    gradient on the encoder is 17-350 x L_anam's (on the memory LSTM 5-75 x), so at 1 the shared encoder and LSTM
-    are trained for localisation and recall is left to the decoder; 0.02 (the 2D ``cpu-long`` preset before) recalls
-    with L1 0.096 instead of 0.122 for 58 instead of 65 % of the poses within 1 px, 0.01 (the preset now) 0.087 for
-    53 % (slam/neural/weights/README.md); 0.005 never learnt to localise."""
+    """Weight of L_loc against L_anam (weight 1) in the memory phases. L_loc's gradient on the shared encoder
+    dwarfs L_anam's, so at 1 the encoder serves localisation alone; the 2D ``cpu-long`` preset uses 0.01
+    (docs/not_kept.md has the sweep)."""
     loc_weight_final: float = 1.0
     """L_loc's weight at the last step over ``loc_weight``: from ``lr_decay_from`` on it falls linearly with the
     learning rate (:func:`loc_factor`); 1 = constant. Lets localisation be learnt at ``loc_weight`` first and recall
-    take the encoder over at the end (0.005 from the start never localised). Measured on the 2D cpu-long recipe, 0.25
-    (0.01 -> 0.0025 over the last 700 steps): recall the same (anamnesis L1 0.088 vs 0.087), localisation worse
-    (APE median 1.41 vs 1.0 px); 0 (-> no L_loc at the last step): anamnesis 0.086, APE mean 6.0 vs 5.5 px - within
-    one seed's noise, not in any preset (slam/neural/weights/README.md)."""
+        take the encoder over at the end; in no preset (docs/not_kept.md)."""
     occ_weight: float = 0.0
     """Weight of L_occ (BCE of the occupancy mask b against the observed cells ``seen``, memory phases) and, if > 0,
-    the model's occupancy mask is ``affine`` (:attr:`slam.neural.model.MemoryConfig.occupancy`). 0 = as before
-    2026-11-27: no loss reaches the occupancy LSTM (its weights stay at their init). 1 in the 2D
-    ``gpu`` preset (never run); 0 in the others, which reproduce the models measured and shipped (front_2d,
-    planar_3d) - retraining them with the mask is still to do."""
+    the model's occupancy mask is ``affine`` (:attr:`slam.neural.model.MemoryConfig.occupancy`). 0: no loss reaches
+    the occupancy LSTM (front_2d; planar_3d's mask was trained afterwards by ``neural refine-hallucination``).
+    1 in the 2D ``gpu`` preset; 0 in the others, which reproduce the shipped models."""
     lstm_forget_bias: float = 0.0
     """If not 0: the forget-gate slice of both memory LSTMs' input biases is set to this value (their other
     weights keep PyTorch's LSTM init, uniform +-1/sqrt(n): the thesis' N(0, 0.02) is for the convolutions).
@@ -100,9 +94,7 @@ class NeuralTrainConfig:
     seed: int = 0
     device: str = "cpu"
     features: int = 8
-    """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step at 0.77 s). 32 in the 2D cpu-long
-    recipe trained slower than 16 (training recall 0.134 vs 0.126 over steps 1250-1600 on the same batches; stopped
-    there, slam/neural/weights/README.md)."""
+    """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step under a second)."""
     width: int = 16
     """Channels of the encoder/decoder ResNets."""
     correlation: str = "dot"
@@ -113,17 +105,14 @@ class NeuralTrainConfig:
     colour_skip: bool = False
     """The observation itself as the last C (3 in 2D, 4 in 3D) of the ``features`` memory channels, beside the
     ResNet's (:attr:`slam.neural.model.MemoryConfig.colour_skip`): the thesis' encoder keeps no absolute colour.
-    Measured in 2D: anamnesis L1 0.140 -> 0.119 with the ``cpu`` preset, 0.087 -> 0.0835 with ``cpu-long`` (one seed;
-    the seed spread is 0.005), localisation unchanged; in no preset (slam/neural/weights/README.md)."""
+    In no preset (docs/not_kept.md)."""
     decoder_skip: bool = False
     """2D mode: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's ResNet
-    (:attr:`slam.neural.model.MemoryConfig.decoder_skip`). Measured with ``colour_skip``, ``cpu`` preset: 0.117
-    against 0.119 without it - within noise; in no preset."""
+    (:attr:`slam.neural.model.MemoryConfig.decoder_skip`). In no preset (docs/not_kept.md)."""
     decoder: str = "learned"
     """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
     grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
-    :class:`slam.neural.model.MemoryConfig`. Measured with the cpu preset (slam/neural/weights/README.md): the
-    two are equal within noise at this training budget, so the measured recipe stays the default."""
+    :class:`slam.neural.model.MemoryConfig`. Equal within noise at the cpu budget (docs/not_kept.md)."""
     subcell: bool = False
     """3D mode: register below the grid's resolution (:attr:`slam.neural.model.MemoryConfig.subcell`): teacher
     registration at the exact poses, L_loc's target the trilinear splat of the exact pose instead of a one-hot at
@@ -196,17 +185,9 @@ TRAIN_PRESETS = {
                              lstm_forget_bias=1.0, refine_steps=10000, refine_pool_batches=2000, loc_weight=0.01,
                              occ_weight=1.0),
 }
-"""2D presets. ``cpu``: the 30-minute recipe (2200 steps, ~37 min on one core, then 5000 steps of decoder
-refinement on 900 pool batches, ~6 min on one core; the whole command 24.6 min wall on 2 cores, measured); its
-learning rate falls linearly to a tenth over the last 700 steps - measured against the constant rate: APE median
-1.0 vs 3.2 px - and its LSTMs' forget gates start at 1 (within 1 px 59 vs 52 %, anamnesis L1 0.134 vs 0.139;
-slam/neural/weights/README.md). ``gpu``:
-the larger configuration, decaying over its last third and with the forget bias, cpu-long's L_loc weight and its
-trained occupancy by analogy (never run: no GPU has been lent). ``cpu-long``: the shipped front_2d recipe - the
-``cpu`` one with a memory of 16 features, ResNets of width 32 and L_loc weighted 0.01 (~78 min on one core with
-its refinement; anamnesis L1 0.087 vs 0.134, APE mean 5.5 vs 5.4 px; L_loc at 0.02: 0.096, 4.9 px; at 1: 0.122,
-4.3 px - slam/neural/weights/README.md, "Localisation against recall"). ``cpu`` and ``cpu-long`` keep
-``occ_weight`` 0, the recipes their numbers were measured with."""
+"""2D presets. ``cpu``: the 30-minute CPU recipe (with decoder refinement); ``cpu-long``: the shipped front_2d
+recipe (features 16, width 32, L_loc weighted 0.01); ``gpu``: a larger configuration, never run. Times, and what
+each choice measured: docs/neural.md, "Training presets"."""
 
 
 _CPU_3D = NeuralTrainConfig(mode="3d", batch=8, iterations=1100, pretrain_steps=150, teacher_steps=350,
@@ -220,19 +201,10 @@ TRAIN_PRESETS_3D = {
                              refine_steps=3000, refine_rooms=128,
                              world=World3DConfig(rooms=64, test_rooms=8, frames=300)),
 }
-"""3D (``--mode 3d``) presets. ``cpu``: <= 30 min on this 2-core machine after the 12 training rooms are
-simulated (about 10 min, once): measured per step with 2 threads, 0.26 s pre-training, 1.27 s memory + recall,
-2.03 s with the hallucination GAN, so 150 + 550 + 400 steps + 150 top-view steps ~ 29 min (measured end to end:
-28 min 47 s, slam/neural/weights/README.md); no decoder refinement (``neural refine-decoder`` adds it: ~10 min, plus
-~15 min to simulate 36 more rooms once). ``cpu-long``: the recipe of the shipped ``planar_3d`` weights - the
-``cpu`` schedule with a grid that reaches the walls (49 cells of 15 cm, depth to 3.6 m, instead of 33 cells to
-2.4 m: 0-16 % of the test rooms' depth pixels left out instead of 35-54 %), the learning rate falling over the
-last 400 steps and the decoder refined on 48 rooms (48 min wall on 2 cores + 18 min of refinement on one; the 12
-training rooms' 49-cell arrays are prepared on first use). Its localisation needs the backend's motion prior and
-overlap score (``NeuralConfig``: ATE within 2 cells of icp on all four evaluation sequences, heading error below
-that of never turning; slam/neural/weights/README.md); the shipped weights then had their occupancy mask trained
-and hallucination module retrained (``neural refine-hallucination``, ~60 min on one core: the preset keeps
-``occ_weight`` 0, the recipe its memory was measured with). ``gpu``: the larger configuration."""
+"""3D (``--mode 3d``) presets. ``cpu``: <= 30 min on 2 cores after the 12 training rooms are simulated once;
+``cpu-long``: the memory of the shipped planar_3d (a 49-cell grid to 3.6 m, decoder refined on 48 rooms; its mask
+trained afterwards by ``neural refine-hallucination``); ``gpu``: a larger configuration. Times and measurements:
+docs/neural.md, "Training presets"."""
 
 
 def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
