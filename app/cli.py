@@ -83,11 +83,6 @@ def main(argv: list[str] | None = None) -> int:
     except RealgapError as e:
         print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
         return 1
-    except BrokenPipeError:
-        # the reader of stdout went away (``realgap sensor effects | head``): a quiet exit, as in every
-        # Unix tool; stdout is pointed at /dev/null so that the interpreter's final flush stays quiet too
-        _silence_stdout()
-        return 0
     except OSError as e:
         if _debug(args):
             raise
@@ -107,15 +102,6 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         set_progress_enabled(True)
     return int(rc or 0)
-
-
-def _silence_stdout() -> None:
-    import os
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError):          # no real stdout (captured in tests): nothing to silence
-        pass
 
 
 def _debug(args) -> bool:
