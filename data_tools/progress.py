@@ -3,8 +3,7 @@
 A tqdm bar redraws itself with carriage returns, which fill a log file (``realgap ... 2> log``, a
 CI job, a batch system) with hundreds of partial lines. :func:`progress_bar` gives tqdm only when
 stderr is a terminal; otherwise a :class:`LineProgress` that writes one line when it starts, one
-per ``LINE_STEP`` of the work but never two within ``LINE_MIN_SECONDS`` (a fast job logs its start
-and its end), at least one every ``LINE_SECONDS`` while work goes on, and one when it closes::
+per ``LINE_STEP`` of the work (and at least every ``LINE_SECONDS``) and one when it closes::
 
     synth room: 0/100 frame
     synth room: 10/100 frame (9.8 s, 0.98 s/frame)
@@ -22,7 +21,7 @@ import sys
 import time
 from collections.abc import Iterable
 
-__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS", "LINE_MIN_SECONDS", "set_progress_enabled"]
+__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS", "set_progress_enabled"]
 
 _ENABLED = True
 
@@ -40,8 +39,6 @@ LINE_STEP = 0.1
 """A line every this fraction of the total (10 %)."""
 LINE_SECONDS = 60.0
 """... and at least this often while work goes on, seconds."""
-LINE_MIN_SECONDS = 3.0
-"""... but never two progress lines within this many seconds (the start and end lines excepted)."""
 
 
 class LineProgress:
@@ -77,8 +74,7 @@ class LineProgress:
     def update(self, n: int = 1) -> None:
         self.n += int(n)
         now = time.perf_counter()
-        since = now - self._last_t
-        if (self.n >= self._next and since >= LINE_MIN_SECONDS) or since >= LINE_SECONDS:
+        if self.n >= self._next or now - self._last_t >= LINE_SECONDS:
             self._next = self._step_after(self.n)
             self._last_t = now
             el = now - self._t0

@@ -33,9 +33,6 @@ class Evaluation:
     """Every file or folder written, the result JSON first."""
     info: dict
     """Counts of the inputs (poses, failed frames)."""
-    document: dict | None = None
-    """``eval ate`` / ``eval rpe``: the result file's content (header + body), written to ``--out`` or
-    not: what ``--json`` prints, so the printed and the saved result have one shape."""
 
 
 def read_for_eval(path, cfg: EvalConfig, fmt: str = "auto") -> Trajectory:
@@ -86,21 +83,21 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     res = ate(ref, est, cfg.align, cfg.max_dt, ref_name=str(ref_path), est_name=str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
-    d = res.to_dict()
-    d["config"] = cfg.to_dict()
-    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res))
     if out_dir is None:
-        return Evaluation({"ate": res}, [], info, {"header": header, **d})
+        return Evaluation({"ate": res}, [], info)
     outdir = Path(out_dir)
     out = outdir / "ate.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_top.png"
+    d = res.to_dict()
+    d["config"] = cfg.to_dict()
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
-    write_result(out, header, d, allow_nan=False)
+    write_result(out, _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res)), d,
+                 allow_nan=False)
     outdir.mkdir(parents=True, exist_ok=True)
     write_tum(aligned_path, res.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
     plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate ({cfg.align}-aligned)"),
                   title=f"ATE ({cfg.align}): rmse {res.rmse:.4f} m over {res.pairs} poses")
-    return Evaluation({"ate": res}, [out, aligned_path, png], info, {"header": header, **d})
+    return Evaluation({"ate": res}, [out, aligned_path, png], info)
 
 
 def rpe_pair(ref, est, cfg: EvalConfig, ref_name: str, est_name: str) -> tuple[MetricResult, MetricResult]:
@@ -128,24 +125,22 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     tr, rot = rpe_pair(ref, est, cfg, str(ref_path), str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
-    d = _rpe_dict(tr, rot, cfg)
-    metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
-    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics)
     if out_dir is None:
-        return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info, {"header": header, **d})
+        return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info)
     outdir = Path(out_dir)
     out = outdir / "rpe.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_errors.png"
+    d = _rpe_dict(tr, rot, cfg)
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
-    write_result(out, header, d)
+    metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
+    write_result(out, _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics), d)
     outdir.mkdir(parents=True, exist_ok=True)
     write_tum(aligned_path, tr.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     plot_errors_over_time(png, [("RPE translation", tr.timestamps, tr.errors, "m"),
                                 ("RPE rotation", rot.timestamps, rot.errors, "deg")],
                           title=f"RPE ({delta}, align: {cfg.align})")
-    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info,
-                      {"header": header, **d})
+    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info)
 
 
 def read_failed_timestamps(stats_path: Path) -> np.ndarray:

@@ -101,12 +101,8 @@ def _add_io_flags(p: argparse.ArgumentParser, kind: str) -> None:
 # ------------------------------------------------------------------------------------------
 
 def _print_json(ev) -> None:
-    """The result as JSON on stdout: for ``ate`` / ``rpe`` exactly what ate.json / rpe.json hold."""
     import json
     from data_tools.results import json_safe
-    if ev.document is not None:
-        print(json.dumps(json_safe(ev.document), indent=2))
-        return
     d = {name: {"unit": r.unit, "pairs": int(r.pairs), "values": int(len(r.errors)),
                 **{k: float(r.stats[k]) for k in r.stats}} for name, r in ev.results.items()}
     d["inputs"] = ev.info
