@@ -25,6 +25,7 @@ from pathlib import Path
 from data_tools.errors import FormatError, RealgapError
 
 __all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
+           "check_output_not_input",
            "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
 
 INCOMPLETE_FILE = "incomplete.json"
@@ -159,3 +160,41 @@ def incomplete_text(marker: dict) -> str:
     count = f"{marker.get('done', 0)}/{total}" if total is not None else f"{marker.get('done', 0)}"
     how = "re-run to continue" if marker.get("resumable", True) else "re-running starts again"
     return f"incomplete: {count} {marker.get('unit', 'steps')} ({marker.get('command', '?')}; {how})"
+
+
+def _real(path: str | os.PathLike) -> Path:
+    """``path`` with every symlink of its existing part resolved (the rest kept as written)."""
+    return Path(os.path.realpath(os.path.abspath(os.fspath(path))))
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """True when ``a`` is ``b`` or lies below it (both resolved)."""
+    return a == b or b in a.parents
+
+
+def check_output_not_input(outputs, inputs, *, allow_inside: tuple = ()) -> None:
+    """Refuse, before any work, an output that would land in an input (or contain one).
+
+    ``outputs`` and ``inputs`` are ``(label, path)`` pairs (label: the flag or argument name
+    shown to the user, e.g. ``"--out"``, ``"SEQ"``); None paths are skipped, and so are inputs
+    that do not exist (they are not ours to protect). Symlinks are resolved on both sides.
+    Errors (one line naming both): the output is the input; the output lies inside an input
+    folder; an input lies inside the output folder (replacing or resuming the output could touch
+    it). ``allow_inside`` names inputs below which an output is expected (``eval run``'s RUN/eval,
+    ``slam render``'s RUN/view.png): only equality is refused for those.
+    """
+    outs = [(lab, p) for lab, p in outputs if p not in (None, "", "-")]
+    ins = [(lab, p) for lab, p in inputs if p not in (None, "", "-") and (os.path.lexists(p))]
+    for olab, opath in outs:
+        o = _real(opath)
+        for ilab, ipath in ins:
+            i = _real(ipath)
+            if o == i:
+                raise RealgapError(f"{opath}: the output ({olab}) is the input {ilab} ({ipath}); writing there "
+                                   f"would replace the input: choose another {olab}")
+            if _inside(o, i) and ilab not in allow_inside:
+                raise RealgapError(f"{opath}: the output ({olab}) lies inside the input {ilab} ({ipath}); choose "
+                                   f"an {olab} outside it so the input is never changed")
+            if _inside(i, o):
+                raise RealgapError(f"{opath}: the output ({olab}) contains the input {ilab} ({ipath}); choose an "
+                                   f"{olab} that does not hold the input so the input is never changed")

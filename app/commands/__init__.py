@@ -66,3 +66,53 @@ def _positive_int(flag: str):
         return v
     parse.__name__ = flag
     return parse
+
+
+OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")
+"""Options naming something a command writes (``--json`` only where it takes a file name)."""
+OUTPUT_POSITIONALS = ("dst",)
+"""Positional arguments naming something a command writes (``data convert-* SRC DST``)."""
+INPUT_FLAGS = ("--model", "--gt", "--camera", "--config", "--compare-against", "--objects", "--worlds", "--planar",
+               "--lab", "--recog", "--calib")
+"""Options naming files or folders a command reads (besides its positional arguments)."""
+
+
+def io_arguments(p: argparse.ArgumentParser) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """``(inputs, outputs)`` of a command's parser as ``(label, dest)`` pairs.
+
+    Inputs are the positional arguments (other than :data:`OUTPUT_POSITIONALS`) and the options
+    of :data:`INPUT_FLAGS`; outputs are :data:`OUTPUT_FLAGS` and :data:`OUTPUT_POSITIONALS`.
+    ``app.cli`` checks with these, before any work, that no output lands in an input
+    (:func:`data_tools.outputs.check_output_not_input`), so every command gets the check by
+    declaring its arguments, with nothing to call.
+    """
+    inputs, outputs = [], []
+    for a in p._actions:
+        if isinstance(a, argparse._SubParsersAction) or a.dest in (argparse.SUPPRESS, "help"):
+            continue
+        if not a.option_strings:
+            label = a.metavar if isinstance(a.metavar, str) else a.dest.upper()
+            (outputs if a.dest in OUTPUT_POSITIONALS else inputs).append((label, a.dest))
+        elif any(s in OUTPUT_FLAGS for s in a.option_strings):
+            outputs.append((a.option_strings[0], a.dest))
+        elif any(s in INPUT_FLAGS for s in a.option_strings):
+            inputs.append((a.option_strings[0], a.dest))
+    return inputs, outputs
+
+
+def check_io(args: argparse.Namespace) -> None:
+    """Refuse an output in an input for the parsed command ``args`` (see :func:`io_arguments`)."""
+    from data_tools.outputs import check_output_not_input
+    spec = getattr(args, "_io", None)
+    if not spec:
+        return
+
+    def values(pairs):
+        out = []
+        for label, dest in pairs:
+            v = getattr(args, dest, None)
+            for item in (v if isinstance(v, (list, tuple)) else [v]):
+                if isinstance(item, str):
+                    out.append((label, item))
+        return out
+    check_output_not_input(values(spec[1]), values(spec[0]), allow_inside=getattr(args, "_io_allow_inside", ()))

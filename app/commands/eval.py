@@ -79,7 +79,7 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="ground truth: a sequence folder (uses SEQ/groundtruth.txt) or a trajectory file")
     _add_config_flags(p, _RUN_FIELDS)
     _add_io_flags(p, "run")
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=cmd_run, _io_allow_inside=("RUN",))  # RUN/eval is the default --out
 
 
 def _add_io_flags(p: argparse.ArgumentParser, kind: str) -> None:

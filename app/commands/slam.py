@@ -218,4 +218,4 @@ def register(parser: argparse.ArgumentParser) -> None:
                         "(auto: neural for a run of the neural backend, else the volume when saved)")
     p.add_argument("--hallucinate", action="store_true",
                    help="neural runs: decode the view after the hallucination module filled the unobserved memory")
-    p.set_defaults(func=_render)
+    p.set_defaults(func=_render, _io_allow_inside=("RUN",))  # a view of RUN may live in RUN
