@@ -12,7 +12,8 @@ not a usage dump) and any other, unexpected exception (one line plus "re-run wit
 Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130, leaves finished
 outputs in place and says what a re-run does: a command that continues sets
 ``on_interrupt`` (``parser.set_defaults(on_interrupt=RESUMES)``), any other says it starts again.
-``--no-progress`` on any command switches every progress display off.
+``--no-progress`` on any command switches every progress display off. A closed stdout
+(``realgap sensor effects | head``) ends quietly with :data:`EXIT_BROKEN_PIPE`.
 """
 from __future__ import annotations
 
@@ -36,6 +37,12 @@ def _command_modules():
         if hasattr(mod, "register") and hasattr(mod, "NAME"):
             mods.append(mod)
     return mods
+
+
+EXIT_BROKEN_PIPE = 141
+"""Exit code when stdout's reader closed the pipe (128 + SIGPIPE, as a Unix tool killed by it)."""
+EXIT_POOR_TRACKING = 3
+"""Exit code of ``slam run`` when fewer than half its frames were tracked (a result, but not a good one)."""
 
 
 class UsageError(Exception):
@@ -119,6 +126,13 @@ def main(argv: list[str] | None = None) -> int:
             from app.commands import check_io
             check_io(args)
             rc = func(args)
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # the reader of our stdout went away (``realgap sensor effects | head``): quiet, like any Unix tool
+        import os
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except RealgapError as e:
         print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
         return 1
