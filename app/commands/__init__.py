@@ -55,6 +55,27 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     return p.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
 
 
+def positive_int(flag: str):
+    """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
+    return _positive_int(flag)
+
+
+def positive_float(flag: str):
+    """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
+    import math
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(v) and v > 0):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+        return v
+    parse.__name__ = flag
+    return parse
+
+
 def _positive_int(flag: str):
     def parse(text: str) -> int:
         try:

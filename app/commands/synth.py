@@ -18,7 +18,7 @@ import json
 import sys
 from dataclasses import replace
 
-from app.commands import RESUMES
+from app.commands import RESUMES, positive_float, positive_int
 from data_tools.errors import ConfigError
 
 NAME = "synth"
@@ -77,8 +77,8 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", help="registered scene name (see 'realgap synth scenes'; default room)")
     p.add_argument("--scene-param", action="append", type=_parse_param, default=[], metavar="KEY=VALUE",
                    help="scene builder parameter, repeatable (e.g. path=room.obj)")
-    p.add_argument("--frames", type=int, help="number of frames to generate (default from --preset)")
-    p.add_argument("--fps", type=float, help="frame rate (default 30)")
+    p.add_argument("--frames", type=positive_int("--frames"), help="number of frames to generate (default from --preset)")
+    p.add_argument("--fps", type=positive_float("--fps"), help="frame rate (default 30)")
     p.add_argument("--trajectory", choices=sorted(TRAJECTORY_KINDS), help="camera path (default walkthrough)")
     add_shared(p, "--seed", "of scene, trajectory and jitter (default 0)")
     p.add_argument("--no-jitter", action="store_true", help="no hand-held shake on the trajectory")
@@ -182,7 +182,7 @@ def _add_views(sub) -> argparse.ArgumentParser:
                         "(default kinect_v1)")
     p.add_argument("--effects", default=None,
                    help="'physical' (default), 'direct' or a comma list of effect names")
-    p.add_argument("--scale", type=float, default=1.0,
+    p.add_argument("--scale", type=positive_float("--scale"), default=1.0,
                    help="factor from the model's units to metres (T-LESS models are in mm: 0.001; default 1)")
     p.add_argument("--subdivisions", type=int, default=1,
                    help="icosahedron subdivisions: 0 -> 4, 1 -> 17, 2 -> 73 viewpoints above 5 deg elevation "
