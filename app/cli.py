@@ -41,8 +41,6 @@ def _command_modules():
 
 EXIT_BROKEN_PIPE = 141
 """Exit code when stdout's reader closed the pipe (128 + SIGPIPE, as a Unix tool killed by it)."""
-EXIT_POOR_TRACKING = 3
-"""Exit code of ``slam run`` when fewer than half its frames were tracked (a result, but not a good one)."""
 
 
 class UsageError(Exception):

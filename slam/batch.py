@@ -108,7 +108,9 @@ def run_job(job: dict) -> dict:
         # finished one read back after an interrupted batch give the same numbers
         from slam.pipeline import load_run
         _score(res, j, load_run(j.run_dir).trajectory if run.complete else run.trajectory, cam)
-        res.ok = True
+        from slam.pipeline import poor_tracking
+        bad = poor_tracking(s)          # a run that lost track is a failed job, not a number in the table
+        res.ok, res.error = bad is None, (f"failed run: {bad}" if bad else None)
     except RealgapError as e:
         res.error = str(e)
     except Exception as e:  # a bug in one job must not lose the other results
@@ -313,6 +315,8 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         raise ConfigError("no sequences given")
     if not backends:
         raise ConfigError("no backends given")
+    if len(set(backends)) != len(backends):
+        raise ConfigError(f"backends given twice: {', '.join(sorted({x for x in backends if list(backends).count(x) > 1}))}")
     if threads_per_job < 0:
         raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
     for b in backends:

@@ -24,6 +24,11 @@ SHARED_FLAGS: dict[str, str] = {
 }
 """The shared flags and the start of their help text (each command appends its specifics)."""
 
+EXIT_POOR_TRACKING = 3
+"""Exit code of ``slam run`` when fewer than half its frames were registered
+(:func:`slam.pipeline.poor_tracking`): the run is written, but it is a failed run. 1 stays the
+code of an error (nothing usable written), 130 an interrupt, 141 a closed stdout."""
+
 RESUMES = "re-run the same command to continue: finished steps are kept and skipped"
 """``on_interrupt`` note of a command that continues an interrupted run (see :mod:`app.cli`)."""
 
