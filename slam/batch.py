@@ -107,10 +107,12 @@ def run_job(job: dict) -> dict:
         # score the trajectory as written (what `realgap eval run` reads): a fresh run and a
         # finished one read back after an interrupted batch give the same numbers
         from slam.pipeline import load_run
-        _score(res, j, load_run(j.run_dir).trajectory if run.complete else run.trajectory, cam)
         from slam.pipeline import poor_tracking
         bad = poor_tracking(s)          # a run that lost track is a failed job, not a number in the table
-        res.ok, res.error = bad is None, (f"failed run: {bad}" if bad else None)
+        if bad:
+            raise RealgapError(f"failed run: {bad}")
+        _score(res, j, load_run(j.run_dir).trajectory if run.complete else run.trajectory, cam)
+        res.ok = True
     except RealgapError as e:
         res.error = str(e)
     except Exception as e:  # a bug in one job must not lose the other results
