@@ -137,8 +137,11 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as e:
         if _debug(args):
             raise
+        import errno
         where = f"{e.filename}: " if e.filename else ""
-        print(f"realgap: error: {where}{_one_line(e.strerror or str(e))}", file=sys.stderr)
+        hint = (" (could not be written; an unfinished output keeps its incomplete marker: free space and re-run)"
+                if e.errno in (errno.ENOSPC, errno.EDQUOT) else "")
+        print(f"realgap: error: {where}{_one_line(e.strerror or str(e))}{hint}", file=sys.stderr)
         return 1
     except Exception as e:
         if _debug(args):
