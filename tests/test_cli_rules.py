@@ -70,7 +70,7 @@ def test_a_window_mostly_outside_the_image_is_an_error():
     from data_tools.errors import RealgapError
     from recog.patches import check_bbox
     assert check_bbox([580, 400, 680, 470], 640, 480, min_inside=0.5) == (580, 400, 640, 470)   # 60 % in: kept
-    with pytest.raises(RealgapError, match=r"only 9 % inside the 640x480 image"):
+    with pytest.raises(RealgapError, match=r"only 4 % inside the 640x480 image"):
         check_bbox([600, 400, 900, 700], 640, 480, "--bbox", min_inside=0.5)
 
 
