@@ -130,3 +130,22 @@ def test_show_gives_every_number_a_unit():
     assert "?" not in units.values(), [k for k, u in units.items() if u == "?"]
     assert units[("eval.rpe", "rotation_rmse")] == "deg" and units[("eval.run", "ate_rmse")] == "m"
     assert units[("slam.run", "frames_per_second")] == "frames/s" and units[("lab.fit", "gap")] == "gap score"
+
+
+CONSECUTIVE = {"slam run", "batch", "recog eval"}
+"""Commands that register consecutive frames: --max-frames is the first N (docs/cli.md)."""
+
+
+def test_max_frames_follows_the_documented_rule():
+    """The first N where frames are registered in order, evenly spread elsewhere; the help says which."""
+    seen = set()
+    for cmd, p in leaf_parsers().items():
+        o = options(p)
+        if "--max-frames" in o:
+            seen.add(cmd)
+            text = o["--max-frames"].help.lower()
+            assert ("first n" in text) if cmd in CONSECUTIVE else ("evenly spread" in text), (cmd, text)
+    assert CONSECUTIVE <= seen and len(seen) >= 7
+    rules = (REPO / "docs" / "cli.md").read_text()
+    for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output.**", "exit code"):
+        assert word in rules
