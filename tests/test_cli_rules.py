@@ -149,3 +149,15 @@ def test_max_frames_follows_the_documented_rule():
     rules = (REPO / "docs" / "cli.md").read_text()
     for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output.**", "exit code"):
         assert word in rules
+
+
+def test_a_huge_sequence_is_refused_before_any_allocation(tmp_path, capsys):
+    import time
+    t0 = time.perf_counter()
+    assert main(["synth", "sequence", "--out", str(tmp_path / "S"), "--frames", "100000000"]) == 1
+    assert main(["synth", "sequence", "--out", str(tmp_path / "S"), "--frames", "900000", "--width", "4000",
+                 "--height", "3000"]) == 1          # ~27 TB of images: more than any test disk has free
+    err = capsys.readouterr().err.strip().splitlines()
+    assert time.perf_counter() - t0 < 10 and not (tmp_path / "S").exists()
+    assert "--frames 100000000" in err[0] and "at most" in err[0]
+    assert "--frames 900000" in err[1] and "GB free" in err[1]

@@ -120,9 +120,37 @@ def sequence_config_from_args(args: argparse.Namespace):
     return cfg
 
 
+MAX_FRAMES_UP_FRONT = 1_000_000
+"""Most frames a sequence may have: its trajectory (poses, timestamps: ~0.3 kB a frame) is built
+in memory before the first frame is rendered, so more would allocate gigabytes with nothing shown."""
+PNG_BYTES_PER_PIXEL = 2.5
+"""Rough size of a frame on disk per pixel (16-bit depth + 8-bit colour PNG at about half their
+raw size): an estimate to refuse a sequence that cannot fit, not a promise."""
+
+
+def check_sequence_size(cfg, out: str, sensor: bool = False) -> None:
+    """Refuse, before any allocation, a sequence too long to build up front
+    (:data:`MAX_FRAMES_UP_FRONT`) or whose frames would not fit on the disk of ``out``
+    (estimated with :data:`PNG_BYTES_PER_PIXEL`; twice with ``--sensor``: ideal + simulated)."""
+    import shutil
+    from pathlib import Path
+    if cfg.frames > MAX_FRAMES_UP_FRONT:
+        raise ConfigError(f"--frames {cfg.frames}: at most {MAX_FRAMES_UP_FRONT} frames per sequence (the "
+                          f"trajectory is built in memory first); make several shorter sequences")
+    need = cfg.frames * cfg.width * cfg.height * PNG_BYTES_PER_PIXEL * (2 if sensor else 1)
+    p = Path(out).absolute()
+    while not p.exists():
+        p = p.parent
+    free = shutil.disk_usage(p).free
+    if need > free:
+        raise ConfigError(f"--frames {cfg.frames}: about {need / 1e9:.3g} GB of images at {cfg.width}x{cfg.height}, "
+                          f"but {p} has {free / 1e9:.3g} GB free")
+
+
 def _cmd_sequence(args: argparse.Namespace) -> int:
     from synth.sequence import generate_sequence
     cfg = sequence_config_from_args(args)
+    check_sequence_size(cfg, args.out, sensor=bool(args.sensor))
     if args.sensor:
         return _cmd_sensor_sequence(args, cfg)
     res = generate_sequence(cfg, args.out, resume=_continues(args, args.out), overwrite=args.overwrite,
