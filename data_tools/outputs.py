@@ -172,7 +172,7 @@ def _inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
-def check_output_not_input(outputs, inputs, *, allow_inside: tuple = ()) -> None:
+def check_output_not_input(outputs, inputs, *, allow_inside: tuple = (), may_hold: tuple = ()) -> None:
     """Refuse, before any work, an output that would land in an input (or contain one).
 
     ``outputs`` and ``inputs`` are ``(label, path)`` pairs (label: the flag or argument name
@@ -181,7 +181,9 @@ def check_output_not_input(outputs, inputs, *, allow_inside: tuple = ()) -> None
     Errors (one line naming both): the output is the input; the output lies inside an input
     folder; an input lies inside the output folder (replacing or resuming the output could touch
     it). ``allow_inside`` names inputs below which an output is expected (``eval run``'s RUN/eval,
-    ``slam render``'s RUN/view.png): only equality is refused for those.
+    ``slam render``'s RUN/view.png): only equality is refused for those. ``may_hold`` names inputs
+    an output folder may hold (a model file the lab wrote into its own folder: ``sensor compare
+    --model LAB/diagnosis/best_model.json --out LAB``); the command's data never.
     """
     outs = [(lab, p) for lab, p in outputs if p not in (None, "", "-")]
     ins = [(lab, p) for lab, p in inputs if p not in (None, "", "-") and (os.path.lexists(p))]
@@ -195,7 +197,7 @@ def check_output_not_input(outputs, inputs, *, allow_inside: tuple = ()) -> None
             if _inside(o, i) and ilab not in allow_inside:
                 raise RealgapError(f"{opath}: the output ({olab}) lies inside the input {ilab} ({ipath}); choose "
                                    f"an {olab} outside it so the input is never changed")
-            if _inside(i, o):
+            if _inside(i, o) and ilab not in may_hold:
                 raise RealgapError(f"{opath}: the output ({olab}) contains the input {ilab} ({ipath}); choose an "
                                    f"{olab} that does not hold the input so the input is never changed")
 

@@ -103,6 +103,12 @@ INPUT_FLAGS = ("--model", "--gt", "--camera", "--config", "--compare-against", "
 """Options naming files or folders a command reads (besides its positional arguments)."""
 
 
+HELD_INPUT_FLAGS = ("--model", "--camera", "--config", "--calib", "--compare-against")
+"""Inputs (a model, a calibration, an earlier lab folder) that an output folder may hold: the lab
+writes its models into its own folder and reads them back. The data a command works on (its
+positional arguments, --gt, --objects, ...) is never inside its output."""
+
+
 def io_arguments(p: argparse.ArgumentParser) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
     """``(inputs, outputs)`` of a command's parser as ``(label, dest)`` pairs.
 
@@ -141,4 +147,5 @@ def check_io(args: argparse.Namespace) -> None:
                 if isinstance(item, str):
                     out.append((label, item))
         return out
-    check_output_not_input(values(spec[1]), values(spec[0]), allow_inside=getattr(args, "_io_allow_inside", ()))
+    check_output_not_input(values(spec[1]), values(spec[0]), allow_inside=getattr(args, "_io_allow_inside", ()),
+                           may_hold=HELD_INPUT_FLAGS)
