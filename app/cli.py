@@ -6,18 +6,21 @@ Each module in :mod:`app.commands` is a command group: it defines ``NAME`` (the 
 
 Every :class:`data_tools.errors.RealgapError` becomes one line on stderr and exit code 1; so does
 an operating-system error on a file (``realgap: error: PATH: No such file or directory``) and any
-other, unexpected exception (one line plus "re-run with --debug for the traceback"; ``realgap
---debug ...`` or ``REALGAP_DEBUG=1`` shows the traceback). Usage errors exit 2 (argparse). Every
+usage error argparse finds (unknown option, bad or out-of-range value: one line naming the flag,
+not a usage dump) and any other, unexpected exception (one line plus "re-run with --debug for the traceback"; ``realgap
+--debug ...`` or ``REALGAP_DEBUG=1`` shows the traceback). Every
 Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130, leaves finished
 outputs in place and says what a re-run does: a command that continues sets
 ``on_interrupt`` (``parser.set_defaults(on_interrupt=RESUMES)``), any other says it starts again.
-``--no-progress`` on any command switches every progress display off.
+``--no-progress`` on any command switches every progress display off. A closed stdout
+(``realgap sensor effects | head``) ends quietly with :data:`EXIT_BROKEN_PIPE`.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
 import pkgutil
+import re
 import sys
 import warnings
 
@@ -36,8 +39,29 @@ def _command_modules():
     return mods
 
 
+EXIT_BROKEN_PIPE = 141
+"""Exit code when stdout's reader closed the pipe (128 + SIGPIPE, as a Unix tool killed by it)."""
+
+
+class UsageError(Exception):
+    """A command line argparse refused (unknown option, bad value, missing argument)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the realgap dialect: a usage error is one line and exit code 1, like every
+    other error (not argparse's exit 2 and usage dump), and a value that starts with ``-`` and is
+    made of numbers (``--bbox -50,-50,100,100``, ``--pose "-1 0 2 ..."``) is a value, not an option."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-[\d.,eE+\- ]+$")
+
+    def error(self, message: str):
+        raise UsageError(f"{self.prog}: {message} (see '{self.prog} --help')")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="realgap",
         description="Bridge the realism gap between synthetic and real RGB-D data: simulate depth "
                     "sensors, compare them with measurements, register and evaluate RGB-D sequences.")
@@ -48,7 +72,21 @@ def build_parser() -> argparse.ArgumentParser:
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=getattr(mod, "DESCRIPTION", mod.HELP))
         mod.register(p)
+    _declare_io(parser)
     return parser
+
+
+def _declare_io(parser: argparse.ArgumentParser) -> None:
+    """Give every command its inputs and outputs (checked in :func:`main` before any work)."""
+    from app.commands import io_arguments
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        inputs, outputs = io_arguments(parser)
+        if outputs:
+            parser.set_defaults(_io=(inputs, outputs))
+    for a in subs:
+        for sp in a.choices.values():
+            _declare_io(sp)
 
 
 def _version() -> str:
@@ -66,7 +104,11 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as e:
+        print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
+        return 1
     func = getattr(args, "func", None)
     if func is None:
         # a group without its subcommand: print that group's help
@@ -79,15 +121,27 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings(), running_command(sys.argv[1:] if argv is None else argv):
             warnings.simplefilter("default")
             warnings.showwarning = _one_line_warning
+            from app.commands import check_io
+            check_io(args)
             rc = func(args)
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # the reader of our stdout went away (``realgap sensor effects | head``): quiet, like any Unix tool
+        import os
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except RealgapError as e:
         print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
         return 1
     except OSError as e:
         if _debug(args):
             raise
+        import errno
         where = f"{e.filename}: " if e.filename else ""
-        print(f"realgap: error: {where}{_one_line(e.strerror or str(e))}", file=sys.stderr)
+        hint = (" (could not be written; an unfinished output keeps its incomplete marker: free space and re-run)"
+                if e.errno in (errno.ENOSPC, errno.EDQUOT) else "")
+        print(f"realgap: error: {where}{_one_line(e.strerror or str(e))}{hint}", file=sys.stderr)
         return 1
     except Exception as e:
         if _debug(args):

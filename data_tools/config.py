@@ -37,8 +37,13 @@ def config_to_dict(cfg: Any) -> Any:
     return cfg
 
 
-def _coerce(value: Any, tp: Any, where: str) -> Any:
-    """Check/convert a JSON value to the annotated type ``tp``."""
+def _coerce(value: Any, tp: Any, where: str, strict: bool = False) -> Any:
+    """Check/convert a JSON value to the annotated type ``tp``. ``strict``: the value must already
+    have the JSON type (a file: ``"false"`` where a boolean belongs is an error); otherwise strings
+    are converted too (values typed on a command line)."""
+    if strict and isinstance(value, str) and tp in (bool, int, float):
+        what = {bool: "true/false (a JSON boolean)", int: "an integer (a JSON number)", float: "a number (a JSON number)"}
+        raise ConfigError(f"{where}: expected {what[tp]}, got the string {value!r}")
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if tp is Any:
@@ -51,7 +56,7 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             if a is type(None):
                 continue
             try:
-                return _coerce(value, a, where)
+                return _coerce(value, a, where, strict)
             except ConfigError as e:
                 last = e
         raise last or ConfigError(f"{where}: invalid value {value!r}")
@@ -60,21 +65,21 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             return value
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected an object, got {value!r}")
-        return config_from_dict(tp, value, where)
+        return config_from_dict(tp, value, where, strict=strict)
     if origin is tuple or tp is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
         if not args:
             return tuple(value)
         if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(v, args[0], where) for v in value)
+            return tuple(_coerce(v, args[0], where, strict) for v in value)
         if len(args) != len(value):
             raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(v, a, where) for v, a in zip(value, args))
+        return tuple(_coerce(v, a, where, strict) for v, a in zip(value, args))
     if origin is list or tp is list:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
-        return [_coerce(v, args[0], where) for v in value] if args else list(value)
+        return [_coerce(v, args[0], where, strict) for v in value] if args else list(value)
     if origin is dict or tp is dict:
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected an object, got {value!r}")
@@ -108,10 +113,12 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def config_from_dict(cls: type, data: dict, where: str = "config", item: str = "option") -> Any:
+def config_from_dict(cls: type, data: dict, where: str = "config", item: str = "option",
+                     strict: bool = False) -> Any:
     """Build dataclass ``cls`` from JSON data; missing keys keep their defaults, unknown keys
     and values of the wrong type raise :class:`ConfigError` naming the key (``item``: what a
-    key is called in the message, e.g. "parameter")."""
+    key is called in the message, e.g. "parameter"). ``strict`` (data read from a file): a
+    string is never converted to a boolean or a number."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected an object, got {data!r}")
     hints = typing.get_type_hints(cls)
@@ -119,7 +126,7 @@ def config_from_dict(cls: type, data: dict, where: str = "config", item: str = "
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"{where}: unknown {item}(s) {', '.join(unknown)}; known: {', '.join(sorted(names))}")
-    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in data.items()}
+    kwargs = {k: _coerce(v, hints[k], f"{where}.{k}", strict) for k, v in data.items()}
     obj = cls(**kwargs)
     validate = getattr(obj, "validate", None)
     if callable(validate):

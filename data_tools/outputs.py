@@ -25,6 +25,7 @@ from pathlib import Path
 from data_tools.errors import FormatError, RealgapError
 
 __all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
+           "check_output_not_input", "output_lock", "LOCK_FILE",
            "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
 
 INCOMPLETE_FILE = "incomplete.json"
@@ -159,3 +160,112 @@ def incomplete_text(marker: dict) -> str:
     count = f"{marker.get('done', 0)}/{total}" if total is not None else f"{marker.get('done', 0)}"
     how = "re-run to continue" if marker.get("resumable", True) else "re-running starts again"
     return f"incomplete: {count} {marker.get('unit', 'steps')} ({marker.get('command', '?')}; {how})"
+
+
+def _real(path: str | os.PathLike) -> Path:
+    """``path`` with every symlink of its existing part resolved (the rest kept as written)."""
+    return Path(os.path.realpath(os.path.abspath(os.fspath(path))))
+
+
+def _inside(a: Path, b: Path) -> bool:
+    """True when ``a`` is ``b`` or lies below it (both resolved)."""
+    return a == b or b in a.parents
+
+
+def check_output_not_input(outputs, inputs, *, allow_inside: tuple = (), may_hold: tuple = ()) -> None:
+    """Refuse, before any work, an output that would land in an input (or contain one).
+
+    ``outputs`` and ``inputs`` are ``(label, path)`` pairs (label: the flag or argument name
+    shown to the user, e.g. ``"--out"``, ``"SEQ"``); None paths are skipped, and so are inputs
+    that do not exist (they are not ours to protect). Symlinks are resolved on both sides.
+    Errors (one line naming both): the output is the input; the output lies inside an input
+    folder; an input lies inside the output folder (replacing or resuming the output could touch
+    it). ``allow_inside`` names inputs below which an output is expected (``eval run``'s RUN/eval,
+    ``slam render``'s RUN/view.png): only equality is refused for those. ``may_hold`` names inputs
+    an output folder may hold (a model file the lab wrote into its own folder: ``sensor compare
+    --model LAB/diagnosis/best_model.json --out LAB``); the command's data never.
+    """
+    outs = [(lab, p) for lab, p in outputs if p not in (None, "", "-")]
+    ins = [(lab, p) for lab, p in inputs if p not in (None, "", "-") and (os.path.lexists(p))]
+    for olab, opath in outs:
+        o = _real(opath)
+        for ilab, ipath in ins:
+            i = _real(ipath)
+            if o == i:
+                raise RealgapError(f"{opath}: the output ({olab}) is the input {ilab} ({ipath}); writing there "
+                                   f"would replace the input: choose another {olab}")
+            if _inside(o, i) and ilab not in allow_inside:
+                raise RealgapError(f"{opath}: the output ({olab}) lies inside the input {ilab} ({ipath}); choose "
+                                   f"an {olab} outside it so the input is never changed")
+            if _inside(i, o) and ilab not in may_hold:
+                raise RealgapError(f"{opath}: the output ({olab}) contains the input {ilab} ({ipath}); choose an "
+                                   f"{olab} that does not hold the input so the input is never changed")
+
+
+LOCK_FILE = "lock.json"
+"""Lock of an output folder being written (see :class:`output_lock`)."""
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:     # alive, another user's
+        return True
+    return True
+
+
+class output_lock:
+    """``with output_lock(folder, command):`` one writer at a time in ``folder``.
+
+    Creates ``folder/lock.json`` exclusively (``O_CREAT | O_EXCL``) holding the pid, host name,
+    command and start time, and removes it on exit. A lock held by a running process on this
+    host is a one-line RealgapError naming its pid; a lock whose process no longer runs (a
+    killed run) is stale: it is reported as a warning and taken over. A lock from another host
+    cannot be checked and is an error naming the host (remove the file by hand when you know
+    that run is gone). The folder is created when missing.
+    """
+
+    def __init__(self, folder: str | os.PathLike, command: str):
+        self.folder, self.command = Path(folder), command
+        self.path = self.folder / LOCK_FILE
+
+    def _holder(self) -> dict:
+        try:
+            d = json.loads(self.path.read_text())
+            return d if isinstance(d, dict) else {}
+        except (OSError, ValueError):
+            return {}
+
+    def __enter__(self) -> "output_lock":
+        import socket
+        import warnings
+        self.folder.mkdir(parents=True, exist_ok=True)
+        me = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
+              "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                h = self._holder()
+                pid, host = h.get("pid"), h.get("host")
+                if host not in (None, me["host"]):
+                    raise RealgapError(f"{self.folder}: is locked by pid {pid} on host {host} ({h.get('command', '?')}, "
+                                       f"started {h.get('started', '?')}); if that run is gone, delete {self.path}")
+                if isinstance(pid, int) and pid != me["pid"] and _pid_alive(pid):
+                    raise RealgapError(f"{self.folder}: is being written by another process (pid {pid}, "
+                                       f"{h.get('command', '?')}, started {h.get('started', '?')}); wait for it to "
+                                       f"finish or choose another --out")
+                warnings.warn(f"{self.folder}: stale lock of pid {pid} (no longer running, started "
+                              f"{h.get('started', '?')}) taken over")
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as f:
+                json.dump(me, f)
+            return self
+        raise RealgapError(f"{self.path}: could not take the lock (another process keeps creating it)")
+
+    def __exit__(self, *exc) -> None:
+        if self._holder().get("pid") == os.getpid():
+            self.path.unlink(missing_ok=True)

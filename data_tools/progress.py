@@ -3,7 +3,9 @@
 A tqdm bar redraws itself with carriage returns, which fill a log file (``realgap ... 2> log``, a
 CI job, a batch system) with hundreds of partial lines. :func:`progress_bar` gives tqdm only when
 stderr is a terminal; otherwise a :class:`LineProgress` that writes one line when it starts, one
-per ``LINE_STEP`` of the work (and at least every ``LINE_SECONDS``) and one when it closes::
+per ``LINE_STEP`` of the work but never more often than every ``LINE_MIN_SECONDS`` (a log of a
+fast job gets its first and last line only), at least every ``LINE_SECONDS``, and one when it
+closes::
 
     synth room: 0/100 frame
     synth room: 10/100 frame (9.8 s, 0.98 s/frame)
@@ -21,7 +23,7 @@ import sys
 import time
 from collections.abc import Iterable
 
-__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS", "set_progress_enabled"]
+__all__ = ["progress_bar", "LineProgress", "LINE_STEP", "LINE_SECONDS", "LINE_MIN_SECONDS", "set_progress_enabled"]
 
 _ENABLED = True
 
@@ -39,6 +41,8 @@ LINE_STEP = 0.1
 """A line every this fraction of the total (10 %)."""
 LINE_SECONDS = 60.0
 """... and at least this often while work goes on, seconds."""
+LINE_MIN_SECONDS = 5.0
+"""... but never more often than this, seconds (a log is not a frame counter)."""
 
 
 class LineProgress:
@@ -74,7 +78,8 @@ class LineProgress:
     def update(self, n: int = 1) -> None:
         self.n += int(n)
         now = time.perf_counter()
-        if self.n >= self._next or now - self._last_t >= LINE_SECONDS:
+        since = now - self._last_t
+        if (self.n >= self._next and since >= LINE_MIN_SECONDS) or since >= LINE_SECONDS:
             self._next = self._step_after(self.n)
             self._last_t = now
             el = now - self._t0

@@ -81,6 +81,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
+    except OSError as e:
+        Path(tmp).unlink(missing_ok=True)
+        # name the file the command wanted, not the temporary one ("disk full" must say what was lost)
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -347,18 +351,59 @@ def read_result(path: str | os.PathLike) -> Result:
     return Result(p, header, d)
 
 
+_COUNTS = ("frames", "frames_tracked", "frames_failed", "frames_relocalised", "failed_frames", "candidates",
+           "evaluations", "pairs")
+_DIMENSIONLESS = {"lab.compare": "gap score", "lab.diagnose": "gap score", "lab.fit": "gap score"}
+
+
+def metric_unit(kind: str, key: str, header: dict | None = None) -> str:
+    """The unit of metric ``key`` of a result of ``kind``: the header's ``units`` entry when it
+    has one, else from the name (``*_m`` metres, ``*_deg`` degrees, counts, frames/s) and, for the
+    bare statistics of ``eval`` (rmse, mean, ...), from the kind (ATE and RPE translation in m,
+    rotations in deg). The lab's gap and its terms are dimensionless scores ("gap score"), a
+    diagnosis gain and an accuracy are fractions; a fitted parameter's unit is the effect's
+    (``realgap sensor effects NAME``), given by the caller in ``header["units"]``."""
+    units = (header or {}).get("units")
+    if isinstance(units, dict) and key in units:
+        return str(units[key])
+    name = key.rsplit(".", 1)[-1] if kind == "batch" else key
+    if name.endswith("per_second"):
+        return "frames/s"
+    if name in _COUNTS or name.endswith("pairs") or name.endswith("_pairs"):
+        return "count"
+    if name.endswith("_deg") or "_deg_" in name or "rotation" in name:
+        return "deg"
+    if name.endswith("_m") or "_m_" in name:
+        return "m"
+    if name.endswith("_s") or name == "seconds":
+        return "s"
+    if name == "accuracy" or name.startswith("gain."):
+        return "fraction"
+    if kind in ("eval.ate", "eval.rpe", "eval.run") and (name in STAT_NAMES or name.split("_")[-1] in STAT_NAMES):
+        return "m"
+    if kind in _DIMENSIONLESS and (name.startswith("gap") or name.startswith("term.") or name == "spatial_term"):
+        return _DIMENSIONLESS[kind]
+    return "?"
+
+
+STAT_NAMES = ("rmse", "mean", "median", "std", "min", "max", "sse")
+"""The statistics every error metric reports (evo's), in the unit of its errors."""
+
+
 def results_table(results: list[Result], names: list[str] | None = None) -> tuple[list[str], list[list[str]]]:
     """(column header, rows) lining results up side by side: one row per metric (the union of
-    the results' metrics, in first-seen order), plus kind, seed and created rows."""
-    cols = ["", *(names or [str(r.path) for r in results])]
+    the results' metrics, in first-seen order) with its unit (:func:`metric_unit`) in the
+    second column, plus kind, seed and created rows."""
+    cols = ["", "unit", *(names or [str(r.path) for r in results])]
     keys: dict[str, None] = {}
     for r in results:
         keys.update(dict.fromkeys(r.metrics))
-    rows = [["kind", *(r.kind for r in results)],
-            ["seed", *("" if r.header.get("seed") is None else str(r.header["seed"]) for r in results)],
-            ["created", *(str(r.header.get("created", "")) for r in results)]]
+    rows = [["kind", "", *(r.kind for r in results)],
+            ["seed", "", *("" if r.header.get("seed") is None else str(r.header["seed"]) for r in results)],
+            ["created", "", *(str(r.header.get("created", "")) for r in results)]]
     for k in keys:
-        rows.append([k, *(_fmt(r.metrics.get(k)) for r in results)])
+        unit = "|".join(dict.fromkeys(metric_unit(r.kind, k, r.header) for r in results if k in r.metrics))
+        rows.append([k, unit, *(_fmt(r.metrics.get(k)) for r in results)])
     return cols, rows
 
 

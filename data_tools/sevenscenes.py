@@ -87,6 +87,9 @@ def convert_7scenes(src: str | os.PathLike, dst: str | os.PathLike, fps: float =
     from data_tools.progress import progress_bar
 
     from data_tools.outputs import check_input_dir, check_output_dir
+    import math
+    if not (math.isfinite(fps) and fps > 0):     # 0 divides by zero, < 0 makes timestamps run backwards
+        raise FormatError(None, f"--fps must be a finite number > 0, got {fps}")
     src = check_input_dir(src, "7-Scenes sequence folder")
     dst = check_output_dir(dst, what="output sequence folder")
     frames = sorted((int(m.group(1)), m.group(0)) for f in os.listdir(src) if (m := _FRAME_RE.match(f)))

@@ -61,8 +61,10 @@ class Patch:
     """The window (x0, y0, x1, y1), pixels, x1/y1 exclusive."""
 
 
-def check_bbox(bbox, width: int, height: int, where: str = "bbox") -> tuple[int, int, int, int]:
-    """The window as ints; RealgapError (one line) when it is not inside the image or empty."""
+def check_bbox(bbox, width: int, height: int, where: str = "bbox", min_inside: float = 0.0) -> tuple[int, int, int, int]:
+    """The window as ints, clipped to the image; RealgapError (one line) when it is empty, lies
+    outside the image, or less than ``min_inside`` of its area is inside the image (a user's
+    window mostly off the image would be recognised from a sliver: ``recog predict`` asks 0.5)."""
     try:
         x0, y0, x1, y1 = (int(round(float(v))) for v in bbox)
     except (TypeError, ValueError):
@@ -71,7 +73,12 @@ def check_bbox(bbox, width: int, height: int, where: str = "bbox") -> tuple[int,
         raise RealgapError(f"{where}: empty window {[x0, y0, x1, y1]} (needs x1 > x0 and y1 > y0)")
     if x1 <= 0 or y1 <= 0 or x0 >= width or y0 >= height:
         raise RealgapError(f"{where}: window {[x0, y0, x1, y1]} lies outside the {width}x{height} image")
-    return max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    clipped = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    inside = (clipped[2] - clipped[0]) * (clipped[3] - clipped[1]) / ((x1 - x0) * (y1 - y0))
+    if inside < min_inside:
+        raise RealgapError(f"{where}: window {[x0, y0, x1, y1]} is only {100 * inside:.0f} % inside the "
+                           f"{width}x{height} image (at least {100 * min_inside:.0f} % needed)")
+    return clipped
 
 
 def bbox_from_mask(mask: np.ndarray) -> tuple[int, int, int, int] | None:

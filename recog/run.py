@@ -161,8 +161,8 @@ def predict_file(model_dir, depth_png, bbox_text: str, camera_json=None, icp: bo
         raise FormatError(png, f"image is {depth.shape[1]}x{depth.shape[0]}, the camera says "
                                f"{cam.intrinsics.width}x{cam.intrinsics.height}")
     from recog.patches import check_bbox
-    try:
-        check_bbox(bbox, cam.intrinsics.width, cam.intrinsics.height, "--bbox")
+    try:     # a window mostly off the image would be recognised from a sliver, with full confidence
+        check_bbox(bbox, cam.intrinsics.width, cam.intrinsics.height, "--bbox", min_inside=0.5)
     except Exception as e:
         raise ConfigError(str(e)) from None
     return Recogniser.load(model_dir).predict(depth, cam.intrinsics, bbox, icp=icp)

@@ -107,6 +107,10 @@ def run_job(job: dict) -> dict:
         # score the trajectory as written (what `realgap eval run` reads): a fresh run and a
         # finished one read back after an interrupted batch give the same numbers
         from slam.pipeline import load_run
+        from slam.pipeline import poor_tracking
+        bad = poor_tracking(s)          # a run that lost track is a failed job, not a number in the table
+        if bad:
+            raise RealgapError(f"failed run: {bad}")
         _score(res, j, load_run(j.run_dir).trajectory if run.complete else run.trajectory, cam)
         res.ok = True
     except RealgapError as e:
@@ -313,6 +317,8 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         raise ConfigError("no sequences given")
     if not backends:
         raise ConfigError("no backends given")
+    if len(set(backends)) != len(backends):
+        raise ConfigError(f"backends given twice: {', '.join(sorted({x for x in backends if list(backends).count(x) > 1}))}")
     if threads_per_job < 0:
         raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
     for b in backends:

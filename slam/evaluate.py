@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from data_tools.errors import FormatError
-from data_tools.results import atomic_write_json, make_header, write_result
+from data_tools.results import atomic_write_json, json_safe, make_header, write_result
 from data_tools.outputs import check_output_dir
 from data_tools.trajectory import Trajectory, write_tum
 from slam.metrics import STAT_KEYS, EvalConfig, MetricResult, ape, ate, rpe
@@ -33,6 +33,9 @@ class Evaluation:
     """Every file or folder written, the result JSON first."""
     info: dict
     """Counts of the inputs (poses, failed frames)."""
+    documents: dict = field(default_factory=dict)
+    """The result JSON of each file by stem (``{"ate": <ate.json>}``), also when nothing is
+    written: ``realgap eval ... --json`` prints exactly this, so stdout and the file have one shape."""
 
 
 def read_for_eval(path, cfg: EvalConfig, fmt: str = "auto") -> Trajectory:
@@ -83,21 +86,21 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     res = ate(ref, est, cfg.align, cfg.max_dt, ref_name=str(ref_path), est_name=str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
+    d = res.to_dict()
+    d["config"] = cfg.to_dict()
+    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res))
     if out_dir is None:
-        return Evaluation({"ate": res}, [], info)
+        return Evaluation({"ate": res}, [], info, {"ate": json_safe({"header": header, **d})})
     outdir = Path(out_dir)
     out = outdir / "ate.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_top.png"
-    d = res.to_dict()
-    d["config"] = cfg.to_dict()
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
-    write_result(out, _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res)), d,
-                 allow_nan=False)
+    write_result(out, header, d, allow_nan=False)
     outdir.mkdir(parents=True, exist_ok=True)
     write_tum(aligned_path, res.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
     plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate ({cfg.align}-aligned)"),
                   title=f"ATE ({cfg.align}): rmse {res.rmse:.4f} m over {res.pairs} poses")
-    return Evaluation({"ate": res}, [out, aligned_path, png], info)
+    return Evaluation({"ate": res}, [out, aligned_path, png], info, {"ate": json.loads(out.read_text())})
 
 
 def rpe_pair(ref, est, cfg: EvalConfig, ref_name: str, est_name: str) -> tuple[MetricResult, MetricResult]:
@@ -125,22 +128,25 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     ref, est = read_for_eval(ref_path, cfg, fmt), read_for_eval(est_path, cfg, fmt)
     tr, rot = rpe_pair(ref, est, cfg, str(ref_path), str(est_path))
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
+    d = _rpe_dict(tr, rot, cfg)
+    metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
+    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics)
     if out_dir is None:
-        return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info)
+        return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info,
+                          {"rpe": json_safe({"header": header, **d})})
     outdir = Path(out_dir)
     out = outdir / "rpe.json"
     aligned_path, png = outdir / f"{out.stem}_aligned.txt", outdir / f"{out.stem}_errors.png"
-    d = _rpe_dict(tr, rot, cfg)
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
-    metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
-    write_result(out, _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics), d)
+    write_result(out, header, d)
     outdir.mkdir(parents=True, exist_ok=True)
     write_tum(aligned_path, tr.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     plot_errors_over_time(png, [("RPE translation", tr.timestamps, tr.errors, "m"),
                                 ("RPE rotation", rot.timestamps, rot.errors, "deg")],
                           title=f"RPE ({delta}, align: {cfg.align})")
-    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info)
+    return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info,
+                      {"rpe": json.loads(out.read_text())})
 
 
 def read_failed_timestamps(stats_path: Path) -> np.ndarray:
@@ -240,4 +246,5 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool 
                            (f"RPE ({delta})", rpe_t.timestamps, rpe_t.errors, "m")],
                           failed_timestamps=failed, title=f"{run.name} vs {gt_path.name} (align: {cfg.align})")
     return Evaluation({"ate": res_t, "ape_rotation": res_r, "rpe_translation": rpe_t, "rpe_rotation": rpe_r},
-                      [out / "ate.json", out], {**run_info, "ground_truth": str(gt_path)})
+                      [out / "ate.json", out], {**run_info, "ground_truth": str(gt_path)},
+                      {n: json.loads((out / f"{n}.json").read_text()) for n in ("ate", "ape_rotation", "rpe")})

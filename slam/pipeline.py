@@ -295,6 +295,21 @@ def _make_backend(backend_cls, config, intr, tsdf_config, sensor):
     return backend
 
 
+TRACKED_FRACTION_MIN = 0.5
+"""A run that registers fewer than this fraction of its frames is a failed run (loud summary,
+``slam run`` exit code 3, ``batch`` marks it failed): its trajectory and map are not usable."""
+
+
+def poor_tracking(stats: dict) -> str | None:
+    """The one-line reason a finished run counts as failed (fewer than
+    :data:`TRACKED_FRACTION_MIN` of its frames registered), or None."""
+    n, ok = int(stats.get("frames") or 0), int(stats.get("frames_tracked") or 0)
+    if n and ok < TRACKED_FRACTION_MIN * n:
+        return (f"only {ok} of {n} frames registered ({100 * ok / n:.0f} % < {100 * TRACKED_FRACTION_MIN:.0f} %): "
+                f"the trajectory and map are not usable")
+    return None
+
+
 def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLike,
              config: SlamConfig | None = None, camera: Camera | None = None, resume: bool = True,
              overwrite: bool = False, progress: bool = True, stop_after: int | None = None,
@@ -306,10 +321,27 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     run in ``out`` with the same configuration is continued, a finished one is returned as is;
     ``overwrite`` starts afresh. ``stop_after`` processes at most that many new frames, then
     checkpoints and returns an incomplete result (used to test resuming). ``on_frame(index,
-    result)`` is called after every frame.
+    result)`` is called after every frame. One writer at a time: ``out/lock.json`` holds the
+    writer's pid (:class:`data_tools.outputs.output_lock`). A sequence folder marked incomplete
+    (a generator still running or killed) gives a warning.
     """
+    import warnings
+
+    from data_tools.outputs import incomplete_text, output_lock, read_incomplete
     cfg = (config or SlamConfig()).validate()
     check_output_dir(out, what="run folder")
+    if not isinstance(sequence, SequenceReader):
+        marker = read_incomplete(sequence)
+        if marker is not None:
+            warnings.warn(f"{sequence}: the sequence is unfinished ({incomplete_text(marker)}); the run uses the "
+                          f"frames written so far")
+    with output_lock(out, "realgap slam run"):
+        return _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_after, skip_unreadable,
+                         on_frame)
+
+
+def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_after, skip_unreadable,
+              on_frame) -> SlamResult:
     reader = sequence if isinstance(sequence, SequenceReader) else SequenceReader(sequence, camera=camera)
     cam = reader.camera
     intr = cam.intrinsics

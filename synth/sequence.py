@@ -286,9 +286,13 @@ def generate_sensor_sequence(config: SequenceConfig, ideal_dir: str | Path, sim_
     t_start = time.perf_counter()
     ideal_dir, sim_dir = Path(ideal_dir), Path(sim_dir)
     resume_ideal = resume and (ideal_dir / "depth.txt").exists()
-    _check_ideal_dir(config, ideal_dir, resume_ideal, overwrite)
     scene = build_scene(config.scene, seed=config.seed, **config.scene_params)
     sim = SensorSimulator(sensor, effects, scene)
+    # the ideal frames are rendered on the sensor's grid: ideal/config.json says so (not the preset's size)
+    k = sim.preset.intrinsics
+    config = replace(config, width=int(k.width), height=int(k.height), fx=float(k.fx), fy=float(k.fy),
+                     cx=float(k.cx), cy=float(k.cy))
+    _check_ideal_dir(config, ideal_dir, resume_ideal, overwrite)
     # the ideal frames are the simulator's renders: the sensor's image grid (pixel-aligned with
     # the simulated depth), no sensor block
     ideal_cam = Camera(sim.preset.intrinsics, sim.camera().depth_scale)

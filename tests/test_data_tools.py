@@ -324,8 +324,16 @@ def test_scene_json_round_trip_units(tmp_path):
     np.testing.assert_allclose(back.meshes[1].bounds, [[1.75, -0.25, -0.25], [2.25, 0.25, 0.25]], atol=1e-9)
 
 
-def test_progress_is_whole_lines_when_not_a_terminal(capsys):
+def test_progress_is_whole_lines_when_not_a_terminal(capsys, monkeypatch):
+    import data_tools.progress as P
     from data_tools.progress import LineProgress, progress_bar
+    # fast work on a log: the first and the last line only (lines at most every LINE_MIN_SECONDS)
+    fast = progress_bar(total=50, desc="fast", unit="frame")
+    for _ in range(50):
+        fast.update(1)
+    fast.close()
+    assert len(capsys.readouterr().err.splitlines()) == 2
+    monkeypatch.setattr(P, "LINE_MIN_SECONDS", 0.0)
     bar = progress_bar(total=20, desc="job", unit="frame")      # pytest's stderr is not a terminal
     assert isinstance(bar, LineProgress)
     for _ in range(20):

@@ -121,8 +121,9 @@ def test_an_effect_in_one_outside_file_gets_everything(tmp_path):
 def test_a_broken_effect_file_is_a_one_line_error(tmp_path):
     (tmp_path / "broken.py").write_text("import numpy as np\nraise ValueError('no')\n")
     env = {**os.environ, "REALGAP_EFFECT_PATH": str(tmp_path)}
-    r = subprocess.run([sys.executable, "-m", "app", "sensor", "compare", str(tmp_path), "--effects", "axial_noise",
-                        "--out", str(tmp_path / "out")], cwd=REPO, env=env, capture_output=True, text=True,
+    (tmp_path / "seq").mkdir()       # an output is never inside its input: SEQ and --out side by side
+    r = subprocess.run([sys.executable, "-m", "app", "sensor", "compare", str(tmp_path / "seq"), "--effects",
+                        "axial_noise", "--out", str(tmp_path / "out")], cwd=REPO, env=env, capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 1
     err = r.stderr.strip()

@@ -83,14 +83,20 @@ def test_ate_out_options_overwrite_and_json(files, capsys):
     assert out.read_bytes() == before
     assert main(["eval", "ate", str(gt), str(est), "--out", str(d / "extra"), "--overwrite", "--json"]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert printed["ate"]["rmse"] == pytest.approx(M.ate(read_tum(gt), read_tum(est), "se3", 0.02).rmse, abs=1e-12)
-    assert printed["ate"]["unit"] == "m" and printed["ate"]["pairs"] == 40
+    assert printed["rmse"] == pytest.approx(M.ate(read_tum(gt), read_tum(est), "se3", 0.02).rmse, abs=1e-12)
+    assert printed["unit"] == "m" and printed["pairs"] == 40
+    # one shape for one result: --json prints what ate.json holds, with --out or without
+    assert printed == json.loads((d / "extra" / "ate.json").read_text())
+    assert main(["eval", "ate", str(gt), str(est), "--json"]) == 0
+    alone = json.loads(capsys.readouterr().out)
+    assert set(alone) == set(printed) - {"files"} and alone["rmse"] == printed["rmse"]
 
 
 def test_rpe_outputs(files):
     d, gt, est = files
-    out = d / "rpe.json"
-    assert main(["eval", "rpe", str(gt), str(est), "--out", str(d), "--delta", "0.2", "--delta-unit", "m"]) == 0
+    o = d / "rpe_out"          # not d itself: it holds the inputs, and an output never contains an input
+    out = o / "rpe.json"
+    assert main(["eval", "rpe", str(gt), str(est), "--out", str(o), "--delta", "0.2", "--delta-unit", "m"]) == 0
     data = json.loads(out.read_text())
     for k in ("rmse", "mean", "median", "std", "min", "max", "pairs", "align", "rotation"):
         assert k in data
@@ -102,11 +108,11 @@ def test_rpe_outputs(files):
     lib_rot = M.rpe(read_tum(gt), read_tum(est), 0.2, "m", relation="rotation_angle_deg")
     assert data["rotation"]["rmse"] == pytest.approx(lib_rot.rmse, abs=1e-12)
     # RPE does not align (align none): the written estimate is the associated estimate, unchanged
-    aligned, e = read_tum(d / "rpe_aligned.txt"), read_tum(est)
+    aligned, e = read_tum(o / "rpe_aligned.txt"), read_tum(est)
     assert len(aligned) == data["pairs"] == 40
     np.testing.assert_array_equal(aligned.timestamps, e.timestamps)
     np.testing.assert_allclose(aligned.poses, e.poses, atol=1e-9)
-    assert (d / "rpe_errors.png").read_bytes()[:8] == PNG_MAGIC
+    assert (o / "rpe_errors.png").read_bytes()[:8] == PNG_MAGIC
 
 
 def _slam_run(d, failed=(101.0, 101.5)):

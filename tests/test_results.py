@@ -88,9 +88,9 @@ def test_table_lines_results_up():
     a = Result(None, {"kind": "eval.ate", "seed": 1, "metrics": {"rmse": 0.1234567, "pairs": 40}})
     b = Result(None, {"kind": "eval.ate", "metrics": {"rmse": 0.2, "extra": 3}})
     cols, rows = results_table([a, b], ["a", "b"])
-    assert cols == ["", "a", "b"]
-    assert rows[0] == ["kind", "eval.ate", "eval.ate"] and rows[1] == ["seed", "1", ""]
-    assert rows[3:] == [["rmse", "0.123457", "0.2"], ["pairs", "40", "-"], ["extra", "-", "3"]]
+    assert cols == ["", "unit", "a", "b"]
+    assert rows[0] == ["kind", "", "eval.ate", "eval.ate"] and rows[1] == ["seed", "", "1", ""]
+    assert rows[3:] == [["rmse", "m", "0.123457", "0.2"], ["pairs", "count", "40", "-"], ["extra", "?", "-", "3"]]
     lines = format_table(cols, rows).splitlines()
     assert len({len(ln) for ln in lines}) == 1      # aligned columns
 
@@ -101,14 +101,18 @@ def test_show_lines_up_eval_outputs(tmp_path, capsys):
     ref, est = _pair()
     write_tum(tmp_path / "gt.txt", ref)
     write_tum(tmp_path / "est.txt", est)
-    assert main(["eval", "ate", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--out", str(tmp_path)]) == 0
-    assert main(["eval", "rpe", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), "--out", str(tmp_path)]) == 0
+    gt, est = str(tmp_path / "gt.txt"), str(tmp_path / "est.txt")
+    out = tmp_path / "o"                      # an output never holds an input: not tmp_path itself
+    assert main(["eval", "ate", gt, est, "--out", str(out)]) == 0
+    assert main(["eval", "rpe", gt, est, "--out", str(out), "--overwrite"]) == 0
+    tmp_path = out
     ate, rpe = json.loads((tmp_path / "ate.json").read_text()), json.loads((tmp_path / "rpe.json").read_text())
     capsys.readouterr()
     assert main(["show", str(tmp_path / "ate.json"), str(tmp_path / "rpe.json")]) == 0
     rows = {ln.split()[0]: ln.split()[1:] for ln in capsys.readouterr().out.splitlines()[2:]}
     assert rows["kind"] == ["eval.ate", "eval.rpe"]
-    assert rows["rmse"] == [f"{ate['rmse']:.6g}", f"{rpe['rmse']:.6g}"]
+    assert rows["rmse"] == ["m", f"{ate['rmse']:.6g}", f"{rpe['rmse']:.6g}"]          # every number has its unit
+    assert rows["rotation_rmse"][0] == "deg" and rows["pairs"][0] == "count"
     for r in (read_result(tmp_path / "ate.json"), read_result(tmp_path / "rpe.json")):
         assert [i["role"] for i in r.header["inputs"]] == ["reference", "estimate"]
         assert r.header["command"].startswith("realgap eval")

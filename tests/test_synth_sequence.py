@@ -274,6 +274,10 @@ def test_cli_sensor_sequence_writes_simulated_and_ideal(tmp_path):
     assert not np.array_equal(d_sim, d_ideal)     # and is not the ideal depth
     assert np.median(np.abs(d_sim[both] - d_ideal[both])) < 0.02
     np.testing.assert_allclose(sim.poses, ideal.poses, atol=1e-7)
+    # ideal/config.json describes the images it holds (the sensor's grid, not the preset's size)
+    import json
+    c = json.loads((out / "ideal" / "config.json").read_text())
+    assert (c["height"], c["width"]) == d_ideal.shape == d_sim.shape
 
 
 def test_cli_sensor_sequence_workers_write_the_same_frames(tmp_path):

@@ -24,6 +24,11 @@ SHARED_FLAGS: dict[str, str] = {
 }
 """The shared flags and the start of their help text (each command appends its specifics)."""
 
+EXIT_POOR_TRACKING = 3
+"""Exit code of ``slam run`` when fewer than half its frames were registered
+(:func:`slam.pipeline.poor_tracking`): the run is written, but it is a failed run. 1 stays the
+code of an error (nothing usable written), 130 an interrupt, 141 a closed stdout."""
+
 RESUMES = "re-run the same command to continue: finished steps are kept and skipped"
 """``on_interrupt`` note of a command that continues an interrupted run (see :mod:`app.cli`)."""
 
@@ -55,6 +60,27 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     return p.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
 
 
+def positive_int(flag: str):
+    """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
+    return _positive_int(flag)
+
+
+def positive_float(flag: str):
+    """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
+    import math
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(v) and v > 0):
+            raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+        return v
+    parse.__name__ = flag
+    return parse
+
+
 def _positive_int(flag: str):
     def parse(text: str) -> int:
         try:
@@ -66,3 +92,60 @@ def _positive_int(flag: str):
         return v
     parse.__name__ = flag
     return parse
+
+
+OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")
+"""Options naming something a command writes (``--json`` only where it takes a file name)."""
+OUTPUT_POSITIONALS = ("dst",)
+"""Positional arguments naming something a command writes (``data convert-* SRC DST``)."""
+INPUT_FLAGS = ("--model", "--gt", "--camera", "--config", "--compare-against", "--objects", "--worlds", "--planar",
+               "--lab", "--recog", "--calib")
+"""Options naming files or folders a command reads (besides its positional arguments)."""
+
+
+HELD_INPUT_FLAGS = ("--model", "--camera", "--config", "--calib", "--compare-against")
+"""Inputs (a model, a calibration, an earlier lab folder) that an output folder may hold: the lab
+writes its models into its own folder and reads them back. The data a command works on (its
+positional arguments, --gt, --objects, ...) is never inside its output."""
+
+
+def io_arguments(p: argparse.ArgumentParser) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """``(inputs, outputs)`` of a command's parser as ``(label, dest)`` pairs.
+
+    Inputs are the positional arguments (other than :data:`OUTPUT_POSITIONALS`) and the options
+    of :data:`INPUT_FLAGS`; outputs are :data:`OUTPUT_FLAGS` and :data:`OUTPUT_POSITIONALS`.
+    ``app.cli`` checks with these, before any work, that no output lands in an input
+    (:func:`data_tools.outputs.check_output_not_input`), so every command gets the check by
+    declaring its arguments, with nothing to call.
+    """
+    inputs, outputs = [], []
+    for a in p._actions:
+        if isinstance(a, argparse._SubParsersAction) or a.dest in (argparse.SUPPRESS, "help"):
+            continue
+        if not a.option_strings:
+            label = a.metavar if isinstance(a.metavar, str) else a.dest.upper()
+            (outputs if a.dest in OUTPUT_POSITIONALS else inputs).append((label, a.dest))
+        elif any(s in OUTPUT_FLAGS for s in a.option_strings):
+            outputs.append((a.option_strings[0], a.dest))
+        elif any(s in INPUT_FLAGS for s in a.option_strings):
+            inputs.append((a.option_strings[0], a.dest))
+    return inputs, outputs
+
+
+def check_io(args: argparse.Namespace) -> None:
+    """Refuse an output in an input for the parsed command ``args`` (see :func:`io_arguments`)."""
+    from data_tools.outputs import check_output_not_input
+    spec = getattr(args, "_io", None)
+    if not spec:
+        return
+
+    def values(pairs):
+        out = []
+        for label, dest in pairs:
+            v = getattr(args, dest, None)
+            for item in (v if isinstance(v, (list, tuple)) else [v]):
+                if isinstance(item, str):
+                    out.append((label, item))
+        return out
+    check_output_not_input(values(spec[1]), values(spec[0]), allow_inside=getattr(args, "_io_allow_inside", ()),
+                           may_hold=HELD_INPUT_FLAGS)

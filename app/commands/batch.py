@@ -38,6 +38,9 @@ def _run(args) -> int:
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     if not backends:
         raise ConfigError("--backends: give at least one backend, e.g. icp,rgbd_odometry")
+    twice = sorted({b for b in backends if backends.count(b) > 1})
+    if twice:     # the same job twice would write into one run folder
+        raise ConfigError(f"--backends: {', '.join(twice)} given twice; name each backend once")
     configs = {b: config_from_args(args, b, tuple(backends)) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
                     executor=args.executor, workers=args.workers, progress=not args.no_progress,

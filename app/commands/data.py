@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from app.commands import RESUMES, add_group, add_shared
+from app.commands import RESUMES, add_group, add_shared, positive_float, positive_int
 from data_tools.errors import ConfigError
 
 NAME = "data"
@@ -19,7 +19,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("src", help="7-Scenes sequence folder")
     p.add_argument("dst", nargs="?", help="the converted sequence folder (TUM layout); or give it as --out")
     add_shared(p, "--out", "the converted sequence folder (same as DST)", metavar="DST")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate used to make timestamps (default 30)")
+    p.add_argument("--fps", type=positive_float("--fps"), default=30.0, help="frame rate used to make timestamps (default 30)")
     add_shared(p, "--overwrite", "delete DST first instead of continuing the conversion in it")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_convert_7scenes, on_interrupt=RESUMES)
@@ -36,7 +36,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--undistort-disparity", action="store_true",
                    help="correct the disparity with dc_beta/dc_alpha (default: keep the raw sensor behaviour, "
                         "which is what the sensor lab models)")
-    p.add_argument("--fps", type=float, default=30.0, help="frame rate used to make timestamps (default 30)")
+    p.add_argument("--fps", type=positive_float("--fps"), default=30.0, help="frame rate used to make timestamps (default 30)")
     add_shared(p, "--overwrite", "a converted sequence already in DST")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_convert_kinect_raw, on_interrupt=RESUMES)
@@ -64,8 +64,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", metavar="JSON|NAME",
                    help="camera.json to use (and write) instead of the sequence's own, or one of "
                         "tum_fr1, tum_fr2, tum_fr3, sevenscenes (TUM folders have no camera.json)")
-    p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
-    p.add_argument("--depth-max", type=float, default=4.0, metavar="M",
+    p.add_argument("--voxel", type=positive_float("--voxel"), default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
+    p.add_argument("--depth-max", type=positive_float("--depth-max"), default=4.0, metavar="M",
                    help="ignore depth beyond this many metres (default 4)")
     add_shared(p, "--max-frames", "fuse N frames evenly spread (default: every frame with a pose)")
     p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")

@@ -79,7 +79,7 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="ground truth: a sequence folder (uses SEQ/groundtruth.txt) or a trajectory file")
     _add_config_flags(p, _RUN_FIELDS)
     _add_io_flags(p, "run")
-    p.set_defaults(func=cmd_run)
+    p.set_defaults(func=cmd_run, _io_allow_inside=("RUN",))  # RUN/eval is the default --out
 
 
 def _add_io_flags(p: argparse.ArgumentParser, kind: str) -> None:
@@ -101,13 +101,13 @@ def _add_io_flags(p: argparse.ArgumentParser, kind: str) -> None:
 # ------------------------------------------------------------------------------------------
 
 def _print_json(ev) -> None:
+    """The result JSON exactly as the file holds it: ``eval ate --json`` prints ate.json's content
+    (``rmse`` at the top level), ``eval rpe`` rpe.json's; ``eval run`` writes three result files and
+    prints them by name (``{"ate": <ate.json>, "ape_rotation": ..., "rpe": ...}``)."""
     import json
     from data_tools.results import json_safe
-    d = {name: {"unit": r.unit, "pairs": int(r.pairs), "values": int(len(r.errors)),
-                **{k: float(r.stats[k]) for k in r.stats}} for name, r in ev.results.items()}
-    d["inputs"] = ev.info
-    d["files"] = [str(f) for f in ev.files]
-    print(json.dumps(json_safe(d), indent=2))
+    docs = ev.documents
+    print(json.dumps(json_safe(next(iter(docs.values())) if len(docs) == 1 else docs), indent=2))
 
 
 def cmd_ate(args) -> int:

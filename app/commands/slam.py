@@ -168,6 +168,12 @@ def _run(args) -> int:
         bad = [r for r in s.get("per_frame", []) if r.get("failed")][:5]
         for r in bad:
             print(f"  failed t={r['timestamp']:.6f}: {r.get('reason', '')}", file=sys.stderr)
+    from slam.pipeline import poor_tracking
+    bad = poor_tracking(s)
+    if bad:
+        from app.commands import EXIT_POOR_TRACKING
+        print(f"realgap: FAILED RUN: {res.run_dir}: {bad} (exit code {EXIT_POOR_TRACKING})", file=sys.stderr)
+        return EXIT_POOR_TRACKING
     return 0
 
 
@@ -188,7 +194,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("run", help="register a sequence, fuse it, write RUN/",
                        description="Register every frame of SEQ, fuse them into a TSDF and write RUN/"
                                    "{trajectory.txt,stats.json,config.json,camera.json,mesh.ply}. "
-                                   "Re-running the same command resumes an interrupted run.")
+                                   "Re-running the same command resumes an interrupted run. A run that registers "
+                                   "fewer than half its frames ends with a FAILED RUN line and exit code 3 (its "
+                                   "files are written); one writer at a time holds RUN/lock.json.")
     p.add_argument("sequence", metavar="SEQ", help="TUM-layout sequence folder")
     p.add_argument("--backend", default="icp", choices=backend_names(), help="registration backend (default: icp)")
     add_shared(p, "--out", "the run folder", required=True, metavar="RUN")
@@ -218,4 +226,4 @@ def register(parser: argparse.ArgumentParser) -> None:
                         "(auto: neural for a run of the neural backend, else the volume when saved)")
     p.add_argument("--hallucinate", action="store_true",
                    help="neural runs: decode the view after the hallucination module filled the unobserved memory")
-    p.set_defaults(func=_render)
+    p.set_defaults(func=_render, _io_allow_inside=("RUN",))  # a view of RUN may live in RUN

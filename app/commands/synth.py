@@ -18,7 +18,7 @@ import json
 import sys
 from dataclasses import replace
 
-from app.commands import RESUMES
+from app.commands import RESUMES, positive_float, positive_int
 from data_tools.errors import ConfigError
 
 NAME = "synth"
@@ -77,8 +77,8 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", help="registered scene name (see 'realgap synth scenes'; default room)")
     p.add_argument("--scene-param", action="append", type=_parse_param, default=[], metavar="KEY=VALUE",
                    help="scene builder parameter, repeatable (e.g. path=room.obj)")
-    p.add_argument("--frames", type=int, help="number of frames to generate (default from --preset)")
-    p.add_argument("--fps", type=float, help="frame rate (default 30)")
+    p.add_argument("--frames", type=positive_int("--frames"), help="number of frames to generate (default from --preset)")
+    p.add_argument("--fps", type=positive_float("--fps"), help="frame rate (default 30)")
     p.add_argument("--trajectory", choices=sorted(TRAJECTORY_KINDS), help="camera path (default walkthrough)")
     add_shared(p, "--seed", "of scene, trajectory and jitter (default 0)")
     p.add_argument("--no-jitter", action="store_true", help="no hand-held shake on the trajectory")
@@ -120,9 +120,37 @@ def sequence_config_from_args(args: argparse.Namespace):
     return cfg
 
 
+MAX_FRAMES_UP_FRONT = 1_000_000
+"""Most frames a sequence may have: its trajectory (poses, timestamps: ~0.3 kB a frame) is built
+in memory before the first frame is rendered, so more would allocate gigabytes with nothing shown."""
+PNG_BYTES_PER_PIXEL = 2.5
+"""Rough size of a frame on disk per pixel (16-bit depth + 8-bit colour PNG at about half their
+raw size): an estimate to refuse a sequence that cannot fit, not a promise."""
+
+
+def check_sequence_size(cfg, out: str, sensor: bool = False) -> None:
+    """Refuse, before any allocation, a sequence too long to build up front
+    (:data:`MAX_FRAMES_UP_FRONT`) or whose frames would not fit on the disk of ``out``
+    (estimated with :data:`PNG_BYTES_PER_PIXEL`; twice with ``--sensor``: ideal + simulated)."""
+    import shutil
+    from pathlib import Path
+    if cfg.frames > MAX_FRAMES_UP_FRONT:
+        raise ConfigError(f"--frames {cfg.frames}: at most {MAX_FRAMES_UP_FRONT} frames per sequence (the "
+                          f"trajectory is built in memory first); make several shorter sequences")
+    need = cfg.frames * cfg.width * cfg.height * PNG_BYTES_PER_PIXEL * (2 if sensor else 1)
+    p = Path(out).absolute()
+    while not p.exists():
+        p = p.parent
+    free = shutil.disk_usage(p).free
+    if need > free:
+        raise ConfigError(f"--frames {cfg.frames}: about {need / 1e9:.3g} GB of images at {cfg.width}x{cfg.height}, "
+                          f"but {p} has {free / 1e9:.3g} GB free")
+
+
 def _cmd_sequence(args: argparse.Namespace) -> int:
     from synth.sequence import generate_sequence
     cfg = sequence_config_from_args(args)
+    check_sequence_size(cfg, args.out, sensor=bool(args.sensor))
     if args.sensor:
         return _cmd_sensor_sequence(args, cfg)
     res = generate_sequence(cfg, args.out, resume=_continues(args, args.out), overwrite=args.overwrite,
@@ -182,7 +210,7 @@ def _add_views(sub) -> argparse.ArgumentParser:
                         "(default kinect_v1)")
     p.add_argument("--effects", default=None,
                    help="'physical' (default), 'direct' or a comma list of effect names")
-    p.add_argument("--scale", type=float, default=1.0,
+    p.add_argument("--scale", type=positive_float("--scale"), default=1.0,
                    help="factor from the model's units to metres (T-LESS models are in mm: 0.001; default 1)")
     p.add_argument("--subdivisions", type=int, default=1,
                    help="icosahedron subdivisions: 0 -> 4, 1 -> 17, 2 -> 73 viewpoints above 5 deg elevation "

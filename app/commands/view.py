@@ -31,7 +31,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--movie", metavar="OUT.gif|mp4", help="render a fly-through off-screen and exit")
     parser.add_argument("--size", default="1600x900", help="window size WxH in pixels (default 1600x900)")
     add_shared(parser, "--overwrite", "an existing --screenshot / --movie file")
-    parser.set_defaults(func=_run)
+    parser.set_defaults(func=_run, _io_allow_inside=("SEQ_OR_RUN", "--lab", "--recog"))  # screenshots of a folder may live in it
 
 
 def _run(args) -> int:

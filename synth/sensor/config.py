@@ -134,9 +134,11 @@ class SensorConfig:
         if base_dir is not None and isinstance(d["effects"], list):
             d = dict(d, effects=[_resolve_files(e, Path(base_dir)) for e in d["effects"]])
         p = d["preset"]
-        pre = get_preset(p) if isinstance(p, str) else SensorPreset.from_json(p)
+        pre = get_preset(p) if isinstance(p, str) else _typed_preset(p)
         if not isinstance(d["effects"], list):
             raise ConfigError("sensor config 'effects' must be a list")
+        for e in d["effects"]:
+            _check_effect_entry(e)
         motion = d.get("motion") or {}
         if not isinstance(motion, dict):
             raise ConfigError("sensor config 'motion' must be a JSON object")
@@ -230,6 +232,31 @@ class SensorConfig:
             else:
                 raise ConfigError(f"{key}: effect {en!r} is not in this sensor model")
         return replace(self, effects=effects)
+
+
+def _typed_preset(p) -> SensorPreset:
+    """A preset JSON object with every field of its declared type (``"width": "640"`` or
+    ``"fx": true`` is a one-line error naming the key, not a silent conversion)."""
+    from data_tools.config import config_from_dict
+    if not isinstance(p, dict):
+        raise ConfigError("sensor config 'preset' must be a preset name or a JSON object")
+    return config_from_dict(SensorPreset, p, "sensor config 'preset'", item="key", strict=True)
+
+
+def _check_effect_entry(e) -> None:
+    """An effect entry's keys have their JSON types: ``"enabled"`` a boolean (the string
+    ``"false"`` would be truthy and turn the effect ON), ``"name"`` a string, ``"params"`` an
+    object. Parameter types are checked by the effect's Params (``params_from_dict``)."""
+    if not isinstance(e, dict):
+        return                     # a bare name or [name, params]: make_effect checks those
+    name = e.get("name", "?")
+    if "name" in e and not isinstance(e["name"], str):
+        raise ConfigError(f"effect entry {e['name']!r}: 'name' must be a string")
+    if "enabled" in e and not isinstance(e["enabled"], bool):
+        raise ConfigError(f"effect {name!r}: 'enabled' must be true or false (a JSON boolean), "
+                          f"got {json.dumps(e['enabled'])}")
+    if "params" in e and e["params"] is not None and not isinstance(e["params"], dict):
+        raise ConfigError(f"effect {name!r}: 'params' must be a JSON object, got {json.dumps(e['params'])}")
 
 
 def _resolve_files(spec, base: Path):

@@ -335,7 +335,7 @@ def params_from_dict(cls, d: dict, effect_name: str = ""):
     keys keep their defaults; unknown keys and wrong types are one-line ConfigErrors naming the
     effect and the parameter."""
     from data_tools.config import config_from_dict
-    return config_from_dict(cls, d, f"effect {effect_name!r} params", item="parameter")
+    return config_from_dict(cls, d, f"effect {effect_name!r} params", item="parameter", strict=True)
 
 
 _REGISTRY: dict[str, type[Effect]] = {}
