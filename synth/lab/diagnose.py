@@ -498,7 +498,7 @@ def _nothing_to_rank(base: BaseRefit, probe: Probe) -> str:
     the data giving no effect anything to act on)."""
     from synth.lab.guards import cut_reason
     if base.lost >= 0.2:
-        return f"diagnose: every candidate leaves the simulated depth unchanged: {cut_reason(base.config, base.lost)}"
+        return f"diagnose: every candidate leaves the simulated depth unchanged: {cut_reason(base.config, base.lost, bool(base.params))}"
     return (f"diagnose: every candidate leaves the simulated depth unchanged on this data "
             f"({', '.join(probe.inert)}); nothing to rank")
 

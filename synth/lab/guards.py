@@ -100,15 +100,16 @@ def lost_fraction(measured, sims: Sequence[np.ndarray], frames: Sequence[int]) -
     return lost / tot if tot else 0.0
 
 
-def cut_reason(config, lost: float) -> str:
+def cut_reason(config, lost: float, refit: bool = True) -> str:
     """Why a base model leaves nothing to diagnose: the share of measured pixels it cuts and the
     depth-limit parameters it has (e.g. ``max_depth_m 0.87 m``)."""
     lims = []
     for e in config.effects:
         for pn in type(e).DEPTH_LIMIT_PARAMS:
             v = float(getattr(e.params, pn))
-            lims.append(f"{pn} {v:.2f} m" if v > 0 else f"{pn} the device's")
-    return f"the refit base model cuts {100 * lost:.0f} % of the measured pixels" + (
+            if v > 0:        # 0 = the device's limit, which is not the model's doing
+                lims.append(f"{pn} {v:.2f} m")
+    return f"the {'refit ' if refit else ''}base model cuts {100 * lost:.0f} % of the measured pixels" + (
         f": {', '.join(lims)}" if lims else "")
 
 
