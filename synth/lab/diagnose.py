@@ -10,7 +10,11 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
 1. **Refit the model** (``DiagnoseConfig.refit_model``): the current model's own fittable
    parameters are fitted first (:func:`synth.lab.fit.search`), so a candidate is not credited
    for what a better noise level of the existing model would explain. ``Diagnosis.gap`` is the
-   gap of this refitted model (``gap_given``: of the model as passed in).
+   gap of this refitted model (``gap_given``: of the model as passed in). The refit never throws
+   the measurement away (:mod:`synth.lab.guards`): range limits keep the measured valid depths'
+   0.5th-99.5th percentiles, a refit that leaves more measured-valid pixels invalid than the given
+   model is rejected (``Diagnosis.refit_rejected``), and when every candidate is inert the
+   diagnosis raises an error saying why instead of ranking nothing.
 2. **Candidates**: every registered effect not in the model (or ``candidates``), minus those
    that cannot apply, each with the reason in ``Diagnosis.skipped``: effects of the physical
    pipeline (``Effect.physical``) when the model is direct; effects whose physics needs another
