@@ -10,7 +10,11 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
 1. **Refit the model** (``DiagnoseConfig.refit_model``): the current model's own fittable
    parameters are fitted first (:func:`synth.lab.fit.search`), so a candidate is not credited
    for what a better noise level of the existing model would explain. ``Diagnosis.gap`` is the
-   gap of this refitted model (``gap_given``: of the model as passed in).
+   gap of this refitted model (``gap_given``: of the model as passed in). The refit never throws
+   the measurement away (:mod:`synth.lab.guards`): range limits keep the measured valid depths'
+   0.5th-99.5th percentiles, a refit that leaves more measured-valid pixels invalid than the given
+   model is rejected (``Diagnosis.refit_rejected``), and when every candidate is inert the
+   diagnosis raises an error saying why instead of ranking nothing.
 2. **Candidates**: every registered effect not in the model (or ``candidates``), minus those
    that cannot apply, each with the reason in ``Diagnosis.skipped``: effects of the physical
    pipeline (``Effect.physical``) when the model is direct; effects whose physics needs another
@@ -57,13 +61,14 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.config import config_to_dict
-from data_tools.errors import ConfigError
+from data_tools.errors import ConfigError, RealgapError
 from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
 
-__all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE"]
+__all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
+           "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "evaluate_held_out"]
 
 DIAGNOSIS_FILE = "diagnosis.json"
 
@@ -189,6 +194,9 @@ class Diagnosis:
     time_capped: bool = False
     """True when the wall-clock guard ``FitConfig.max_seconds`` stopped at least one search (the
     diagnosis then depends on the machine's speed; off by default)."""
+    refit_rejected: str = ""
+    """Why the model's refit was not taken although it lowered the gap (it threw measured pixels
+    away, :func:`refit_base`); empty when it was taken or did not help."""
 
     @property
     def best(self) -> Candidate | None:
@@ -200,7 +208,8 @@ class Diagnosis:
                        "skipped": dict(self.skipped), "frames": list(self.frames), "seconds": self.seconds,
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
-                       "eval_gain": self.eval_gain, "time_capped": self.time_capped})
+                       "eval_gain": self.eval_gain, "time_capped": self.time_capped,
+                       "refit_rejected": self.refit_rejected})
 
     @property
     def eval_gain(self) -> float | None:
@@ -267,78 +276,118 @@ def _free_numbers(config, name: str) -> int:
     return n
 
 
-def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_config: FitConfig | None = None,
-             progress: bool = False, diagnose_config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Rank the effects missing from ``config`` by how much they lower the gap on ``measured``
-    (a :class:`~synth.lab.measured.MeasuredSequence`); see the module docstring."""
-    from synth.sensor.registry import effect_class, effect_names
-    fc = (fit_config or FitConfig()).validate()
-    dc = (diagnose_config or DiagnoseConfig()).validate()
-    t0 = time.perf_counter()
-    frames = spread(len(measured), fc.max_frames)
-    obj = Objective(measured, frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
-    model_names = config.names(enabled_only=True)
-    if candidates is None:
-        cands = [n for n in effect_names() if n not in config.names()]
-    else:
-        cands = []
-        for n in candidates:
-            effect_class(n)  # unknown -> ConfigError listing the known ones
-            if n in model_names:
-                raise ConfigError(f"candidate effect {n!r} is already in the model")
-            if n not in cands:
-                cands.append(n)
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=len(cands) + 1, desc="diagnose", unit="effect")
+@dataclass
+class BaseRefit:
+    """Stage 1 of :func:`diagnose`: the model's own parameters refitted."""
 
-    def fitcfg(evals: int) -> FitConfig:
+    config: object
+    """The base model the candidates are added to (the refit, or the model as given when the refit
+    did not lower the gap or was rejected)."""
+    gap: float
+    """Its gap on the search frames."""
+    gap_given: float
+    """Gap of the model as passed in."""
+    params: dict
+    """{"effect.param": value} of the base model's fittable parameters."""
+    lost: float
+    """Share of the measured-valid pixels the base model's simulation leaves invalid
+    (:func:`synth.lab.guards.lost_fraction`)."""
+    rejected: str = ""
+    """Why a refit that lowered the gap was not taken (empty: not rejected)."""
+
+
+@dataclass
+class Probe:
+    """Stage 2 of :func:`diagnose`: which candidates can act on this data."""
+
+    tryable: list[tuple[str, object, dict]]
+    """(name, model + the effect at its defaults, data-driven start) of each candidate to fit."""
+    skipped: dict[str, str]
+    """Effect -> why it was not tried."""
+    inert: list[str]
+    """Skipped candidates that leave the simulated depth unchanged here."""
+
+
+@dataclass
+class HeldOut:
+    """Stage 5 of :func:`diagnose`: scores on the evaluation frames."""
+
+    gap: float | None
+    """Gap of the base model there (None: not evaluated)."""
+    frames: list[int]
+    """Kept-frame positions of the evaluation set."""
+    evaluations: int
+    """Objective evaluations spent there."""
+
+
+class _Ctx:
+    """What every stage shares: the measured sequence, search objective and frames, settings,
+    search statistics and the progress bar."""
+
+    def __init__(self, measured, fc: FitConfig, dc: DiagnoseConfig, bar):
+        self.measured, self.fc, self.dc, self.bar = measured, fc, dc, bar
+        self.frames = spread(len(measured), fc.max_frames)
+        self.obj = Objective(measured, self.frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
+        self.stats: dict = {}
+
+    def fitcfg(self, evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
-        d = fc.to_dict()
-        d.update(max_evaluations=int(evals), grid_points=int(dc.candidate_grid_points))
+        d = self.fc.to_dict()
+        d.update(max_evaluations=int(evals), grid_points=int(self.dc.candidate_grid_points))
         return FitConfig.from_dict(d)
 
-    stats: dict = {}   # search statistics (time_capped: the optional wall-clock guard stopped one)
+    def tick(self) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
 
-    # 1. the model itself
+
+def refit_base(cx: _Ctx, config) -> BaseRefit:
+    """Stage 1: fit the model's own parameters (from the model effects' closed-form starts when
+    they score better, as ``fit_model`` does: a refit from the preset's values alone left the
+    noise off, and a candidate whose fit re-fits the noise from a better start then "explained"
+    that - a false alarm on data with no hidden effect).
+
+    Guard (issue 43): a refit whose simulation leaves more of the measured-valid pixels invalid than
+    the model as given (by more than :data:`~synth.lab.guards.LOST_TOLERANCE`) is rejected: it
+    lowered the gap by comparing fewer pixels, not by explaining them."""
+    from synth.lab.guards import LOST_TOLERANCE, lost_fraction
+    measured, frames, obj = cx.measured, cx.frames, cx.obj
     gap_given = obj(config)
-    base_cfg, gap0, model_params = config, gap_given, {}
-    model_specs = param_specs(config) if dc.refit_model else []
-    if model_specs:
-        # from the model effects' closed-form starts when they score better, as fit_model does (a refit
-        # from the preset's values alone left the noise off, and a candidate whose fit re-fits the
-        # noise from a better start then "explained" that: a false alarm on data with no hidden effect)
-        start_cfg, g_start = config, gap_given
-        if fc.data_starts:
-            ds = start_values(measured, config, list(dict.fromkeys(sp.key.split(".", 1)[0] for sp in model_specs)),
-                              frames)
-            if ds:
-                cand = set_params(config, ds)
-                g_ds = obj(cand)
-                if g_ds < g_start:
-                    start_cfg, g_start = cand, g_ds
-                    model_specs = param_specs(start_cfg)
-        x, g, _ = search(obj, start_cfg, model_specs, fitcfg(dc.model_evaluations), start_gap=g_start,
-                         stats=stats)
-        if g < gap_given:
-            base_cfg, gap0 = set_params(start_cfg, x), g
-        model_params = {k: float(v) for k, v in (x if g < gap_given else
-                                                 {sp.key: sp.value for sp in param_specs(config)}).items()}
-    if bar is not None:
-        bar.update(1)
-    base_sims = measured.simulate(base_cfg, fc.seed, frames)
-    base_obs = measured.observations(base_sims, frames)
-    from synth.lab.compare import compare
-    base_result = compare(base_obs, obj.compare_config, cache=obj.cache)
-    albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
-    ctx = EvidenceContext(base_obs, measured.preset, albedo)
+    model_specs = param_specs(config) if cx.dc.refit_model else []
+    sims_given = measured.simulate(config, cx.fc.seed, frames)
+    lost_given = lost_fraction(measured, sims_given, frames)
+    out = BaseRefit(config, gap_given, gap_given, {sp.key: float(sp.value) for sp in model_specs}, lost_given)
+    if not model_specs:
+        return out
+    start_cfg, g_start = config, gap_given
+    if cx.fc.data_starts:
+        ds = start_values(measured, config, list(dict.fromkeys(sp.key.split(".", 1)[0] for sp in model_specs)),
+                          frames)
+        if ds:
+            cand = set_params(config, ds)
+            g_ds = obj(cand)
+            if g_ds < g_start:
+                start_cfg, g_start, model_specs = cand, g_ds, param_specs(cand)
+    x, g, _ = search(obj, start_cfg, model_specs, cx.fitcfg(cx.dc.model_evaluations), start_gap=g_start,
+                     stats=cx.stats)
+    if not g < gap_given:
+        return out
+    refit = set_params(start_cfg, x)
+    lost = lost_fraction(measured, measured.simulate(refit, cx.fc.seed, frames), frames)
+    if lost > lost_given + LOST_TOLERANCE:
+        out.rejected = (f"the refit lost {100 * (lost - lost_given):.0f} % more of the measured-valid pixels "
+                        f"than the model as given")
+        return out
+    return BaseRefit(refit, float(g), gap_given, {k: float(v) for k, v in x.items()}, lost)
 
-    # 2. + 3. candidates
-    skipped: dict[str, str] = {}
-    tried: list[Candidate] = []
+
+def probe_candidates(cx: _Ctx, base_cfg, base_sims, cands: Sequence[str]) -> Probe:
+    """Stage 2: the candidates that can act here; the others with the reason (physical pipeline
+    effect on a direct model, another sensor type's physics, no change of the simulated depth at
+    the defaults, the data-driven start or any parameter bound)."""
+    frames, mid = cx.frames, len(cx.frames) // 2
+    tryable, skipped, inert = [], {}, []
     for name in cands:
-        tc = time.perf_counter()
         why = _applicability(base_cfg, name)
         cand_cfg = None
         if why is None:
@@ -346,92 +395,169 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
                 cand_cfg = _with_effect(base_cfg, name)
             except ConfigError as e:
                 why = f"cannot be added to this model ({e})"
-        data_start = start_values(measured, cand_cfg, [name], frames) if why is None else {}
-        if why is None and dc.probe and not _changes_depth(measured, base_sims[len(frames) // 2], cand_cfg, name,
-                                                           frames[len(frames) // 2], fc.seed, data_start):
+        data_start = start_values(cx.measured, cand_cfg, [name], frames) if why is None else {}
+        if why is None and cx.dc.probe and not _changes_depth(cx.measured, base_sims[mid], cand_cfg, name,
+                                                              frames[mid], cx.fc.seed, data_start):
             why = "leaves the simulated depth unchanged here (tried its defaults and every parameter at its bounds)"
+            inert.append(name)
         if why is not None:
             skipped[name] = why
-            if bar is not None:
-                bar.update(1)
-            continue
-        n0 = obj.evaluations
-        g_def = obj(cand_cfg)
-        if data_start:
-            # the refitted model may have absorbed part of the effect (e.g. disparity steps seen
-            # as extra noise): from the data-driven start, the model's parameters are re-fitted
-            # locally before the start is compared with the defaults
-            alt = set_params(cand_cfg, data_start)
-            g_alt = obj(alt)
-            if model_specs:
-                xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), fitcfg(dc.refine_evaluations),
-                                      start_gap=g_alt, local=True, stats=stats)
-                alt = set_params(alt, xa)
-            if g_alt < g_def:
-                cand_cfg, g_def = alt, g_alt
-        specs = param_specs(cand_cfg, [name])
-        if specs:
-            budget = min(int(dc.candidate_evaluations), int(dc.candidate_evaluations_per_param) * len(specs))
-            x, g, _ = search(obj, cand_cfg, specs, fitcfg(budget), start_gap=g_def, refine_below=gap0,
-                             stats=stats)
-            fitted = set_params(cand_cfg, x)
+            cx.tick()
         else:
-            x, g, fitted = {}, g_def, cand_cfg
-        tried.append(Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
-                               evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted))
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+            tryable.append((name, cand_cfg, data_start))
+    return Probe(tryable, skipped, inert)
 
-    tried.sort(key=lambda c: c.gap_after)
-    top = tried[:max(int(dc.refine_top), 1)]
-    for c in tried[:int(dc.refine_top)]:
-        if not c.gap_after < gap0:
+
+def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: str, cand_cfg,
+                  data_start: dict) -> Candidate:
+    """Stage 3: fit one candidate's parameters on top of the base model."""
+    obj, tc, n0 = cx.obj, time.perf_counter(), cx.obj.evaluations
+    g_def = obj(cand_cfg)
+    if data_start:
+        # the refitted model may have absorbed part of the effect (e.g. disparity steps seen
+        # as extra noise): from the data-driven start, the model's parameters are re-fitted
+        # locally before the start is compared with the defaults
+        alt = set_params(cand_cfg, data_start)
+        g_alt = obj(alt)
+        if base.params and cx.dc.refit_model:
+            xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
+                                  start_gap=g_alt, local=True, stats=cx.stats)
+            alt = set_params(alt, xa)
+        if g_alt < g_def:
+            cand_cfg, g_def = alt, g_alt
+    specs = param_specs(cand_cfg, [name])
+    if specs:
+        budget = min(int(cx.dc.candidate_evaluations), int(cx.dc.candidate_evaluations_per_param) * len(specs))
+        x, g, _ = search(obj, cand_cfg, specs, cx.fitcfg(budget), start_gap=g_def, refine_below=base.gap,
+                         stats=cx.stats)
+        fitted = set_params(cand_cfg, x)
+    else:
+        x, g, fitted = {}, g_def, cand_cfg
+    cx.tick()
+    return Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
+                     evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted)
+
+
+def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: list[Candidate]) -> None:
+    """Stage 4: the ``refine_top`` best candidates (by gap) that beat the base model, refined
+    jointly with the model's parameters by a local search (in place)."""
+    for c in sorted(tried, key=lambda c: c.gap_after)[:int(cx.dc.refine_top)]:
+        if not c.gap_after < base.gap:
             continue
-        tc = time.perf_counter()
-        n0 = obj.evaluations
+        tc, n0 = time.perf_counter(), cx.obj.evaluations
         specs = param_specs(c.config, [*model_names, c.effect])
-        x, g, _ = search(obj, c.config, specs, fitcfg(dc.refine_evaluations), start_gap=c.gap_after, local=True,
-                         stats=stats)
+        x, g, _ = search(cx.obj, c.config, specs, cx.fitcfg(cx.dc.refine_evaluations), start_gap=c.gap_after,
+                         local=True, stats=cx.stats)
         if g < c.gap_after:
-            c.config = set_params(c.config, x)
-            c.gap_after = float(g)
-            c.params = {k: float(v) for k, v in x.items()}
-            c.refined = True
-        c.evaluations += obj.evaluations - n0
+            c.config, c.gap_after, c.params, c.refined = set_params(c.config, x), float(g), dict(x), True
+        c.evaluations += cx.obj.evaluations - n0
         c.seconds += time.perf_counter() - tc
 
-    # 4. rank + evidence; the model and the refined candidates are also scored on the evaluation set
+
+def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
+    """Candidates by gain, best first; of those within ``occam_margin`` of the best gain the one
+    with the fewest free numbers first."""
+    g0 = base.gap
     for c in tried:
-        c.gain = float((gap0 - c.gap_after) / gap0) if gap0 > 0 else 0.0
-    tried.sort(key=lambda c: -c.gain)
-    if tried and dc.occam_margin > 0:
-        near = [c for c in tried if c.gain >= tried[0].gain - dc.occam_margin and c.gain > 0]
+        c.gain = float((g0 - c.gap_after) / g0) if g0 > 0 else 0.0
+    out = sorted(tried, key=lambda c: -c.gain)
+    if out and cx.dc.occam_margin > 0:
+        near = [c for c in out if c.gain >= out[0].gain - cx.dc.occam_margin and c.gain > 0]
         if len(near) > 1:
             first = min(near, key=lambda c: (_free_numbers(c.config, c.effect), -c.gain))
-            tried.remove(first)
-            tried.insert(0, first)
-    eval_idx = spread(len(measured), fc.eval_frames)
-    ev = Objective(measured, eval_idx, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
-    eval_gap = ev(base_cfg) if dc.evaluate else None
+            out.remove(first)
+            out.insert(0, first)
+    return out
+
+
+def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
+    """Stage 5: the base model and the ``top`` candidates scored on the evaluation frames."""
+    fc = cx.fc
+    idx = spread(len(cx.measured), fc.eval_frames)
+    if not cx.dc.evaluate:
+        return HeldOut(None, idx, 0)
+    ev = Objective(cx.measured, idx, fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+    gap = float(ev(base.config))
     for c in top:
-        if dc.evaluate:
-            c.eval_gap_after = float(ev(c.config))
-    for c in tried:
+        c.eval_gap_after = float(ev(c.config))
+    return HeldOut(gap, idx, ev.evaluations)
+
+
+def _candidate_names(config, candidates) -> list[str]:
+    from synth.sensor.registry import effect_class, effect_names
+    if candidates is None:
+        return [n for n in effect_names() if n not in config.names()]
+    model_names, out = config.names(enabled_only=True), []
+    for n in candidates:
+        effect_class(n)  # unknown -> ConfigError listing the known ones
+        if n in model_names:
+            raise ConfigError(f"candidate effect {n!r} is already in the model")
+        if n not in out:
+            out.append(n)
+    return out
+
+
+def _nothing_to_rank(base: BaseRefit, probe: Probe) -> str:
+    """The error when every candidate is inert: why (the base model cutting the measurement, or
+    the data giving no effect anything to act on)."""
+    from synth.lab.guards import cut_reason
+    if base.lost >= 0.2:
+        return f"diagnose: every candidate leaves the simulated depth unchanged: {cut_reason(base.config, base.lost, bool(base.params))}"
+    return (f"diagnose: every candidate leaves the simulated depth unchanged on this data "
+            f"({', '.join(probe.inert)}); nothing to rank")
+
+
+def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_config: FitConfig | None = None,
+             progress: bool = False, diagnose_config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Rank the effects missing from ``config`` by how much they lower the gap on ``measured``
+    (a :class:`~synth.lab.measured.MeasuredSequence`); see the module docstring. The stages are
+    :func:`refit_base`, :func:`probe_candidates`, :func:`fit_candidate`, :func:`refine_best`,
+    :func:`rank` and :func:`evaluate_held_out`. Raises :class:`~data_tools.errors.RealgapError`
+    when every candidate is inert (never an empty ranking for that reason)."""
+    from synth.lab.compare import compare
+    fc = (fit_config or FitConfig()).validate()
+    dc = (diagnose_config or DiagnoseConfig()).validate()
+    t0 = time.perf_counter()
+    model_names = config.names(enabled_only=True)
+    cands = _candidate_names(config, candidates)
+    bar = None
+    if progress:
+        from data_tools.progress import progress_bar
+        bar = progress_bar(total=len(cands) + 1, desc="diagnose", unit="effect")
+    cx = _Ctx(measured, fc, dc, bar)
+    try:
+        base = refit_base(cx, config)
+        cx.tick()
+        base_sims = measured.simulate(base.config, fc.seed, cx.frames)
+        probe = probe_candidates(cx, base.config, base_sims, cands)
+        if not probe.tryable and probe.inert:
+            raise RealgapError(_nothing_to_rank(base, probe))
+        tried = [fit_candidate(cx, base, model_names, n, cfg, ds) for n, cfg, ds in probe.tryable]
+    finally:
+        if bar is not None:
+            bar.close()
+    top = sorted(tried, key=lambda c: c.gap_after)[:max(int(dc.refine_top), 1)]   # scored held out
+    refine_best(cx, base, model_names, tried)
+    ranking = rank(cx, base, tried)
+    held = evaluate_held_out(cx, base, top)
+    base_obs = measured.observations(base_sims, cx.frames)
+    base_result = compare(base_obs, cx.obj.compare_config, cache=cx.obj.cache)
+    albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
+    ctx = EvidenceContext(base_obs, measured.preset, albedo)
+    for c in ranking:
         # the candidate's fitted parameters, plus the model's where they moved away from the refit
         vals = get_params(c.config, param_specs(c.config, [*model_names, c.effect]))
         c.params = {k: v for k, v in vals.items()
-                    if k.split(".", 1)[0] == c.effect or abs(v - model_params.get(k, v)) > 1e-12}
+                    if k.split(".", 1)[0] == c.effect or abs(v - base.params.get(k, v)) > 1e-12}
         after = None
         if not has_evidence(c.effect):
-            after = compare(measured.observations(measured.simulate(c.config, fc.seed, frames), frames),
-                            obj.compare_config, cache=obj.cache)
+            after = compare(measured.observations(measured.simulate(c.config, fc.seed, cx.frames), cx.frames),
+                            cx.obj.compare_config, cache=cx.obj.cache)
         c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after, gain=c.gain)
-    return Diagnosis(float(gap0), list(model_names), tried, float(gap_given), model_params, skipped,
-                     [measured.frame_indices[k] for k in frames], time.perf_counter() - t0,
-                     obj.evaluations + ev.evaluations, str(measured.seq_dir),
-                     {"fit": fc.to_dict(), "diagnose": dc.to_dict()}, base_cfg,
-                     None if eval_gap is None else float(eval_gap), [measured.frame_indices[k] for k in eval_idx],
-                     bool(stats.get("time_capped", False)))
-
+    idx = measured.frame_indices
+    return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
+                     model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
+                     seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations,
+                     sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
+                     model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
+                     time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected)

@@ -17,7 +17,7 @@ rate on the projector-shadow side of depth edges) where the effect acts, where i
 contrast region) and in the current model, and decides from the sign and size of the
 differences (thresholds in each docstring, mostly :attr:`EvidenceContext.MIN_RATE_EXCESS`)
 whether the signature is present. Only then does the sentence claim it ("grows with the image
-radius", "sit on a grid"); otherwise it says that the fit prefers the effect (or not) but the
+radius", "lie on a lattice"); otherwise it says that the fit prefers the effect (or not) but the
 signature is weak, and gives the numbers.
 """
 from __future__ import annotations

@@ -431,10 +431,16 @@ def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: 
     every sweep scans one grid spacing around the current values (polishing a good start); a set
     of keys: only for those parameters.
     ``stats``: a dict that receives ``time_capped`` (True when the wall-clock guard
-    ``FitConfig.max_seconds`` stopped the search) and ``evaluations``.
+    ``FitConfig.max_seconds`` stopped the search) and ``evaluations``. Depth-limit parameters
+    are searched only where they keep the objective's measured valid depths
+    (:func:`synth.lab.guards.bound_for_objective`).
     """
     fc = fit_config
     budget = _Budget(fc.max_evaluations, fc.max_seconds)
+    from synth.lab.guards import bound_for_objective
+    specs, moved = bound_for_objective(objective, config, specs)   # depth limits keep the measured depths
+    if moved:
+        start_gap = None
     try:
         if getattr(fc, "method", "coordinate") != "coordinate" and specs:
             from synth.lab.scipy_search import scipy_search

@@ -47,7 +47,9 @@ SIGNATURE_FILE = ".simulate_signature.json"
 
 def parse_effects(text: str | None) -> list[str] | str | None:
     """An effect list as written by a user -> list of names ([] = ideal), a pipeline word, or None
-    (not given). Unknown names raise ConfigError listing the known ones."""
+    (not given). A pipeline word inside a comma list (``physical,disparity_distortion``) is kept
+    in the list and expanded by :func:`synth.sensor.config.expand_pipelines` when the preset is
+    known. Unknown names raise ConfigError listing the known ones."""
     if text is None:
         return None
     t = text.strip()
@@ -57,9 +59,11 @@ def parse_effects(text: str | None) -> list[str] | str | None:
         return t.lower()
     from synth.sensor.registry import effect_class
     names = [x.strip() for x in t.split(",") if x.strip()]
+    names = [n.lower() if n.lower() in PIPELINE_WORDS else n for n in names]
     seen = set()
     for n in names:
-        effect_class(n)  # ConfigError: unknown sensor effect 'x'; known effects: ...
+        if n not in PIPELINE_WORDS:
+            effect_class(n)  # ConfigError: unknown sensor effect 'x'; known effects: ...
         if n in seen:
             raise ConfigError(f"--effects lists {n!r} twice")
         seen.add(n)
@@ -69,8 +73,8 @@ def parse_effects(text: str | None) -> list[str] | str | None:
 def effect_names_option(text: str, flag: str) -> list[str]:
     """A non-empty comma list of effect names given to ``flag``."""
     names = parse_effects(text)
-    if not isinstance(names, list) or not names:
-        raise ConfigError(f"{flag} needs a comma list of effect names")
+    if not isinstance(names, list) or not names or any(n in PIPELINE_WORDS for n in names):
+        raise ConfigError(f"{flag} needs a comma list of effect names (not a pipeline word)")
     return names
 
 
@@ -168,9 +172,10 @@ def build_config(measured, effects, model_path=None):
     pre = measured.preset
     effs = list(model.effects)
     have = {e.name for e in effs}
+    from synth.sensor.config import expand_pipelines
     if isinstance(effects, str):  # a pipeline word
-        effects = list(getattr(pre, f"{effects}_effects"))
-    for n in effects or []:
+        effects = [effects]
+    for n in expand_pipelines(effects or [], pre):
         if n not in have:
             effs.append(make_effect(n, pre.effect_params.get(n)))
     return dataclasses.replace(model, preset=pre, effects=effs)  # keeps the model's other fields (motion)

@@ -18,7 +18,7 @@ from data_tools.geometry import rotation_angle_rad
 from synth.sensor.presets import SensorPreset, get_preset
 from synth.sensor.registry import Effect, effect_class, make_effect
 
-__all__ = ["MotionLimits", "SensorConfig"]
+__all__ = ["MotionLimits", "SensorConfig", "expand_pipelines", "PIPELINE_WORDS"]
 
 # ------------------------------------------------------------------------------------------
 # Configuration
@@ -70,6 +70,27 @@ class MotionLimits:
         return None
 
 
+
+PIPELINE_WORDS = ("physical", "direct")
+"""Words that stand for a preset's whole pipeline in an effect list (``SensorPreset.<word>_effects``)."""
+
+
+def expand_pipelines(effects, preset) -> list:
+    """``effects`` (names / dicts / Effects) with each pipeline word (``physical``, ``direct``)
+    replaced by the preset's effects of that pipeline, in place; an effect named again after its
+    pipeline brought it is dropped (``physical,range_limits`` = the physical pipeline, whose
+    range limits it already has), so a pipeline plus extra effects is one comma list."""
+    out, piped = [], set()
+    for spec in effects:
+        if isinstance(spec, str) and spec.strip().lower() in PIPELINE_WORDS:
+            for n in getattr(preset, f"{spec.strip().lower()}_effects"):
+                if n not in piped:
+                    out.append(n)
+                    piped.add(n)
+        elif not (isinstance(spec, str) and spec in piped):
+            out.append(spec)      # a name listed twice by hand still fails in SensorConfig.build
+    return out
+
 @dataclass
 class SensorConfig:
     """A sensor model: the device preset and the ordered effects (each with its parameters)."""
@@ -86,19 +107,17 @@ class SensorConfig:
     def build(cls, preset: str | SensorPreset = "kinect_v1", effects=None,
               motion: MotionLimits | None = None) -> "SensorConfig":
         """Config from a preset and ``effects``: None/"physical" (the preset's physical
-        pipeline), "direct" (its analytic model), or a list of names / dicts / Effects;
+        pipeline), "direct" (its analytic model), or a list (or comma string) of names / dicts /
+        Effects in which the pipeline words stand for their effects (:func:`expand_pipelines`);
         ``motion``: the motion plausibility limits (default :class:`MotionLimits`)."""
         pre = get_preset(preset) if isinstance(preset, str) else preset
         if not isinstance(pre, SensorPreset):
             raise ConfigError(f"expected a sensor preset name or SensorPreset, got {type(preset).__name__}")
-        if effects is None or effects == "physical":
-            names = list(pre.physical_effects)
-        elif effects == "direct":
-            names = list(pre.direct_effects)
-        elif isinstance(effects, str):
-            names = [e.strip() for e in effects.split(",") if e.strip()]
-        else:
-            names = list(effects)
+        if effects is None:
+            effects = "physical"
+        if isinstance(effects, str):
+            effects = [e.strip() for e in effects.split(",") if e.strip()]
+        names = expand_pipelines(effects, pre)
         built = []
         for spec in names:
             name = spec.name if isinstance(spec, Effect) else (spec["name"] if isinstance(spec, dict) else

@@ -197,6 +197,10 @@ class Effect(ABC):
     relative path is relative to the model JSON's folder when the model is loaded, and saving a
     model copies the file beside the JSON (:meth:`SensorConfig.save`). ``fit_start`` may return a
     value for them (the file it estimated)."""
+    DEPTH_LIMIT_PARAMS: ClassVar[dict[str, str]] = {}
+    """FITTABLE parameters that cut the reported depth range: name -> ``"min"`` or ``"max"``
+    (0 = the preset's attribute of the same name). A fit bounds them by the measured valid depths
+    (:mod:`synth.lab.guards`), so it can never throw the measurement away."""
     FRAME_EXPOSURE_PARAM: ClassVar[str | None] = None
     """Name of the parameter that is the frame's exposure time in seconds, for the one effect that
     models the exposure (``motion_blur``); the simulator copies it into ``state.frame.exposure_s``."""
@@ -358,6 +362,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k in (cls.IDENTITY_PARAMS or {}):
         if k not in fields:
             raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")
+    for k, side in cls.DEPTH_LIMIT_PARAMS.items():
+        if k not in cls.FITTABLE or side not in ("min", "max"):
+            raise TypeError(f"{cls.__name__}.DEPTH_LIMIT_PARAMS: {k!r} -> {side!r} (a FITTABLE name -> 'min'/'max')")
     for attr in ("FILE_PARAMS", "START_ONLY_PARAMS"):
         for k in getattr(cls, attr):
             if k not in fields or not isinstance(getattr(cls.Params(), k), str):

@@ -32,6 +32,7 @@ class RangeLimits(Effect):
         panels=(("distance", "invalid_fraction"),))
     Params = RangeLimitsParams
     FITTABLE = {"min_depth_m": (0.0, 5.0), "max_depth_m": (0.0, 50.0)}
+    DEPTH_LIMIT_PARAMS = {"min_depth_m": "min", "max_depth_m": "max"}
 
     @classmethod
     def plausible_bounds(cls, preset) -> dict[str, tuple[float, float]]:
