@@ -472,11 +472,12 @@ def render_frame(m: Mystery, solids: list[Solid], T: np.ndarray, rng: np.random.
 
 
 def generate(path, effect: str | None = None, seed: int = 0, n_frames: int = 6, width: int = 320,
-             height: int = 240, moving: bool | None = None) -> dict:
+             height: int = 240, moving: bool | None = None, noise_seed: int | None = None) -> dict:
     """Write one mystery-sensor sequence to ``path`` (TUM layout + camera.json + scene.json) and
     ``answer.json`` beside the frames; returns the answer. ``effect``: a name of :data:`EFFECTS`, None
     (base only) or 'random' (drawn from the seed); ``moving`` None = drawn (half the seeds move).
-    Deterministic per (seed, effect, size, n_frames)."""
+    ``noise_seed`` (default ``seed``) draws only the per-frame noise and dropouts: the same sensor,
+    scene and poses measured again. Deterministic per (seed, effect, size, n_frames, noise_seed)."""
     from data_tools.camera import Camera, Intrinsics, SensorSpec
     from data_tools.mesh import TriMesh
     from data_tools.scene_spec import Material, SceneSpec
@@ -498,9 +499,10 @@ def generate(path, effect: str | None = None, seed: int = 0, n_frames: int = 6, 
         meshes.append(TriMesh(V, F, s.name, f"mat_{s.name}"))
         mats[f"mat_{s.name}"] = Material(float(s.albedo), 0.0)
     path = Path(path)
+    ns = int(seed if noise_seed is None else noise_seed)
     with SequenceWriter(path, cam, SceneSpec(meshes, mats), overwrite=True) as w:
         for i, T in enumerate(poses):
-            depth, _, cos, alb = render_frame(m, solids, T, np.random.default_rng([int(seed), 77, i]))
+            depth, _, cos, alb = render_frame(m, solids, T, np.random.default_rng([ns, 77, i]))
             g = np.clip(255 * alb * (0.25 + 0.75 * cos), 0, 255).astype(np.uint8)
             w.write(Frame(1.0 + i / 30.0, depth, np.repeat(g[:, :, None], 3, 2), T, i))
     ans = {"generator": "synth.lab.mystery", "seed": int(seed), "effect": effect, "params": answer(m),
