@@ -383,20 +383,19 @@ def look_at(pos: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarra
 
 
 def draw_trajectory(rng: np.random.Generator, n: int, moving: bool) -> list[np.ndarray]:
-    """Camera 0.7-1.5 m high near y = -0.5, aimed at a point 2-3.2 m ahead; moving: a sideways
-    sweep of 0.2-0.6 m with a 0.05-0.2 m rise and the aim point drifting, 30 Hz timestamps."""
+    """Camera 0.7-1.5 m high near y = -0.5, aimed at a point 2-3.2 m ahead, 30 Hz frames; moving: a
+    hand-held sideways walk at 0.1-0.5 m/s rising 0.02-0.1 m/s, the aim point drifting 0-0.3 m/s
+    (speeds, not distances: the motion per frame does not depend on ``n``)."""
     u = rng.uniform
     p0 = np.array([u(-0.4, 0.4), u(-0.9, -0.2), u(0.7, 1.5)])
     t0 = np.array([u(-0.4, 0.4), u(2.0, 3.2), u(0.1, 0.5)])
     roll = math.radians(u(-3, 3))
     if not moving:
         return [look_at(p0, t0, roll)] * n
-    sweep, rise, drift = u(0.2, 0.6) * (1 if rng.random() < 0.5 else -1), u(0.05, 0.2), u(-0.3, 0.3)
-    out = []
-    for i in range(n):
-        a = i / max(n - 1, 1) - 0.5
-        out.append(look_at(p0 + np.array([sweep * a, 0.1 * a, rise * a]), t0 + np.array([drift * a, 0, 0]), roll))
-    return out
+    v = np.array([u(0.1, 0.5) * (1 if rng.random() < 0.5 else -1), u(-0.05, 0.05), u(0.02, 0.1)])
+    drift = np.array([u(-0.3, 0.3), 0.0, 0.0])
+    ts = (np.arange(n) - (n - 1) / 2) / 30.0
+    return [look_at(p0 + v * t, t0 + drift * t, roll) for t in ts]
 
 
 def pixel_rays(m: Mystery, k1: float = 0.0) -> np.ndarray:
