@@ -89,9 +89,9 @@ def test_answer_names_the_effect_in_the_labs_terms(tmp_path, effect):
     rng = np.random.default_rng([seed, 4242])             # re-draw what generate drew, in its order
     m = my.draw_sensor(rng, effect, 80, 60)
     solids = my.draw_scene(rng)
-    poses = my.draw_trajectory(rng, 2, bool(rng.random() < 0.5))
+    poses = my.draw_trajectory(rng, 2, bool(rng.random() < 0.5) or effect == "rolling_shutter")
     _, z, _, _ = my.render_frame(m, solids, poses[1], np.random.default_rng(0))
-    r = ms.render(1).depth
+    r = ms.render(1).depth                                # rolling shutter: global-shutter z at the pose
     if effect != "lens_distortion":
         assert np.mean((z > 0) == (r > 0)) > 0.995
         both = (z > 0) & (r > 0)
@@ -118,3 +118,23 @@ def test_quantised_disparities_lie_on_the_answers_lattice(tmp_path):
 def test_unknown_effect_is_refused():
     with pytest.raises(ValueError, match="unknown hidden effect"):
         my.draw_sensor(np.random.default_rng(0), "wobble", 80, 60)
+
+
+def test_rolling_shutter_shifts_rows_by_the_motion(tmp_path):
+    """A camera moving sideways at 1 m/s, readout 0.03 s: the first row is the global-shutter image,
+    the last row is taken 0.03 m further along - the vertical edge of a panel at 1 m moves by
+    f 0.03 / 1 = 4.35 px between the first and the last row."""
+    m = _sensor("rolling_shutter", readout_s=0.03)
+    m.sigma_raw = 1e-9
+    wall = my.Solid("rect", {"c": np.array([0.0, 2.0, 1.0]), "a1": np.array([1.0, 0, 0]),
+                             "a2": np.array([0, 0, 1.0]), "h": (5.0, 5.0)}, 0.6, "wall")
+    step = my.Solid("rect", {"c": np.array([0.5, 1.0, 1.0]), "a1": np.array([1.0, 0, 0]),
+                             "a2": np.array([0, 0, 1.0]), "h": (0.5, 5.0)}, 0.6, "step")   # x <= 0 edge
+    pose_at = lambda t: my.look_at(np.array([1.0 * t, 0.0, 1.0]), np.array([1.0 * t, 3.0, 1.0]))  # noqa: E731
+    depth = my.render_frame(m, [wall, step], pose_at(0.0), np.random.default_rng(0), pose_at, 0.0)[0]
+    first = np.argmax(depth[0] < 1.75)
+    last = np.argmax(depth[-1] < 1.75)
+    shift = m.intrinsics[0] * 1.0 * 0.03 / 1.0
+    assert first - last == pytest.approx(shift, abs=1.0)
+    glob = my.render_frame(m, [wall, step], pose_at(0.0), np.random.default_rng(0))[0]
+    assert np.argmax(glob[-1] < 1.75) == first

@@ -36,7 +36,9 @@ The sensor (all drawn per seed):
   - ``projector_shadow``: pixels the projector cannot see (an analytic shadow ray to the projector)
     are holes;
   - ``lens_distortion``: the IR lens distorts by k1 (OpenCV: x_d = x (1 + k1 r^2)); camera.json
-    says nothing about it.
+    says nothing about it;
+  - ``rolling_shutter``: row v is exposed readout v / (H - 1) after the first row (readout
+    0.015-0.033 s), which is exposed at the frame's timestamp; the camera always moves.
 
 ``answer.json`` beside the sequence (the lab never reads it) names the effect and its true parameters
 in the lab's units (``python -m app sensor effects NAME``): the depth_bias offset in px of f b / z at
@@ -64,7 +66,7 @@ SUBPIXEL = 8
 INVALID_RAW = 2047
 """The 11-bit code of 'no measurement'."""
 EFFECTS = ("depth_bias", "disparity_quantization", "edge_fattening", "incidence_dropout", "low_reflectance",
-           "projector_shadow", "lens_distortion")
+           "projector_shadow", "lens_distortion", "rolling_shutter")
 """The hidden effects this generator can hide, by the lab's catalog names."""
 CYLINDER_SEGMENTS = 128
 """Facets of a cylinder in the mesh written for the lab."""
@@ -144,9 +146,10 @@ def draw_scene(rng: np.random.Generator) -> list[Solid]:
 
 
 def cast(solids: list[Solid], o: np.ndarray, D: np.ndarray, eps: float = 1e-6):
-    """Nearest hit of rays o + t D (o (3,), D (N, 3), not normalised) with ``solids``:
+    """Nearest hit of rays o + t D (o (3,) or (N, 3), D (N, 3), not normalised) with ``solids``:
     (t (N,), inf where none; unit normals (N, 3); index of the solid (N,), -1 where none)."""
     n = D.shape[0]
+    o = np.broadcast_to(np.asarray(o, np.float64), D.shape)
     best = np.full(n, np.inf)
     nrm = np.zeros((n, 3))
     idx = np.full(n, -1)
@@ -175,7 +178,7 @@ def _hit(s: Solid, o, D, eps):
             nn[:] = nv
         elif s.kind == "box":
             R = _rot_z(s.p["yaw"])
-            ol, Dl, h = R.T @ (o - s.p["c"]), D @ R, s.p["h"]
+            ol, Dl, h = (o - s.p["c"]) @ R, D @ R, s.p["h"]
             t1, t2 = (-h - ol) / Dl, (h - ol) / Dl
             tn, tf = np.minimum(t1, t2), np.maximum(t1, t2)
             tn = np.where(np.isnan(tn), -np.inf, tn)
@@ -190,15 +193,15 @@ def _hit(s: Solid, o, D, eps):
         else:
             cx, cy = s.p["c"]
             r, H = s.p["r"], s.p["H"]
-            ox, oy = o[0] - cx, o[1] - cy
+            ox, oy = o[:, 0] - cx, o[:, 1] - cy
             a = D[:, 0] ** 2 + D[:, 1] ** 2
             b = 2 * (ox * D[:, 0] + oy * D[:, 1])
             cc = ox * ox + oy * oy - r * r
             disc = b * b - 4 * a * cc
             ts = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
-            zs = o[2] + ts * D[:, 2]
+            zs = o[:, 2] + ts * D[:, 2]
             side = (disc >= 0) & (ts > eps) & (zs >= 0) & (zs <= H)
-            tc = (H - o[2]) / D[:, 2]
+            tc = (H - o[:, 2]) / D[:, 2]
             px, py = ox + tc * D[:, 0], oy + tc * D[:, 1]
             cap = (tc > eps) & (px * px + py * py <= r * r)
             tcap = np.where(cap, tc, np.inf)
@@ -323,6 +326,8 @@ def draw_sensor(rng: np.random.Generator, effect: str | None, width: int, height
         m.hidden = {"eps_m": u(0.001, 0.004)}
     elif effect == "lens_distortion":
         m.hidden = {"k1": sgn * u(0.06, 0.22)}
+    elif effect == "rolling_shutter":
+        m.hidden = {"readout_s": u(0.015, 0.033)}
     elif effect is not None:
         raise ValueError(f"unknown hidden effect {effect!r}; choose from {', '.join(EFFECTS)}")
     return m
@@ -353,6 +358,8 @@ def answer(m: Mystery) -> dict:
         p = {"eps_m": h["eps_m"]}
     elif e == "lens_distortion":
         p = {"k1": h["k1"]}
+    elif e == "rolling_shutter":
+        p = {"readout_time_s": h["readout_s"]}
     else:
         p = {}
     return p
@@ -382,20 +389,32 @@ def look_at(pos: np.ndarray, target: np.ndarray, roll: float = 0.0) -> np.ndarra
     return T
 
 
-def draw_trajectory(rng: np.random.Generator, n: int, moving: bool) -> list[np.ndarray]:
-    """Camera 0.7-1.5 m high near y = -0.5, aimed at a point 2-3.2 m ahead, 30 Hz frames; moving: a
-    hand-held sideways walk at 0.1-0.5 m/s rising 0.02-0.1 m/s, the aim point drifting 0-0.3 m/s
-    (speeds, not distances: the motion per frame does not depend on ``n``)."""
+def draw_motion(rng: np.random.Generator, moving: bool):
+    """The camera's pose as a function of time t (s, 0 = the sequence's middle): 0.7-1.5 m high near
+    y = -0.5, aimed at a point 2-3.2 m ahead; moving: a hand-held sideways walk at 0.1-0.5 m/s
+    rising 0.02-0.1 m/s, the aim point drifting 0-0.3 m/s (speeds: the motion per frame does not depend
+    on the number of frames). Returns ``pose(t) -> (4, 4)`` camera-to-world."""
     u = rng.uniform
     p0 = np.array([u(-0.4, 0.4), u(-0.9, -0.2), u(0.7, 1.5)])
     t0 = np.array([u(-0.4, 0.4), u(2.0, 3.2), u(0.1, 0.5)])
     roll = math.radians(u(-3, 3))
     if not moving:
-        return [look_at(p0, t0, roll)] * n
+        T = look_at(p0, t0, roll)
+        return lambda t: T
     v = np.array([u(0.1, 0.5) * (1 if rng.random() < 0.5 else -1), u(-0.05, 0.05), u(0.02, 0.1)])
     drift = np.array([u(-0.3, 0.3), 0.0, 0.0])
-    ts = (np.arange(n) - (n - 1) / 2) / 30.0
-    return [look_at(p0 + v * t, t0 + drift * t, roll) for t in ts]
+    return lambda t: look_at(p0 + v * t, t0 + drift * t, roll)
+
+
+def frame_times(n: int) -> np.ndarray:
+    """Frame times of :func:`draw_motion`, 30 Hz centred on 0, seconds (timestamps are 1 s later)."""
+    return (np.arange(n) - (n - 1) / 2) / 30.0
+
+
+def draw_trajectory(rng: np.random.Generator, n: int, moving: bool) -> list[np.ndarray]:
+    """The poses of ``n`` frames of :func:`draw_motion`."""
+    pose = draw_motion(rng, moving)
+    return [pose(t) for t in frame_times(n)]
 
 
 def pixel_rays(m: Mystery, k1: float = 0.0) -> np.ndarray:
@@ -422,18 +441,27 @@ def _max_filter(a: np.ndarray, r: int) -> np.ndarray:
     return out
 
 
-def render_frame(m: Mystery, solids: list[Solid], T: np.ndarray, rng: np.random.Generator):
-    """One measured depth frame (H, W) float32 metres (0 = hole), and (ideal z, normals, albedo
-    per pixel) for shading. ``rng`` draws this frame's noise and dropouts."""
+def render_frame(m: Mystery, solids: list[Solid], T: np.ndarray, rng: np.random.Generator, pose_at=None,
+                 t: float = 0.0):
+    """One measured depth frame (H, W) float32 metres (0 = hole), and (ideal z, |cos incidence|, albedo
+    per pixel) for shading. ``rng`` draws this frame's noise and dropouts. With rolling_shutter hidden,
+    ``pose_at(time)`` gives the pose of row v at t + v / (H - 1) readout (the timestamp is the first
+    row's exposure; T is the pose at t)."""
     H, W = m.height, m.width
     k1 = m.hidden.get("k1", 0.0) if m.effect == "lens_distortion" else 0.0
     rays = pixel_rays(m, k1).reshape(-1, 3)
     R, o = T[:3, :3], T[:3, 3]
-    t, nrm, idx = cast(solids, o, rays @ R.T)
-    hit = np.isfinite(t)
-    z = np.where(hit, t, 0.0)                                        # rays have z = 1: t is z-depth
+    D = rays @ R.T
+    if m.effect == "rolling_shutter" and pose_at is not None:
+        rows = [pose_at(t + v / (H - 1) * m.hidden["readout_s"]) for v in range(H)]
+        Rr = np.repeat(np.stack([P[:3, :3] for P in rows]), W, axis=0)          # (H W, 3, 3)
+        o = np.repeat(np.stack([P[:3, 3] for P in rows]), W, axis=0)
+        D = np.einsum("nij,nj->ni", Rr, rays)
+    t_hit, nrm, idx = cast(solids, o, D)
+    hit = np.isfinite(t_hit)
+    z = np.where(hit, t_hit, 0.0)                                    # rays have z = 1: t is z-depth
     ray_len = z * np.linalg.norm(rays, axis=1)
-    cos = np.abs(np.einsum("ij,ij->i", nrm, rays @ R.T)) / np.linalg.norm(rays, axis=1)
+    cos = np.abs(np.einsum("ij,ij->i", nrm, D)) / np.linalg.norm(rays, axis=1)
     albedo = np.array([s.albedo for s in solids] + [0.0])[idx]
     keep = hit.copy()
     e, h = m.effect, m.hidden
@@ -445,7 +473,7 @@ def render_frame(m: Mystery, solids: list[Solid], T: np.ndarray, rng: np.random.
         keep &= rng.random(z.size) >= _phi(np.log10(h["signal50"] / np.maximum(sig, 1e-12)) / h["sigma_dec"])
     elif e == "projector_shadow":
         proj = o + R @ np.array([m.baseline, 0.0, 0.0])
-        P = o + (rays @ R.T) * z[:, None]
+        P = o + D * z[:, None]
         sel = np.flatnonzero(hit)
         ts, _, _ = cast(solids, proj, P[sel] - proj)
         dist = np.linalg.norm(P[sel] - proj, axis=1)
@@ -487,8 +515,9 @@ def generate(path, effect: str | None = None, seed: int = 0, n_frames: int = 6, 
     m = draw_sensor(rng, effect, int(width), int(height))
     solids = draw_scene(rng)
     if moving is None:
-        moving = bool(rng.random() < 0.5)
-    poses = draw_trajectory(rng, int(n_frames), moving)
+        moving = bool(rng.random() < 0.5) or effect == "rolling_shutter"     # a still camera hides it
+    pose_at = draw_motion(rng, moving)
+    times = frame_times(int(n_frames))
     fx, fy, cx, cy = m.intrinsics
     cam = Camera(Intrinsics(m.width, m.height, fx, fy, cx, cy), 5000.0,
                  SensorSpec("structured_light", m.baseline, (m.baseline, 0.0, 0.0)))
@@ -500,10 +529,11 @@ def generate(path, effect: str | None = None, seed: int = 0, n_frames: int = 6, 
     path = Path(path)
     ns = int(seed if noise_seed is None else noise_seed)
     with SequenceWriter(path, cam, SceneSpec(meshes, mats), overwrite=True) as w:
-        for i, T in enumerate(poses):
-            depth, _, cos, alb = render_frame(m, solids, T, np.random.default_rng([ns, 77, i]))
+        for i, t in enumerate(times):
+            T = pose_at(t)
+            depth, _, cos, alb = render_frame(m, solids, T, np.random.default_rng([ns, 77, i]), pose_at, t)
             g = np.clip(255 * alb * (0.25 + 0.75 * cos), 0, 255).astype(np.uint8)
-            w.write(Frame(1.0 + i / 30.0, depth, np.repeat(g[:, :, None], 3, 2), T, i))
+            w.write(Frame(1.0 + t - times[0], depth, np.repeat(g[:, :, None], 3, 2), T, i))
     ans = {"generator": "synth.lab.mystery", "seed": int(seed), "effect": effect, "params": answer(m),
            "base": {"axial_noise": {"sigma2_per_m": m.sigma_raw * abs(m.c1), "sigma_raw": m.sigma_raw},
                     "range_limits": {"min_depth_m": m.min_depth, "max_depth_m": m.max_depth}},
