@@ -364,7 +364,7 @@ def _generators(args) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="bench_generators_"))
     records = []
     for gen in args.generators.split(","):
-        for effect in [e for e in args.effects.split(",") if e]:
+        for effect in [e for e in args.effects.split(",") if e in gr.generator_effects(gen)]:
             for seed in [int(s) for s in args.seeds.split(",")]:
                 r = gr.run_case(gen, effect, seed, tmp, args.frames, w, h, args.draws, fc, dc)
                 gr.print_case(r)

@@ -8,7 +8,8 @@ through the lab as a user would:
   hidden effect first;
 * recovery: ``fit_model`` with the true effect recovers the generator's parameters within the
   tolerances of bench_fit_recovery's table (noise at 2 m, bias at 1/2/3 m, dropout angle, k1, step,
-  edge radius, and for the mystery sensor also signal50 within 25 %);
+  edge radius, and for the mystery sensor also signal50 within 25 % and the rolling-shutter readout
+  within 20 %);
 * closure: (gap without - gap with) / (gap without - floor) by the lab's gap, ``without`` the base
   model fitted, ``with`` the base + the true effect fitted, ``floor`` the measurement against the
   generator re-run with another noise seed (mean of ``draws`` simulation seeds / re-runs);
@@ -80,6 +81,9 @@ def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set) -> list[
     elif eff == "edge_fattening":
         r = cfg.effect(eff).params.radius_px or cfg.preset.block_size // 2
         row("edge radius [px]", float(p["radius_px"]), float(r), 0.0, key="edge_fattening.radius_px")
+    elif eff == "rolling_shutter":
+        row("readout [s]", p["readout_time_s"], cfg.effect(eff).params.readout_time_s, 0.2, rel=True,
+            key="rolling_shutter.readout_time_s")
     elif eff == "low_reflectance":
         row("signal50", p["signal50"], cfg.effect(eff).params.signal50, 0.25, rel=True, key="low_reflectance.signal50")
     return rows
@@ -101,6 +105,15 @@ def implausible(params: dict, ms) -> list[str]:
     if mx and mx < hi:
         out.append(f"range_limits.max_depth_m={mx:.3f} below the measured 99.5th percentile {hi:.3f}")
     return out
+
+
+def generator_effects(gen: str) -> tuple[str, ...]:
+    """The hidden effects a generator can hide."""
+    if gen == "hidden":
+        from tests import hidden_effects as he
+        return tuple(he.HIDDEN_EFFECTS)
+    from synth.lab import mystery
+    return mystery.EFFECTS
 
 
 def run_case(gen: str, effect: str, seed: int, tmp: Path, frames: int, w: int, h: int, draws: int,
