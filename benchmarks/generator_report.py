@@ -13,7 +13,8 @@ through the lab as a user would:
 * closure: (gap without - gap with) / (gap without - floor) by the lab's gap, ``without`` the base
   model fitted, ``with`` the base + the true effect fitted, ``floor`` the measurement against the
   generator re-run with another noise seed (mean of ``draws`` simulation seeds / re-runs);
-* implausible: every fitted parameter outside what a Kinect-class sensor can have
+* implausible: every fitted parameter (diagnose's refit base model and best candidate, the base-only
+  fit, the fit with the true effect) outside what a Kinect-class sensor can have
   (:data:`SENSOR_LIMITS`), and range limits that discard measured pixels (a fitted minimum above the
   measured valid depths' 0.5th percentile, a maximum below their 99.5th, issue #43 item 1).
 """
@@ -131,7 +132,8 @@ def run_case(gen: str, effect: str, seed: int, tmp: Path, frames: int, w: int, h
         d = diagnose(ms, ms.default_config(base), fit_config=fit_config, diagnose_config=diagnose_config)
         rec["ranking"] = [(c.effect, round(float(c.gain), 4)) for c in d.ranking[:4]]
         rec["rank_first"] = bool(d.ranking) and d.ranking[0].effect == effect
-        rec["diagnose_implausible"] = implausible(d.ranking[0].params, ms) if d.ranking else []
+        rec["diagnose_implausible"] = sorted(set(implausible(getattr(d, "model_params", {}) or {}, ms)
+                                                 + (implausible(d.ranking[0].params, ms) if d.ranking else [])))
     except Exception as exc:         # an error in the diagnosis is a failed case, reported
         rec["ranking"], rec["rank_first"], rec["diagnose_implausible"] = f"error: {exc}", False, []
     cc = CompareConfig()
@@ -140,6 +142,8 @@ def run_case(gen: str, effect: str, seed: int, tmp: Path, frames: int, w: int, h
         res = fit_model(ms, ms.default_config(effects), fit_config=fit_config)
         meas_gaps[name] = float(np.mean([compare(ms.observations(ms.simulate(res.config, i)), cc).gap
                                          for i in range(draws)]))
+        if name == "without":
+            rec["base_implausible"] = implausible(res.params, ms)
         if name == "with":
             rec["rows"] = recovery_rows(gen, truth, res.config, ms.preset.fb, set(res.at_bound))
             rec["recovered"] = all(r["within"] for r in rec["rows"])
@@ -166,7 +170,8 @@ def summary(records: list[dict]) -> str:
         rs = [r for r in records if r["generator"] == gen]
         rows = [x for r in rs for x in r["rows"]]
         clo = [r["closure"] for r in rs if not math.isnan(r["closure"])]
-        imp = [(r["effect"], r["seed"], x) for r in rs for x in r["fit_implausible"] + r["diagnose_implausible"]]
+        imp = [(r["effect"], r["seed"], x) for r in rs
+               for x in r["fit_implausible"] + r["diagnose_implausible"] + r.get("base_implausible", [])]
         lines += [f"{gen}: rank-first {sum(r['rank_first'] for r in rs)} of {len(rs)}; recovered (every row of the case) "
                   f"{sum(r['recovered'] for r in rs)} of {len(rs)}; parameter rows within tolerance "
                   f"{sum(x['within'] for x in rows)} of {len(rows)}; closure >= 50 % in "
@@ -177,9 +182,9 @@ def summary(records: list[dict]) -> str:
 
 
 def print_case(r: dict) -> None:
+    imp = r["fit_implausible"] + r["diagnose_implausible"] + r.get("base_implausible", [])
     bad = [f"{x['quantity']} true {x['true']:.4g} fitted {x['fitted']:.4g}" for x in r["rows"] if not x["within"]]
     print(f"{r['generator']:8s} {r['effect']:23s} seed {r['seed']:3d}: rank-first {'yes' if r['rank_first'] else 'NO '} "
           f"{r['ranking']}; recovered {'yes' if r['recovered'] else 'NO: ' + '; '.join(bad)}; closure "
           f"{100 * r['closure']:.0f} % (gap {r['without_gap']:.3f} -> {r['with_gap']:.3f}, floor {r['floor_gap']:.3f}); "
-          f"{r['seconds']:.0f} s" + (f"; IMPLAUSIBLE {r['fit_implausible'] + r['diagnose_implausible']}"
-                                     if r["fit_implausible"] or r["diagnose_implausible"] else ""), flush=True)
+          f"{r['seconds']:.0f} s" + (f"; IMPLAUSIBLE {imp}" if imp else ""), flush=True)
