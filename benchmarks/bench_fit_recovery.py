@@ -2,6 +2,11 @@
 
     .venv/bin/python benchmarks/bench_fit_recovery.py [--effects depth_bias,lens_distortion] [--seeds 11,12]
                                                       [--pairs] [--frames 8] [--size 320x240] [--json OUT.json]
+    .venv/bin/python benchmarks/bench_fit_recovery.py --generators hidden,mystery [--quick] [--draws 1]
+
+``--generators``: per generator (the hidden one below, and the mystery sensor synth/lab/mystery.py),
+diagnose's rank-first rate, recovery, closure and fitted parameters a sensor cannot have
+(benchmarks/generator_report.py).
 
 Sequences come from the INDEPENDENT generator ``tests/hidden_effects.py`` (its own implementation
 of every effect, never ``synth.sensor``): base disparity noise + range limits + one hidden effect
@@ -263,7 +268,14 @@ def main(argv=None) -> int:
                     "(simulation seeds and generator re-runs; default 4)")
     ap.add_argument("--method", default="coordinate", help="FitConfig.method: coordinate, powell, "
                     "differential_evolution, or a comma list to compare them on the same sequences")
+    ap.add_argument("--generators", help="comma list of hidden, mystery: per generator, diagnose's rank-first "
+                    "rate, recovery, closure and implausible fitted parameters (benchmarks/generator_report.py) "
+                    "on every --effects x --seeds; --quick for a small diagnose budget")
+    ap.add_argument("--quick", action="store_true", help="--generators: 4 frames, 3000 pixels a frame, small "
+                    "diagnose budgets (minutes, not hours)")
     args = ap.parse_args(argv)
+    if args.generators:
+        return _generators(args)
     from synth.lab import FitConfig, MeasuredSequence, fit_model
     from tests import hidden_effects as he
     w, h = (int(x) for x in args.size.split("x"))
@@ -337,6 +349,30 @@ def main(argv=None) -> int:
               f"after {np.median([r['gap'] for r in runs_m]):.4f}, median {np.median([r['seconds'] for r in runs_m]):.1f} s")
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "runs": runs}, indent=1, default=float))
+    return 0
+
+
+def _generators(args) -> int:
+    """``--generators``: the per-generator report (see benchmarks/generator_report.py)."""
+    from benchmarks import generator_report as gr
+    from synth.lab import DiagnoseConfig, FitConfig
+    w, h = (int(x) for x in args.size.split("x"))
+    fc, dc = FitConfig(intervals=False), DiagnoseConfig()
+    if args.quick:
+        fc = FitConfig(max_frames=4, max_pixels_per_frame=3000, eval_pixels_per_frame=8000, intervals=False)
+        dc = DiagnoseConfig(model_evaluations=40, candidate_evaluations=16, refine_top=1, refine_evaluations=16)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_generators_"))
+    records = []
+    for gen in args.generators.split(","):
+        for effect in [e for e in args.effects.split(",") if e in gr.generator_effects(gen)]:
+            for seed in [int(s) for s in args.seeds.split(",")]:
+                r = gr.run_case(gen, effect, seed, tmp, args.frames, w, h, args.draws, fc, dc)
+                gr.print_case(r)
+                records.append(r)
+                if args.json:
+                    Path(args.json).write_text(json.dumps(records, indent=1, default=float))
+    print()
+    print(gr.summary(records))
     return 0
 
 

@@ -262,3 +262,41 @@ def test_generator_pairs_hide_both_effects():
     for bad in ("depth_bias+depth_bias", "depth_bias+nope"):
         with pytest.raises(ValueError):
             he.hidden_set(bad)
+
+
+def test_generator_report_flags_what_no_sensor_has():
+    """Fitted values a Kinect-class sensor cannot have are named: a max depth that cuts measured pixels
+    (depths 0.9-4 m, max 0.87 m: issue #43's refit), a min depth of 1 m above the nearest ones, k1 = 0.6; values
+    inside the limits and range limits at 0 (the device's) are not."""
+    from benchmarks.generator_report import implausible
+
+    class _Ms:
+        def __len__(self):
+            return 2
+
+        def measured_depth(self, k):
+            z = np.linspace(0.9, 4.0, 400).reshape(20, 20).astype(np.float32)
+            z[0, :5] = 0
+            return z
+    bad = implausible({"range_limits.max_depth_m": 0.87, "range_limits.min_depth_m": 1.0,
+                       "lens_distortion.k1": 0.6, "axial_noise.sigma2_per_m": 0.002}, _Ms())
+    assert len(bad) == 3 and any("max_depth_m=0.870 below" in b for b in bad) and any("k1=0.6" in b for b in bad)
+    assert any("min_depth_m=1.000 above" in b for b in bad)
+    assert implausible({"range_limits.max_depth_m": 0.0, "range_limits.min_depth_m": 0.5,
+                        "lens_distortion.k1": -0.2}, _Ms()) == []
+
+
+def test_mystery_recovery_rows_compare_in_the_labs_units(tmp_path):
+    """The mystery sensor's truth, set into the lab's model as it is, gives rows that are all within
+    tolerance with zero error (noise at 2 m, the k1 row); another k1 is outside."""
+    from benchmarks.generator_report import make, recovery_rows
+    truth = make("mystery", tmp_path / "s", "lens_distortion", 5, 1, 80, 60)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    cfg = ms.default_config([{"name": "axial_noise", "params": {"sigma2_per_m": truth["noise2m"] / 4}},
+                             {"name": "lens_distortion", "params": {"k1": truth["raw"]["params"]["k1"]}}])
+    rows = recovery_rows("mystery", truth, cfg, ms.preset.fb, set())
+    assert [r["quantity"] for r in rows] == ["noise at 2 m [m]", "k1"]
+    assert all(r["within"] and abs(r["error"]) < 1e-9 for r in rows)
+    off = ms.default_config([{"name": "axial_noise", "params": {"sigma2_per_m": truth["noise2m"] / 4}},
+                             {"name": "lens_distortion", "params": {"k1": truth["raw"]["params"]["k1"] + 0.05}}])
+    assert not recovery_rows("mystery", truth, off, ms.preset.fb, set())[1]["within"]

@@ -14,8 +14,10 @@ class DemoConfig:
     """The three parts of the demo: the lab on a mystery sensor, exploration, recognition."""
 
     mystery_seed: int = 5
-    """Seed of the mystery sensor: its scene, camera, noise and which effect it hides (5 hides edge
-    fattening, a block matcher's habit that the ideal model lacks entirely)."""
+    """Seed of the mystery sensor: its scene, camera, trajectory and noise."""
+    mystery_effect: str = "edge_fattening"
+    """The effect the mystery sensor hides (one of :data:`synth.lab.mystery.EFFECTS`, or 'random': drawn
+    from the seed); edge fattening is a block matcher's habit that the ideal model lacks entirely."""
     mystery_frames: int = 6
     """Frames of the mystery sequence (the lab diagnoses on 4 of them and checks on all)."""
     room_seed: int = 100_000
@@ -43,6 +45,10 @@ class DemoConfig:
         if self.room_frames < 30:
             raise ConfigError(f"demo option room_frames must be at least 30 (3 neural registrations), "
                               f"got {self.room_frames}")
+        from synth.lab.mystery import EFFECTS
+        if self.mystery_effect not in EFFECTS + ("random",):
+            raise ConfigError(f"demo option mystery_effect must be one of {', '.join(EFFECTS)} or random, "
+                              f"got {self.mystery_effect!r}")
         if not 0 <= self.novel_frame < self.room_frames:
             raise ConfigError(f"demo option novel_frame must be in 0..{self.room_frames - 1}, got {self.novel_frame}")
         return self

@@ -2,7 +2,7 @@
 
 A "measured" sequence comes from :mod:`synth.lab.mystery`, a depth-sensor generator written apart
 from the simulator (its own camera, raw-disparity conversion and scene family) that hides one
-physical effect; its answer file is read only at the end. The lab compares the sequence with the
+physical effect; its ``answer.json`` is read only at the end. The lab compares the sequence with the
 ideal model and with a base model (axial noise + range limits, fitted), diagnoses the missing effect,
 adds it fitted and compares again: the gap history falls, and the hidden answer is printed beside
 what the lab found. Every step is its own folder, kept when finished (a re-run resumes).
@@ -29,14 +29,15 @@ def _compare(seq: Path, out: Path, label: str, against: Path | None, seed: int, 
     return json.loads((out / "metrics.json").read_text())
 
 
-def run_lab_part(out: Path, seed: int, frames: int, log: Callable[[str], None] = print) -> dict:
+def run_lab_part(out: Path, seed: int, frames: int, log: Callable[[str], None] = print,
+                 effect: str = "edge_fattening") -> dict:
     """The lab on the mystery sensor into ``out`` (``out/mystery`` the sequence, ``out/1_ideal``,
     ``2_base``, ``4_fitted`` compare folders, ``3_diagnose``). Returns the part's facts."""
-    from synth.lab.mystery import make_mystery_sequence
+    from synth.lab.mystery import generate
     seq = out / "mystery"
-    if not (seq / "groundtruth.txt").is_file() or not (out / "answer.json").is_file():
+    if not (seq / "groundtruth.txt").is_file() or not (seq / "answer.json").is_file():
         log(f"      the mystery sensor records {frames} frames -> {seq}")
-        make_mystery_sequence(seq, seed=seed, frames=frames, answer=out / "answer.json")
+        generate(seq, effect=effect or "random", seed=seed, n_frames=frames)
     ideal = _compare(seq, out / "1_ideal", "ideal depth", None, seed, log, effects="none")
     base = _compare(seq, out / "2_base", "base model (fitted)", out / "1_ideal", seed, log,
                     effects=BASE_EFFECTS, fit=True)
@@ -53,10 +54,10 @@ def run_lab_part(out: Path, seed: int, frames: int, log: Callable[[str], None] =
     best = ranking[0]
     fitted = _compare(seq, out / "4_fitted", f"+ {best['effect']} (fitted)", out / "2_base", seed, log,
                       model=str(diag_dir / "best_model.json"))
-    answer = json.loads((out / "answer.json").read_text())
+    answer = json.loads((seq / "answer.json").read_text())         # read only now: the lab never sees it
     from synth.lab.history import load_history
     history = load_history(out / "4_fitted")
-    return {"sequence": str(seq), "hidden_effect": answer.get("effect"), "hidden_parameters": answer.get("parameters"),
+    return {"sequence": str(seq), "hidden_effect": answer.get("effect"), "hidden_parameters": answer.get("params"),
             "found_effect": best["effect"], "found_gain": best.get("gain"), "evidence": best.get("evidence", ""),
             "fitted_parameters": {k: v for k, v in (best.get("params") or {}).items()
                                   if k.startswith(best["effect"] + ".")},

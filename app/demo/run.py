@@ -41,7 +41,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[s
     timings = json.loads(timings_file.read_text()) if timings_file.is_file() else {}
     facts = {}
     parts = [("lab", "the sensor lab on a mystery sensor",
-              lambda: run_lab_part(out / "lab", cfg.mystery_seed, cfg.mystery_frames, log)),
+              lambda: run_lab_part(out / "lab", cfg.mystery_seed, cfg.mystery_frames, log, cfg.mystery_effect)),
              ("explore", "exploration: icp and the neural memory on a simulated room walk",
               lambda: run_explore_part(out / "explore", cfg.room_seed, cfg.room_frames, cfg.novel_frame,
                                        cfg.screenshot, log, progress)),
