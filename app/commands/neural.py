@@ -24,21 +24,6 @@ def register(parser: argparse.ArgumentParser) -> None:
                         "core; 3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
     p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
     p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
-    p.add_argument("--decoder", choices=("learned", "rays"),
-                   help="3d recall: learned (default; a learned map from the culled top-view window at the pose "
-                        "rounded to the grid) or rays (the memory sampled along each pixel's ray at the exact pose)")
-    p.add_argument("--equivariance", choices=("none", "invariant", "regular"),
-                   help="2d: an encoder exactly equivariant to quarter turns (regular: the regular representation of "
-                        "C4, features a multiple of 4; invariant: averaged over the turns); default: the preset's")
-    p.add_argument("--colour-skip", action="store_true", default=None,
-                   help="the observation itself as the last 3 (2d) / 4 (3d) memory features beside the encoder's "
-                        "(the thesis' encoder keeps no absolute colour); default: the preset's (off)")
-    p.add_argument("--decoder-skip", action="store_true", default=None,
-                   help="2d: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's "
-                        "ResNet; default: the preset's (off)")
-    p.add_argument("--subcell", action="store_true", default=None,
-                   help="3d: register below the grid (real teacher poses splatted, L_loc's target the splat of the "
-                        "exact pose; the model then registers at its refined peak); default: the preset's (off)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -112,9 +97,7 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell",
-                                           "colour_skip", "decoder_skip")
-            if getattr(args, k) is not None}
+    over = {k: getattr(args, k) for k in ("agent", "iterations", "device") if getattr(args, k) is not None}
     if args.worlds:
         over["worlds_dir"] = str(args.worlds)
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS

@@ -64,13 +64,6 @@ class NeuralConfig:
     48-53, used by no training) among 10 / 15 / 20 / 30 deg: mean ATE 0.270 m, heading error 17.0 deg against
     0.290 / 39.6, 0.277 / 33.9 and 0.300 / 72.0 (slam/neural/weights/README.md, "The overlap score")."""
 
-    headings: int = 0
-    """Headings the pose field searches, 360 / ``headings`` degrees apart (0 = the model's own: 12 for the shipped
-    planar_3d). No weight depends on it - the rotation bank is the pixels ground-projected into each turned grid -,
-    so a model trained with 12 can search 72 (5 deg); measured on six held-out rooms (slam/neural/weights/README.md):
-    not better than the model's own with ``score`` ``sum``, much worse with ``overlap`` (24 / 36 headings: heading
-    error 78-85 deg against 17)."""
-
     score: str = "overlap"
     """How a pose is scored against the memory: ``overlap`` (the view's agreement with the memory averaged over the
     view cells that fall on observed memory cells; not in the thesis) or ``sum`` (the thesis' correlation summed
@@ -85,8 +78,6 @@ class NeuralConfig:
         if not (self.prior_move_m >= 0 and self.prior_turn_deg >= 0):
             raise ConfigError(f"neural.prior_move_m and neural.prior_turn_deg must be >= 0, got "
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
-        if int(self.headings) < 0 or int(self.headings) != self.headings:
-            raise ConfigError(f"neural.headings must be a whole number >= 0, got {self.headings}")
         from slam.neural import POSE_SCORES
         if self.score not in POSE_SCORES:
             raise ConfigError(f"neural.score must be one of {POSE_SCORES}, got {self.score!r}")
@@ -129,10 +120,6 @@ class NeuralBackend(RegistrationBackend):
         self.config.validate()
         model, tcfg, folder = self._load()
         w = tcfg.world
-        if int(self.config.headings) > 0:      # a finer (or coarser) rotation bank: the weights do not depend on it
-            import dataclasses
-            w = dataclasses.replace(w, rotations=int(self.config.headings))
-            model.set_headings(int(self.config.headings))
         T0 = reader.poses[indices[0]]
         if not np.all(np.isfinite(T0)):
             raise FormatError(reader.path, "the neural backend needs the first frame's pose (groundtruth.txt): it "

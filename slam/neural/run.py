@@ -256,8 +256,7 @@ def register_sequence(model, images, cells, wedge, memory: int, motion_prior=Non
 
 def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):
     """The view a neural run's memory recalls at camera-to-world ``pose_c2w`` (4, 4): RUN/memory's
-    features at the pose (the ``rays`` decoder samples them along the pixels' rays at the exact pose; the
-    ``learned`` one culls a window at the pose rounded to the memory's cell and heading grid) decoded by the
+    features at the pose (a window culled at the pose rounded to the memory's cell and heading grid) decoded by the
     run's model; with ``hallucinate`` the hallucination module fills the memory's unobserved cells
     first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
     image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""

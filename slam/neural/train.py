@@ -105,29 +105,6 @@ class NeuralTrainConfig:
     there, slam/neural/weights/README.md)."""
     width: int = 16
     """Channels of the encoder/decoder ResNets."""
-    correlation: str = "dot"
-    """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
-    equivariance: str = "none"
-    """2D mode: ``none``, ``invariant`` or ``regular`` - an encoder exactly equivariant to quarter turns
-    (:attr:`slam.neural.model.MemoryConfig.equivariance`)."""
-    colour_skip: bool = False
-    """The observation itself as the last C (3 in 2D, 4 in 3D) of the ``features`` memory channels, beside the
-    ResNet's (:attr:`slam.neural.model.MemoryConfig.colour_skip`): the thesis' encoder keeps no absolute colour.
-    Measured in 2D: anamnesis L1 0.140 -> 0.119 with the ``cpu`` preset, 0.087 -> 0.0835 with ``cpu-long`` (one seed;
-    the seed spread is 0.005), localisation unchanged; in no preset (slam/neural/weights/README.md)."""
-    decoder_skip: bool = False
-    """2D mode: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's ResNet
-    (:attr:`slam.neural.model.MemoryConfig.decoder_skip`). Measured with ``colour_skip``, ``cpu`` preset: 0.117
-    against 0.119 without it - within noise; in no preset."""
-    decoder: str = "learned"
-    """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
-    grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
-    :class:`slam.neural.model.MemoryConfig`. Measured with the cpu preset (slam/neural/weights/README.md): the
-    two are equal within noise at this training budget, so the measured recipe stays the default."""
-    subcell: bool = False
-    """3D mode: register below the grid's resolution (:attr:`slam.neural.model.MemoryConfig.subcell`): teacher
-    registration at the exact poses, L_loc's target the trilinear splat of the exact pose instead of a one-hot at
-    the rounded one, and the model then registers at its refined peak at inference."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
@@ -158,22 +135,6 @@ class NeuralTrainConfig:
         for k in ("refine_rooms", "refine_pool_batches"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
-        if self.equivariance not in ("none", "invariant", "regular"):
-            raise ConfigError(f"equivariance must be none, invariant or regular, got {self.equivariance!r}")
-        if self.equivariance != "none" and self.mode != "2d":
-            raise ConfigError("equivariance (an encoder equivariant to quarter turns) is for --mode 2d: 3D images are "
-                              "not square top views")
-        if self.decoder_skip and self.mode != "2d":
-            raise ConfigError("decoder_skip is for --mode 2d (the 3D decoders map a top view to an image)")
-        if self.colour_skip and (self.equivariance == "regular" or self.features <= IMAGE_CHANNELS[self.mode]):
-            raise ConfigError(f"colour_skip needs more features than image channels (got {self.features}) and no "
-                              "regular equivariance")
-        if self.equivariance == "regular" and self.features % 4:
-            raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
-        if self.subcell and self.mode != "3d":
-            raise ConfigError("subcell registration is for --mode 3d (2D poses are whole pixels and quarter turns)")
-        if self.decoder not in ("rays", "learned"):
-            raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not (self.occ_weight >= 0 and np.isfinite(self.occ_weight)):
             raise ConfigError(f"occ_weight must be >= 0, got {self.occ_weight}")
         if not (self.loc_weight > 0 and np.isfinite(self.loc_weight)):
@@ -235,31 +196,21 @@ and hallucination module retrained (``neural refine-hallucination``, ~60 min on 
 ``occ_weight`` 0, the recipe its memory was measured with). ``gpu``: the larger configuration."""
 
 
-def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
-    """The model's sizes for a training configuration; 3D ``rays``: the camera of ``geometry``
-    (:func:`slam.neural.data3d.ray_geometry`; default :func:`slam.neural.data3d.default_ray_geometry`)."""
+def memory_config(cfg: NeuralTrainConfig):
+    """The model's sizes for a training configuration."""
     from slam.neural.data2d import AGENTS
     from slam.neural.model import MemoryConfig
     if cfg.mode == "3d":
-        from slam.neural.data3d import default_ray_geometry
         w = cfg.world
         reach = int(np.ceil(0.45 * w.stride_max / 30.0 * (cfg.steps - 1) / w.cell_m)) + 4
-        rays = {}
-        if cfg.decoder == "rays":
-            g = geometry or default_ray_geometry(w)
-            rays = dict(decoder="rays", camera=tuple(g["camera"]), level_rotation=tuple(g["level_rotation"]),
-                        camera_height_m=float(g["camera_height_m"]), cell_m=w.cell_m, max_range_m=w.max_range_m)
         return MemoryConfig(channels=IMAGE_CHANNELS["3d"], features=cfg.features, view=w.view,
                             memory=w.view + 2 * reach, width=cfg.width, rotations=w.rotations, search=4, input="image",
-                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
-                            subcell=bool(cfg.subcell), colour_skip=bool(cfg.colour_skip), **rays)
+                            image_size=(w.image_h, w.image_w), occupancy=_occupancy(cfg))
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=IMAGE_CHANNELS["2d"], features=cfg.features, view=q, memory=U, width=cfg.width,
-                        correlation=cfg.correlation, equivariance=cfg.equivariance,
-                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg),
-                        colour_skip=bool(cfg.colour_skip), decoder_skip=bool(cfg.decoder_skip))
+                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg))
 
 
 def _occupancy(cfg: NeuralTrainConfig) -> str:
@@ -323,21 +274,15 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     import torch.nn.functional as F
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.fields import splat_field
     from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
     cfg.validate()
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
     torch.manual_seed(cfg.seed)
-    geometry = None
     if cfg.mode == "3d":
         bank = worlds_3d(cfg, simulate, progress, log)
-        if cfg.decoder == "rays":
-            from data_tools.sequence import SequenceReader
-            from slam.neural.data3d import ray_geometry
-            geometry = ray_geometry(SequenceReader(bank.folders[0]), cfg.world)
-    mcfg = memory_config(cfg, geometry)
+    mcfg = memory_config(cfg)
     model = NeuralMemory(mcfg).to(dev)
     if cfg.lstm_forget_bias:
         with torch.no_grad():
@@ -415,16 +360,11 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         else:
             s = step - cfg.pretrain_steps
             p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
-            target = exact_t if cfg.subcell else allo_t         # subcell: real poses, splatted
-            teacher = target if rng.random() < p_teacher else None
+            teacher = allo_t if rng.random() < p_teacher else None
             out = model(obs_t, vm, teacher, cells=cells_t)
             Wp = out["logits"].shape[-1]
-            if cfg.subcell:
-                truth = torch.stack([splat_field(exact_t[:, t], out["centres"][:, t], Wp, model.cfg.rotations)
-                                     for t in range(cfg.steps)], 1)
-            else:
-                truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
-                                     for t in range(cfg.steps)], 1)
+            truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+                                 for t in range(cfg.steps)], 1)
             l_loc = _loc_loss(out["logits"], truth)
             rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
             l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
@@ -559,6 +499,24 @@ def save_model(folder: str | Path, model, cfg: NeuralTrainConfig, info: dict | N
     return folder
 
 
+def without_removed_options(block, where) -> dict:
+    """A copy of a neural.json ``train`` or ``memory`` block without the options earlier code had and no shipped
+    model used (:data:`slam.neural.model.REMOVED_OPTIONS`): recorded at the value the code implements they are
+    dropped, another value is a :class:`FormatError` naming ``where``; the ``rays`` decoder's camera fields are
+    dropped."""
+    from slam.neural.model import RAY_FIELDS, REMOVED_OPTIONS
+    out = dict(block) if isinstance(block, dict) else block
+    if not isinstance(out, dict):
+        return out                      # config_from_dict names the problem
+    for k, kept in REMOVED_OPTIONS.items():
+        if k in out and (v := out.pop(k)) != kept:
+            raise FormatError(where, f"trained with {k} = {v!r}, an option this realgap no longer has "
+                                     "(docs/neural_not_kept.md)")
+    for k in RAY_FIELDS:
+        out.pop(k, None)
+    return out
+
+
 def load_model(folder: str | Path):
     """(NeuralMemory in eval mode, NeuralTrainConfig, info) of a saved model; one-line errors."""
     import json
@@ -579,8 +537,8 @@ def load_model(folder: str | Path):
         raise FormatError(meta_p, f"not a {CKPT_FORMAT} file")
     if meta.get("version") != CKPT_VERSION:
         raise FormatError(meta_p, f"model format version {meta.get('version')!r}, this realgap reads {CKPT_VERSION}")
-    cfg = config_from_dict(NeuralTrainConfig, meta["train"], str(meta_p))
-    mcfg = config_from_dict(MemoryConfig, meta["memory"], str(meta_p))
+    cfg = config_from_dict(NeuralTrainConfig, without_removed_options(meta.get("train"), meta_p), str(meta_p))
+    mcfg = config_from_dict(MemoryConfig, without_removed_options(meta.get("memory"), meta_p), str(meta_p))
     model = NeuralMemory(mcfg)
     try:
         model.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
