@@ -303,7 +303,7 @@ def test_learning_rate_schedule_is_a_function_of_the_step():
 def test_loss_means_by_hand_and_set_lr():
     """The training logs' running means: sums over the steps added since the last record (a loss that joined
     mid-way divided by all of them), rounded to 5 decimals, reset after each record; set_lr sets every group."""
-    from slam.neural.train import LossMeans, set_lr
+    from data_tools.training import LossMeans, set_lr
     m = LossMeans()
     m.add({"loc": 1.0, "anam": 0.2})
     m.add({"loc": 2.0, "anam": 0.4, "hallu": 0.3})

@@ -13,14 +13,13 @@
    the non-saturating GAN loss against the patch discriminator (trained on culled windows of the
    full memory as real, of the hole-filled partial memory at unvisited poses as fake).
 
-Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every
-``checkpoint_every`` steps (models, optimisers, step, random states; :mod:`slam.neural.checkpoint`): a re-run
-continues there.
+Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every ``checkpoint_every``
+steps (models, optimisers, step, random states; :class:`data_tools.training.TrainingState`): a re-run continues
+there. The loop is :func:`data_tools.training.run_steps`, shared with every other trainer.
 """
 from __future__ import annotations
 
 import io
-import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -28,6 +27,7 @@ from typing import Callable
 import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
+from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
 from slam.neural.data3d import World3DConfig
 
 __all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
@@ -224,25 +224,16 @@ class TrainLog:
     resumed_from: int = 0
 
 
-def _ramp(cfg: NeuralTrainConfig, step: int, final: float) -> float:
-    """1 until ``lr_decay_from``, then linear to ``final`` at the last step (``lr_decay_from`` 0: always 1)."""
-    a = int(cfg.lr_decay_from)
-    if a <= 0 or step < a:
-        return 1.0
-    t = (step - a) / max(cfg.iterations - 1 - a, 1)
-    return 1.0 + (final - 1.0) * min(t, 1.0)
-
-
 def lr_factor(cfg: NeuralTrainConfig, step: int) -> float:
     """The learning rate of ``step`` over the base one: 1 until ``lr_decay_from``, then linear to ``lr_final`` at
-    the last step (a function of the step only, so a resumed run continues the same schedule)."""
-    return _ramp(cfg, step, cfg.lr_final)
+    the last step (:func:`data_tools.training.linear_ramp`)."""
+    return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.lr_final)
 
 
 def loc_factor(cfg: NeuralTrainConfig, step: int) -> float:
     """L_loc's weight at ``step`` over ``loc_weight``: the learning rate's schedule (:func:`lr_factor`) falling to
     ``loc_weight_final``."""
-    return _ramp(cfg, step, cfg.loc_weight_final)
+    return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.loc_weight_final)
 
 
 OCC_LR = 5e-2
@@ -313,39 +304,20 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             a = torch.from_numpy(allo).to(dev)
             return torch.from_numpy(obs).to(dev), None, a, a
     tlog = TrainLog()
-    start = 0
-    ck = Path(checkpoint) if checkpoint else None
     parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
     if occ_own:
         parts["opt_occ"] = opt_occ
-    if ck is not None and ck.is_file():
-        from slam.neural.checkpoint import load_training_state
-        start, tlog.steps = load_training_state(ck, parts, rng, "training checkpoint", map_location=dev)
-        tlog.resumed_from = start
-        if on_checkpoint is not None:
-            on_checkpoint(start)
+    state = TrainingState(checkpoint, parts, rng, "training checkpoint", map_location=dev, on_save=on_checkpoint)
+    resumed = state.resume()
+    if resumed is not None:
+        tlog.resumed_from, tlog.steps = resumed
         if log is not None:
-            log(f"resuming training at step {start} of {cfg.iterations} from {ck}")
+            log(f"resuming training at step {tlog.resumed_from} of {cfg.iterations} from {checkpoint}")
+    img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
 
-    def save(step: int) -> None:
-        if ck is not None:
-            from slam.neural.checkpoint import save_training_state
-            save_training_state(ck, parts, rng, step, tlog.steps)
-            if on_checkpoint is not None:
-                on_checkpoint(step)
-
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=cfg.iterations, initial=start, desc="training neural memory", unit="step")
-    means = LossMeans()
-    t0 = time.perf_counter()
-    model.train()
-    for step in range(start, cfg.iterations):
-        set_lr((opt, opt_h, opt_d), cfg.lr * lr_factor(cfg, step))
+    def step_fn(step: int) -> dict:
         obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
-        B, T = obs_t.shape[:2]
-        img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
+        T = obs_t.shape[1]
         losses = {}
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
@@ -357,74 +329,41 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-        else:
-            s = step - cfg.pretrain_steps
-            p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
-            teacher = allo_t if rng.random() < p_teacher else None
-            out = model(obs_t, vm, teacher, cells=cells_t)
-            Wp = out["logits"].shape[-1]
-            truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
-                                 for t in range(cfg.steps)], 1)
-            l_loc = _loc_loss(out["logits"], truth)
-            rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
-            l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
-            loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
-            losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
-            if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
-                l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
-                loss = loss + cfg.occ_weight * l_occ
-                losses["occ"] = float(l_occ.detach())
-                opt_occ.zero_grad(set_to_none=True)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if occ_own:
-                opt_occ.step()
-            if step >= cfg.hallucination_from:
-                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
-                                                  exact_t))
-        means.add(losses)
-        if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.iterations:
-            rec_ = means.record(step + 1)
-            tlog.steps.append(rec_)
-            if bar is not None:
-                bar.set_postfix_str(" ".join(f"{k} {v:.3f}" for k, v in rec_.items() if k != "step"))
-        if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
-            save(step + 1)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    tlog.seconds = time.perf_counter() - t0
-    save(cfg.iterations)
+            return losses
+        s = step - cfg.pretrain_steps
+        p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
+        teacher = allo_t if rng.random() < p_teacher else None
+        out = model(obs_t, vm, teacher, cells=cells_t)
+        Wp = out["logits"].shape[-1]
+        truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+                             for t in range(cfg.steps)], 1)
+        l_loc = _loc_loss(out["logits"], truth)
+        rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
+        l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
+        loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
+        losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
+        if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
+            l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
+            loss = loss + cfg.occ_weight * l_occ
+            losses["occ"] = float(l_occ.detach())
+            opt_occ.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if occ_own:
+            opt_occ.step()
+        if step >= cfg.hallucination_from:
+            losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
+                                              exact_t))
+        return losses
+
+    model.train()
+    tlog.seconds = run_steps(step_fn, cfg.iterations, start=tlog.resumed_from, history=tlog.steps,
+                             log_every=cfg.log_every, state=state, checkpoint_every=cfg.checkpoint_every,
+                             lr=lambda step: set_lr((opt, opt_h, opt_d), cfg.lr * lr_factor(cfg, step)),
+                             progress=progress, desc="training neural memory")
     model.eval()
     return model, disc, tlog
-
-
-def set_lr(optimisers, lr: float) -> None:
-    """Set the learning rate of every parameter group of ``optimisers`` (the training loops' schedules)."""
-    for o in optimisers:
-        for g in o.param_groups:
-            g["lr"] = lr
-
-
-class LossMeans:
-    """Named losses summed between two log records; :meth:`record` gives each sum over the number of steps added
-    (a loss that joined mid-way is divided by all of them), rounded to 5 decimals, and starts again."""
-
-    def __init__(self):
-        self.sums: dict[str, float] = {}
-        self.n = 0
-
-    def add(self, losses: dict) -> None:
-        for k, v in losses.items():
-            self.sums[k] = self.sums.get(k, 0.0) + v
-        self.n += 1
-
-    def record(self, step: int) -> dict:
-        rec = {"step": step, **{k: round(v / self.n, 5) for k, v in self.sums.items()}}
-        self.sums, self.n = {}, 0
-        return rec
 
 
 def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
