@@ -422,3 +422,34 @@ def test_2d_presets_build_a_model_that_runs(preset):
         filled = model.hallucinate(psi, out["occ"])
         assert filled.shape == psi.shape
         assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
+
+
+def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
+    """``neural train`` / ``refine-decoder`` / ``refine-hallucination`` flags come from the dataclasses: a field
+    (nested ``--world.view`` too) given on the command line reaches the configuration the library receives, on top
+    of the preset; the rest keeps the preset's values."""
+    from types import SimpleNamespace
+
+    import slam.neural.run as run
+    from app.cli import main
+    from slam.neural.train import TRAIN_PRESETS_3D
+    got = {}
+
+    def fake_train(cfg, out, **kw):
+        got["train"] = cfg
+        return None, SimpleNamespace(steps=[], seconds=0.0), out
+    monkeypatch.setattr(run, "train_to_folder", fake_train)
+    monkeypatch.setattr(run, "refine_folder", lambda m, o, rcfg, **kw: got.update(refine=rcfg) or {"log": []})
+    monkeypatch.setattr(run, "refine_hallucination_folder",
+                        lambda m, o, hcfg, **kw: got.update(hallu=hcfg) or {"occ_log": [], "log": [], "seconds": 0})
+    assert main(["neural", "train", "--mode", "3d", "--preset", "cpu-long", "--out", str(tmp_path / "m"),
+                 "--world.view", "51", "--lr-final", "0.5", "--agent", "square"]) == 0
+    cfg = got["train"]
+    assert (cfg.world.view, cfg.lr_final, cfg.agent) == (51, 0.5, "square")
+    assert cfg.iterations == TRAIN_PRESETS_3D["cpu-long"].iterations and cfg.world.max_range_m == 3.6
+    main(["neural", "refine-decoder", "M", "--out", str(tmp_path / "r"), "--pool-batches", "3", "--lr", "1e-3",
+          "--seed", "2", "--no-progress"])
+    assert (got["refine"].pool_batches, got["refine"].lr, got["refine"].seed, got["refine"].steps) == (3, 1e-3, 2,
+                                                                                                      1500)
+    main(["neural", "refine-hallucination", "M", "--out", str(tmp_path / "h"), "--occ_steps", "7", "--no-progress"])
+    assert (got["hallu"].occ_steps, got["hallu"].steps) == (7, 600)
