@@ -114,7 +114,7 @@ def test_seen_mask_is_the_union_of_the_registered_view_fields():
 
 
 def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
-    from slam.neural.train import NeuralTrainConfig, _loc_loss, load_model, memory_config, save_model
+    from slam.neural.train import NeuralTrainConfig, loc_loss, load_model, memory_config, save_model
     torch.manual_seed(0)
     cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=8, width=8)
     model = NeuralMemory(memory_config(cfg))
@@ -127,8 +127,8 @@ def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
     def loss():
         out = model(o, vm, a)                                   # teacher registration: a fixed target
         Wp = out["logits"].shape[-1]
-        truth = torch.stack([model._local_one_hot(a[:, t], out["centres"][:, t], Wp) for t in range(4)], 1)
-        return _loc_loss(out["logits"], truth)
+        truth = torch.stack([model.local_one_hot(a[:, t], out["centres"][:, t], Wp) for t in range(4)], 1)
+        return loc_loss(out["logits"], truth)
     first = float(loss().detach())
     for _ in range(25):
         opt.zero_grad()

@@ -72,7 +72,7 @@ class World3DConfig:
         return self
 
 
-def _block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
+def block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
     import cv2
     h0, w0 = depth.shape
     by, bx = h0 // H, w0 // W
@@ -97,7 +97,7 @@ def frame_arrays(rgb: np.ndarray | None, depth_m: np.ndarray, intr, R_c_L: np.nd
     """(image (4, H, W) float32 in [-1, 1], cells (r, H * W) int64: the pixels' cells in the egocentric grid
     turned by k / r of a turn, k = 0 .. r - 1) of one frame (see the module docstring)."""
     from slam.neural.geometry3d import downsample_intrinsics, egocentric_cells
-    col, d = _block_resize(rgb, depth_m, cfg.image_h, cfg.image_w)
+    col, d = block_resize(rgb, depth_m, cfg.image_h, cfg.image_w)
     small = downsample_intrinsics(intr, cfg.image_w, cfg.image_h)
     cells = egocentric_cells(d, small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m, rotations=cfg.rotations)
     dch = np.where(d > 0, np.clip(d / cfg.max_range_m, 0, 1) * 2 - 1, -1.0)

@@ -58,7 +58,7 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
     """The later views of a TSDF of the seen frames (true poses), 40 x 30, holes inpainted; as (4, H, W)."""
     import cv2
 
-    from slam.neural.data3d import _block_resize
+    from slam.neural.data3d import block_resize
     from slam.tsdf import TSDFConfig, TSDFVolume
     vol = TSDFVolume(TSDFConfig())
     intr = reader.intrinsics
@@ -71,7 +71,7 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
         depth = np.asarray(r.depth, np.float32)
         rgb = np.asarray(r.color) if r.color is not None else np.zeros((*depth.shape, 3))
         rgb8 = np.clip(rgb * (255 if rgb.max() <= 1.0 else 1), 0, 255).astype(np.uint8)
-        col, d = _block_resize(rgb8, depth, w.image_h, w.image_w)
+        col, d = block_resize(rgb8, depth, w.image_h, w.image_w)
         hole = (d <= 0).astype(np.uint8)
         col8 = cv2.inpaint((col * 255).astype(np.uint8), hole, 3, cv2.INPAINT_TELEA).astype(np.float32) / 255
         dd = cv2.inpaint(np.clip(d / w.max_range_m * 255, 0, 255).astype(np.uint8), hole, 3,

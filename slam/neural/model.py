@@ -423,7 +423,7 @@ class NeuralMemory(nn.Module):
             ri = start[:, 0][:, None, None] + off[None, :, None]                # (B, Wc, 1)
             ci = start[:, 1][:, None, None] + off[None, None, :]                # (B, 1, Wc)
             if t == 0:       # the first view: at the origin, unrotated
-                field = self._local_one_hot(torch.zeros(B, 3, dtype=torch.long, device=obs.device), centre, Wp)
+                field = self.local_one_hot(torch.zeros(B, 3, dtype=torch.long, device=obs.device), centre, Wp)
                 lg = obs.new_zeros(B, r, Wp, Wp)
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
@@ -437,7 +437,7 @@ class NeuralMemory(nn.Module):
                     post = lg + self._log_motion_prior(est.float(), centre, Wp, motion_prior)
                 field = torch.softmax(post.flatten(1), 1).view_as(lg)
                 if teacher is not None:
-                    field = self._local_one_hot(teacher[:, t], centre, Wp)
+                    field = self.local_one_hot(teacher[:, t], centre, Wp)
             reg = register(field, bank)                                         # (B, n, Wc, Wc)
             regm = register(field, mbank).clamp(0, 1)
             x = obs.new_zeros(B, Up, Up, n).index_put((bi, ri, ci), reg.permute(0, 2, 3, 1))
@@ -497,7 +497,7 @@ class NeuralMemory(nn.Module):
         lp = -(dr[:, :, None] ** 2 + dc[:, None, :] ** 2) / (2 * sc * sc)         # (B, Wp, Wp)
         return lp[:, None] - (dk ** 2 / (2 * sk * sk))[:, :, None, None]
 
-    def _local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
+    def local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
         """(B, r, Wp, Wp) one-hot of allocentric ``poses`` in windows centred on ``centre`` (all zero when
         the pose is outside its window)."""
         B = poses.shape[0]

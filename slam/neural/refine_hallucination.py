@@ -17,7 +17,7 @@ change:
    trained alone to the observed cells ``seen`` (L_occ, BCE - the deviation documented in
    :mod:`slam.neural.model`), Adam at :data:`slam.neural.train.OCC_LR`, memories registered at the true poses.
 2. **hallucination** (``steps``): the module and a new patch discriminator, both re-initialised N(0, 0.02), trained
-   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train._hallucination_step`, the same step
+   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train.hallucination_step`, the same step
    as the memory training's last phase), Adam (beta1 0.5) at ``lr`` falling linearly to a tenth over the stage -
    as the hallucination phase of the 3D ``cpu-long`` recipe, which lies wholly inside its learning-rate decay.
 
@@ -73,7 +73,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
 
     from slam.neural.model import PatchDiscriminator, init_weights
     from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
-    from slam.neural.train import OCC_LR, _hallucination_step, bank_batch
+    from slam.neural.train import OCC_LR, hallucination_step, bank_batch
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -114,7 +114,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             opt_occ.step()
             return {"occ": float(l_occ.detach())}
         model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
-        losses = _hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
+        losses = hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
         model.eval()
         return losses
 

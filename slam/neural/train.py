@@ -242,7 +242,7 @@ open, input gate saturated - which the memory's 2e-4 does not do in a CPU budget
 L_occ 0.86 -> 0.20 at 1e-2, -> 0.004-0.04 at 5e-2)."""
 
 
-def _loc_loss(logits, truth_field):
+def loc_loss(logits, truth_field):
     """Thesis Eq. 4.6 per step: -[p log p~ + (1 - p) log(1 - p~)] summed over the field, averaged over t >= 1."""
     import torch
     B, T = logits.shape[:2]
@@ -335,9 +335,9 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         teacher = allo_t if rng.random() < p_teacher else None
         out = model(obs_t, vm, teacher, cells=cells_t)
         Wp = out["logits"].shape[-1]
-        truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+        truth = torch.stack([model.local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
                              for t in range(cfg.steps)], 1)
-        l_loc = _loc_loss(out["logits"], truth)
+        l_loc = loc_loss(out["logits"], truth)
         rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
         l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
         loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
@@ -353,7 +353,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         if occ_own:
             opt_occ.step()
         if step >= cfg.hallucination_from:
-            losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
+            losses.update(hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
                                               exact_t))
         return losses
 
@@ -378,7 +378,7 @@ def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
             torch.from_numpy(np.asarray(allo)).to(dev), torch.from_numpy(exact).to(dev))
 
 
-def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
+def hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
                         exact_t=None) -> dict:
     """One hallucination update: memorise the first ``observe`` steps (no gradient into the memory
     path), fill the holes, predict the later views (recalled at ``exact_t``, default ``allo_t``);
