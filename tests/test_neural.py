@@ -453,3 +453,19 @@ def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
                                                                                                       1500)
     main(["neural", "refine-hallucination", "M", "--out", str(tmp_path / "h"), "--occ_steps", "7", "--no-progress"])
     assert (got["hallu"].occ_steps, got["hallu"].steps) == (7, 600)
+
+
+def test_eval_result_has_the_standard_header(tmp_path):
+    """neural_eval.json carries the result header (kind neural.eval, the model as input, flat metrics), so
+    ``realgap show`` tabulates it beside other results."""
+    from pathlib import Path
+
+    from data_tools.results import read_result, results_table
+    from slam.neural.run import evaluate_folder
+    model = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    res = evaluate_folder(model, tmp_path / "ev", 2, progress=False)
+    r = read_result(tmp_path / "ev")
+    assert r.kind == "neural.eval" and r.header["inputs"][0]["role"] == "model"
+    assert r.metrics["anamnesis_l1"] == res["anamnesis"]["l1"] and r.metrics["ape_px_median"] == res["ape_px"]["median"]
+    cols, rows = results_table([r])
+    assert any(row[0] == "hallucination_ssim" for row in rows)
