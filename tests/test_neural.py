@@ -185,16 +185,23 @@ def test_thesis_ssim_by_hand():
     assert rigid_ate(gt @ R.T + [3, -1], gt) == pytest.approx(0.0, abs=1e-9)
 
 
-def test_shipped_weights_load_and_the_hallucination_module_helps():
-    """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
-    hole-filled memory predicts later views better than the memory without the module."""
+@pytest.fixture(scope="module")
+def shipped_2d_eval():
+    """The shipped front_2d model, its training configuration and its evaluation on 16 fixed test walks (one
+    evaluation for the tests that read it)."""
     from pathlib import Path
 
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
-    model, cfg, info = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
+    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
+    return model, cfg, evaluate_2d(model, cfg, sequences=16, progress=False)
+
+
+def test_shipped_weights_load_and_the_hallucination_module_helps(shipped_2d_eval):
+    """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
+    hole-filled memory predicts later views better than the memory without the module."""
+    model, cfg, r = shipped_2d_eval
     assert cfg.agent == "front" and model.cfg.features == cfg.features
-    r = evaluate_2d(model, cfg, sequences=16, progress=False)
     assert r["hallucination"]["l1"] < r["ablation_no_hallucination_module"]["l1"]
     # it localises: the untrained memory's estimates are uniform over the +-16 px search window (median
     # error ~10 px); the shipped weights have a median of 0.0 px on these walks (66 % within 1 px)
@@ -202,15 +209,10 @@ def test_shipped_weights_load_and_the_hallucination_module_helps():
     assert r["baseline_mosaic_anamnesis"]["l1"] < 0.01          # the mosaic recalls what it saw
 
 
-def test_table_4_2_ablations_at_inference_cost_quality():
+def test_table_4_2_ablations_at_inference_cost_quality(shipped_2d_eval):
     """Switching localisation off (every view written at the first pose) makes the recall of the
     observed views worse; the ablation numbers are reported beside the full model's."""
-    from pathlib import Path
-
-    from slam.neural.evaluate import evaluate_2d
-    from slam.neural.train import load_model
-    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
-    r = evaluate_2d(model, cfg, sequences=8, progress=False)
+    r = shipped_2d_eval[2]
     assert r["ablation_no_localisation_anamnesis"]["l1"] > r["anamnesis"]["l1"] + 0.01
     for k in ("ablation_no_culling_anamnesis", "ablation_no_culling_hallucination"):
         assert set(r[k]) == {"l1", "ssim_thesis", "ssim_skimage"}
