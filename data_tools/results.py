@@ -56,6 +56,7 @@ KINDS = {
     "batch": "results.json",
     "recog.eval": "eval.json",
     "demo": "summary.json",
+    "neural.eval": "neural_eval.json",
 }
 """Result kind -> the file name it is written to by default (a folder given to
 :func:`find_result` is searched for these names, in this order)."""

@@ -17,7 +17,6 @@ weights as an uninterrupted run (the random states are restored, CPU kernels are
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -25,6 +24,7 @@ from typing import Callable
 import numpy as np
 
 from data_tools.errors import ConfigError
+from data_tools.training import TrainingState, run_steps
 from recog.data import TrainingData
 
 __all__ = ["TrainConfig", "TRAIN_PRESETS", "TripletMiner", "train_network", "TrainLog"]
@@ -167,10 +167,6 @@ class TripletMiner:
         return (a, a_draw, p, rng.integers(0, D, batch), ng, rng.integers(0, D, batch), pair_draw, same, ang)
 
 
-def _rng_state(rng: np.random.Generator) -> dict:
-    return rng.bit_generator.state
-
-
 def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfig, size: int,
                   checkpoint: str | Path | None = None, progress: bool = True,
                   log: Callable[[str], None] | None = None):
@@ -191,44 +187,14 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
     miner = TripletMiner(data, symmetries, config.hard_negatives)
     patches = torch.from_numpy(np.ascontiguousarray(data.patches))       # (N, D, S, S) float16
     tlog = TrainLog()
-    start = 0
-    ck = Path(checkpoint) if checkpoint is not None else None
-    if ck is not None and ck.is_file():
-        try:
-            state = torch.load(ck, map_location=device, weights_only=False)
-            net.load_state_dict(state["net"])
-            opt.load_state_dict(state["opt"])
-            rng.bit_generator.state = state["rng"]
-            torch.set_rng_state(state["torch_rng"])
-            start = int(state["step"])
-            tlog.steps = list(state.get("log", []))
-        except Exception as e:
-            from data_tools.errors import FormatError
-            raise FormatError(ck, f"unreadable training checkpoint ({type(e).__name__}); delete it to start again") \
-                from None
-        tlog.resumed_from = start
+    state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "training checkpoint", map_location=device)
+    resumed = state.resume()
+    if resumed is not None:
+        tlog.resumed_from, tlog.steps = resumed
         if log is not None:
-            log(f"resuming training at step {start} of {config.iterations} from {ck}")
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=config.iterations, initial=start, desc=f"training {config.network}", unit="step")
-    t0 = time.perf_counter()
-    net.train()
+            log(f"resuming training at step {tlog.resumed_from} of {config.iterations} from {checkpoint}")
 
-    def save(step: int) -> None:
-        if ck is None:
-            return
-        import io
-
-        from data_tools.results import atomic_write_bytes
-        buf = io.BytesIO()
-        torch.save({"net": net.state_dict(), "opt": opt.state_dict(), "rng": _rng_state(rng),
-                    "torch_rng": torch.get_rng_state(), "step": step, "log": tlog.steps}, buf)
-        atomic_write_bytes(ck, buf.getvalue())
-
-    acc = {"loss": 0.0, "triplet": 0.0, "pair": 0.0, "active": 0.0, "spread": 0.0, "n": 0}
-    for step in range(start, config.iterations):
+    def step_fn(step: int) -> dict:
         a, ad, p, pd, n, nd, qd, same, ang = miner.sample(rng, config.batch, config.same_object_negatives)
         x = torch.cat([patches[a, ad], patches[p, pd], patches[n, nd], patches[a, qd]]).float().unsqueeze(1)
         f = net(x.to(device))
@@ -242,28 +208,16 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
         loss.backward()
         opt.step()
         with torch.no_grad():
-            acc["loss"] += float(loss)
-            acc["triplet"] += float(lt.mean())
-            acc["pair"] += float(lp.mean())
-            acc["active"] += float((lt > 0).float().mean())
-            acc["spread"] += float(fb.std(0).mean())
-            acc["n"] += 1
-        if (step + 1) % config.log_every == 0 or step + 1 == config.iterations:
-            rec = {"step": step + 1, **{k: round(v / acc["n"], 5) for k, v in acc.items() if k != "n"}}
-            tlog.steps.append(rec)
-            acc = {k: 0.0 for k in acc} | {"n": 0}
-            if bar is not None:
-                bar.set_postfix_str(f"loss {rec['loss']:.3f} active {rec['active']:.2f} spread {rec['spread']:.3f}")
-        if (step + 1) % config.checkpoint_every == 0 and step + 1 < config.iterations:
-            save(step + 1)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    tlog.seconds = time.perf_counter() - t0
+            return {"loss": float(loss), "triplet": float(lt.mean()), "pair": float(lp.mean()),
+                    "active": float((lt > 0).float().mean()), "spread": float(fb.std(0).mean())}
+
+    net.train()
+    tlog.seconds = run_steps(step_fn, config.iterations, start=tlog.resumed_from, history=tlog.steps,
+                             log_every=config.log_every, state=state, checkpoint_every=config.checkpoint_every,
+                             progress=progress, desc=f"training {config.network}",
+                             postfix=lambda r: f"loss {r['loss']:.3f} active {r['active']:.2f} spread {r['spread']:.3f}")
     if tlog.steps and tlog.steps[-1]["spread"] < 1e-3:
         tlog.warnings.append(f"descriptor collapse: the descriptors' spread is {tlog.steps[-1]['spread']:.2g} "
                              f"(every input maps to nearly one point)")
-    save(config.iterations)
     net.eval()
     return net, tlog

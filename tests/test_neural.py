@@ -114,7 +114,7 @@ def test_seen_mask_is_the_union_of_the_registered_view_fields():
 
 
 def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
-    from slam.neural.train import NeuralTrainConfig, _loc_loss, load_model, memory_config, save_model
+    from slam.neural.train import NeuralTrainConfig, loc_loss, load_model, memory_config, save_model
     torch.manual_seed(0)
     cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=8, width=8)
     model = NeuralMemory(memory_config(cfg))
@@ -127,8 +127,8 @@ def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
     def loss():
         out = model(o, vm, a)                                   # teacher registration: a fixed target
         Wp = out["logits"].shape[-1]
-        truth = torch.stack([model._local_one_hot(a[:, t], out["centres"][:, t], Wp) for t in range(4)], 1)
-        return _loc_loss(out["logits"], truth)
+        truth = torch.stack([model.local_one_hot(a[:, t], out["centres"][:, t], Wp) for t in range(4)], 1)
+        return loc_loss(out["logits"], truth)
     first = float(loss().detach())
     for _ in range(25):
         opt.zero_grad()
@@ -153,6 +153,22 @@ def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
     (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
     with pytest.raises(FormatError, match="weights.pt.*do not fit"):
         load_model(tmp_path / "m")
+    # options of earlier code (docs/neural_not_kept.md): recorded at the value the code implements they load (the
+    # shipped models record them so), any other value is refused by name; the model's choices are checked once
+    meta["memory"]["features"] = 8
+    meta["train"].update(correlation="dot", equivariance="none", decoder="learned")
+    meta["memory"].update(correlation="dot", subcell=False, camera=[], ray_samples=12)
+    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    assert load_model(tmp_path / "m")[0].cfg == model.cfg
+    meta["memory"]["correlation"] = "cosine"
+    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    with pytest.raises(FormatError, match="neural.json.*correlation = 'cosine'"):
+        load_model(tmp_path / "m")
+    meta["memory"].update(correlation="dot", occupancy="linear")
+    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    from data_tools.errors import ConfigError
+    with pytest.raises(ConfigError, match="occupancy must be sigmoid or affine"):
+        load_model(tmp_path / "m")
 
 
 def test_thesis_ssim_by_hand():
@@ -169,16 +185,23 @@ def test_thesis_ssim_by_hand():
     assert rigid_ate(gt @ R.T + [3, -1], gt) == pytest.approx(0.0, abs=1e-9)
 
 
-def test_shipped_weights_load_and_the_hallucination_module_helps():
-    """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
-    hole-filled memory predicts later views better than the memory without the module."""
+@pytest.fixture(scope="module")
+def shipped_2d_eval():
+    """The shipped front_2d model, its training configuration and its evaluation on 16 fixed test walks (one
+    evaluation for the tests that read it)."""
     from pathlib import Path
 
     from slam.neural.evaluate import evaluate_2d
     from slam.neural.train import load_model
-    model, cfg, info = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
+    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
+    return model, cfg, evaluate_2d(model, cfg, sequences=16, progress=False)
+
+
+def test_shipped_weights_load_and_the_hallucination_module_helps(shipped_2d_eval):
+    """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
+    hole-filled memory predicts later views better than the memory without the module."""
+    model, cfg, r = shipped_2d_eval
     assert cfg.agent == "front" and model.cfg.features == cfg.features
-    r = evaluate_2d(model, cfg, sequences=16, progress=False)
     assert r["hallucination"]["l1"] < r["ablation_no_hallucination_module"]["l1"]
     # it localises: the untrained memory's estimates are uniform over the +-16 px search window (median
     # error ~10 px); the shipped weights have a median of 0.0 px on these walks (66 % within 1 px)
@@ -186,15 +209,10 @@ def test_shipped_weights_load_and_the_hallucination_module_helps():
     assert r["baseline_mosaic_anamnesis"]["l1"] < 0.01          # the mosaic recalls what it saw
 
 
-def test_table_4_2_ablations_at_inference_cost_quality():
+def test_table_4_2_ablations_at_inference_cost_quality(shipped_2d_eval):
     """Switching localisation off (every view written at the first pose) makes the recall of the
     observed views worse; the ablation numbers are reported beside the full model's."""
-    from pathlib import Path
-
-    from slam.neural.evaluate import evaluate_2d
-    from slam.neural.train import load_model
-    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
-    r = evaluate_2d(model, cfg, sequences=8, progress=False)
+    r = shipped_2d_eval[2]
     assert r["ablation_no_localisation_anamnesis"]["l1"] > r["anamnesis"]["l1"] + 0.01
     for k in ("ablation_no_culling_anamnesis", "ablation_no_culling_hallucination"):
         assert set(r[k]) == {"l1", "ssim_thesis", "ssim_skimage"}
@@ -287,7 +305,7 @@ def test_learning_rate_schedule_is_a_function_of_the_step():
 def test_loss_means_by_hand_and_set_lr():
     """The training logs' running means: sums over the steps added since the last record (a loss that joined
     mid-way divided by all of them), rounded to 5 decimals, reset after each record; set_lr sets every group."""
-    from slam.neural.train import LossMeans, set_lr
+    from data_tools.training import LossMeans, set_lr
     m = LossMeans()
     m.add({"loc": 1.0, "anam": 0.2})
     m.add({"loc": 2.0, "anam": 0.4, "hallu": 0.3})
@@ -408,145 +426,48 @@ def test_2d_presets_build_a_model_that_runs(preset):
         assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
 
 
-@pytest.mark.parametrize("kind", ["invariant", "regular"])
-def test_equivariant_encoder_commutes_with_quarter_turns(tmp_path, kind):
-    """``equivariance``: the encoding of a turned view is the encoding turned by the group action (``invariant``:
-    turned; ``regular``: turned and its 4 channel groups rolled), exactly, for every quarter turn - the plain
-    encoder's is not; so a place seen from any heading gives the same bank entry at that heading (what the memory
-    receives). The option survives save -> load; 3D and feature counts the action cannot split are refused."""
-    from data_tools.errors import ConfigError
-    from slam.neural.model import turn_features
-    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
-    torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, features=8, width=4, equivariance=kind).validate()
-    model = NeuralMemory(memory_config(cfg)).eval()
-    plain = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=8, width=4))).eval()
-    regular = kind == "regular"
-    x = torch.randn(2, 3, 15, 15)
-    with torch.no_grad():
-        fx = model.encoder(x)
-        assert fx.shape == (2, 8, 15, 15)
-        for k in (1, 2, 3):
-            turned = torch.rot90(x, k, (-2, -1))
-            torch.testing.assert_close(model.encoder(turned), turn_features(fx, k, 4, regular), rtol=0, atol=1e-5)
-            assert (plain.encoder(turned) - turn_features(plain.encoder(x), k, 4, regular)).abs().max() > 1e-2
-            # the agent at heading k sees the world patch x turned by -k; its bank entry k is x's encoding
-            bank = rotation_bank(model.encoder(torch.rot90(x, -k, (-2, -1))), 4, regular)
-            torch.testing.assert_close(bank[:, k], fx, rtol=0, atol=1e-5)
-    if regular:     # the groups differ: orientation is kept (an invariant encoder's channels could not tell)
-        assert (fx[:, :2] - fx[:, 2:4]).abs().max() > 1e-3
-    save_model(tmp_path / "m", model, cfg)
-    loaded, lcfg, _ = load_model(tmp_path / "m")
-    assert loaded.cfg.equivariance == kind == lcfg.equivariance
-    with torch.no_grad():
-        assert torch.equal(loaded.encoder(x), fx)
-    with pytest.raises(ConfigError, match="equivariance"):
-        NeuralTrainConfig(mode="3d", equivariance=kind).validate()
-    with pytest.raises(ConfigError, match="equivariance"):
-        NeuralTrainConfig(equivariance="c8").validate()
-    with pytest.raises(ValueError, match="equivariant"):
-        NeuralMemory(MemoryConfig(input="image", equivariance=kind))
-    if regular:
-        with pytest.raises(ConfigError, match="divisible by 4"):
-            NeuralTrainConfig(features=6, equivariance=kind).validate()
+def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
+    """``neural train`` / ``refine-decoder`` / ``refine-hallucination`` flags come from the dataclasses: a field
+    (nested ``--world.view`` too) given on the command line reaches the configuration the library receives, on top
+    of the preset; the rest keeps the preset's values."""
+    from types import SimpleNamespace
+
+    import slam.neural.run as run
+    from app.cli import main
+    from slam.neural.train import TRAIN_PRESETS_3D
+    got = {}
+
+    def fake_train(cfg, out, **kw):
+        got["train"] = cfg
+        return None, SimpleNamespace(steps=[], seconds=0.0), out
+    monkeypatch.setattr(run, "train_to_folder", fake_train)
+    monkeypatch.setattr(run, "refine_folder", lambda m, o, rcfg, **kw: got.update(refine=rcfg) or {"log": []})
+    monkeypatch.setattr(run, "refine_hallucination_folder",
+                        lambda m, o, hcfg, **kw: got.update(hallu=hcfg) or {"occ_log": [], "log": [], "seconds": 0})
+    assert main(["neural", "train", "--mode", "3d", "--preset", "cpu-long", "--out", str(tmp_path / "m"),
+                 "--world.view", "51", "--lr-final", "0.5", "--agent", "square"]) == 0
+    cfg = got["train"]
+    assert (cfg.world.view, cfg.lr_final, cfg.agent) == (51, 0.5, "square")
+    assert cfg.iterations == TRAIN_PRESETS_3D["cpu-long"].iterations and cfg.world.max_range_m == 3.6
+    main(["neural", "refine-decoder", "M", "--out", str(tmp_path / "r"), "--pool-batches", "3", "--lr", "1e-3",
+          "--seed", "2", "--no-progress"])
+    assert (got["refine"].pool_batches, got["refine"].lr, got["refine"].seed, got["refine"].steps) == (3, 1e-3, 2,
+                                                                                                      1500)
+    main(["neural", "refine-hallucination", "M", "--out", str(tmp_path / "h"), "--occ_steps", "7", "--no-progress"])
+    assert (got["hallu"].occ_steps, got["hallu"].steps) == (7, 600)
 
 
-def test_regular_culling_undoes_the_bank_turn():
-    """With the regular representation, a view registered at heading k (its bank entry k written at its pose) and
-    culled at that pose comes back as its own egocentric encoding: culling applies the inverse group action."""
-    from slam.neural.model import register, turn_features
-    torch.manual_seed(1)
-    cfg = MemoryConfig(channels=3, features=8, view=5, memory=11, width=4, search=3, equivariance="regular")
-    model = NeuralMemory(cfg).eval()
-    o = torch.randn(1, 8, 5, 5)
-    for k in range(4):
-        field = torch.zeros(1, 4, 7, 7)
-        field[0, k, 3, 3] = 1.0                                  # centre of the 11 x 11 memory
-        psi = register(field, rotation_bank(o, 4, True))
-        win = model.cull(psi, torch.tensor([[0, 0, k]]), torch.ones(5, 5))
-        torch.testing.assert_close(win[:, :8], o, rtol=0, atol=0)
-        if k:
-            assert not torch.equal(turn_features(o, k, 4, False), turn_features(o, k, 4, True))
+def test_eval_result_has_the_standard_header(tmp_path):
+    """neural_eval.json carries the result header (kind neural.eval, the model as input, flat metrics), so
+    ``realgap show`` tabulates it beside other results."""
+    from pathlib import Path
 
-
-def test_colour_skip_writes_the_observation_into_the_memory(tmp_path):
-    """``colour_skip``: the last 3 feature channels of a view are the view itself (the ResNet gives the others), so
-    a memory registered at the true poses holds, on every observed cell, the colour some step saw there - a
-    cell seen once holds exactly its colour in the LSTM's input. It survives save -> load, works with the
-    invariant encoder, and a model without enough features for it, or with the regular encoder, is refused."""
-    from data_tools.errors import ConfigError
-    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
-    torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, features=7, width=4, colour_skip=True).validate()
-    model = NeuralMemory(memory_config(cfg)).eval()
-    assert model.encoder.net[-1].out_channels == 4
-    agent = AGENTS[cfg.agent]
-    _, obs, _, allo = make_batch(np.random.default_rng(3), 2, agent, 4, 23)
-    o = torch.from_numpy(obs)
-    with torch.no_grad():
-        f = model.encode(o)
-        assert f.shape == (2, 4, 7, agent.view, agent.view) and torch.equal(f[:, :, 4:], o)
-        inv = NeuralMemory(memory_config(NeuralTrainConfig(image=23, features=7, width=4, colour_skip=True,
-                                                           equivariance="invariant"))).eval()
-        x = torch.randn(2, 3, 15, 15)
-        fx = inv.encoder(x)
-        torch.testing.assert_close(inv.encoder(torch.rot90(x, 1, (-2, -1))), torch.rot90(fx, 1, (-2, -1)),
-                                   rtol=0, atol=1e-5)
-    save_model(tmp_path / "m", model, cfg)
-    back, cfg2, _ = load_model(tmp_path / "m")
-    assert back.cfg.colour_skip and cfg2.colour_skip
-    with torch.no_grad():
-        assert torch.equal(back.encode(o), f)
-    for bad in (dict(features=3), dict(features=8, equivariance="regular")):
-        with pytest.raises(ConfigError, match="colour_skip"):
-            NeuralTrainConfig(image=23, width=4, colour_skip=True, **bad).validate()
-    with pytest.raises(ValueError, match="colour_skip"):
-        NeuralMemory(MemoryConfig(features=3, colour_skip=True))
-
-
-def test_colour_skip_in_3d_projects_the_pixels_colour_and_depth():
-    """3D (image input): the last 4 channels of a ground-projected view are the max over each cell's pixels of the
-    observation (RGB-D in [-1, 1]): a cell that one pixel lands in holds that pixel."""
-    from slam.neural.train import NeuralTrainConfig, memory_config
-    from slam.neural.data3d import World3DConfig
-    cfg = NeuralTrainConfig(mode="3d", features=6, width=4, colour_skip=True,
-                            world=World3DConfig(image_h=6, image_w=8)).validate()
-    model = NeuralMemory(memory_config(cfg)).eval()
-    q = model.cfg.view
-    img = torch.rand(1, 1, 4, 6, 8) * 2 - 1
-    cells = torch.full((1, 1, 48), -1, dtype=torch.long)
-    cells[0, 0, 5] = 3 * q + 4                  # pixel (0, 5) -> cell (3, 4); pixels (2, 1), (2, 2) -> cell (7, 7)
-    cells[0, 0, 17] = cells[0, 0, 18] = 7 * q + 7
-    with torch.no_grad():
-        f = model.encode(img, cells)[0, 0]
-    torch.testing.assert_close(f[2:, 3, 4], img[0, 0, :, 0, 5])
-    torch.testing.assert_close(f[2:, 7, 7], torch.maximum(img[0, 0, :, 2, 1], img[0, 0, :, 2, 2]))
-
-
-def test_decoder_skip_is_a_linear_path_beside_the_resnet(tmp_path):
-    """``decoder_skip`` (2D): the recalled image is tanh(ResNet(window) + W window + b) - with W, b = 0 exactly the
-    plain decoder's; a constant window shifts the output's pre-activation by W's column sums, whatever the instance
-    norms do. Saved and loaded; refused for 3D."""
-    import dataclasses
-
-    from data_tools.errors import ConfigError
-    from slam.neural.model import Decoder
-    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
-    torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, features=5, width=4, decoder_skip=True).validate()
-    model = NeuralMemory(memory_config(cfg)).eval()
-    plain = Decoder(dataclasses.replace(model.cfg, decoder_skip=False)).eval()
-    plain.net.load_state_dict(model.decoder.net.state_dict())
-    x = torch.randn(2, 6, 15, 15)
-    with torch.no_grad():
-        pre = torch.atanh(plain(x).clamp(-0.999999, 0.999999))
-        torch.testing.assert_close(model.decoder(x), torch.tanh(pre + model.decoder.skip(x)), rtol=0, atol=1e-4)
-        model.decoder.skip.weight.zero_()
-        model.decoder.skip.bias.zero_()
-        assert torch.equal(model.decoder(x), plain(x))
-        model.decoder.skip.bias.fill_(0.5)
-        save_model(tmp_path / "m", model, cfg)
-        back, _, _ = load_model(tmp_path / "m")
-        assert back.cfg.decoder_skip and torch.equal(back.decoder(x), model.decoder(x))
-    with pytest.raises(ConfigError, match="decoder_skip"):
-        NeuralTrainConfig(mode="3d", features=8, decoder_skip=True).validate()
+    from data_tools.results import read_result, results_table
+    from slam.neural.run import evaluate_folder
+    model = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    res = evaluate_folder(model, tmp_path / "ev", 2, progress=False)
+    r = read_result(tmp_path / "ev")
+    assert r.kind == "neural.eval" and r.header["inputs"][0]["role"] == "model"
+    assert r.metrics["anamnesis_l1"] == res["anamnesis"]["l1"] and r.metrics["ape_px_median"] == res["ape_px"]["median"]
+    cols, rows = results_table([r])
+    assert any(row[0] == "hallucination_ssim" for row in rows)

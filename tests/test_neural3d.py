@@ -144,66 +144,6 @@ def test_image_bank_turns_the_projection_exactly():
     np.testing.assert_allclose(bank[0, 6].numpy(), torch.rot90(bank[0, 0], 2, (1, 2)).numpy())
 
 
-def _ray_model(features=3, memory=45):
-    from slam.neural.data3d import World3DConfig, default_ray_geometry
-    from slam.neural.model import MemoryConfig, NeuralMemory
-    g = default_ray_geometry(World3DConfig())
-    return NeuralMemory(MemoryConfig(channels=4, features=features, view=33, memory=memory, width=4, rotations=12,
-                                     search=2, input="image", image_size=(30, 40), decoder="rays", camera=g["camera"],
-                                     level_rotation=g["level_rotation"], camera_height_m=1.0, cell_m=0.15,
-                                     max_range_m=2.4, ray_samples=8)), g
-
-
-@pytest.mark.parametrize("k", [0, 1, 3, 7])
-def test_ray_samples_fall_in_the_cells_the_ground_projection_uses(k):
-    """Back-projection round trip: the k-th turned ground projection of a depth image (egocentric_cells) puts each
-    pixel in the memory cell where the ray decoder samples that pixel at that depth, for a view at heading k."""
-    import torch
-    model, g = _ray_model()
-    dec = model.decoder
-    intr = Intrinsics(40, 30, *g["camera"])
-    R = np.asarray(g["level_rotation"]).reshape(3, 3)
-    q, U = 33, 45
-    rc = dec.ray_cells(torch.tensor([[0.0, 0.0, float(k)]]), q)[0].numpy()       # (D, H*W, 2), a q x q memory
-    agree = total = 0
-    for d in range(dec.D):
-        z = 2.4 * (d + 1) / dec.D
-        cells = egocentric_cells(np.full((30, 40), z), intr, R, 0.15, q, None, rotations=12)[k]
-        ok = cells >= 0
-        got = np.rint(rc[d, ok, 0]).astype(int) * q + np.rint(rc[d, ok, 1]).astype(int)
-        agree += int((got == cells[ok]).sum())
-        total += int(ok.sum())
-    assert total > 5000 and agree / total > 0.995        # float32 vs float64 at rounding ties only
-    # a pose shifted by (dr, dc) cells samples the same cells shifted by (dr, dc)
-    a = dec.ray_cells(torch.tensor([[0.0, 0.0, float(k)]]), U)[0]
-    b = dec.ray_cells(torch.tensor([[3.0, -5.0, float(k)]]), U)[0]
-    np.testing.assert_allclose((b - a).numpy(), np.broadcast_to([3.0, -5.0], a.shape), atol=1e-4)
-
-
-def test_ray_decoder_reads_the_memory_at_the_exact_pose():
-    """A memory that is one feature on one cell: the ray decoder's samples see it only on the rays that pass that
-    cell, and a pose between two headings samples between them (real poses, no rounding)."""
-    import torch
-    model, _ = _ray_model(features=1, memory=45)
-    dec = model.decoder
-    psi = torch.zeros(1, 1, 45, 45)
-    psi[0, 0, 22 - 8, 22] = 1.0                 # 8 cells (1.2 m) straight ahead of a camera at the centre
-    grid = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.0]]), 45)[0]
-    gs = torch.stack([grid[..., 1], grid[..., 0]], -1) * (2.0 / 44) - 1.0
-    smp = torch.nn.functional.grid_sample(psi, gs[None], align_corners=True)[0, 0]      # (D, H*W)
-    hit = smp.amax(0).view(30, 40) > 0
-    cols = np.nonzero(hit.numpy().any(0))[0]
-    assert hit.any() and 17 <= cols.mean() <= 22          # the image's middle columns (principal point 19.5)
-    # turned by a quarter of a heading: the samples move sideways by a fraction of the half-turn's shift
-    g0 = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.0]]), 45)[0]
-    g1 = dec.ray_cells(torch.tensor([[0.0, 0.0, 1.0]]), 45)[0]
-    gh = dec.ray_cells(torch.tensor([[0.0, 0.0, 0.5]]), 45)[0]
-    assert float((gh - g0).abs().max()) < float((g1 - g0).abs().max()) and float((gh - g0).abs().max()) > 0
-    out = model.recall(psi.expand(1, 1, 45, 45).repeat(1, 1, 1, 1), torch.tensor([[0.3, -0.2, 0.5]]),
-                       torch.ones(33, 33))
-    assert out.shape == (1, 4, 30, 40) and torch.isfinite(out).all()
-
-
 def test_planar_trajectory_keeps_height_pitch_and_clearance():
     from synth.scenes import build_scene
     from synth.sequence import SequenceConfig, make_sequence_trajectory
@@ -235,7 +175,7 @@ def planar_seq(tmp_path_factory):
     root = tmp_path_factory.mktemp("neural3d")
     cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
     generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20), decoder="rays")
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20))
     import torch
     torch.manual_seed(0)
     save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
@@ -310,10 +250,9 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
 
 
-@pytest.mark.parametrize("decoder,subcell", [("rays", False), ("learned", False), ("learned", True)])
-def test_train_3d_all_phases_and_resume(tmp_path, decoder, subcell):
+def test_train_3d_all_phases_and_resume(tmp_path):
     """``train_memory`` in 3D on a tiny simulated room goes through pre-training, memory + recall and the
-    hallucination GAN (the rays decoder takes its camera from the room), and a re-run resumes from the
+    hallucination GAN, and a re-run resumes from the
     checkpoint of the last step (same weights)."""
     import torch
 
@@ -323,14 +262,10 @@ def test_train_3d_all_phases_and_resume(tmp_path, decoder, subcell):
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
     cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
                             pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
-                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"), decoder=decoder,
-                            subcell=subcell)
+                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
     sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
     model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
-    assert model.cfg.decoder == decoder and model.cfg.subcell == subcell
-    if decoder == "rays":
-        assert model.cfg.camera[0] == pytest.approx(580.0 * 20 / 640)
-        assert model.cfg.camera_height_m == pytest.approx(1.0, abs=1e-6)
+    assert model.cfg.input == "image" and model.cfg.image_size == (15, 20)
     phases = [set(s) for s in log.steps]
     assert "loc" not in phases[0] and "loc" in phases[2] and "hallu" in phases[-1]
     again, _, log2 = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
@@ -392,101 +327,6 @@ def test_neural_backend_motion_prior_config():
     for bad in ({"prior_move_m": -0.1}, {"prior_turn_deg": 0.0}):
         with pytest.raises(ConfigError, match="prior"):
             NeuralConfig(**bad).validate()
-
-
-def test_more_headings_search_the_same_turns_and_finer_ones_between():
-    """set_headings(24) on a model built with 12: no weight changes, and the first localisation's content scores
-    at the 24 headings' even ones equal the 12 headings' (the same turned projections against the same memory
-    of the first view), the odd ones are the 15 deg turns in between."""
-    import torch
-
-    torch.manual_seed(0)
-    model = _image_model()
-    before = {k: v.clone() for k, v in model.state_dict().items()}
-    rng = np.random.default_rng(5)
-    intr = _INTR
-    depths = [rng.uniform(0.5, 2.3, (30, 40)) for _ in range(2)]
-    R = level_rotation(_cam(0, 0, 0.3))
-    obs = torch.from_numpy(rng.uniform(-1, 1, (1, 2, 4, 30, 40)).astype(np.float32))
-    vm = torch.ones(33, 33)
-
-    def logits(r):
-        c = np.stack([egocentric_cells(d, intr, R, 0.15, 33, 2.4, rotations=r) for d in depths])
-        with torch.no_grad():
-            return model(obs, vm, None, cells=torch.from_numpy(c)[None])["logits"][0, 1]
-    l12 = logits(12)
-    assert model.set_headings(24) is model and model.cfg.rotations == 24
-    l24 = logits(24)
-    assert l24.shape == (24, 5, 5)
-    np.testing.assert_allclose(l24[0::2].numpy(), l12.numpy(), rtol=1e-5, atol=1e-5)
-    assert not np.allclose(l24[1::2].numpy(), l12.numpy())
-    for k, v in model.state_dict().items():
-        assert torch.equal(v, before[k]), k
-    with pytest.raises(ValueError, match="headings"):
-        model.set_headings(0)
-
-
-def test_neural_backend_headings_config():
-    from data_tools.errors import ConfigError
-    from slam.backends.neural import NeuralConfig
-    assert NeuralConfig(headings=72).validate().motion_prior(0.15, 72) == pytest.approx((1.0, 3.0))   # 15 / 5 deg
-    for bad in (-1, 2.5):
-        with pytest.raises(ConfigError, match="headings"):
-            NeuralConfig(headings=bad).validate()
-
-
-def test_splat_field_by_hand_and_refine_pose_inverts_it():
-    """A real pose splats trilinearly over 2 x 2 cells and 2 headings (wrapping past the last heading); the refined
-    peak of a splat is the pose again (inside the window), in any window centre."""
-    import torch
-
-    from slam.neural.fields import refine_pose, splat_field
-    c = torch.tensor([[2, -1]])
-    f = splat_field(torch.tensor([[2.25, -0.5, 11.5]]), c, 5, 12)      # field index (2.25, 2.5), heading 11.5
-    assert f.shape == (1, 12, 5, 5) and float(f.sum()) == pytest.approx(1.0)
-    for k in (11, 0):
-        np.testing.assert_allclose(f[0, k, 2:4, 2:4].numpy(), [[0.375 * 0.5, 0.375 * 0.5], [0.125 * 0.5, 0.125 * 0.5]])
-    assert float(f[0, 1:11].abs().sum()) == 0
-    rng = np.random.default_rng(0)
-    poses = torch.from_numpy(np.c_[rng.uniform(-3, 3, (50, 2)), rng.uniform(0, 12, 50)]).float()
-    centres = torch.from_numpy(rng.integers(-1, 2, (50, 2)))
-    back = refine_pose(splat_field(poses, centres, 9, 12), centres)
-    np.testing.assert_allclose(back[:, :2].numpy(), poses[:, :2].numpy(), atol=1e-5)
-    dk = (back[:, 2] - poses[:, 2] + 6) % 12 - 6
-    np.testing.assert_allclose(dk.numpy(), 0, atol=1e-5)
-    assert float(splat_field(torch.tensor([[9.0, 0.0, 0.0]]), c, 5, 12).sum()) == 0      # outside the window
-
-
-def test_a_real_teacher_on_the_grid_is_the_integer_teacher():
-    """Registering at real poses that are whole cells and headings gives the memory of the integer teacher (the
-    splat of a grid pose is its one-hot); half a cell away it differs."""
-    import torch
-
-    torch.manual_seed(0)
-    model = _image_model(subcell=True)
-    rng = np.random.default_rng(2)
-    intr = _INTR
-    cells = np.stack([egocentric_cells(rng.uniform(0.5, 2.3, (30, 40)), intr, level_rotation(_cam(0, 0, 0.3)), 0.15,
-                                       33, 2.4, rotations=12) for _ in range(3)])
-    obs = torch.from_numpy(rng.uniform(-1, 1, (1, 3, 4, 30, 40)).astype(np.float32))
-    c = torch.from_numpy(cells)[None]
-    vm = torch.ones(33, 33)
-    grid = torch.tensor([[[0, 0, 0], [1, -1, 1], [2, -1, 11]]])
-    with torch.no_grad():
-        a = model(obs, vm, grid, cells=c)["psi"]
-        b = model(obs, vm, grid.float(), cells=c)["psi"]
-        half = model(obs, vm, grid.float() + torch.tensor([0.0, 0.5, 0.0]), cells=c)["psi"]
-        free = model(obs, vm, None, cells=c)
-    np.testing.assert_allclose(a.numpy(), b.numpy(), atol=1e-6)
-    assert not np.allclose(a.numpy(), half.numpy(), atol=1e-4)
-    assert torch.isfinite(free["psi"]).all() and free["estimates"].dtype == torch.long
-
-
-def test_subcell_is_a_3d_option():
-    from data_tools.errors import ConfigError
-    from slam.neural.train import NeuralTrainConfig
-    with pytest.raises(ConfigError, match="subcell"):
-        NeuralTrainConfig(mode="2d", subcell=True).validate()
 
 
 def test_overlap_score_by_hand_and_blind_to_unobserved_cells():

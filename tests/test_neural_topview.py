@@ -132,8 +132,7 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     from slam.neural.topview import TopViewDecoder
     from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=40, stride_min=2, stride_max=3)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"),
-                             decoder="rays")
+    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"))
     torch.manual_seed(0)
     save_model(tmp_path / "model", NeuralMemory(memory_config(tcfg)), tcfg)
     save_topview(tmp_path / "model", TopViewDecoder(4, 4))
@@ -166,10 +165,9 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     assert res["localisation"]["heading_fixed_baseline_deg_mean"] == row["heading_fixed_baseline_deg"]["mean"]
     assert res["localisation"]["neural"]["ape_rotation_deg_mean"] == row["neural"]["ape_rotation_deg"]["mean"]
     for key in ("anamnesis", "anamnesis_backend_registration", "hallucination", "baseline_tsdf_inpainting",
-                "ablation_no_localisation_anamnesis"):
+                "ablation_no_localisation_anamnesis", "ablation_no_culling_anamnesis",
+                "ablation_no_culling_hallucination"):
         assert 0.0 <= res[key]["l1"] <= 1.0 and -1.0 <= res[key]["ssim_thesis"] <= 1.0, key
-    # the ray decoder's culling is its view frustum: the "no culling" ablation does not apply to it
-    assert res["decoder"] == "rays" and res["ablation_no_culling_hallucination"] is None
     top = res["topview"]
     assert 0.0 < top["l1"] <= 1.0 and 0.0 < top["l1_true_poses"] <= 1.0 and 0.0 < top["baseline_mean_colour_l1"] < 1
     assert res["speed_register5_recall5_hallucinate5_s"]["median"] > 0
@@ -202,12 +200,13 @@ def test_2d_cpu_long_preset_is_the_shipped_front_2d_recipe():
     from pathlib import Path
 
     from data_tools.config import config_from_dict
-    from slam.neural.train import TRAIN_PRESETS, NeuralTrainConfig
+    from slam.neural.train import TRAIN_PRESETS, NeuralTrainConfig, without_removed_options
     meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
                        / "neural.json").read_text())
     preset = asdict(TRAIN_PRESETS["cpu-long"])
-    assert preset == asdict(config_from_dict(NeuralTrainConfig, meta["train"]))     # fields added later: defaults
-    assert {k: preset[k] for k in meta["train"]} == meta["train"]
+    recorded = without_removed_options(meta["train"], "neural.json")      # options removed since: at their value
+    assert preset == asdict(config_from_dict(NeuralTrainConfig, recorded))     # fields added later: defaults
+    assert {k: preset[k] for k in recorded} == recorded
     ref = meta["info"]["decoder_refinement"]["config"]
     assert (preset["refine_steps"], preset["refine_pool_batches"], preset["seed"]) == \
         (ref["steps"], ref["pool_batches"], ref["seed"])
@@ -221,11 +220,11 @@ def test_3d_cpu_long_preset_is_the_shipped_planar_3d_recipe():
     from dataclasses import asdict
     from pathlib import Path
 
-    from slam.neural.train import TRAIN_PRESETS_3D
+    from slam.neural.train import TRAIN_PRESETS_3D, without_removed_options
     meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "planar_3d"
                        / "neural.json").read_text())
     preset = asdict(TRAIN_PRESETS_3D["cpu-long"])
-    recorded = meta["train"]
+    recorded = without_removed_options(meta["train"], "neural.json")
     for k, v in recorded.items():
         if k != "refine_steps":
             assert preset[k] == v, (k, preset[k], v)

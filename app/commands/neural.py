@@ -11,6 +11,34 @@ NAME = "neural"
 HELP = "neural allocentric spatial memory (localise, memorise, recall, hallucinate): train and evaluate"
 
 
+def _config_flags(p: argparse.ArgumentParser, cls, prefix: str = "", exclude: tuple = ()) -> None:
+    """One flag per field of dataclass ``cls`` (``--NAME VALUE``; a nested dataclass field's fields as
+    ``--NAME.FIELD``), its help the field's docstring and default - as ``slam run`` generates its flags - so a new
+    training option is on the command line without being written here. Values land in ``args`` as ``cfg:NAME``."""
+    import dataclasses
+    import typing
+
+    from data_tools.config import field_docs
+    docs, hints, inst = field_docs(cls), typing.get_type_hints(cls), cls()
+    for f in dataclasses.fields(cls):
+        if f.name in exclude:
+            continue
+        if dataclasses.is_dataclass(hints[f.name]):
+            _config_flags(p, hints[f.name], f"{prefix}{f.name}.")
+            continue
+        doc = " ".join(docs.get(f.name, "").split()).replace("%", "%%")
+        names = [f"--{prefix}{f.name.replace('_', '-')}"] + ([f"--{prefix}{f.name}"] if "_" in f.name else [])
+        p.add_argument(*names, dest=f"cfg:{prefix}{f.name}", default=argparse.SUPPRESS, metavar="VALUE",
+                       help=f"{doc} (default: {getattr(inst, f.name)})".lstrip())
+
+
+def _configured(cfg, args, where: str):
+    """``cfg`` (a dataclass) with the generated flags given on the command line applied, validated."""
+    from data_tools.config import config_replace
+    over = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg:")}
+    return config_replace(cfg, over, where).validate() if over else cfg.validate()
+
+
 def register(parser: argparse.ArgumentParser) -> None:
     sub = add_group(parser)
     p = sub.add_parser("train", help="train the neural memory (2d: agents on images; 3d: RGB-D robot in rooms)",
@@ -22,29 +50,14 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "cpu-long", "gpu"),
                    help="cpu: <= 30 min on 2 cores; cpu-long: the shipped recipe (2d: front_2d, ~1 h 15 min on one "
                         "core; 3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
-    p.add_argument("--agent", choices=("square", "front"), help="2d agent (default front: 180 deg view, turns)")
-    p.add_argument("--iterations", type=int, help="optimiser steps (overrides --preset)")
-    p.add_argument("--decoder", choices=("learned", "rays"),
-                   help="3d recall: learned (default; a learned map from the culled top-view window at the pose "
-                        "rounded to the grid) or rays (the memory sampled along each pixel's ray at the exact pose)")
-    p.add_argument("--equivariance", choices=("none", "invariant", "regular"),
-                   help="2d: an encoder exactly equivariant to quarter turns (regular: the regular representation of "
-                        "C4, features a multiple of 4; invariant: averaged over the turns); default: the preset's")
-    p.add_argument("--colour-skip", action="store_true", default=None,
-                   help="the observation itself as the last 3 (2d) / 4 (3d) memory features beside the encoder's "
-                        "(the thesis' encoder keeps no absolute colour); default: the preset's (off)")
-    p.add_argument("--decoder-skip", action="store_true", default=None,
-                   help="2d: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's "
-                        "ResNet; default: the preset's (off)")
-    p.add_argument("--subcell", action="store_true", default=None,
-                   help="3d: register below the grid (real teacher poses splatted, L_loc's target the splat of the "
-                        "exact pose; the model then registers at its refined peak); default: the preset's (off)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
-    p.add_argument("--device", help="torch device (overrides --preset)")
     add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in MODEL")
     add_shared(p, "--no-progress")
+    from slam.neural.train import NeuralTrainConfig
+    _config_flags(p.add_argument_group("training options (override --preset; defaults: NeuralTrainConfig's)"),
+                  NeuralTrainConfig, exclude=("mode", "seed", "worlds_dir"))
     p.set_defaults(func=_train, on_interrupt=RESUMES)
     p = sub.add_parser("train-topview", help="give a 3d model a trained top-view decoder (memory frozen)",
                        description="Train the per-cell read-out of a 3d model's memory into a colour floor plan "
@@ -63,12 +76,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "re-run with the same --out.")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "the refined model's folder", required=True, metavar="OUT")
-    p.add_argument("--rooms", type=int, default=48, help="3d: training rooms recalled (default 48; simulated on first "
-                                                         "use); 2d: unused")
-    p.add_argument("--steps", type=int, default=1500, help="optimiser steps (default 1500)")
-    p.add_argument("--pool-batches", type=int, default=450, help="batches of 8 ten-view samples memorised once "
-                                                                 "(default 450, about 1.5 GB in RAM)")
-    p.add_argument("--ssim-weight", type=float, default=1.0, help="weight of the SSIM term (default 1; 0 = L1 only)")
+    from slam.neural.refine import RefineConfig
+    _config_flags(p.add_argument_group("refinement options"), RefineConfig, exclude=("seed",))
     p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
     add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in OUT")
@@ -84,8 +93,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "same --out.")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "the retrained model's folder", required=True, metavar="OUT")
-    p.add_argument("--occ-steps", type=int, default=400, help="steps of the occupancy stage (default 400)")
-    p.add_argument("--steps", type=int, default=600, help="steps of the hallucination GAN (default 600)")
+    from slam.neural.refine_hallucination import HallucinationConfig
+    _config_flags(p.add_argument_group("retraining options"), HallucinationConfig, exclude=("seed",))
     p.add_argument("--topview-steps", type=int, default=300,
                    help="3d: steps of the top-view decoder's retraining (default 300; 0 = none)")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training rooms (default: the model's)")
@@ -112,13 +121,10 @@ def _train(args) -> int:
 
     from slam.neural.run import train_to_folder
     from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
-    over = {k: getattr(args, k) for k in ("agent", "iterations", "device", "decoder", "equivariance", "subcell",
-                                           "colour_skip", "decoder_skip")
-            if getattr(args, k) is not None}
-    if args.worlds:
-        over["worlds_dir"] = str(args.worlds)
+    over = {"worlds_dir": str(args.worlds)} if args.worlds else {}
     presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
-    cfg = dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over).validate()
+    cfg = _configured(dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over), args,
+                      "neural train")
     from app.pipelines import simulate_planar_room
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,
                                            log=lambda m: print(f"realgap: {m}", file=sys.stderr),
@@ -145,8 +151,7 @@ def _refine(args) -> int:
     from slam.neural.refine import RefineConfig
     from slam.neural.run import refine_folder
     from app.pipelines import simulate_planar_room
-    rcfg = RefineConfig(rooms=args.rooms, steps=args.steps, pool_batches=args.pool_batches,
-                        ssim_weight=args.ssim_weight, seed=args.seed).validate()
+    rcfg = _configured(RefineConfig(seed=args.seed), args, "neural refine-decoder")
     info = refine_folder(args.model, args.out, rcfg, worlds=args.worlds, overwrite=args.overwrite,
                          progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                          simulate=simulate_planar_room)
@@ -160,7 +165,7 @@ def _refine_hallucination(args) -> int:
     from slam.neural.refine_hallucination import HallucinationConfig
     from slam.neural.run import refine_hallucination_folder
     from app.pipelines import simulate_planar_room
-    hcfg = HallucinationConfig(occ_steps=args.occ_steps, steps=args.steps, seed=args.seed).validate()
+    hcfg = _configured(HallucinationConfig(seed=args.seed), args, "neural refine-hallucination")
     info = refine_hallucination_folder(args.model, args.out, hcfg, topview_steps=args.topview_steps,
                                        worlds=args.worlds, overwrite=args.overwrite, progress=not args.no_progress,
                                        log=lambda m: print(f"realgap: {m}", file=sys.stderr),

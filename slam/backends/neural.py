@@ -62,11 +62,6 @@ class NeuralConfig:
     """Motion prior: standard deviation of the turn between two memory steps, degrees (0 = no prior): half a
     heading step of the shipped model, chosen on held-out rooms no training used (docs/neural.md)."""
 
-    headings: int = 0
-    """Headings the pose field searches, 360 / ``headings`` degrees apart (0 = the model's own: 12 for the shipped
-    planar_3d). No weight depends on it - the rotation bank is the pixels ground-projected into each turned grid -,
-    so a model trained with 12 can search 72 (5 deg); finer searches measured worse (docs/not_kept.md)."""
-
     score: str = "overlap"
     """How a pose is scored against the memory: ``overlap`` (the view's agreement with the memory averaged over the
     view cells that fall on observed memory cells; not in the thesis) or ``sum`` (the thesis' correlation summed
@@ -81,8 +76,6 @@ class NeuralConfig:
         if not (self.prior_move_m >= 0 and self.prior_turn_deg >= 0):
             raise ConfigError(f"neural.prior_move_m and neural.prior_turn_deg must be >= 0, got "
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
-        if int(self.headings) < 0 or int(self.headings) != self.headings:
-            raise ConfigError(f"neural.headings must be a whole number >= 0, got {self.headings}")
         from slam.neural import POSE_SCORES
         if self.score not in POSE_SCORES:
             raise ConfigError(f"neural.score must be one of {POSE_SCORES}, got {self.score!r}")
@@ -125,10 +118,6 @@ class NeuralBackend(RegistrationBackend):
         self.config.validate()
         model, tcfg, folder = self._load()
         w = tcfg.world
-        if int(self.config.headings) > 0:      # a finer (or coarser) rotation bank: the weights do not depend on it
-            import dataclasses
-            w = dataclasses.replace(w, rotations=int(self.config.headings))
-            model.set_headings(int(self.config.headings))
         T0 = reader.poses[indices[0]]
         if not np.all(np.isfinite(T0)):
             raise FormatError(reader.path, "the neural backend needs the first frame's pose (groundtruth.txt): it "

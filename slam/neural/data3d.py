@@ -29,7 +29,7 @@ import numpy as np
 from data_tools.errors import ConfigError, FormatError
 
 __all__ = ["World3DConfig", "default_worlds_dir", "view_geometry", "cache_name", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
-           "sequence_geometry", "ray_geometry", "default_ray_geometry"]
+           "sequence_geometry"]
 
 TEST_SEED0 = 100_000
 """First ``procedural_room`` seed of the test worlds (training uses seeds 0 .. rooms - 1)."""
@@ -72,7 +72,7 @@ class World3DConfig:
         return self
 
 
-def _block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
+def block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
     import cv2
     h0, w0 = depth.shape
     by, bx = h0 // H, w0 // W
@@ -97,7 +97,7 @@ def frame_arrays(rgb: np.ndarray | None, depth_m: np.ndarray, intr, R_c_L: np.nd
     """(image (4, H, W) float32 in [-1, 1], cells (r, H * W) int64: the pixels' cells in the egocentric grid
     turned by k / r of a turn, k = 0 .. r - 1) of one frame (see the module docstring)."""
     from slam.neural.geometry3d import downsample_intrinsics, egocentric_cells
-    col, d = _block_resize(rgb, depth_m, cfg.image_h, cfg.image_w)
+    col, d = block_resize(rgb, depth_m, cfg.image_h, cfg.image_w)
     small = downsample_intrinsics(intr, cfg.image_w, cfg.image_h)
     cells = egocentric_cells(d, small, R_c_L, cfg.cell_m, cfg.view, cfg.max_range_m, rotations=cfg.rotations)
     dch = np.where(d > 0, np.clip(d / cfg.max_range_m, 0, 1) * 2 - 1, -1.0)
@@ -121,35 +121,6 @@ def sequence_geometry(reader, cfg: World3DConfig):
     ok = np.all(np.isfinite(poses.reshape(len(poses), -1)), axis=1)
     T0 = poses[int(np.argmax(ok))] if ok.any() else None
     return (*view_geometry(reader.intrinsics, T0, cfg), T0)
-
-
-def ray_geometry(reader, cfg: World3DConfig, floor_z: float = 0.0) -> dict:
-    """The camera of a sequence as the ``rays`` decoder needs it (:class:`slam.neural.model.RayDecoder`):
-    {camera: (fx, fy, cx, cy) of the network's image, level_rotation: R_c_L row-major, camera_height_m: its
-    first pose's height above ``floor_z`` (world z up)}."""
-    from slam.neural.geometry3d import camera_height_m, downsample_intrinsics
-    R_c_L, _, T0 = sequence_geometry(reader, cfg)
-    if T0 is None:
-        raise FormatError(getattr(reader, "root", "sequence"), "no finite ground-truth pose: the camera's height and pitch are unknown")
-    small = downsample_intrinsics(reader.intrinsics, cfg.image_w, cfg.image_h)
-    return {"camera": (small.fx, small.fy, small.cx, small.cy), "level_rotation": tuple(float(v) for v in R_c_L.ravel()),
-            "camera_height_m": camera_height_m(T0, floor_z)}
-
-
-def default_ray_geometry(cfg: World3DConfig) -> dict:
-    """:func:`ray_geometry` of the training rooms' camera without reading them: kinect_v1 (640 x 480, f = 580 px,
-    principal point at the centre) 1 m above the floor, pitched 10 deg down (``synth sequence --trajectory
-    planar``'s defaults). Training replaces it by the first training room's own geometry."""
-    import math
-
-    from data_tools.camera import Intrinsics
-    from slam.neural.geometry3d import downsample_intrinsics
-    small = downsample_intrinsics(Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5), cfg.image_w, cfg.image_h)
-    p = math.radians(-10.0)
-    # level -> camera: the camera is turned about its x axis by the pitch (looking down for p < 0)
-    R_c_L = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(p), math.sin(p)], [0.0, -math.sin(p), math.cos(p)]])
-    return {"camera": (small.fx, small.fy, small.cx, small.cy), "level_rotation": tuple(float(v) for v in R_c_L.ravel()),
-            "camera_height_m": 1.0}
 
 
 def cache_name(cfg: World3DConfig) -> str:
@@ -243,7 +214,7 @@ class WorldBank:
 
     def exact(self, poses: np.ndarray) -> np.ndarray:
         """(T, 3) float64 allocentric (row, col in cells, heading in units of 2 pi / r) of (T, 4, 4) poses, not
-        rounded (the ``rays`` decoder recalls at them)."""
+        rounded (recall reads the memory at them, rounded)."""
         from slam.neural.geometry3d import planar_relative
         step = 2 * np.pi / self.cfg.rotations
         out = np.array([planar_relative(poses[0], P, self.cfg.cell_m) for P in poses], np.float64)

@@ -21,8 +21,7 @@
   fused at their true poses into a TSDF (``slam.tsdf``), ray cast at the later poses, resized to
   40 x 30, holes filled by OpenCV inpainting (Telea) -; the memory without the hallucination module;
   recall from a memory registered at the true poses (no localisation error); thesis Table 4.2's
-  *no localisation* and *no culling* (not for the ``rays`` decoder, whose culling is the view frustum
-  it samples) at inference, as in :mod:`slam.neural.evaluate` (the trained
+  *no localisation* and *no culling* at inference, as in :mod:`slam.neural.evaluate` (the trained
   model with the module switched off, not a model retrained without it).
 * **Top view** (when the model has a trained top-view decoder, :mod:`slam.neural.topview`): on the
   same samples, the decoded colour floor plan of the memory the model registered itself and of the
@@ -59,7 +58,7 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
     """The later views of a TSDF of the seen frames (true poses), 40 x 30, holes inpainted; as (4, H, W)."""
     import cv2
 
-    from slam.neural.data3d import _block_resize
+    from slam.neural.data3d import block_resize
     from slam.tsdf import TSDFConfig, TSDFVolume
     vol = TSDFVolume(TSDFConfig())
     intr = reader.intrinsics
@@ -72,7 +71,7 @@ def _tsdf_baseline(reader, idx_seen, idx_later, w) -> list[np.ndarray]:
         depth = np.asarray(r.depth, np.float32)
         rgb = np.asarray(r.color) if r.color is not None else np.zeros((*depth.shape, 3))
         rgb8 = np.clip(rgb * (255 if rgb.max() <= 1.0 else 1), 0, 255).astype(np.uint8)
-        col, d = _block_resize(rgb8, depth, w.image_h, w.image_w)
+        col, d = block_resize(rgb8, depth, w.image_h, w.image_w)
         hole = (d <= 0).astype(np.uint8)
         col8 = cv2.inpaint((col * 255).astype(np.uint8), hole, 3, cv2.INPAINT_TELEA).astype(np.float32) / 255
         dd = cv2.inpaint(np.clip(d / w.max_range_m * 255, 0, 255).astype(np.uint8), hole, 3,
@@ -160,7 +159,6 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     rows = {key: [] for key in ("anam", "anam_backend", "anam_true_poses", "hallu", "hallu_no_module",
                                 "tsdf_inpainting", "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
     full = torch.ones_like(vm)
-    rays = model.cfg.decoder == "rays"      # its culling is the view frustum itself: "no culling" does not apply
     from slam.neural.topview import load_topview, topview_targets
     topdec = load_topview(model_dir, model.cfg.features)
     top_rows = []
@@ -188,9 +186,8 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
             nol = model(obs, vm, allo[:, :1].expand_as(allo).contiguous(), cells=cells)   # no localisation
             rec_nl = model.recall(nol["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            if not rays:                                                                  # no culling
-                rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()
-                hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
+            rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()             # no culling
+            hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
             if topdec is not None:      # the colour floor plan: decoded vs the views' pixels binned per cell
                 tgt, seen = topview_targets(obs, cells, allo, model.cfg.rotations, model.cfg.view, tru["psi"].shape[-1])
                 m = seen[0, 0].numpy()
@@ -215,27 +212,25 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
             rows["anam_backend"].append(_metrics(rec_b[t], true[t], w.max_range_m))
             rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
             rows["anam_no_localisation"].append(_metrics(rec_nl[t], true[t], w.max_range_m))
-            if not rays:
-                rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
+            rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
         for t in range(T - k):
             rows["hallu"].append(_metrics(hal[t], true[k + t], w.max_range_m))
             rows["hallu_no_module"].append(_metrics(hal0[t], true[k + t], w.max_range_m))
             rows["tsdf_inpainting"].append(_metrics(base[t], true[k + t], w.max_range_m))
-            if not rays:
-                rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
+            rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
 
     def images(key):
         v = np.asarray(rows[key], float)
         return {"l1": float(np.nanmean(v[:, 0])), "ssim_thesis": float(np.nanmean(v[:, 1])),
                 "ssim_skimage": float(np.nanmean(v[:, 2])), "depth_l1_m": float(np.nanmean(v[:, 3]))}
-    res.update({"samples": samples, "steps": T, "observe": k, "decoder": model.cfg.decoder, "anamnesis": images("anam"),
+    res.update({"samples": samples, "steps": T, "observe": k, "anamnesis": images("anam"),
                 "anamnesis_backend_registration": images("anam_backend"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),
                 "ablation_no_hallucination_module": images("hallu_no_module"),
                 "baseline_tsdf_inpainting": images("tsdf_inpainting"),
                 "ablation_no_localisation_anamnesis": images("anam_no_localisation"),
-                "ablation_no_culling_anamnesis": None if rays else images("anam_no_culling"),
-                "ablation_no_culling_hallucination": None if rays else images("hallu_no_culling")})
+                "ablation_no_culling_anamnesis": images("anam_no_culling"),
+                "ablation_no_culling_hallucination": images("hallu_no_culling")})
     if top_rows:
         v = np.asarray(top_rows)
         res["topview"] = {"l1": float(v[:, 0].mean()), "l1_true_poses": float(v[:, 1].mean()),

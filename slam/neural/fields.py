@@ -1,13 +1,12 @@
 """Local pose fields of the neural memory (B, r, P, P): probability over r headings x P x P positions around an
-allocentric ``centre`` (B, 2) (field index (P // 2, P // 2) = the centre). Their peak, its sub-cell refinement and
-the inverse, the splat of a real pose (:attr:`slam.neural.model.MemoryConfig.subcell`). Poses are (row, col) in
-memory cells and the heading in steps of 2 pi / r."""
+allocentric ``centre`` (B, 2) (field index (P // 2, P // 2) = the centre). Their peak and its sub-cell refinement.
+Poses are (row, col) in memory cells and the heading in steps of 2 pi / r."""
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
 
-__all__ = ["peak_poses", "refine_pose", "refine_peak", "splat_field"]
+__all__ = ["peak_poses", "refine_pose", "refine_peak"]
 
 
 def _peak_index(field: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -49,29 +48,6 @@ def refine_pose(field: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
     R = P // 2
     return torch.stack([centre[:, 0].float() + i.float() + di - R, centre[:, 1].float() + j.float() + dj - R,
                         k.float() + dk], 1)
-
-
-def splat_field(poses: torch.Tensor, centre: torch.Tensor, P: int, r: int) -> torch.Tensor:
-    """(B, r, P, P) local pose fields centred on ``centre`` (B, 2) holding the trilinear splat of the real
-    allocentric ``poses`` (B, 3) (row, col, heading in steps of 2 pi / r): weights over the 2 x 2 neighbouring cells
-    and the 2 neighbouring headings (wrapping), summing to 1 (renormalised when part falls outside the window; all
-    zero when all does)."""
-    B = poses.shape[0]
-    R = P // 2
-    b = torch.arange(B, device=poses.device)
-    x = poses.float()
-    fi, fj, fk = x[:, 0] - centre[:, 0].float() + R, x[:, 1] - centre[:, 1].float() + R, x[:, 2]
-    i0, j0, k0 = fi.floor(), fj.floor(), fk.floor()
-    ai, aj, ak = fi - i0, fj - j0, fk - k0
-    out = torch.zeros(B, r, P, P, device=poses.device)
-    for di, wi in ((0, 1 - ai), (1, ai)):
-        for dj, wj in ((0, 1 - aj), (1, aj)):
-            ri, rj = (i0 + di).long(), (j0 + dj).long()
-            inside = ((ri >= 0) & (ri < P) & (rj >= 0) & (rj < P)).float()
-            for dk, wk in ((0, 1 - ak), (1, ak)):
-                out.index_put_((b, (k0.long() + dk) % r, ri.clamp(0, P - 1), rj.clamp(0, P - 1)),
-                               wi * wj * wk * inside, accumulate=True)
-    return out / out.flatten(1).sum(1).clamp(min=1e-12)[:, None, None, None]
 
 
 def refine_peak(field, centre, refine: bool = True) -> tuple[float, float, float, float]:

@@ -40,9 +40,6 @@ may also score a pose on the observed memory cells only (``forward(..., score="o
 first frame's).
 The shipped 3D model's recall decoder is refined after the memory's training, the memory frozen, on 48 rooms
 instead of 12 and with an SSIM term beside the thesis' L1 (:mod:`slam.neural.refine`).
-Optionally (2D, :attr:`MemoryConfig.equivariance`) the encoder is made exactly equivariant to quarter turns
-(averaged over C4, or its regular representation), so that a place seen from several headings is written with the
-same features - the thesis' encoder is a plain ResNet.
 
 3D (``input = "image"``, thesis 4.4.3): the encoder runs on the RGB-D image (4 x 30 x 40) and its
 per-pixel features are ground-projected (max-pool per cell, :func:`slam.neural.geometry3d.project_max`)
@@ -50,11 +47,7 @@ into the egocentric grid (15 cm cells; 33 x 33 in the 3D `cpu` preset, 49 x 49 i
 camera at the centre looking up the grid). The
 rotation bank of r = 12 headings (30 deg, the thesis' Doom turn) is made by projecting the pixels into
 each turned grid (points turned, then binned): exact, unlike resampling a grid - a deviation that also
-keeps the bank cheap. Recall (``decoder = "rays"``, ``neural train --decoder rays``): a
-:class:`RayDecoder` samples the memory along every pixel's ray at the exact requested pose (real row,
-column and heading: no rounding to the 15 cm / 30 deg grid) and a small per-pixel network turns the
-samples into the 4 x 30 x 40 RGB-D image - the geometric culling of thesis Fig. 4.5 done per ray.
-``decoder = "learned"`` (the default, and the shipped 3D weights): the memory window at the rounded pose is culled
+keeps the bank cheap. Recall: the memory window at the pose rounded to the grid is culled
 (turned by ``kornia.geometry.transform.rotate`` for headings that are not quarter turns) and an
 :class:`ImageDecoder` learns the back-projection. Poses are estimated on the 15 cm / 30 deg grid; the ``neural`` registration
 backend refines the field's maximum to sub-cell precision.
@@ -65,14 +58,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "RayDecoder", "Hallucinator",
-           "PatchDiscriminator", "rotation_bank", "rotate_grid", "turn_features", "memory_index", "peak_poses",
-           "init_weights", "correlate", "register", "refine_pose", "splat_field"]
+__all__ = ["NeuralMemory", "MemoryConfig", "Encoder", "Decoder", "ImageDecoder", "Hallucinator",
+           "PatchDiscriminator", "rotation_bank", "rotate_grid", "memory_index", "peak_poses",
+           "init_weights", "correlate", "register", "REMOVED_OPTIONS"]
 
 from dataclasses import dataclass
+from typing import Literal
 
+from data_tools.errors import ConfigError
 from slam.neural import POSE_SCORES
-from slam.neural.fields import peak_poses, refine_pose, splat_field
+from slam.neural.fields import peak_poses
 
 
 @dataclass
@@ -93,67 +88,41 @@ class MemoryConfig:
     """Headings r (quarter turns)."""
     search: int = 16
     """Localisation searches positions within +-search cells of the previous estimate."""
-    input: str = "grid"
+    input: Literal["grid", "image"] = "grid"
     """``grid``: observations are egocentric grids already (2D, B x T x C x q x q); ``image``: they are
     images (3D, B x T x C x H x W) whose per-pixel encoder features are ground-projected into the grid
     by the pixels' cell indices (:func:`slam.neural.geometry3d.project_max`)."""
     image_size: tuple = (0, 0)
     """3D: (H, W) of the decoded images, pixels (the decoder back-projects the culled window)."""
-    decoder: str = "learned"
-    """3D recall: ``learned`` (:class:`ImageDecoder`: the culled window at the pose rounded to the grid, a learned
-    top-view-to-image map) or ``rays`` (:class:`RayDecoder`: the memory sampled along every pixel's ray at the
-    exact pose, then a per-pixel network - a geometric back-projection)."""
-    camera: tuple = ()
-    """``rays``: (fx, fy, cx, cy) of the decoded H x W image, pixels."""
-    level_rotation: tuple = ()
-    """``rays``: R_c_L of the camera (9 numbers, row-major; :func:`slam.neural.geometry3d.level_rotation`): its
-    pitch and roll."""
-    camera_height_m: float = 0.0
-    """``rays``: height of the camera above the floor, metres."""
-    cell_m: float = 0.0
-    """``rays``: side of a memory cell, metres."""
-    max_range_m: float = 0.0
-    """``rays``: the last depth sampled along a ray, metres (the ground projection's range)."""
-    ray_samples: int = 12
-    """``rays``: depths sampled per ray, evenly spaced in (0, max_range_m]."""
-    correlation: str = "dot"
-    """Localisation score: ``dot`` (MapNet's plain cross-correlation of features and memory) or ``cosine``
-    (each cell's feature vector and memory vector unit-normalised first, the sum divided by the view's cell
-    count: a score in [-1, 1] whatever the scale of the LSTM's output, times a learned inverse temperature
-    starting at 20 - a deviation that lets localisation learn from the first memory steps)."""
-    equivariance: str = "none"
-    """2D (``grid`` input) only: make the encoder exactly equivariant to quarter turns, so that a place seen from
-    different headings gives the same registered features (up to the context the view mask leaves) and the memory
-    LSTM does not have to merge heading-dependent codes - a deviation from the thesis' (and MapNet's) plain ResNet,
-    at 4 x the encoder's cost. ``none``: the plain encoder. ``invariant``: averaged over the group C4,
-    E'(x) = 1/4 sum_k rot90^-k(E(rot90^k(x))), so E'(rot90(x)) = rot90(E'(x)): every channel is a
-    rotation-invariant field (it cannot tell a horizontal edge from a vertical one). ``regular``: the regular
-    representation of C4 - the ResNet gives n / 4 channels and E'(x) stacks the 4 groups rot90^-k(E(rot90^k(x))),
-    k = 0..3, so E'(rot90^j(x)) = rot90^j(roll(E'(x), -j groups)) (:func:`turn_features`): orientation is kept in
-    which group responds. The rotation bank and the culling turn features by that same action; ``features`` must
-    be a multiple of 4."""
-    subcell: bool = False
-    """3D: register views below the grid's resolution - a pose field is turned into the trilinear splat of one
-    real pose (row, col, heading) over its 2 x 2 x 2 neighbouring cells and headings, so a move or turn smaller than
-    a cell or a heading step is written where it happened instead of rounded away. Training (``teacher`` poses real)
-    registers at the exact poses and L_loc's target is the splat of the exact pose; inference registers at the
-    field's peak refined by its 3 x 3 centroid and the neighbouring headings (:func:`refine_pose`), and the motion
-    prior is centred there. A deviation from the thesis (MapNet registers with the soft field on the grid): a view
-    moved 0.1 m and turned 15 deg from the last lies in the same 15 cm / 30 deg bin, so a memory registered on the
-    grid learns "no move" and never turns (docs/neural.md)."""
-    colour_skip: bool = False
-    """The last ``channels`` of the ``features`` are the observation itself (RGB(-D) in [-1, 1], ground-projected
-    like the rest). A deviation: the thesis' encoder (N(0, 0.02) weights, instance norm in every residual branch)
-    keeps no absolute colour - a linear probe finds no chroma in its features, recalled floor plans come back grey
-    (docs/not_kept.md). False: the thesis' encoder (the shipped models)."""
-    decoder_skip: bool = False
-    """2D: a 1 x 1 convolution of the culled window added before the decoder's tanh, beside its ResNet (a linear
-    path no instance norm rescales). A deviation from the thesis' decoder; False: the shipped models."""
-    occupancy: str = "sigmoid"
+    occupancy: Literal["sigmoid", "affine"] = "sigmoid"
     """How the occupancy LSTM's hidden state h in (-1, 1) becomes the mask b: ``sigmoid`` (b = sigmoid(h), in
     (0.27, 0.73): models trained with ``occ_weight`` 0, whose occupancy LSTM gets no gradient) or ``affine``
     (b = (h + 1) / 2, in (0, 1): trained to the observed cells ``seen`` by L_occ,
     :attr:`slam.neural.train.NeuralTrainConfig.occ_weight`)."""
+
+    def validate(self) -> "MemoryConfig":
+        """Raises ConfigError naming the first field out of range (the model's sizes and choices, checked once)."""
+        if self.input not in ("grid", "image"):
+            raise ConfigError(f"input must be grid or image, got {self.input!r}")
+        if self.occupancy not in ("sigmoid", "affine"):
+            raise ConfigError(f"occupancy must be sigmoid or affine, got {self.occupancy!r}")
+        for k in ("channels", "features", "view", "memory", "width", "rotations", "search"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
+        if self.view % 2 == 0 or self.memory % 2 == 0:
+            raise ConfigError(f"view and memory must be odd, got {self.view}, {self.memory}")
+        if self.input == "image" and (len(self.image_size) != 2 or min(self.image_size) < 1):
+            raise ConfigError(f"an image-input memory needs image_size (H, W), got {self.image_size}")
+        return self
+
+
+REMOVED_OPTIONS = {"decoder": "learned", "correlation": "dot", "equivariance": "none", "subcell": False,
+                   "colour_skip": False, "decoder_skip": False}
+"""Options of earlier code that no shipped model used, with the one value the code implements now
+(docs/neural_not_kept.md): a saved model that records them with that value loads, any other value is refused. The
+``rays`` decoder's camera fields (camera, level_rotation, camera_height_m, cell_m, max_range_m, ray_samples) only
+mattered with ``decoder = "rays"`` and are dropped."""
+RAY_FIELDS = ("camera", "level_rotation", "camera_height_m", "cell_m", "max_range_m", "ray_samples")
 
 
 class ResBlock(nn.Module):
@@ -167,28 +136,16 @@ class ResBlock(nn.Module):
 
 
 class Encoder(nn.Module):
-    """x (B, C, q, q) in [-1, 1] (3D: (B, C, H, W)) -> o (B, n, q, q); made equivariant to quarter turns by
-    :attr:`MemoryConfig.equivariance` (square inputs only); :attr:`MemoryConfig.colour_skip`: o[:, -C:] = x."""
+    """x (B, C, q, q) in [-1, 1] (3D: (B, C, H, W)) -> o (B, n, q, q) (3D: (B, n, H, W))."""
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
         w = cfg.width
-        self.equivariance = cfg.equivariance
-        self.colour_skip = bool(cfg.colour_skip)
-        n = cfg.features - (cfg.channels if self.colour_skip else 0)
-        out = n // 4 if cfg.equivariance == "regular" else n
         self.net = nn.Sequential(nn.Conv2d(cfg.channels, w, 3, padding=1), nn.LeakyReLU(0.2),
-                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, out, 1))
+                                 *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.features, 1))
 
     def forward(self, x):
-        if self.equivariance == "none":
-            f = self.net(x)
-        else:
-            B = x.shape[0]
-            f = self.net(torch.cat([torch.rot90(x, k, (-2, -1)) for k in range(4)], 0))
-            turned = [torch.rot90(f[k * B:(k + 1) * B], -k, (-2, -1)) for k in range(4)]
-            f = sum(turned) / 4.0 if self.equivariance == "invariant" else torch.cat(turned, 1)
-        return torch.cat([f, x], 1) if self.colour_skip else f
+        return self.net(x)
 
 
 class Decoder(nn.Module):
@@ -199,10 +156,9 @@ class Decoder(nn.Module):
         w = cfg.width
         self.net = nn.Sequential(nn.Conv2d(cfg.features + 1, w, 3, padding=1), nn.LeakyReLU(0.2),
                                  *[ResBlock(w) for _ in range(4)], nn.Conv2d(w, cfg.channels, 3, padding=1), nn.Tanh())
-        self.skip = nn.Conv2d(cfg.features + 1, cfg.channels, 1) if cfg.decoder_skip else None
 
-    def forward(self, x):     # decoder_skip: a 1 x 1 convolution of the window added before the tanh
-        return self.net(x) if self.skip is None else torch.tanh(self.net[:-1](x) + self.skip(x))
+    def forward(self, x):
+        return self.net(x)
 
 
 class ImageDecoder(nn.Module):
@@ -229,65 +185,6 @@ class ImageDecoder(nn.Module):
         B = x.shape[0]
         y = F.leaky_relu(self.fc(self.top(x).flatten(1)), 0.2).view(B, self.w, *self.coarse)
         return self.img(F.interpolate(y, size=self.size, mode="bilinear", align_corners=False))
-
-
-class RayDecoder(nn.Module):
-    """3D recall by geometric back-projection: for every pixel of the H x W image the memory is sampled
-    (bilinear, ``grid_sample``) at ``ray_samples`` points of the pixel's ray (camera depths evenly spaced up to
-    ``max_range_m``), placed by the *exact* requested pose (row, col in cells, heading in units of 2 pi / r,
-    all real: no rounding to the grid); the n x D samples of a pixel, plus where each sample lies under the
-    floor and the depth at which the ray meets the floor (known: camera height and pitch), go through a
-    1 x 1 convolution (a per-pixel network along the ray) and a ResNet to RGB-D. This is the thesis' culling
-    (rotation, translation, clipping to the view frustum) done per ray instead of on a top-view window -
-    a deviation: the memory is 2.5D (cells on the floor plan), so the decoder still has to learn which
-    sample along a ray is the first surface (the encoder max-pools a cell's column)."""
-
-    def __init__(self, cfg: "MemoryConfig"):
-        super().__init__()
-        if len(cfg.camera) != 4 or len(cfg.level_rotation) != 9 or cfg.cell_m <= 0 or cfg.max_range_m <= 0:
-            raise ValueError("a ray decoder needs camera (fx, fy, cx, cy), level_rotation (9), cell_m and max_range_m")
-        H, W = cfg.image_size
-        D, n, w = cfg.ray_samples, cfg.features, cfg.width
-        fx, fy, cx, cy = (float(v) for v in cfg.camera)
-        R = torch.tensor([float(v) for v in cfg.level_rotation], dtype=torch.float64).view(3, 3)
-        v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
-        d_c = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], -1).reshape(-1, 3)
-        d_L = d_c @ R                                  # level-frame directions per unit camera depth (x, down, fwd)
-        z = cfg.max_range_m * torch.arange(1, D + 1, dtype=torch.float64) / D
-        pts = z[:, None, None] * d_L[None]             # (D, H*W, 3) metres
-        self.register_buffer("fwd", (pts[..., 2] / cfg.cell_m).float(), persistent=False)      # (D, H*W) cells
-        self.register_buffer("right", (pts[..., 0] / cfg.cell_m).float(), persistent=False)
-        under = (pts[..., 1] > cfg.camera_height_m).float().view(D, H, W) * 2 - 1
-        down = d_L[:, 1]
-        zf = torch.where(down > 1e-6, cfg.camera_height_m / down.clamp(min=1e-6), torch.full_like(down, 1e9))
-        floor = (zf / cfg.max_range_m).clamp(0, 1).view(1, H, W) * 2 - 1
-        self.register_buffer("prior", torch.cat([under, floor], 0).float(), persistent=False)   # (D + 1, H, W)
-        self.size, self.D, self.n = (H, W), D, n
-        self.rotations = cfg.rotations
-        self.net = nn.Sequential(nn.Conv2d(n * D + D + 1, w, 1), nn.LeakyReLU(0.2), nn.Conv2d(w, w, 3, padding=1),
-                                 nn.LeakyReLU(0.2), ResBlock(w), ResBlock(w), nn.Conv2d(w, cfg.channels, 3, padding=1),
-                                 nn.Tanh())
-
-    def ray_cells(self, poses: torch.Tensor, U: int) -> torch.Tensor:
-        """(N, D, H*W, 2) memory (row, col) of every ray sample, cells (real), for (N, 3) poses (row, col, heading
-        in units of 2 pi / r) in a U x U memory."""
-        p = poses.to(self.fwd.dtype)
-        a = p[:, 2] * (2 * torch.pi / self.rotations)
-        ca, sa = torch.cos(a)[:, None, None], torch.sin(a)[:, None, None]
-        x = self.right[None] * ca - self.fwd[None] * sa
-        f = self.right[None] * sa + self.fwd[None] * ca
-        c = U // 2
-        return torch.stack([c + p[:, 0, None, None] - f, c + p[:, 1, None, None] + x], -1)
-
-    def forward(self, psi: torch.Tensor, poses: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-        """(N, C, H, W) images of the memories ``psi[index]`` (B, n, U, U) at ``poses`` (N, 3)."""
-        U = psi.shape[-1]
-        rc = self.ray_cells(poses, U)
-        grid = torch.stack([rc[..., 1], rc[..., 0]], -1) * (2.0 / (U - 1)) - 1.0      # x = col, y = row
-        smp = F.grid_sample(psi[index], grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-        N = poses.shape[0]
-        x = torch.cat([smp.reshape(N, self.n * self.D, *self.size), self.prior.expand(N, -1, -1, -1)], 1)
-        return self.net(x)
 
 
 class SelfAttention(nn.Module):
@@ -366,26 +263,16 @@ def rotate_grid(x: torch.Tensor, k: int, r: int) -> torch.Tensor:
     return rotate(x, ang, mode="bilinear", padding_mode="zeros", align_corners=True)
 
 
-def turn_features(x: torch.Tensor, k: int, r: int, regular: bool = False) -> torch.Tensor:
-    """Feature grids (B, n, q, q) turned by k / r of a full turn (:func:`rotate_grid`); ``regular``: features of the
-    regular representation of C4 (:attr:`MemoryConfig.equivariance`, r = 4) - turned and their 4 channel groups rolled
-    by -k, the action under which the encoder is equivariant."""
-    if regular:
-        B, n = x.shape[:2]
-        x = torch.roll(x.reshape(B, 4, n // 4, *x.shape[2:]), -k, 1).reshape(x.shape)
-    return rotate_grid(x, k, r)
-
-
 def memory_index(psi: torch.Tensor, n: int) -> torch.Tensor:
     """(B * n,) memory index of n consecutive poses per memory (0 x n, 1 x n, ...): the ``index`` of
     :meth:`NeuralMemory.cull` / :meth:`NeuralMemory.recall` when every memory is read at n poses."""
     return torch.arange(psi.shape[0], device=psi.device).repeat_interleave(n)
 
 
-def rotation_bank(o: torch.Tensor, r: int = 4, regular: bool = False) -> torch.Tensor:
+def rotation_bank(o: torch.Tensor, r: int = 4) -> torch.Tensor:
     """(B, n, q, q) -> (B, r, n, q, q): o turned counter-clockwise by k / r of a full turn, k = 0..r-1
-    (quarter turns exact; see :func:`rotate_grid`; ``regular``: :func:`turn_features`)."""
-    return torch.stack([turn_features(o, k, r, regular) for k in range(r)], 1)
+    (quarter turns exact; see :func:`rotate_grid`)."""
+    return torch.stack([rotate_grid(o, k, r) for k in range(r)], 1)
 
 
 def correlate(window: torch.Tensor, bank: torch.Tensor) -> torch.Tensor:
@@ -412,22 +299,10 @@ class NeuralMemory(nn.Module):
 
     def __init__(self, cfg: MemoryConfig):
         super().__init__()
-        self.cfg = cfg
-        if cfg.equivariance not in ("none", "invariant", "regular"):
-            raise ValueError(f"equivariance must be none, invariant or regular, got {cfg.equivariance!r}")
-        if cfg.equivariance != "none" and (cfg.input != "grid" or cfg.rotations != 4):
-            raise ValueError("an equivariant encoder needs square grid inputs and 4 headings (2D)")
-        if cfg.equivariance == "regular" and cfg.features % 4:
-            raise ValueError(f"equivariance regular needs features divisible by 4, got {cfg.features}")
-        if cfg.occupancy not in ("sigmoid", "affine"):
-            raise ValueError(f"occupancy must be sigmoid or affine, got {cfg.occupancy!r}")
-        if cfg.decoder_skip and cfg.input != "grid":
-            raise ValueError("decoder_skip is for the 2D (grid input) decoder")
-        if cfg.colour_skip and (cfg.features <= cfg.channels or cfg.equivariance == "regular"):
-            raise ValueError(f"colour_skip needs features > {cfg.channels} channels and no regular equivariance")
+        self.cfg = cfg.validate()
         self.encoder = Encoder(cfg)
         if cfg.input == "image":
-            self.decoder = RayDecoder(cfg) if cfg.decoder == "rays" else ImageDecoder(cfg)
+            self.decoder = ImageDecoder(cfg)
         else:
             self.decoder = Decoder(cfg)
         self.lstm = nn.LSTMCell(cfg.features, cfg.features)
@@ -435,20 +310,6 @@ class NeuralMemory(nn.Module):
         self.hallucinator = Hallucinator(cfg)
         self.log_beta = nn.Parameter(torch.tensor(0.0))
         init_weights(self)
-
-    def set_headings(self, r: int) -> "NeuralMemory":
-        """Search (and recall at) ``r`` headings, 2 pi / r apart, instead of the trained ``cfg.rotations`` (3D image
-        input only): no weight depends on r - the rotation bank is the pixels projected into each turned grid, given
-        as ``cells`` (B, T, r, H * W) for the new r. Poses are then in units of 2 pi / r. Returns the model."""
-        import dataclasses
-        if self.cfg.input != "image":
-            raise ValueError("only a 3D (image input) memory can change its headings: a 2D one turns by quarter turns")
-        if int(r) < 1:
-            raise ValueError(f"headings must be >= 1, got {r}")
-        self.cfg = dataclasses.replace(self.cfg, rotations=int(r))
-        if isinstance(self.decoder, RayDecoder):
-            self.decoder.rotations = int(r)
-        return self
 
     def one_hot(self, poses: torch.Tensor) -> torch.Tensor:
         """(B, 3) allocentric poses (row offset, col offset, heading) -> (B, r, U, U) one-hot fields."""
@@ -489,8 +350,8 @@ class NeuralMemory(nn.Module):
 
         obs (B, T, C, q, q) in [-1, 1] (3D: images (B, T, C, H, W) with ``cells`` (B, T, H * W), see
         :meth:`encode`); view_mask (q, q) float (1 = seen); teacher (B, T, 3): register at these
-        allocentric poses instead of the predicted field (training warm-up), or None - integers (a one-hot
-        field) or reals (:func:`splat_field`: below the grid, :attr:`MemoryConfig.subcell`); ``memory``: side
+        allocentric poses instead of the predicted field (training warm-up; integers: a one-hot field), or None;
+        ``memory``: side
         U of the memory for this call (default the configuration's; the model is the same for any U);
         ``motion_prior`` = (sigma_cells, sigma_headings): add the log of a Gaussian on the move from the previous
         estimate (cells, heading steps) to the localisation logits before the softmax - the field (and the
@@ -519,6 +380,8 @@ class NeuralMemory(nn.Module):
         Wc = Wp + 2 * h2               # memory cells per axis touched by the window
         if Wc > U:
             raise ValueError(f"search window {Wc} cells is larger than the memory {U}")
+        if teacher is not None and teacher.is_floating_point():
+            raise ValueError("teacher poses must be integers (allocentric cells and heading indices)")
         if score not in POSE_SCORES:
             raise ValueError(f"score must be one of {POSE_SCORES}, got {score!r}")
         Up = U
@@ -542,17 +405,15 @@ class NeuralMemory(nn.Module):
         bi = torch.arange(B, device=obs.device)[:, None, None]
         off = torch.arange(Wc, device=obs.device)
         logits, fields, centres, ests = [], [], [], []
-        cont = est.float()             # the real pose the motion prior is centred on (subcell: the refined peak)
         for t in range(T):
             if image:
                 bank = self._image_bank(f_img[:, t], cells[:, t]) * mbank         # (B, r, n, q, q)
             else:
-                bank = rotation_bank(feats[:, t] * m, r, cfg.equivariance == "regular")  # (B, r, n, q, q)
+                bank = rotation_bank(feats[:, t] * m, r)                          # (B, r, n, q, q)
             if teacher is None or t == 0:
                 want = est[:, :2].clone()
             else:
-                want = teacher[:, t - 1, :2]
-                want = torch.round(want).long() if want.is_floating_point() else want.clone()
+                want = teacher[:, t - 1, :2].clone()
             # the window starts R + q//2 cells before the wanted centre, moved inside the memory at its borders;
             # ``centre`` is the allocentric position of the window's middle (field index R, R)
             start = (want + U // 2 - R - h2).clamp(0, U - Wc)
@@ -560,7 +421,7 @@ class NeuralMemory(nn.Module):
             ri = start[:, 0][:, None, None] + off[None, :, None]                # (B, Wc, 1)
             ci = start[:, 1][:, None, None] + off[None, None, :]                # (B, 1, Wc)
             if t == 0:       # the first view: at the origin, unrotated
-                field = self._local_one_hot(torch.zeros(B, 3, dtype=torch.long, device=obs.device), centre, Wp)
+                field = self.local_one_hot(torch.zeros(B, 3, dtype=torch.long, device=obs.device), centre, Wp)
                 lg = obs.new_zeros(B, r, Wp, Wp)
             else:
                 hw = h.view(B, Up, Up, n)[bi, ri, ci].permute(0, 3, 1, 2)       # (B, n, Wc, Wc): the window
@@ -569,27 +430,20 @@ class NeuralMemory(nn.Module):
                     lg = self._overlap_score(hw, sw, bank, mbank, m)
                 else:
                     lg = self._score(hw, bank, m)
-                post = lg if motion_prior is None else lg + self._log_motion_prior(cont, centre, Wp, motion_prior)
+                post = lg
+                if motion_prior is not None:       # centred on the previous step's estimate
+                    post = lg + self._log_motion_prior(est.float(), centre, Wp, motion_prior)
                 field = torch.softmax(post.flatten(1), 1).view_as(lg)
-                if teacher is not None and teacher.is_floating_point():
-                    field = splat_field(teacher[:, t], centre, Wp, r)
-                elif teacher is not None:
-                    field = self._local_one_hot(teacher[:, t], centre, Wp)
-            subcell = cfg.subcell and teacher is None and t > 0
-            rfield = field          # the field the view is registered with
-            if subcell:             # at the refined peak, below the grid
-                cont = refine_pose(field.detach(), centre)
-                rfield = splat_field(cont, centre, Wp, r)
-            reg = register(rfield, bank)                                        # (B, n, Wc, Wc)
-            regm = register(rfield, mbank).clamp(0, 1)
+                if teacher is not None:
+                    field = self.local_one_hot(teacher[:, t], centre, Wp)
+            reg = register(field, bank)                                         # (B, n, Wc, Wc)
+            regm = register(field, mbank).clamp(0, 1)
             x = obs.new_zeros(B, Up, Up, n).index_put((bi, ri, ci), reg.permute(0, 2, 3, 1))
             xm = obs.new_zeros(B, Up, Up, 1).index_put((bi, ri, ci), regm.permute(0, 2, 3, 1))
             h, c = self.lstm(x.view(-1, n), (h, c))                             # every cell, shared weights
             oh, oc = self.occ_lstm(xm.detach().view(-1, 1), (oh, oc))    # the mask's loss stays in its LSTM
             seen = torch.maximum(seen, (xm.view(-1, 1) > 0.5).to(seen.dtype))
             est = peak_poses(field, centre).detach()
-            if not subcell:
-                cont = est.float()
             logits.append(lg)
             fields.append(field)
             centres.append(centre)
@@ -605,10 +459,6 @@ class NeuralMemory(nn.Module):
     def _score(self, window: torch.Tensor, bank: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         """Localisation logits (B, r, P, P) of a memory window (B, n, W, W) and a rotation bank (B, r, n, q, q)."""
         n, q = self.cfg.features, self.cfg.view
-        if self.cfg.correlation == "cosine":
-            w = F.normalize(window, dim=1, eps=1e-6)
-            b = F.normalize(bank, dim=2, eps=1e-6)
-            return correlate(w, b) * (20.0 * torch.exp(self.log_beta) / m[0].sum().clamp(min=1))
         return correlate(window, bank) * torch.exp(self.log_beta) / (n * q) ** 0.5
 
     def _overlap_score(self, window: torch.Tensor, seen: torch.Tensor, bank: torch.Tensor, mbank: torch.Tensor,
@@ -645,7 +495,7 @@ class NeuralMemory(nn.Module):
         lp = -(dr[:, :, None] ** 2 + dc[:, None, :] ** 2) / (2 * sc * sc)         # (B, Wp, Wp)
         return lp[:, None] - (dk ** 2 / (2 * sk * sk))[:, :, None, None]
 
-    def _local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
+    def local_one_hot(self, poses: torch.Tensor, centre: torch.Tensor, Wp: int) -> torch.Tensor:
         """(B, r, Wp, Wp) one-hot of allocentric ``poses`` in windows centred on ``centre`` (all zero when
         the pose is outside its window)."""
         B = poses.shape[0]
@@ -678,19 +528,14 @@ class NeuralMemory(nn.Module):
         out = torch.empty_like(w)
         for k in torch.unique(ks).tolist():
             sel = torch.nonzero(ks == k).flatten()
-            out[sel] = turn_features(w[sel], -int(k), r, self.cfg.equivariance == "regular")
+            out[sel] = rotate_grid(w[sel], -int(k), r)
         m = view_mask.to(psi.dtype)[None, None]
         return torch.cat([out * m - (1 - m), m.expand(N, 1, q, q)], 1)
 
     def recall(self, psi: torch.Tensor, poses: torch.Tensor, view_mask: torch.Tensor,
                index: torch.Tensor | None = None) -> torch.Tensor:
         """(N, C, q, q) decoded views (3D: (N, C, H, W) images) of the memories at the allocentric ``poses`` (N, 3):
-        (row, col, heading index), integers or - 3D - reals (exact poses; the ``learned`` decoder rounds them,
-        the ``rays`` decoder samples at them; the ``rays`` decoder's culling is its view frustum, ``view_mask``
-        is not used)."""
-        if isinstance(self.decoder, RayDecoder):
-            idx = torch.arange(poses.shape[0], device=psi.device) if index is None else index.to(psi.device)
-            return self.decoder(psi, poses, idx)
+        (row, col, heading index), integers or - 3D - reals (exact poses, rounded to the grid by :meth:`cull`)."""
         return self.decoder(self.cull(psi, poses, view_mask, index))
 
     def hallucinate(self, psi: torch.Tensor, occ: torch.Tensor) -> torch.Tensor:

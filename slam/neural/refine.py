@@ -34,7 +34,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -158,7 +157,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     import torch
     from kornia.losses import ssim_loss
 
-    from slam.neural.train import lr_factor, set_lr
+    from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
     rcfg.validate()
     torch.manual_seed(rcfg.seed)
     for p in model.parameters():
@@ -168,16 +167,11 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
         p.requires_grad_(True)
     opt = torch.optim.Adam(dec.parameters(), lr=rcfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(rcfg.seed + 1)
-    start, hist = 0, []
-    ck = Path(checkpoint) if checkpoint else None
-    parts = {"decoder": dec, "opt": opt}
-    if ck is not None and ck.is_file():
-        from slam.neural.checkpoint import load_training_state
-        start, hist = load_training_state(ck, parts, rng, "refinement checkpoint")
-        if on_checkpoint is not None:
-            on_checkpoint(start)
-        if log is not None:
-            log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {ck}")
+    state = TrainingState(checkpoint, {"decoder": dec, "opt": opt}, rng, "refinement checkpoint",
+                          on_save=on_checkpoint)
+    start, hist = state.resume() or (0, [])
+    if start and log is not None:
+        log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {checkpoint}")
     t0 = time.perf_counter()
     model.eval()
     pool = build_pool(model, bank, rcfg.pool_batches, POOL_BATCH, steps_per_sample, observe, rcfg.seed,
@@ -186,24 +180,8 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     dev = next(model.parameters()).device
     vm = torch.from_numpy(bank.wedge.astype(np.float32)).to(dev)
     img_mask = 1.0 if model.cfg.input == "image" else vm      # as the memory's training: 2D on the view field only
-    # the lr schedule of the memory training: constant, then linear to a tenth over the last 40 %
-    sched = SimpleNamespace(lr_decay_from=int(0.6 * rcfg.steps), iterations=rcfg.steps, lr_final=0.1)
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=rcfg.steps, initial=start, desc="refining the recall decoder", unit="step")
-    acc: list[tuple[float, float]] = []
 
-    def save(step: int) -> None:
-        if ck is not None:
-            from slam.neural.checkpoint import save_training_state
-            save_training_state(ck, parts, rng, step, hist)
-            if on_checkpoint is not None:
-                on_checkpoint(step)
-
-    dec.train()
-    for step in range(start, rcfg.steps):
-        set_lr((opt,), rcfg.lr * lr_factor(sched, step))
+    def step_fn(step: int) -> dict:
         mem, poses, y = (x.to(dev) for x in _pairs(pool, rng, rcfg.batch))      # the pool stays in host memory
         pred = model.recall(mem, poses, vm)
         l1 = ((pred - y).abs() * img_mask).mean()
@@ -218,19 +196,15 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        acc.append((float(l1.detach()), float(s.detach())))
-        if (step + 1) % 50 == 0 or step + 1 == rcfg.steps:
-            a = np.mean(acc, 0)
-            hist.append({"step": step + 1, "l1": round(float(a[0]), 5), "ssim_loss": round(float(a[1]), 5)})
-            acc = []
-            if bar is not None:
-                bar.set_postfix_str(f"L1 {a[0]:.3f} ssim loss {a[1]:.3f}")
-        if (step + 1) % rcfg.checkpoint_every == 0 and step + 1 < rcfg.steps:
-            save(step + 1)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+        return {"l1": float(l1.detach()), "ssim_loss": float(s.detach())}
+
+    dec.train()
+    # the lr schedule of the memory training: constant, then linear to a tenth over the last 40 %
+    run_steps(step_fn, rcfg.steps, start=start, history=hist, state=state, checkpoint_every=rcfg.checkpoint_every,
+              save_last=False, lr=lambda step: set_lr((opt,), rcfg.lr * linear_ramp(step, int(0.6 * rcfg.steps),
+                                                                                     rcfg.steps, 0.1)),
+              progress=progress, desc="refining the recall decoder",
+              postfix=lambda r: f"L1 {r['l1']:.3f} ssim loss {r['ssim_loss']:.3f}")
     dec.eval()
     for p in model.parameters():
         p.requires_grad_(True)

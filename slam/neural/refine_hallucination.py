@@ -17,7 +17,7 @@ change:
    trained alone to the observed cells ``seen`` (L_occ, BCE - the deviation documented in
    :mod:`slam.neural.model`), Adam at :data:`slam.neural.train.OCC_LR`, memories registered at the true poses.
 2. **hallucination** (``steps``): the module and a new patch discriminator, both re-initialised N(0, 0.02), trained
-   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train._hallucination_step`, the same step
+   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train.hallucination_step`, the same step
    as the memory training's last phase), Adam (beta1 0.5) at ``lr`` falling linearly to a tenth over the stage -
    as the hallucination phase of the 3D ``cpu-long`` recipe, which lies wholly inside its learning-rate decay.
 
@@ -27,10 +27,8 @@ The top-view decoder (:mod:`slam.neural.topview`) reads the occupancy, so a 3D m
 """
 from __future__ import annotations
 
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
@@ -74,7 +72,8 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     import torch.nn.functional as F
 
     from slam.neural.model import PatchDiscriminator, init_weights
-    from slam.neural.train import OCC_LR, LossMeans, _hallucination_step, bank_batch, lr_factor, set_lr
+    from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
+    from slam.neural.train import OCC_LR, hallucination_step, bank_batch
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -94,34 +93,18 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     img_mask = 1.0 if model.cfg.input == "image" else vm        # 3D recalls whole images, 2D the view field
     parts = {"occ_lstm": model.occ_lstm, "hallucinator": model.hallucinator, "disc": disc, "opt_occ": opt_occ,
              "opt_h": opt_h, "opt_d": opt_d}
-    start, hist = 0, []
-    ck = Path(checkpoint) if checkpoint else None
-    if ck is not None and ck.is_file():
-        from slam.neural.checkpoint import load_training_state
-        start, hist = load_training_state(ck, parts, rng, "hallucination checkpoint", map_location=dev)
-        if on_checkpoint is not None:
-            on_checkpoint(start)
-        if log is not None:
-            log(f"resuming the hallucination training at step {start} of {hcfg.occ_steps + hcfg.steps} from {ck}")
-
-    def save(step: int) -> None:
-        if ck is not None:
-            from slam.neural.checkpoint import save_training_state
-            save_training_state(ck, parts, rng, step, hist)
-            if on_checkpoint is not None:
-                on_checkpoint(step)
-
     total = hcfg.occ_steps + hcfg.steps
-    sched = SimpleNamespace(lr_decay_from=1, iterations=hcfg.steps, lr_final=0.1)      # linear from stage 2's start
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=total, initial=start, desc="training occupancy + hallucination", unit="step")
-    means = LossMeans()
-    t0 = time.perf_counter()
-    for step in range(start, total):
+    state = TrainingState(checkpoint, parts, rng, "hallucination checkpoint", map_location=dev, on_save=on_checkpoint)
+    start, hist = state.resume() or (0, [])
+    if start and log is not None:
+        log(f"resuming the hallucination training at step {start} of {total} from {checkpoint}")
+
+    def lr(step: int) -> None:                  # stage 2: linear to a tenth from its start
+        if step >= hcfg.occ_steps:
+            set_lr((opt_h, opt_d), hcfg.lr * linear_ramp(step - hcfg.occ_steps, 1, hcfg.steps, 0.1))
+
+    def step_fn(step: int) -> dict:
         obs, cells, allo, exact = bank_batch(bank, rng, cfg.batch, cfg.steps, dev)
-        losses = {}
         if step < hcfg.occ_steps:
             model.eval()
             out = model(obs, vm, allo, cells=cells)
@@ -129,29 +112,21 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             opt_occ.zero_grad(set_to_none=True)
             l_occ.backward()
             opt_occ.step()
-            losses["occ"] = float(l_occ.detach())
-        else:
-            set_lr((opt_h, opt_d), hcfg.lr * lr_factor(sched, step - hcfg.occ_steps))
-            model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
-            losses = _hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
-            model.eval()
-        means.add(losses)
-        if (step + 1) % 25 == 0 or step + 1 in (hcfg.occ_steps, total):
-            rec = means.record(step + 1)
-            hist.append(rec)
-            if bar is not None:
-                bar.set_postfix_str(" ".join(f"{k} {v:.4f}" for k, v in rec.items() if k != "step"))
-        if (step + 1) % hcfg.checkpoint_every == 0 and step + 1 < total:
-            save(step + 1)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    save(total)          # a re-run after an interruption in a later phase (the top-view decoder) skips this one
+            return {"occ": float(l_occ.detach())}
+        model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
+        losses = hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
+        model.eval()
+        return losses
+
+    # save_last: a re-run after an interruption in a later phase (the top-view decoder) skips this one
+    seconds = run_steps(step_fn, total, start=start, history=hist, log_every=25, log_also=(hcfg.occ_steps,),
+                        state=state, checkpoint_every=hcfg.checkpoint_every, lr=lr, progress=progress,
+                        desc="training occupancy + hallucination",
+                        postfix=lambda r: " ".join(f"{k} {v:.4f}" for k, v in r.items() if k != "step"))
     model.eval()
     for p in model.parameters():
         p.requires_grad_(True)
     occ_log = [h for h in hist if "occ" in h]
     hal_log = [h for h in hist if "hallu" in h]
     return {"config": asdict(hcfg), "occ_log": occ_log[-4:], "log": hal_log[-8:],
-            "seconds": round(time.perf_counter() - t0, 1), "resumed_from_step": start}
+            "seconds": round(seconds, 1), "resumed_from_step": start}

@@ -230,11 +230,29 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
         res = evaluate_2d(model, cfg, sequences, progress=progress, examples=examples)
     res = {"mode": cfg.mode, **res}
     if folder is not None:
-        from data_tools.results import atomic_write_json
+        from data_tools.results import make_header, write_result
         from slam.neural.figures import write_figures
         res["figures"] = write_figures(folder, res, examples)
-        atomic_write_json(Path(folder) / "neural_eval.json", {"model": str(Path(model_dir).resolve()), **res})
+        header = make_header("neural.eval", inputs={"model": Path(model_dir) / "neural.json"},
+                             parameters={"mode": cfg.mode, "sequences": sequences}, metrics=eval_metrics(res))
+        write_result(Path(folder) / "neural_eval.json", header, {"model": str(Path(model_dir).resolve()), **res})
     return res
+
+
+def eval_metrics(res: dict) -> dict:
+    """The flat numbers of a ``neural eval`` result that its header carries (what ``realgap show`` tabulates
+    beside other results): 3D the ATE RMSE of the neural backend and of icp on the test rooms (metres), both modes
+    recall (anamnesis) and hallucination L1 / thesis SSIM, 2D the APE median / mean (pixels)."""
+    m = {}
+    if res.get("mode") == "3d":
+        loc = res["localisation"]
+        m.update(ate_rmse_m_neural=loc["neural"]["ate_rmse_m_mean"], ate_rmse_m_icp=loc["icp"]["ate_rmse_m_mean"])
+    else:
+        m.update(ape_px_median=res["ape_px"]["median"], ape_px_mean=res["ape_px"]["mean"],
+                 localised_within_1px=res["localised_within_1px"])
+    for k in ("anamnesis", "hallucination"):
+        m.update({f"{k}_l1": res[k]["l1"], f"{k}_ssim": res[k]["ssim_thesis"]})
+    return m
 
 
 def register_sequence(model, images, cells, wedge, memory: int, motion_prior=None, score: str = "sum") -> dict:
@@ -256,8 +274,7 @@ def register_sequence(model, images, cells, wedge, memory: int, motion_prior=Non
 
 def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):
     """The view a neural run's memory recalls at camera-to-world ``pose_c2w`` (4, 4): RUN/memory's
-    features at the pose (the ``rays`` decoder samples them along the pixels' rays at the exact pose; the
-    ``learned`` one culls a window at the pose rounded to the memory's cell and heading grid) decoded by the
+    features at the pose (a window culled at the pose rounded to the memory's cell and heading grid) decoded by the
     run's model; with ``hallucinate`` the hallucination module fills the memory's unobserved cells
     first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
     image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""

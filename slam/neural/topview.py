@@ -27,7 +27,6 @@ the camera, not a property of the cell, so it has no top-view meaning).
 from __future__ import annotations
 
 import io
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -113,13 +112,9 @@ def train_topview(model, bank, steps: int, batch: int = 8, seq_steps: int = 10, 
     model.eval()
     for p in model.parameters():
         p.requires_grad_(False)
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=steps, desc="training top-view decoder", unit="step")
-    hist, acc, t0 = [], [], time.perf_counter()
-    dec.train()
-    for step in range(int(steps)):
+    from data_tools.training import run_steps
+
+    def step_fn(step: int) -> dict:
         imgs, cells, allo, _ = bank.sample(rng, batch, seq_steps)
         imgs, cells, allo = (torch.from_numpy(a).to(dev) for a in (imgs, cells, allo))
         with torch.no_grad():
@@ -130,20 +125,16 @@ def train_topview(model, bank, steps: int, batch: int = 8, seq_steps: int = 10, 
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        acc.append(float(loss.detach()))
-        if (step + 1) % 50 == 0 or step + 1 == steps:
-            hist.append({"step": step + 1, "topview_l1": round(float(np.mean(acc)), 5)})
-            acc = []
-            if bar is not None:
-                bar.set_postfix_str(f"L1 {hist[-1]['topview_l1']:.3f}")
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+        return {"topview_l1": float(loss.detach())}
+
+    hist: list = []
+    dec.train()
+    seconds = run_steps(step_fn, int(steps), history=hist, progress=progress, desc="training top-view decoder",
+                        postfix=lambda r: f"L1 {r['topview_l1']:.3f}")
     for p in model.parameters():
         p.requires_grad_(True)
     dec.eval()
-    return dec, hist, time.perf_counter() - t0
+    return dec, hist, seconds
 
 
 def save_topview(folder: str | Path, decoder, info: dict | None = None) -> Path:

@@ -13,14 +13,13 @@
    the non-saturating GAN loss against the patch discriminator (trained on culled windows of the
    full memory as real, of the hole-filled partial memory at unvisited poses as fake).
 
-Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every
-``checkpoint_every`` steps (models, optimisers, step, random states; :mod:`slam.neural.checkpoint`): a re-run
-continues there.
+Adam (beta1 = 0.5, lr 2e-4), weights N(0, 0.02), as in the thesis. ``checkpoint.pt`` every ``checkpoint_every``
+steps (models, optimisers, step, random states; :class:`data_tools.training.TrainingState`): a re-run continues
+there. The loop is :func:`data_tools.training.run_steps`, shared with every other trainer.
 """
 from __future__ import annotations
 
 import io
-import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -28,6 +27,7 @@ from typing import Callable
 import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
+from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
 from slam.neural.data3d import World3DConfig
 
 __all__ = ["NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "train_memory", "CKPT_FORMAT", "CKPT_VERSION", "save_model",
@@ -97,26 +97,6 @@ class NeuralTrainConfig:
     """Feature size n of the memory (the thesis uses 16-32; 8 keeps a CPU step under a second)."""
     width: int = 16
     """Channels of the encoder/decoder ResNets."""
-    correlation: str = "dot"
-    """Localisation score, ``dot`` or ``cosine`` (see :class:`slam.neural.model.MemoryConfig`)."""
-    equivariance: str = "none"
-    """2D mode: ``none``, ``invariant`` or ``regular`` - an encoder exactly equivariant to quarter turns
-    (:attr:`slam.neural.model.MemoryConfig.equivariance`)."""
-    colour_skip: bool = False
-    """The observation itself as the last C (3 in 2D, 4 in 3D) of the ``features`` memory channels, beside the
-    ResNet's (:attr:`slam.neural.model.MemoryConfig.colour_skip`): the thesis' encoder keeps no absolute colour.
-    In no preset (docs/not_kept.md)."""
-    decoder_skip: bool = False
-    """2D mode: a linear (1 x 1) path from the culled memory to the recalled image beside the decoder's ResNet
-    (:attr:`slam.neural.model.MemoryConfig.decoder_skip`). In no preset (docs/not_kept.md)."""
-    decoder: str = "learned"
-    """3D mode: recall by ``learned`` (a learned map from the culled top-view window at the pose rounded to the
-    grid: the shipped planar_3d) or ``rays`` (the memory sampled along each pixel's ray at the exact pose), see
-    :class:`slam.neural.model.MemoryConfig`. Equal within noise at the cpu budget (docs/not_kept.md)."""
-    subcell: bool = False
-    """3D mode: register below the grid's resolution (:attr:`slam.neural.model.MemoryConfig.subcell`): teacher
-    registration at the exact poses, L_loc's target the trilinear splat of the exact pose instead of a one-hot at
-    the rounded one, and the model then registers at its refined peak at inference."""
     topview_steps: int = 300
     """3D mode: steps of the top-view decoder trained after the memory, the memory frozen
     (:mod:`slam.neural.topview`; the ``slam run --backend neural`` snapshot's topview.png); 0 = none."""
@@ -147,22 +127,6 @@ class NeuralTrainConfig:
         for k in ("refine_rooms", "refine_pool_batches"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
-        if self.equivariance not in ("none", "invariant", "regular"):
-            raise ConfigError(f"equivariance must be none, invariant or regular, got {self.equivariance!r}")
-        if self.equivariance != "none" and self.mode != "2d":
-            raise ConfigError("equivariance (an encoder equivariant to quarter turns) is for --mode 2d: 3D images are "
-                              "not square top views")
-        if self.decoder_skip and self.mode != "2d":
-            raise ConfigError("decoder_skip is for --mode 2d (the 3D decoders map a top view to an image)")
-        if self.colour_skip and (self.equivariance == "regular" or self.features <= IMAGE_CHANNELS[self.mode]):
-            raise ConfigError(f"colour_skip needs more features than image channels (got {self.features}) and no "
-                              "regular equivariance")
-        if self.equivariance == "regular" and self.features % 4:
-            raise ConfigError(f"equivariance regular needs features divisible by 4, got {self.features}")
-        if self.subcell and self.mode != "3d":
-            raise ConfigError("subcell registration is for --mode 3d (2D poses are whole pixels and quarter turns)")
-        if self.decoder not in ("rays", "learned"):
-            raise ConfigError(f"decoder must be rays or learned, got {self.decoder!r}")
         if not (self.occ_weight >= 0 and np.isfinite(self.occ_weight)):
             raise ConfigError(f"occ_weight must be >= 0, got {self.occ_weight}")
         if not (self.loc_weight > 0 and np.isfinite(self.loc_weight)):
@@ -207,31 +171,21 @@ trained afterwards by ``neural refine-hallucination``); ``gpu``: a larger config
 docs/neural.md, "Training presets"."""
 
 
-def memory_config(cfg: NeuralTrainConfig, geometry: dict | None = None):
-    """The model's sizes for a training configuration; 3D ``rays``: the camera of ``geometry``
-    (:func:`slam.neural.data3d.ray_geometry`; default :func:`slam.neural.data3d.default_ray_geometry`)."""
+def memory_config(cfg: NeuralTrainConfig):
+    """The model's sizes for a training configuration."""
     from slam.neural.data2d import AGENTS
     from slam.neural.model import MemoryConfig
     if cfg.mode == "3d":
-        from slam.neural.data3d import default_ray_geometry
         w = cfg.world
         reach = int(np.ceil(0.45 * w.stride_max / 30.0 * (cfg.steps - 1) / w.cell_m)) + 4
-        rays = {}
-        if cfg.decoder == "rays":
-            g = geometry or default_ray_geometry(w)
-            rays = dict(decoder="rays", camera=tuple(g["camera"]), level_rotation=tuple(g["level_rotation"]),
-                        camera_height_m=float(g["camera_height_m"]), cell_m=w.cell_m, max_range_m=w.max_range_m)
         return MemoryConfig(channels=IMAGE_CHANNELS["3d"], features=cfg.features, view=w.view,
                             memory=w.view + 2 * reach, width=cfg.width, rotations=w.rotations, search=4, input="image",
-                            image_size=(w.image_h, w.image_w), correlation=cfg.correlation, occupancy=_occupancy(cfg),
-                            subcell=bool(cfg.subcell), colour_skip=bool(cfg.colour_skip), **rays)
+                            image_size=(w.image_h, w.image_w), occupancy=_occupancy(cfg))
     q = AGENTS[cfg.agent].view
     reach = cfg.image - q                  # the largest offset from the start the agent can reach
     U = 2 * reach + q
     return MemoryConfig(channels=IMAGE_CHANNELS["2d"], features=cfg.features, view=q, memory=U, width=cfg.width,
-                        correlation=cfg.correlation, equivariance=cfg.equivariance,
-                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg),
-                        colour_skip=bool(cfg.colour_skip), decoder_skip=bool(cfg.decoder_skip))
+                        search=min(3 * q // 4 + 5, (U - q) // 2), occupancy=_occupancy(cfg))
 
 
 def _occupancy(cfg: NeuralTrainConfig) -> str:
@@ -245,25 +199,16 @@ class TrainLog:
     resumed_from: int = 0
 
 
-def _ramp(cfg: NeuralTrainConfig, step: int, final: float) -> float:
-    """1 until ``lr_decay_from``, then linear to ``final`` at the last step (``lr_decay_from`` 0: always 1)."""
-    a = int(cfg.lr_decay_from)
-    if a <= 0 or step < a:
-        return 1.0
-    t = (step - a) / max(cfg.iterations - 1 - a, 1)
-    return 1.0 + (final - 1.0) * min(t, 1.0)
-
-
 def lr_factor(cfg: NeuralTrainConfig, step: int) -> float:
     """The learning rate of ``step`` over the base one: 1 until ``lr_decay_from``, then linear to ``lr_final`` at
-    the last step (a function of the step only, so a resumed run continues the same schedule)."""
-    return _ramp(cfg, step, cfg.lr_final)
+    the last step (:func:`data_tools.training.linear_ramp`)."""
+    return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.lr_final)
 
 
 def loc_factor(cfg: NeuralTrainConfig, step: int) -> float:
     """L_loc's weight at ``step`` over ``loc_weight``: the learning rate's schedule (:func:`lr_factor`) falling to
     ``loc_weight_final``."""
-    return _ramp(cfg, step, cfg.loc_weight_final)
+    return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.loc_weight_final)
 
 
 OCC_LR = 5e-2
@@ -272,7 +217,7 @@ open, input gate saturated - which the memory's 2e-4 does not do in a CPU budget
 L_occ 0.86 -> 0.20 at 1e-2, -> 0.004-0.04 at 5e-2)."""
 
 
-def _loc_loss(logits, truth_field):
+def loc_loss(logits, truth_field):
     """Thesis Eq. 4.6 per step: -[p log p~ + (1 - p) log(1 - p~)] summed over the field, averaged over t >= 1."""
     import torch
     B, T = logits.shape[:2]
@@ -295,21 +240,15 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     import torch.nn.functional as F
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.fields import splat_field
     from slam.neural.model import NeuralMemory, PatchDiscriminator, init_weights, memory_index
     cfg.validate()
     dev = torch.device(cfg.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
     torch.manual_seed(cfg.seed)
-    geometry = None
     if cfg.mode == "3d":
         bank = worlds_3d(cfg, simulate, progress, log)
-        if cfg.decoder == "rays":
-            from data_tools.sequence import SequenceReader
-            from slam.neural.data3d import ray_geometry
-            geometry = ray_geometry(SequenceReader(bank.folders[0]), cfg.world)
-    mcfg = memory_config(cfg, geometry)
+    mcfg = memory_config(cfg)
     model = NeuralMemory(mcfg).to(dev)
     if cfg.lstm_forget_bias:
         with torch.no_grad():
@@ -340,39 +279,20 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             a = torch.from_numpy(allo).to(dev)
             return torch.from_numpy(obs).to(dev), None, a, a
     tlog = TrainLog()
-    start = 0
-    ck = Path(checkpoint) if checkpoint else None
     parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
     if occ_own:
         parts["opt_occ"] = opt_occ
-    if ck is not None and ck.is_file():
-        from slam.neural.checkpoint import load_training_state
-        start, tlog.steps = load_training_state(ck, parts, rng, "training checkpoint", map_location=dev)
-        tlog.resumed_from = start
-        if on_checkpoint is not None:
-            on_checkpoint(start)
+    state = TrainingState(checkpoint, parts, rng, "training checkpoint", map_location=dev, on_save=on_checkpoint)
+    resumed = state.resume()
+    if resumed is not None:
+        tlog.resumed_from, tlog.steps = resumed
         if log is not None:
-            log(f"resuming training at step {start} of {cfg.iterations} from {ck}")
+            log(f"resuming training at step {tlog.resumed_from} of {cfg.iterations} from {checkpoint}")
+    img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
 
-    def save(step: int) -> None:
-        if ck is not None:
-            from slam.neural.checkpoint import save_training_state
-            save_training_state(ck, parts, rng, step, tlog.steps)
-            if on_checkpoint is not None:
-                on_checkpoint(step)
-
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=cfg.iterations, initial=start, desc="training neural memory", unit="step")
-    means = LossMeans()
-    t0 = time.perf_counter()
-    model.train()
-    for step in range(start, cfg.iterations):
-        set_lr((opt, opt_h, opt_d), cfg.lr * lr_factor(cfg, step))
+    def step_fn(step: int) -> dict:
         obs_t, cells_t, allo_t, exact_t = batch()      # exact: 3D recall poses, not rounded to the grid
-        B, T = obs_t.shape[:2]
-        img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
+        T = obs_t.shape[1]
         losses = {}
         if step < cfg.pretrain_steps:
             x = obs_t.flatten(0, 1)
@@ -384,79 +304,41 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-        else:
-            s = step - cfg.pretrain_steps
-            p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
-            target = exact_t if cfg.subcell else allo_t         # subcell: real poses, splatted
-            teacher = target if rng.random() < p_teacher else None
-            out = model(obs_t, vm, teacher, cells=cells_t)
-            Wp = out["logits"].shape[-1]
-            if cfg.subcell:
-                truth = torch.stack([splat_field(exact_t[:, t], out["centres"][:, t], Wp, model.cfg.rotations)
-                                     for t in range(cfg.steps)], 1)
-            else:
-                truth = torch.stack([model._local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
-                                     for t in range(cfg.steps)], 1)
-            l_loc = _loc_loss(out["logits"], truth)
-            rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
-            l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
-            loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
-            losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
-            if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
-                l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
-                loss = loss + cfg.occ_weight * l_occ
-                losses["occ"] = float(l_occ.detach())
-                opt_occ.zero_grad(set_to_none=True)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if occ_own:
-                opt_occ.step()
-            if step >= cfg.hallucination_from:
-                losses.update(_hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
-                                                  exact_t))
-        means.add(losses)
-        if (step + 1) % cfg.log_every == 0 or step + 1 == cfg.iterations:
-            rec_ = means.record(step + 1)
-            tlog.steps.append(rec_)
-            if bar is not None:
-                bar.set_postfix_str(" ".join(f"{k} {v:.3f}" for k, v in rec_.items() if k != "step"))
-        if (step + 1) % cfg.checkpoint_every == 0 and step + 1 < cfg.iterations:
-            save(step + 1)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    tlog.seconds = time.perf_counter() - t0
-    save(cfg.iterations)
+            return losses
+        s = step - cfg.pretrain_steps
+        p_teacher = max(0.0, 1.0 - s / max(cfg.teacher_steps, 1))
+        teacher = allo_t if rng.random() < p_teacher else None
+        out = model(obs_t, vm, teacher, cells=cells_t)
+        Wp = out["logits"].shape[-1]
+        truth = torch.stack([model.local_one_hot(allo_t[:, t], out["centres"][:, t], Wp)
+                             for t in range(cfg.steps)], 1)
+        l_loc = loc_loss(out["logits"], truth)
+        rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
+        l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
+        loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
+        losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
+        if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
+            l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
+            loss = loss + cfg.occ_weight * l_occ
+            losses["occ"] = float(l_occ.detach())
+            opt_occ.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if occ_own:
+            opt_occ.step()
+        if step >= cfg.hallucination_from:
+            losses.update(hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t, img_mask,
+                                              exact_t))
+        return losses
+
+    model.train()
+    tlog.seconds = run_steps(step_fn, cfg.iterations, start=tlog.resumed_from, history=tlog.steps,
+                             log_every=cfg.log_every, state=state, checkpoint_every=cfg.checkpoint_every,
+                             lr=lambda step: set_lr((opt, opt_h, opt_d), cfg.lr * lr_factor(cfg, step)),
+                             progress=progress, desc="training neural memory")
     model.eval()
     return model, disc, tlog
-
-
-def set_lr(optimisers, lr: float) -> None:
-    """Set the learning rate of every parameter group of ``optimisers`` (the training loops' schedules)."""
-    for o in optimisers:
-        for g in o.param_groups:
-            g["lr"] = lr
-
-
-class LossMeans:
-    """Named losses summed between two log records; :meth:`record` gives each sum over the number of steps added
-    (a loss that joined mid-way is divided by all of them), rounded to 5 decimals, and starts again."""
-
-    def __init__(self):
-        self.sums: dict[str, float] = {}
-        self.n = 0
-
-    def add(self, losses: dict) -> None:
-        for k, v in losses.items():
-            self.sums[k] = self.sums.get(k, 0.0) + v
-        self.n += 1
-
-    def record(self, step: int) -> dict:
-        rec = {"step": step, **{k: round(v / self.n, 5) for k, v in self.sums.items()}}
-        self.sums, self.n = {}, 0
-        return rec
 
 
 def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
@@ -471,7 +353,7 @@ def bank_batch(bank, rng: np.random.Generator, batch: int, steps: int, dev):
             torch.from_numpy(np.asarray(allo)).to(dev), torch.from_numpy(exact).to(dev))
 
 
-def _hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
+def hallucination_step(model, disc, opt_h, opt_d, obs_t, allo_t, vm, cfg, cells_t=None, img_mask=None,
                         exact_t=None) -> dict:
     """One hallucination update: memorise the first ``observe`` steps (no gradient into the memory
     path), fill the holes, predict the later views (recalled at ``exact_t``, default ``allo_t``);
@@ -531,6 +413,24 @@ def save_model(folder: str | Path, model, cfg: NeuralTrainConfig, info: dict | N
     return folder
 
 
+def without_removed_options(block, where) -> dict:
+    """A copy of a neural.json ``train`` or ``memory`` block without the options earlier code had and no shipped
+    model used (:data:`slam.neural.model.REMOVED_OPTIONS`): recorded at the value the code implements they are
+    dropped, another value is a :class:`FormatError` naming ``where``; the ``rays`` decoder's camera fields are
+    dropped."""
+    from slam.neural.model import RAY_FIELDS, REMOVED_OPTIONS
+    out = dict(block) if isinstance(block, dict) else block
+    if not isinstance(out, dict):
+        return out                      # config_from_dict names the problem
+    for k, kept in REMOVED_OPTIONS.items():
+        if k in out and (v := out.pop(k)) != kept:
+            raise FormatError(where, f"trained with {k} = {v!r}, an option this realgap no longer has "
+                                     "(docs/neural_not_kept.md)")
+    for k in RAY_FIELDS:
+        out.pop(k, None)
+    return out
+
+
 def load_model(folder: str | Path):
     """(NeuralMemory in eval mode, NeuralTrainConfig, info) of a saved model; one-line errors."""
     import json
@@ -551,8 +451,8 @@ def load_model(folder: str | Path):
         raise FormatError(meta_p, f"not a {CKPT_FORMAT} file")
     if meta.get("version") != CKPT_VERSION:
         raise FormatError(meta_p, f"model format version {meta.get('version')!r}, this realgap reads {CKPT_VERSION}")
-    cfg = config_from_dict(NeuralTrainConfig, meta["train"], str(meta_p))
-    mcfg = config_from_dict(MemoryConfig, meta["memory"], str(meta_p))
+    cfg = config_from_dict(NeuralTrainConfig, without_removed_options(meta.get("train"), meta_p), str(meta_p))
+    mcfg = config_from_dict(MemoryConfig, without_removed_options(meta.get("memory"), meta_p), str(meta_p))
     model = NeuralMemory(mcfg)
     try:
         model.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
