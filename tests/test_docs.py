@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from app.cli import build_parser, main
+from app.cli import UsageError, build_parser, main
 
 REPO = Path(__file__).resolve().parents[1]
 README = REPO / "README.md"
@@ -101,7 +101,7 @@ def _assert_parse(commands, where):
     for argv in commands:
         try:
             args = parser.parse_args(argv)
-        except SystemExit:
+        except (SystemExit, UsageError):
             bad.append(" ".join(argv))
             continue
         if getattr(args, "func", None) is None:
@@ -110,8 +110,8 @@ def _assert_parse(commands, where):
 
 
 def test_parse_check_rejects_a_wrong_line():
-    with pytest.raises(SystemExit):
-        build_parser().parse_args(["slam", "run", "x", "--no-such-flag"])
+    with pytest.raises(UsageError):
+        build_parser().parse_args(["slam", "run", "x", "--out", "y", "--no-such-flag"])
 
 
 @pytest.mark.parametrize("argv", CHEAP_COMMANDS, ids=" ".join)
