@@ -127,9 +127,13 @@ def main(argv: list[str] | None = None) -> int:
             sys.stdout.flush()
     except BrokenPipeError:
         # the reader of our stdout went away (``realgap sensor effects | head``): quiet, like any Unix tool
+        import io
         import os
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        try:                                 # the interpreter's final flush must not raise again
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError, io.UnsupportedOperation):     # no real stdout (captured): nothing to do
+            pass
         return EXIT_BROKEN_PIPE
     except RealgapError as e:
         print(f"realgap: error: {_one_line(str(e))}", file=sys.stderr)
