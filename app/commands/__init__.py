@@ -50,19 +50,14 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     if flag in ("--overwrite", "--no-progress", "--json"):
         kwargs.setdefault("action", "store_true")
     if flag == "--max-frames":
-        kwargs.setdefault("type", _positive_int("--max-frames"))
+        kwargs.setdefault("type", positive_int("--max-frames"))
         kwargs.setdefault("metavar", "N")
     if flag == "--workers":
-        kwargs.setdefault("type", _positive_int("--workers"))
+        kwargs.setdefault("type", positive_int("--workers"))
         kwargs.setdefault("metavar", "N")
     if flag == "--seed":
         kwargs.setdefault("type", int)
     return p.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
-
-
-def positive_int(flag: str):
-    """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
-    return _positive_int(flag)
 
 
 def positive_float(flag: str):
@@ -81,7 +76,8 @@ def positive_float(flag: str):
     return parse
 
 
-def _positive_int(flag: str):
+def positive_int(flag: str):
+    """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
     def parse(text: str) -> int:
         try:
             v = int(text)
