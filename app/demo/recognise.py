@@ -29,6 +29,7 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
     cam = read_camera_json(testset / "camera.json")
     intr = cam.intrinsics
     rows = [json.loads(line) for line in (eval_dir / "predictions.jsonl").read_text().splitlines() if line.strip()]
+    boxes = {lab["file"]: [int(x) for x in lab["bbox"]] for lab in json.loads((testset / "labels.json").read_text())}
     per = max(1, n // max(1, len({r["object"] for r in rows})))        # the same number of scans of each object
     rows = [r for k, r in enumerate(rows) if sum(q["object"] == r["object"] for q in rows[:k]) < per][:n]
     ncol = min(3, len(rows))
@@ -45,7 +46,7 @@ def _overlay(testset: Path, eval_dir: Path, model, out: Path, n: int = 6) -> str
         T = np.asarray(r["pose"], float)
         obj = model.object(model.index_of(r["predicted"]))
         _draw_mesh(ax, obj.meshes, T, intr, "tab:green" if r["correct"] else "tab:red")
-        x0, y0, x1, y1 = _bbox(testset, r["file"])
+        x0, y0, x1, y1 = boxes[r["file"]]
         ax.set_xlim(max(0, x0 - 20), min(intr.width, x1 + 20))
         ax.set_ylim(min(intr.height, y1 + 20), max(0, y0 - 20))
         err = r.get("rot_err_deg_after_icp")
@@ -75,14 +76,6 @@ def _draw_mesh(ax, meshes, T: np.ndarray, intr, colour: str) -> None:
         polys.append(uv)
     if polys:
         ax.add_collection(PolyCollection(np.concatenate(polys), facecolors=colour, edgecolors="none", alpha=0.18))
-
-
-def _bbox(testset: Path, file: str) -> list[int]:
-    labels = json.loads((testset / "labels.json").read_text())
-    for lab in labels:
-        if lab["file"] == file:
-            return [int(x) for x in lab["bbox"]]
-    return [0, 0, 10 ** 6, 10 ** 6]
 
 
 def run_recog_part(out: Path, per_object: int, model_dir: str, seed: int, log: Callable[[str], None] = print,
