@@ -83,6 +83,9 @@ def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set) -> list[
         r = cfg.effect(eff).params.radius_px or cfg.preset.block_size // 2
         row("edge radius [px]", float(p["radius_px"]), float(r), 0.0, key="edge_fattening.radius_px")
     elif eff == "rolling_shutter":
+        # both in the same convention: readout first row -> last row; the generator stamps the first
+        # row's exposure (answer reference_row 0), the model fits its reference row (not compared:
+        # with a slow camera it is weakly constrained)
         row("readout [s]", p["readout_time_s"], cfg.effect(eff).params.readout_time_s, 0.2, rel=True,
             key="rolling_shutter.readout_time_s")
     elif eff == "low_reflectance":

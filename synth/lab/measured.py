@@ -122,8 +122,10 @@ class MeasuredSequence:
     """(N, 4, 4) camera-to-world ground-truth poses of the kept frames."""
     prev_poses: list
     """Per kept frame: the pose of the previous sequence frame ((4, 4)) when it has one and lies
-    at most 1.5 frame periods (of the preset's frame rate) earlier, else None (static frame):
-    motion effects (rolling shutter, motion blur) use it as the pose one frame period earlier."""
+    at most 1.5 frame periods (of the preset's frame rate) earlier; else, when the next frame does,
+    the constant-velocity extrapolation one frame period back from the next frame's motion (the
+    first frame of a moving sequence moves too); else None (static frame). Motion effects (rolling
+    shutter, motion blur) use it as the pose one frame period earlier."""
     skipped_no_pose: int
     """Frames left out because no ground-truth pose lies within 0.02 s."""
     compare_cache: object
@@ -195,13 +197,7 @@ class MeasuredSequence:
             if len(with_pose) > int(max_frames):
                 with_pose = with_pose[spread_indices(len(with_pose), int(max_frames))]
         pre = preset_from_camera(reader.camera, preset, cam_file)
-        prev = []
-        period = 1.0 / pre.fps
-        for i in with_pose:
-            p = reader.poses[i - 1] if i > 0 else None
-            dt = reader.timestamps[i] - reader.timestamps[i - 1] if i > 0 else np.inf
-            ok_prev = p is not None and np.all(np.isfinite(p)) and dt <= 1.5 * period
-            prev.append(p.copy() if ok_prev else None)
+        prev = [_previous_pose(reader.poses, reader.timestamps, int(i), 1.0 / pre.fps) for i in with_pose]
         return cls(seq_dir, reader.camera, scene, pre, reader, with_pose.tolist(), prev, int((~ok).sum()))
 
     def __len__(self) -> int:
@@ -342,3 +338,19 @@ class MeasuredSequence:
         return {"sequence": str(self.seq_dir), "frames": len(self), "frame_indices": self.frame_indices,
                 "skipped_no_pose": self.skipped_no_pose, "preset": self.preset.name,
                 "sensor_type": self.preset.type, "size": [self.intrinsics.width, self.intrinsics.height]}
+
+
+def _previous_pose(poses: np.ndarray, times: np.ndarray, i: int, period: float) -> np.ndarray | None:
+    """The pose one frame period before frame ``i`` for :attr:`MeasuredSequence.prev_poses`: the
+    previous frame's (within 1.5 periods), else the next frame's motion extrapolated back (constant
+    velocity, :func:`synth.sensor.state.interpolate_pose`), else None."""
+    def usable(j: int) -> bool:
+        return 0 <= j < len(poses) and bool(np.all(np.isfinite(poses[j]))) and abs(times[j] - times[i]) <= 1.5 * period
+    if usable(i - 1):
+        return np.array(poses[i - 1], copy=True)
+    if usable(i + 1) and times[i + 1] > times[i]:
+        from synth.sensor.state import interpolate_pose
+        # the next frame sits at s = -1 of the path through it and frame i; one period back is s = +period/dt
+        return interpolate_pose(poses[i], poses[i + 1], period / float(times[i + 1] - times[i]))
+    return None
+

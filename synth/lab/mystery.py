@@ -359,7 +359,7 @@ def answer(m: Mystery) -> dict:
     elif e == "lens_distortion":
         p = {"k1": h["k1"]}
     elif e == "rolling_shutter":
-        p = {"readout_time_s": h["readout_s"]}
+        p = {"readout_time_s": h["readout_s"], "reference_row": 0.0}   # the timestamp is the first row's
     else:
         p = {}
     return p

@@ -25,6 +25,18 @@ class AxialNoiseParams:
     phase noise grows as the amplitude falls; structured light: 0)."""
 
 
+def _native_fb_ratio(preset) -> float:
+    """native f b / this preset's f b for a triangulating preset derived from a named device preset
+    (e.g. its intrinsics scaled to a smaller image), at least 1; 1 for ToF or an unknown name."""
+    if getattr(preset, "type", "") == "tof" or not preset.fb > 0:
+        return 1.0
+    from synth.sensor.presets import PRESETS
+    native = PRESETS.get(preset.name)
+    if native is None or not native.fb > 0:
+        return 1.0
+    return max(1.0, float(native.fb) / float(preset.fb))
+
+
 @register_effect
 class AxialNoise(Effect):
     """z += sigma(z) n, n ~ N(0, 1), sigma(z) = sigma0 + sigma1 z + sigma2 (z - z_offset)^2.
@@ -65,15 +77,22 @@ class AxialNoise(Effect):
         1.9e-3 /m (Nguyen et al. 2012, Khoshelham & Elberink 2012), so 5x covers worn or hot
         devices and bright rooms. z_offset <= the device's nearest depth: the quadratic's minimum
         (Nguyen's 0.4 m) lies at the near end of the working range; a minimum farther out would
-        mean noise falling with distance, which no triangulating or ToF sensor shows."""
+        mean noise falling with distance, which no triangulating or ToF sensor shows.
+
+        Triangulating sensors: a matcher's sub-pixel noise is a fraction of a pixel of the image it
+        matches, so the same device imaged with a smaller focal length (a 160 px wide stream of a
+        640 px sensor, f b a quarter of the preset's) has up to native f b / f b times the depth
+        noise; the noise bounds grow by that ratio (the device preset of the same name gives the
+        native f b; never shrunk below 1)."""
         d = dict(preset.effect_params.get(cls.name, {}))
         s0, s1_, s2 = (float(d.get(k, 0.0)) for k in ("sigma0_m", "sigma1", "sigma2_per_m"))
         zo = float(d.get("z_offset_m", 0.0))
         at1 = s0 + s1_ + s2 * (1.0 - zo) ** 2
         if at1 <= 0:
             at1 = 0.002
-        return {"sigma0_m": (0.0, 5.0 * at1), "sigma1": (0.0, 5.0 * at1),
-                "sigma2_per_m": (0.0, 5.0 * (s2 if s2 > 0 else at1)),
+        k = 5.0 * _native_fb_ratio(preset)
+        return {"sigma0_m": (0.0, k * at1), "sigma1": (0.0, k * at1),
+                "sigma2_per_m": (0.0, k * (s2 if s2 > 0 else at1)),
                 "z_offset_m": (0.0, float(preset.min_depth_m))}
 
     def sample(self, rng, state):

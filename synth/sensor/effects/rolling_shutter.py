@@ -12,12 +12,17 @@ from synth.sensor.registry import STAGE_GEOMETRY, Effect, Signature, param, regi
 class RollingShutterParams:
     readout_time_s: float = param(0.03, "s")
     """Time between the exposure of the first and the last row, seconds (0 = global shutter)."""
+    reference_row: float = param(0.5, "1")
+    """Which row the frame's timestamp and pose belong to, as a fraction of the image height: 0.5 =
+    the centre row (a driver that stamps mid-exposure), 0 = the first row (a stamp at the start of
+    the readout), 1 = the last. Datasets differ and rarely say; the lab fits it."""
 
 
-def row_times_frames(H: int, readout_s: float, frame_dt_s: float) -> np.ndarray:
-    """(H,) exposure time of each row relative to the centre row, in frame periods."""
+def row_times_frames(H: int, readout_s: float, frame_dt_s: float, reference_row: float = 0.5) -> np.ndarray:
+    """(H,) exposure time of each row relative to the reference row (the row exposed at the frame's
+    timestamp: a fraction of the height, 0.5 = the centre row), in frame periods."""
     v = np.arange(H, dtype=np.float64)
-    return (v / max(H - 1, 1) - 0.5) * readout_s / frame_dt_s
+    return (v / max(H - 1, 1) - reference_row) * readout_s / frame_dt_s
 
 
 @register_effect
@@ -29,7 +34,12 @@ class RollingShutter(Effect):
     surfaces at the wrong depth. The projector is rigid with the camera, so it moves along.
     Implementation: the camera path is the constant-velocity interpolation through
     ``prev_pose`` and ``pose`` (one frame period apart); row v is re-rendered (ray cast) from
-    the pose at its exposure time, centre row = ``pose``. Depth is then reported in the frame
+    the pose at its exposure time; the row at ``reference_row`` (default the centre) is exposed at
+    ``pose``. With a constant velocity, moving the reference row shifts every row's pose by the same
+    time (readout x the change): a dataset that stamps the first row's exposure (reference 0) seen
+    through a centre-row model needs a global shift no readout can give, so the fitted readout
+    comes out several times too long (an independent generator stamping the first row: 0.087 s
+    fitted for 0.027 s true) - hence the fitted reference row. Depth is then reported in the frame
     of the row's own pose, as the device does. Runs in both the physical pipeline and the
     direct model (it changes what each pixel sees). No-op for a static camera.
     """
@@ -43,7 +53,7 @@ class RollingShutter(Effect):
     KEEPS_INVALID = False  # each row is re-rendered at its own pose
     IDENTITY_PARAMS = {"readout_time_s": 0.0}
     Params = RollingShutterParams
-    FITTABLE = {"readout_time_s": (0.0, 0.2)}
+    FITTABLE = {"readout_time_s": (0.0, 0.2), "reference_row": (0.0, 1.0)}
     stage = STAGE_GEOMETRY
 
     def apply(self, state, draw) -> None:
@@ -53,7 +63,7 @@ class RollingShutter(Effect):
             state.log[self.name] = {"active": False}
             return
         H = state.shape[0]
-        s = row_times_frames(H, rt, state.frame.frame_dt_s)
+        s = row_times_frames(H, rt, state.frame.frame_dt_s, self.params.reference_row)
         rows = state.frame.pose_at(s)
         state.view = cast_view(state.renderer, state.ray_dirs_cam, rows)
         state.publish("row_time_frames", s)
