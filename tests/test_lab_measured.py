@@ -32,7 +32,13 @@ def test_load_derives_the_preset_from_camera_json(seq):
     assert p.type == "structured_light" and p.baseline_m == pytest.approx(0.075)
     assert p.projector_offset_m == pytest.approx((0.075, 0.0, 0.0))
     assert p.min_depth_m == 0.45  # kept from kinect_v1
-    assert ms.poses.shape == (4, 4, 4) and ms.prev_poses[0] is None and ms.prev_poses[1] is not None
+    assert ms.poses.shape == (4, 4, 4) and ms.prev_poses[1] is not None
+    np.testing.assert_allclose(ms.prev_poses[1], ms.poses[0])
+    # the first frame has no previous one: the next frame's motion extrapolated one period back
+    # (constant velocity: the translation steps back by what the next frame moves forward)
+    P0 = ms.prev_poses[0]
+    np.testing.assert_allclose(P0[:3, 3], 2 * ms.poses[0][:3, 3] - ms.poses[1][:3, 3], atol=1e-4)   # timestamps to 1 us
+    np.testing.assert_allclose(P0[:3, :3] @ P0[:3, :3].T, np.eye(3), atol=1e-9)
     d = ms.measured_depth(2)
     assert d.shape == (120, 160) and d.dtype == np.float32 and (d > 0).mean() > 0.5
 
@@ -116,3 +122,15 @@ def test_model_file_round_trip_and_errors(seq, tmp_path):
     (tmp_path / "wrong.json").write_text(json.dumps({"preset": "kinect_v1", "effects": ["no_such_effect"]}))
     with pytest.raises(FormatError, match="wrong.json.*no_such_effect"):
         load_model(tmp_path / "wrong.json")
+
+
+def test_previous_pose_of_a_lone_frame_is_none_and_a_gap_is_not_bridged():
+    from synth.lab.measured import _previous_pose
+    T = np.tile(np.eye(4), (3, 1, 1))
+    T[:, 0, 3] = [0.0, 0.01, 0.02]
+    t = np.array([0.0, 1 / 30, 2 / 30])
+    assert _previous_pose(T[:1], t[:1], 0, 1 / 30) is None                 # a single frame: static
+    np.testing.assert_allclose(_previous_pose(T, t, 0, 1 / 30)[0, 3], -0.01)
+    np.testing.assert_allclose(_previous_pose(T, t, 2, 1 / 30)[0, 3], 0.01)
+    far = np.array([0.0, 0.5, 0.6])                                        # the next frame 15 periods later
+    assert _previous_pose(T, far, 0, 1 / 30) is None

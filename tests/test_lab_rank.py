@@ -1,0 +1,88 @@
+"""diagnose's ranking rules (issue #43 item 6): the Occam margins are relative, a learned map needs a
+clear lead over a parametric effect; and two model fixes found on the independent generators: the
+axial-noise bounds of a low-resolution stream, the rolling shutter's reference row."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from synth.lab.diagnose import Candidate, DiagnoseConfig, rank
+from synth.lab.fit import param_specs
+from synth.sensor.config import SensorConfig
+
+
+def _cand(effect: str, gap_after: float, params: dict | None = None) -> Candidate:
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", {"name": effect, "params": params or {}}])
+    return Candidate(effect, gap_after, 0.0, {}, "", config=cfg)
+
+
+def _ranked(cands, base_gap=1.0, **dc):
+    cx = SimpleNamespace(dc=DiagnoseConfig(**dc))
+    return [c.effect for c in rank(cx, SimpleNamespace(gap=base_gap), cands)]
+
+
+@pytest.fixture(scope="module")
+def map_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("map") / "beta.npy"
+    np.save(p, np.zeros((4, 4)))
+    return str(p)
+
+
+def test_small_gains_are_not_all_equal():
+    # gains 0.0104 (2 parameters) and 0.0009 (1 parameter): an absolute margin of 0.01 called them
+    # equal and put the bystander first; relative, 0.0009 is 9 % of the leader's gain
+    c = [_cand("edge_fattening", 1 - 0.0104), _cand("projector_shadow", 1 - 0.0009)]
+    assert _ranked(c) == ["edge_fattening", "projector_shadow"]
+
+
+def test_within_one_percent_the_simpler_effect_leads():
+    # edge_fattening has more fit parameters than projector_shadow; gains 0.500 and 0.497
+    ne = len(param_specs(_cand("edge_fattening", 0.5).config, ["edge_fattening"]))
+    ns = len(param_specs(_cand("projector_shadow", 0.5).config, ["projector_shadow"]))
+    assert ne > ns
+    c = [_cand("edge_fattening", 0.500), _cand("projector_shadow", 0.503)]
+    assert _ranked(c) == ["projector_shadow", "edge_fattening"]
+    assert _ranked(c, occam_margin=0.0) == ["edge_fattening", "projector_shadow"]
+
+
+def test_a_learned_map_needs_a_clear_lead(map_file):
+    m = {"beta_map": map_file}
+    # map 0.843 vs depth bias 0.830 (1.5 % more): the parametric effect leads, the map second
+    c = [_cand("disparity_distortion", 1 - 0.843, m), _cand("depth_bias", 1 - 0.830), _cand("lens_distortion", 0.7)]
+    assert _ranked(c) == ["depth_bias", "disparity_distortion", "lens_distortion"]
+    # map 0.90 vs 0.70 (29 % more): the map leads
+    c = [_cand("disparity_distortion", 0.10, m), _cand("depth_bias", 0.30)]
+    assert _ranked(c) == ["disparity_distortion", "depth_bias"]
+    assert _ranked([_cand("disparity_distortion", 1 - 0.843, m), _cand("depth_bias", 1 - 0.830)],
+                   occam_map_margin=0.01)[0] == "disparity_distortion"
+
+
+def test_occam_margins_are_validated():
+    from data_tools.errors import ConfigError
+    for k in ("occam_margin", "occam_map_margin"):
+        with pytest.raises(ConfigError, match=k):
+            DiagnoseConfig(**{k: 1.5}).validate()
+
+
+def test_noise_bounds_grow_with_a_smaller_focal_length():
+    # the same disparity noise in image pixels is 4x the depth noise at a quarter of the focal length
+    full = SensorConfig.build("kinect_v1", ["axial_noise"])
+    pre = full.preset
+    small = SensorConfig.build(pre.replace(width=160, height=120, fx=pre.fx / 4, fy=pre.fy / 4,
+                                           cx=79.5, cy=59.5), ["axial_noise"])
+    hi = lambda cfg: {s.key: s.high for s in param_specs(cfg)}["axial_noise.sigma2_per_m"]
+    assert hi(full) == pytest.approx(5 * 0.0014)
+    assert hi(small) == pytest.approx(4 * 5 * 0.0014)
+    bigger = SensorConfig.build(pre.replace(fx=pre.fx * 2, fy=pre.fy * 2), ["axial_noise"])
+    assert hi(bigger) == pytest.approx(5 * 0.0014)                   # never narrower than the device's
+
+
+def test_rolling_shutter_reference_row():
+    from synth.sensor.effects.rolling_shutter import row_times_frames
+    H, rt, dt = 5, 0.02, 0.04
+    np.testing.assert_allclose(row_times_frames(H, rt, dt), [-0.25, -0.125, 0, 0.125, 0.25])   # centre row at 0
+    np.testing.assert_allclose(row_times_frames(H, rt, dt, 0.0), [0, 0.125, 0.25, 0.375, 0.5])  # first row at 0
+    keys = {s.key for s in param_specs(SensorConfig.build("kinect_v1", ["rolling_shutter"]))}
+    assert "rolling_shutter.reference_row" in keys
