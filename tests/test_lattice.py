@@ -49,3 +49,26 @@ def test_no_lattice_no_detection(ratio):
     d, di = _measure(ratio, quantise=False, seed=7)
     assert detect_lattice(d, di, fb=FB) is None
     assert detect_lattice(d, fb=FB) is None
+
+
+def test_real_kinect_v1_depth_is_on_one_disparity_lattice():
+    """Real Kinect v1 captures of two datasets (TUM fr1/xyz: 1/5000 m PNG; 7-Scenes chess: mm PNG),
+    from the measured depth alone, both lie on a lattice in f b / z, and on the same one: the
+    device's 1/8 px code (0.125 px). f b = 580 px x 0.075 m is assumed for both (the step scales
+    with it). Ported from the alternative lattice of branch lab2 (its detector: R 0.86 / 0.95,
+    step 0.1254 / 0.1260 px). Skipped without ../shared."""
+    import cv2
+
+    from tests.conftest import shared_path
+    fb = 580.0 * 0.075
+    out = []
+    for folder, pattern, unit in (("tum_fr1_xyz_10", "depth/*.png", 1 / 5000.0),
+                                  ("sevenscenes_chess_1000", "frame-*.depth.png", 1 / 1000.0)):
+        files = sorted(shared_path(folder).glob(pattern))[:5]
+        assert files, folder
+        z = np.concatenate([cv2.imread(str(f), cv2.IMREAD_UNCHANGED).astype(np.float64).ravel() for f in files])
+        z = z[(z > 0) & (z < 65535)] * unit
+        r = detect_lattice(fb / z, fb=fb, depth_unit_m=unit)
+        assert r is not None and r.concentration > 0.5, (folder, r)
+        out.append(r.step_px)
+    assert out[0] == pytest.approx(out[1], rel=0.03) and out[0] == pytest.approx(0.125, rel=0.03), out
