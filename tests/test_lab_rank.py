@@ -86,3 +86,24 @@ def test_rolling_shutter_reference_row():
     np.testing.assert_allclose(row_times_frames(H, rt, dt, 0.0), [0, 0.125, 0.25, 0.375, 0.5])  # first row at 0
     keys = {s.key for s in param_specs(SensorConfig.build("kinect_v1", ["rolling_shutter"]))}
     assert "rolling_shutter.reference_row" in keys
+
+
+def test_edge_fattening_jump_threshold_from_hand_made_edges():
+    # columns: foreground stripes at 1.0 m in front of backgrounds nearer or farther; the pixel right
+    # behind a stripe carries the foreground depth only across jumps of 30 % and more
+    from synth.sensor.effects.edge_fattening import _jump_threshold
+    z = np.full((60, 120), 2.0, np.float32)
+    m = z.copy()
+    for k, bg in enumerate((1.08, 1.12, 1.2, 1.6, 2.0, 3.0)):        # jumps 7, 11, 17, 38, 50, 67 %
+        c0 = 20 * k
+        z[:, c0:c0 + 20] = bg
+        z[:, c0 + 8:c0 + 12] = 1.0
+        m[:, c0:c0 + 20] = bg
+        m[:, c0 + 8:c0 + 12] = 1.0
+        if 1 - 1.0 / bg >= 0.3:                                      # fattened by one pixel each side
+            m[:, c0 + 7] = m[:, c0 + 12] = 1.0
+    ok = np.ones(z.shape, bool)
+    thr = _jump_threshold([(m, z, ok)], 0.06)
+    assert thr is not None and 0.17 < thr <= 0.38, thr
+    assert _jump_threshold([(m, z, ok)], 0.35) is None              # fattened from the smallest jump looked at
+    assert _jump_threshold([(z, z, ok)], 0.06) is None               # never fattened
