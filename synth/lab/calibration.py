@@ -46,7 +46,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section",
-           "BIN_EDGES_M", "noise_curve", "curve_term", "curve_table", "noise_curve_report"]
+           "BIN_EDGES_M", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report"]
 
 
 def khoshelham_sigma_m(z: np.ndarray) -> np.ndarray:
@@ -158,16 +158,45 @@ def _pixels(o, max_pixels: int | None, seed: int) -> np.ndarray:
     return flat
 
 
+STORAGE_QUANTA_M = (1e-3, 5e-4, 2.5e-4, 2e-4, 1e-4)
+"""Depth quanta a stored depth image may carry, metres (largest first): 1 mm (7-Scenes, ROS mm
+PNGs), 1/5000 m (TUM PNGs) and finer."""
+
+
+def storage_quantum_m(depth: np.ndarray, share: float = 0.99) -> float:
+    """The depth quantum the valid values of ``depth`` (m) were stored with: the largest of
+    :data:`STORAGE_QUANTA_M` that ``share`` of them are whole multiples of; 0 when none (float
+    depth). A 7-Scenes capture converted to a TUM-layout 1/5000 m PNG still holds whole mm."""
+    v = np.asarray(depth, np.float64).ravel()
+    v = v[v > 0]
+    if v.size < 50:
+        return 0.0
+    for q in STORAGE_QUANTA_M:
+        x = v / q
+        if np.mean(np.abs(x - np.round(x)) < 2e-3) >= share:
+            return float(q)
+    return 0.0
+
+
 def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
                 edges: Sequence[float] = BIN_EDGES_M) -> tuple[np.ndarray, np.ndarray]:
     """(robust std per bin (m, NaN where a bin has too few pixels), valid pixels per bin) of the
-    ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring)."""
+    ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring).
+
+    The simulated depth is rounded to the measured depth's storage quantum
+    (:func:`storage_quantum_m`) first, as the device's driver and file did to the measurement: a
+    1 mm quantum adds 0.29 mm of spread, +28 % on the 0.36 mm of Kinect v1 noise at 0.5 m, which a
+    float simulation lacks (its near bins then read low against the measurement)."""
     e = np.asarray(edges, float)
     pooled: list[list[np.ndarray]] = [[] for _ in range(len(e) - 1)]
     for o in observations:
         flat = _pixels(o, max_pixels, seed)
         z = o.ideal.reshape(-1)[flat].astype(np.float64)
         d = getattr(o, side).reshape(-1)[flat].astype(np.float64)
+        if side == "simulated":
+            q = storage_quantum_m(o.measured.reshape(-1)[flat])
+            if q > 0:
+                d = np.where(d > 0, np.maximum(np.round(d / q), 1.0) * q, d)
         ok = d > 0
         b = np.searchsorted(e, z, side="right") - 1
         for k in range(len(e) - 1):
