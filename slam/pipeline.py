@@ -424,7 +424,7 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
             bar.close()
             raise
         bar.close()
-    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta)
+    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend)
 
 
 def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
@@ -479,13 +479,14 @@ def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, 
     bar.close()
 
 
-def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> SlamResult:
+def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend=None) -> SlamResult:
     ok = [(r["timestamp"], np.asarray(p).reshape(4, 4)) for r, p in zip(records, poses) if p is not None]
     failed = [r["timestamp"] for r in records if r["failed"]]
     spent = sum(timing.values())
     n = len(records)
     traj = Trajectory([t for t, _ in ok], [p for _, p in ok]) if ok else None
     mesh_info = None
+    t_write = time.perf_counter()
     if traj is not None:
         write_tum(out / "trajectory.txt", traj,
                   header=f"realgap slam {cfg.backend}: camera-to-world poses of the registered frames")
@@ -505,6 +506,9 @@ def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> Slam
         "frames_per_second": (n / spent) if spent > 0 else None,
         "seconds": spent,
         "timing_ms_per_frame": {k.removesuffix("_s"): (1000 * v / n if n else None) for k, v in timing.items()},
+        "stage_ms_per_frame": {k: (1000 * v / n if n else None)
+                               for k, v in getattr(backend, "stage_times", {}).items()},
+        "write_s": time.perf_counter() - t_write,
         "failed_timestamps": failed,
         "mesh": mesh_info,
         "complete": True,

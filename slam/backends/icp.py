@@ -29,6 +29,7 @@ Why the defaults (one reason each; the ablations and their ATEs are in docs/slam
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -36,12 +37,13 @@ import numpy as np
 
 from data_tools.camera import Intrinsics
 from data_tools.errors import ConfigError
+from data_tools.geometry import rotation_angle_rad
 from slam.backends._features import orb_features, pnp_guess
 from slam.backends._pyramid import (Level, Pyramid, SolveResult, downsample_depth, downsample_image,
                                     icp_point_to_plane, normal_map, smooth_normal_map)
 from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
                                register_backend)
-from slam.tsdf import o3d_quiet
+from slam.tsdf import RaycastResult, o3d_quiet
 
 
 @dataclass
@@ -73,6 +75,22 @@ class ICPConfig(TrackingCheckConfig):
     raycast_scale: float = 0.5
     """Resolution of the model ray cast relative to the frame (1, 0.5 or 0.25): the model view is
     the target of projective association; half resolution costs a quarter of the ray casting."""
+    convergence_eps: float = 1e-6
+    """A stage stops early when a Gauss-Newton step moves less than this (metres and radians)."""
+    raycaster: str = "kernel"
+    """Model ray caster: ``kernel`` (:mod:`slam.raycast_kernel`: marches the trilinear TSDF from
+    the last fused depth, sub-voxel hits with the same verification as ``refine_model``) or
+    ``open3d`` (Open3D's ray cast, then ``refine_model`` / ``repair_model`` on its hits). The
+    kernel needs ``model_normals = depth`` and ``refine_model``; otherwise Open3D's is used."""
+    raycast_every: int = 1
+    """Ray cast the model at most every this many frames: in between, the frame is registered
+    to the last model view (1 = every frame, KinectFusion)."""
+    recast_translation_m: float = 0.05
+    """With ``raycast_every`` > 1: ray cast anyway once the camera is farther than this from
+    the pose of the last model view, metres."""
+    recast_rotation_deg: float = 3.0
+    """With ``raycast_every`` > 1: ray cast anyway once the camera turned more than this from
+    the pose of the last model view, degrees."""
     min_correspondences: int = 1000
     """Fail when the finest stage has fewer inlier correspondences."""
     min_fitness: float = 0.2
@@ -100,10 +118,14 @@ class ICPConfig(TrackingCheckConfig):
             raise ConfigError("ICPConfig: iterations must be >= 1 and max_correspondence_m > 0")
         if self.raycast_scale not in (1.0, 0.5, 0.25):
             raise ConfigError(f"ICPConfig.raycast_scale must be 1, 0.5 or 0.25, got {self.raycast_scale}")
+        if self.raycaster not in ("kernel", "open3d"):
+            raise ConfigError(f"ICPConfig.raycaster must be kernel or open3d, got {self.raycaster!r}")
         if self.model_normals not in ("depth", "tsdf"):
             raise ConfigError(f"ICPConfig.model_normals must be depth or tsdf, got {self.model_normals!r}")
         self.validate_checks()
-        check_positive(self, "fitness_drop_ratio", "huber_delta_m", "disparity_noise_px", allow_zero=True)
+        check_positive(self, "fitness_drop_ratio", "huber_delta_m", "disparity_noise_px", "convergence_eps",
+                       "recast_translation_m", "recast_rotation_deg", allow_zero=True)
+        check_positive(self, "raycast_every")
         return self
 
 
@@ -117,10 +139,20 @@ class ModelView:
 
     def __init__(self, volume, intr: Intrinsics, pose_c2w: np.ndarray, n_levels: int, max_diff_m: float,
                  normals: str = "depth", refine: bool = False, repair: bool = False,
-                 noise_depth_m: float = 0.0):
-        r = volume.raycast(intr, pose_c2w, with_color=False, with_normal=normals == "tsdf",
-                           block_coords=volume.last_block_coords, refine=refine, repair=repair,
-                           with_weight=noise_depth_m > 0)
+                 noise_depth_m: float = 0.0, raycaster: str = "open3d", hint: np.ndarray | None = None,
+                 times: dict | None = None):
+        t0 = time.perf_counter()
+        if raycaster == "kernel":
+            from slam.raycast_kernel import cast_model
+            d, w = cast_model(volume, intr, pose_c2w, hint)
+            r = RaycastResult(d, None, None, w if noise_depth_m > 0 else None)
+        else:
+            r = volume.raycast(intr, pose_c2w, with_color=False, with_normal=normals == "tsdf",
+                               block_coords=volume.last_block_coords, refine=refine, repair=repair,
+                               with_weight=noise_depth_m > 0, times=times)
+        t1 = time.perf_counter()
+        if times is not None and raycaster == "kernel":
+            times["raycast_kernel"] = times.get("raycast_kernel", 0.0) + t1 - t0
         depth = r.depth.copy()
         miss = ~(depth > 0)
         depth[miss] = np.nan
@@ -144,6 +176,8 @@ class ModelView:
                 obs = downsample_image(obs)
             self._unit_normals.append(nrm)
             self.levels.append((lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K()))
+        if times is not None:
+            times["model_normals"] = times.get("model_normals", 0.0) + time.perf_counter() - t1
 
     def unit_level(self, k: int):
         """Level k with unit normals (the failure-check statistics read one level per frame; without
@@ -205,6 +239,9 @@ class ICPBackend(RegistrationBackend):
         self._kf_features = None
         self._view: ModelView | None = None
         self._view_key = None
+        self.stage_times: dict[str, float] = {}
+        """Seconds spent per tracking stage so far (raycast, model_normals, pyramid,
+        icp_level<l>, icp_stats): the profile in stats.json and the benchmark."""
 
     # ---------------------------------------------------------------- helpers
     def depth_noise_per_m(self) -> float:
@@ -217,26 +254,55 @@ class ICPBackend(RegistrationBackend):
             return 0.0
         return self.config.disparity_noise_px / (self.intrinsics.fx * sensor.baseline_m)
 
+    def _view_is_current(self, volume) -> bool:
+        """Whether the last model view may serve the next frame too (``raycast_every``)."""
+        if self._view is None or self._view_key is None:
+            return False
+        n_view, pose_view, count = self._view_key
+        if n_view == volume.frames_integrated and np.array_equal(pose_view, self.last_pose):
+            return True
+        c = self.config
+        if count + 1 >= c.raycast_every:
+            return False
+        D = np.linalg.inv(pose_view) @ self.last_pose
+        return (np.linalg.norm(D[:3, 3]) <= c.recast_translation_m
+                and math.degrees(rotation_angle_rad(D[:3, :3])) <= c.recast_rotation_deg)
+
     def _model_view(self, volume) -> ModelView:
-        key = (volume.frames_integrated, self.last_pose.tobytes())
-        if self._view_key != key:
+        if self._view_is_current(volume):
+            n_view, pose_view, count = self._view_key
+            if not (n_view == volume.frames_integrated and np.array_equal(pose_view, self.last_pose)):
+                self._view_key = (n_view, pose_view, count + 1)
+        else:
             c = self.config
             k = self.depth_noise_per_m()
             sigma0 = self.tsdf_config.voxel_size_m / math.sqrt(12.0)
             noise_depth = math.sqrt(sigma0 / k) if k > 0 else 0.0
+            kernel = c.raycaster == "kernel" and c.model_normals == "depth" and c.refine_model
+            hint = None
+            if kernel and self._kf_depth is not None:
+                from slam.raycast_kernel import min_pool
+                hint = min_pool(self._kf_depth, 2 ** self._ray_down)
             self._view = ModelView(volume, self._ray_intr, self.last_pose, self._n_tgt_levels,
                                    self.tsdf_config.sdf_trunc_m * 2, c.model_normals,
-                                   c.refine_model, c.repair_model, noise_depth)
-            self._view_key = key
+                                   c.refine_model, c.repair_model, noise_depth,
+                                   "kernel" if kernel else "open3d", hint, self.stage_times)
+            self._view_key = (volume.frames_integrated, self.last_pose.copy(), 0)
         return self._view
 
     def _solve(self, pyr: Pyramid, view: ModelView, init_rel: np.ndarray) -> SolveResult:
         c = self.config
         src = [pyr[l] for l in c.source_levels]
         tgt = [view.levels[max(0, l - self._ray_down)] for l in c.source_levels]
-        return icp_point_to_plane(src, tgt, init_rel, list(c.iterations), list(c.max_correspondence_m),
-                                  c.huber_delta_m,
-                                  stats_target=view.unit_level(max(0, c.source_levels[-1] - self._ray_down)))
+        times: list[float] = []
+        sol = icp_point_to_plane(src, tgt, init_rel, list(c.iterations), list(c.max_correspondence_m),
+                                 c.huber_delta_m, c.convergence_eps,
+                                 stats_target=view.unit_level(max(0, c.source_levels[-1] - self._ray_down)),
+                                 stage_times=times)
+        names = [f"icp_level{l}" for l in c.source_levels[:len(times) - 1]] + ["icp_stats"]
+        for name, dt in zip(names, times):
+            self.stage_times[name] = self.stage_times.get(name, 0.0) + dt
+        return sol
 
     def _check(self, sol: SolveResult, pose: np.ndarray, t: float) -> str:
         return self.config.check_solution(sol, self.last_pose, pose, t - self.last_t, self.fitness_history,
@@ -269,12 +335,17 @@ class ICPBackend(RegistrationBackend):
             pose = np.eye(4)
             self._accept(frame, pose, None)
             return TrackResult(pose, None, None, False, "first frame: defines the world frame")
+        t0 = time.perf_counter()
         pyr = Pyramid(depth, self.intrinsics, self._n_src_levels, self.tsdf_config.depth_min_m,
                       self.tsdf_config.depth_max_m, None, self.tsdf_config.sdf_trunc_m * 2)
+        for lvl in pyr.levels:
+            lvl.vertex_np()
+        self.stage_times["pyramid"] = self.stage_times.get("pyramid", 0.0) + time.perf_counter() - t0
         view = self._model_view(volume)
         if view.valid < c.min_correspondences:
             return self._fail(f"model view has too few surface pixels ({view.valid})")
-        T_inv_last = np.linalg.inv(self.last_pose)
+        view_pose = self._view_key[1]           # the model view's camera-to-world pose
+        T_inv_view = np.linalg.inv(view_pose)
         t = float(frame.timestamp)
         first_reason = ""
         tried = []
@@ -284,8 +355,8 @@ class ICPBackend(RegistrationBackend):
             if any(np.allclose(guess, g, atol=1e-9) for g in tried):
                 continue
             tried.append(guess)
-            sol = self._solve(pyr, view, T_inv_last @ guess)
-            pose = self.last_pose @ sol.transformation
+            sol = self._solve(pyr, view, T_inv_view @ guess)
+            pose = view_pose @ sol.transformation
             reason = self._check(sol, pose, t)
             if not reason:
                 relocalised = bool(first_reason)
