@@ -74,6 +74,10 @@ class SlamConfig:
     """The first N frames (after ``frame_step``); 0 = every frame (the command line's --max-frames takes N >= 1)."""
     checkpoint_every: int = 100
     """Write a resumable checkpoint every this many frames."""
+    fuse_every: int = 1
+    """Fuse every n-th frame of the sequence (after ``frame_step``) into the TSDF, the tracked
+    frames in between only registered: at camera rate consecutive frames see nearly the same
+    surface, and fusion is a large share of the run time (1 = every frame)."""
     save_volume: bool = False
     """Also save the TSDF volume (RUN/volume.npz; large) for rendering from the volume."""
 
@@ -83,7 +87,7 @@ class SlamConfig:
             self.backend_config = config_from_dict(cls, self.backend_config or {}, "backend_config")
 
     def validate(self) -> "SlamConfig":
-        check_positive(self, "frame_step", "checkpoint_every")
+        check_positive(self, "frame_step", "checkpoint_every", "fuse_every")
         check_positive(self, "max_frames", allow_zero=True)
         self.tsdf.validate()
         cls = get_backend(self.backend).Config
@@ -442,14 +446,19 @@ def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: boo
     res = backend.track(frame, volume)
     t2 = time.perf_counter()
     timing["track_s"] += t2 - t1
-    if not res.failed:
+    if not res.failed and _fused(cfg, i):
         volume.integrate(frame.depth, frame.rgb, intr, res.pose)
         timing["integrate_s"] += time.perf_counter() - t2
     return res
 
 
+def _fused(cfg: SlamConfig, index: int) -> bool:
+    """Whether the registered frame ``index`` (of the sequence) is fused (``fuse_every``)."""
+    return (index // cfg.frame_step) % cfg.fuse_every == 0
+
+
 def _reintegrate(reader, volume, records, poses, cfg, intr, progress) -> None:
-    todo = [(r["index"], p) for r, p in zip(records, poses) if p is not None]
+    todo = [(r["index"], p) for r, p in zip(records, poses) if p is not None and _fused(cfg, r["index"])]
     bar = _Progress(progress and len(todo) > 0, len(todo), 0, "resume: re-integrating")
     for i, p in todo:
         f = reader[i]
@@ -468,7 +477,7 @@ def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, 
     for i, res in zip(indices, results):
         records.append(res.record(reader.timestamps[i], i))
         poses.append(None if res.failed else res.pose.reshape(-1).tolist())
-        if not res.failed:
+        if not res.failed and _fused(cfg, i):
             t1 = time.perf_counter()
             f = reader[i]
             t2 = time.perf_counter()

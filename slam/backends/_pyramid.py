@@ -15,12 +15,13 @@ foreground and background are not averaged into flying pixels). Intrinsics follo
 :meth:`Intrinsics.scaled` (2x2 means move the sample centre by half a pixel).
 
 Reproducibility: Open3D's odometry kernels sum the normal equations over pixels on all its
-threads, in an order set by the thread schedule, so a registration differed in the last bits
-from run to run (trajectories ~1e-6 m apart after 60 frames). Every kernel call here runs on
-one Open3D thread (:func:`_odometry_kernels`): ``slam run`` is bit-reproducible on one machine,
-at a measured cost of 6 % of the run time (60 VGA frames of the simulated room: 8.5 -> 9.0 s).
-The TSDF integration and ray casting stay multi-threaded (they write independent voxels and
-pixels and are deterministic).
+threads, in an order set by the thread schedule, so a registration differs in the last bits
+from run to run. The point-to-plane ICP here (:func:`icp_point_to_plane`, the ``icp``
+backend) uses :mod:`slam.backends._p2p_kernel` instead, whose sums have a fixed order: the same
+bits on any number of threads, both cores used. The RGB-D odometry kernels of
+:func:`rgbd_hybrid` (the ``rgbd_odometry`` backend) still run on one Open3D thread
+(:func:`_odometry_kernels`). TSDF integration and ray casting write independent voxels and
+pixels and are deterministic on any number of threads.
 """
 from __future__ import annotations
 

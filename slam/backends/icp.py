@@ -1,10 +1,11 @@
 """``icp``: KinectFusion-style frame-to-model tracking against the fused TSDF volume.
 
-For every frame the TSDF model is ray cast from the previous tracked pose (in the frustum of
-the last fused frame; by default every hit verified and refined to the zero of the trilinear
-TSDF, see ``refine_model``; vertex map, and normals from the bilateral-filtered model depth), and
-the new depth image is registered to that model view with coarse-to-fine projective
-point-to-plane ICP (see :mod:`slam.backends._pyramid`). The initial guess is the previous pose, or that pose moved by
+For every frame the TSDF model is ray cast from the previous tracked pose (by default with the
+numba ray caster of :mod:`slam.raycast_kernel`, every hit at the zero of the trilinear TSDF and
+verified, see ``raycaster`` and ``refine_model``; vertex map, and normals from the
+bilateral-filtered model depth), and the new depth image is registered to that model view with
+coarse-to-fine projective point-to-plane ICP (see :mod:`slam.backends._pyramid`; its sums have a
+fixed order, so a run gives the same bits on any number of threads). The initial guess is the previous pose, or that pose moved by
 the last inter-frame motion (``motion_model = constant_velocity``).
 
 Failure check (a frame is never silently accepted): too few valid depth pixels, too few
@@ -14,7 +15,12 @@ the trajectory and not fused. Re-localisation then tries other initial guesses a
 model at the last good pose: the static guess and an ORB/PnP guess from the last good frame
 (keyframe); a guess is accepted only if the dense ICP started from it passes the same checks.
 
-Why the defaults (one reason each; the ablations and their ATEs are in docs/slam.md):
+Why the defaults (one reason each; the ablations, their ATEs and speeds are in docs/slam.md
+and docs/performance.md):
+
+* ``raycaster = kernel``: Open3D's ray cast followed by the refinement and repair of its hits
+  cost about three times as much as one march of the trilinear TSDF that starts near the last
+  fused depth and gives verified sub-voxel hits directly.
 
 * ``refine_model``: Open3D's raw ray cast lies several millimetres in front of the surface and misses
   some hits, which biases the pose in weakly constrained views; every hit is moved to the zero of the
