@@ -1,31 +1,37 @@
 """Benchmark: accuracy (ATE) and speed (frames/s) of the SLAM backends on real data, next to
-Open3D's own pipelines measured in the same run.
+Open3D's own pipelines measured in the same run, and a per-stage profile of our runs.
 
     .venv/bin/python benchmarks/bench_slam.py [--frames 1000] [--datasets chess,tum] [--work DIR]
 
 Datasets (from ../shared/data; skipped when absent):
   chess : 7-Scenes chess, 1000 frames 640x480 (converted once to TUM layout in --work with
           data_tools.sevenscenes), reference = KinectFusion poses (not a metric ground
-          truth; see ICPConfig.refine_model and ICPConfig.disparity_noise_px for why the
-          unweighted refined model drifted against it).                Target: ATE <= 3 cm
+          truth).                                      Target: icp ATE <= 2 cm at >= 15 frames/s
   tum   : TUM fr1/xyz, 10 frames, fr1 intrinsics (517.3, 516.5, 318.6, 255.3), mocap reference.
                                                                         Target: icp ATE <= 1.5 cm
   room_sN : the ``realgap demo`` sequence (built-in room, 60 frames walkthrough, kinect_v1
           physical simulation) for seeds N = 0, 1, 2, generated once in --work; exact
           ground truth.                                                 Target: icp ATE <= 1 cm
 Methods:
-  icp            ours, frame-to-model ICP + TSDF (realgap slam run --backend icp)
-  icp_raw        the same with --icp.refine_model false (tracks Open3D's raw ray cast)
+  icp            ours, frame-to-model ICP + TSDF (realgap slam run --backend icp, defaults)
+  icp_o3d_cast   the same with --icp.raycaster open3d: Open3D's ray cast + refinement + repair
+                 of its hits (the tracker before the numba ray caster): the same-run baseline
+  icp_raw        --icp.raycaster open3d --icp.refine_model false (tracks Open3D's raw ray cast)
   rgbd_odometry  ours, frame-to-frame hybrid RGB-D odometry + TSDF fusion
   o3d_odometry   Open3D's plain frame-to-frame odometry: rgbd_odometry_multi_scale with its
                  defaults (hybrid, iterations 10/5/3), no fusion (speed baseline)
   o3d_odometry_tsdf  the same plus fusion into our TSDF (like-for-like with rgbd_odometry)
-  o3d_dense_slam Open3D's dense SLAM (t.pipelines.slam.Model: track_frame_to_model +
-                 integrate + synthesize_model_frame), same voxel size and depth range as ours
-Speed targets on this 2-core CPU: rgbd_odometry + TSDF >= 10 frames/s, icp >= 5 frames/s.
-frames/s counts reading the images, registering and fusing (what ``slam run`` reports). The
-machine may be shared: the load average is printed before and after and with every row, next
-to the CPU time per frame of all threads (process time, including set-up and mesh export).
+  o3d_dense_slam Open3D's tensor SLAM pipeline on the CPU device (open3d.t.pipelines.slam.Model:
+                 track_frame_to_model + integrate + synthesize_model_frame), same voxel size and
+                 depth range as ours
+frames/s counts reading the images, registering and fusing (what ``slam run`` reports); "end to
+end" is frames / wall time of the whole ``run_slam`` call (set-up, trajectory and mesh written).
+The per-stage table splits our runs' milliseconds per frame: read, track (= the tracker's stages:
+pyramid, model ray cast (kernel, or Open3D's cast + refine + repair), model normals, ICP per
+source pyramid level, statistics, plus the failure checks), integrate and write. The machine may
+be shared: the load average is printed before and after and with every row, next to the CPU
+time per frame of all threads (process time, including set-up and mesh export); compare rows of
+one invocation only.
 """
 from __future__ import annotations
 

@@ -7,7 +7,8 @@ depth a hint image (the last fused frame's depth, whose pose is the pose of the 
 minus three truncation distances, or ``depth_min`` where it has none. Steps: half a block across
 unallocated blocks, one voxel across unobserved voxels, 0.8 x the signed distance (at least one
 voxel) in observed free space. The first observed + to - change of the nearest-voxel TSDF
-brackets the surface; a secant step and three Newton steps on the trilinear TSDF find its zero,
+brackets the surface; a secant step and five Newton steps on the trilinear TSDF find its zero
+(regula falsi between the bracketing samples where Newton leaves the bracket),
 which is kept only when all 8 corners of its cell are observed (weight >= the threshold) and the
 trilinear TSDF there is within a quarter voxel of zero (the same check as ``raycast(refine=True)``);
 otherwise the pixel is a miss. A jump out of an unallocated block that lands behind a surface is
@@ -25,6 +26,11 @@ import numpy as np
 from numba import njit, prange
 
 from slam.backends._p2p_kernel import _numba_config  # noqa: F401  (threading layer choice)
+
+
+_NEWTON, _MAX_STEP, _WINDOW = 5, 2.0, 3.0
+"""Newton steps on the trilinear TSDF, the largest step taken (voxels along the ray), and how far
+the zero may lie from the secant estimate of the bracketing samples (voxels)."""
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -160,7 +166,7 @@ def march(tsdf, weight, table, lo, shift, vs, trunc_mult, w_min, fx, fy, cx, cy,
             ok = False
             f = 1.0
             wm = 0.0
-            for _ in range(3):
+            for _ in range(_NEWTON):
                 f, gx, gy, gz, ok, wm = _trilinear(C[0] + zn * dx, C[1] + zn * dy, C[2] + zn * dz, tsdf, weight,
                                                     w_min, inv_vs, table, lo0, lo1, lo2, shift, mask)
                 if not ok:
@@ -168,12 +174,36 @@ def march(tsdf, weight, table, lo, shift, vs, trunc_mult, w_min, fx, fy, cx, cy,
                 dfdz = (gx * dx + gy * dy + gz * dz) * inv_vs
                 if dfdz < -1e-9:
                     st = -f / dfdz
-                    if abs(st) <= vstep:
+                    if abs(st) <= _MAX_STEP * vstep:
                         zn += st
             if ok:
                 f, gx, gy, gz, ok, wm = _trilinear(C[0] + zn * dx, C[1] + zn * dy, C[2] + zn * dz, tsdf, weight,
                                                     w_min, inv_vs, table, lo0, lo1, lo2, shift, mask)
-            if ok and abs(f) <= tol and abs(zn - zs) <= 2.0 * vstep and zn > 0:
+            if not (ok and abs(f) <= tol and abs(zn - zs) <= _WINDOW * vstep):
+                # Newton left the bracket or stalled (edges, non-monotonic cells): regula falsi
+                # on the trilinear TSDF between the bracketing samples, when it brackets a zero
+                ok = False
+                fa_t, _, _, _, oka, _ = _trilinear(C[0] + za * dx, C[1] + za * dy, C[2] + za * dz, tsdf, weight,
+                                                   w_min, inv_vs, table, lo0, lo1, lo2, shift, mask)
+                fb_t, _, _, _, okb, _ = _trilinear(C[0] + zb * dx, C[1] + zb * dy, C[2] + zb * dz, tsdf, weight,
+                                                   w_min, inv_vs, table, lo0, lo1, lo2, shift, mask)
+                if oka and okb and fa_t > 0 and fb_t <= 0:
+                    lo_z, hi_z, flo, fhi = za, zb, fa_t, fb_t
+                    zn = zs
+                    for _ in range(12):
+                        zn = lo_z + flo / (flo - fhi) * (hi_z - lo_z)
+                        f, gx, gy, gz, ok, wm = _trilinear(C[0] + zn * dx, C[1] + zn * dy, C[2] + zn * dz, tsdf,
+                                                            weight, w_min, inv_vs, table, lo0, lo1, lo2, shift, mask)
+                        if not ok or abs(f) <= 0.05 * tol:
+                            break
+                        if f > 0:
+                            lo_z, flo = zn, f
+                            fhi *= 0.5
+                        else:
+                            hi_z, fhi = zn, f
+                            flo *= 0.5
+                    zs = zn
+            if ok and abs(f) <= tol and abs(zn - zs) <= _WINDOW * vstep and zn > 0:
                 depth[v, u] = np.float32(zn)
                 wout[v, u] = np.float32(wm)
     return depth, wout

@@ -49,7 +49,7 @@ from slam.backends._pyramid import (Level, Pyramid, SolveResult, downsample_dept
                                     icp_point_to_plane, normal_map, smooth_normal_map)
 from slam.registration import (RegistrationBackend, TrackingCheckConfig, TrackResult, check_positive,
                                register_backend)
-from slam.tsdf import RaycastResult, o3d_quiet
+from slam.tsdf import RaycastResult
 
 
 @dataclass
@@ -136,7 +136,7 @@ class ICPConfig(TrackingCheckConfig):
 
 
 class ModelView:
-    """The ray-cast model at one pose as a target pyramid of (vertex, normal, K) tensors.
+    """The ray-cast model at one pose as a target pyramid of (vertex, normal, K) numpy arrays.
 
     ``levels[k]`` holds the normals scaled by the square root of the residual weight of each
     model point (see ``ICPConfig.disparity_noise_px``; unit normals without weighting), used by
@@ -174,14 +174,14 @@ class ModelView:
         obs = r.weight
         self._unit_normals = [nrm]     # (H, W, 3) float32 unit normals per level (for unit_level)
         self._weighted_levels = weighted
-        self.levels = [(lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K())]
+        self.levels = [(lvl.vertex_np(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.intr.K)]
         for _ in range(1, n_levels):
             lvl = Level(downsample_depth(lvl.depth, max_diff_m), lvl.intr.scaled(0.5))
             nrm = normal_map(lvl.vertex_np(), max_diff_m)
             if obs is not None:
                 obs = downsample_image(obs)
             self._unit_normals.append(nrm)
-            self.levels.append((lvl.vertex(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.K()))
+            self.levels.append((lvl.vertex_np(), self._weighted(nrm, lvl.vertex_np(), noise_depth_m, obs), lvl.intr.K))
         if times is not None:
             times["model_normals"] = times.get("model_normals", 0.0) + time.perf_counter() - t1
 
@@ -190,21 +190,19 @@ class ModelView:
         weighting it is ``levels[k]`` itself)."""
         if not self._weighted_levels:
             return self.levels[k]
-        o3d = o3d_quiet()
         vertex, _, K = self.levels[k]
-        return vertex, o3d.core.Tensor(self._unit_normals[k]), K
+        return vertex, self._unit_normals[k], K
 
     @staticmethod
     def _weighted(nrm: np.ndarray, vertex: np.ndarray, noise_depth_m: float, obs: np.ndarray | None = None):
-        """Normals (H, W, 3) times sqrt(w) as an Open3D tensor, w = 1 / (1 + q^2 (1 + 1 / n)),
+        """Normals (H, W, 3) float32 times sqrt(w), w = 1 / (1 + q^2 (1 + 1 / n)),
         q = z^2 cos / z0^2, with z0 = ``noise_depth_m`` (the depth at which the sensor noise
         equals the model noise, see ``ICPConfig.disparity_noise_px``), cos = |n . ray| (depth
         noise lies along the viewing ray, so a point-to-plane residual sees cos times it) and
         n = ``obs``, the observations fused at the model point (a model point seen n times
         carries 1/n of a frame's noise; None = many); unit normals when z0 is 0."""
-        o3d = o3d_quiet()
         if not noise_depth_m > 0:
-            return o3d.core.Tensor(np.ascontiguousarray(nrm, dtype=np.float32))
+            return np.ascontiguousarray(nrm, dtype=np.float32)
         x, y, z = vertex[..., 0], vertex[..., 1], vertex[..., 2]
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             r = np.sqrt(x * x + y * y + z * z)
@@ -214,7 +212,7 @@ class ModelView:
             if obs is not None:
                 q2 = q2 * (1.0 + 1.0 / np.maximum(obs, np.float32(1.0)))
             scale = (1.0 / np.sqrt(1.0 + q2)).astype(np.float32)
-        return o3d.core.Tensor(np.ascontiguousarray(nrm * scale[..., None], dtype=np.float32))
+        return np.ascontiguousarray(nrm * scale[..., None], dtype=np.float32)
 
 
 @register_backend
@@ -344,8 +342,8 @@ class ICPBackend(RegistrationBackend):
         t0 = time.perf_counter()
         pyr = Pyramid(depth, self.intrinsics, self._n_src_levels, self.tsdf_config.depth_min_m,
                       self.tsdf_config.depth_max_m, None, self.tsdf_config.sdf_trunc_m * 2)
-        for lvl in pyr.levels:
-            lvl.vertex_np()
+        for l in set(c.source_levels):
+            pyr[l].vertex_np()
         self.stage_times["pyramid"] = self.stage_times.get("pyramid", 0.0) + time.perf_counter() - t0
         view = self._model_view(volume)
         if view.valid < c.min_correspondences:
@@ -396,6 +394,11 @@ class ICPBackend(RegistrationBackend):
 
     # ---------------------------------------------------------------- resume
     def state_dict(self) -> dict:
+        """The tracking state for a checkpoint. Also drops the cached model view, so that the
+        next frame is registered to a fresh ray cast in this run as in a run resumed from this
+        checkpoint (``raycast_every`` > 1 keeps a resumed run identical)."""
+        self._view = None
+        self._view_key = None
         return {"last_pose": None if self.last_pose is None else self.last_pose.reshape(-1).tolist(),
                 "prev_pose": None if self.prev_pose is None else self.prev_pose.reshape(-1).tolist(),
                 "last_t": self.last_t, "last_index": self.last_index,
