@@ -74,10 +74,6 @@ class SlamConfig:
     """The first N frames (after ``frame_step``); 0 = every frame (the command line's --max-frames takes N >= 1)."""
     checkpoint_every: int = 100
     """Write a resumable checkpoint every this many frames."""
-    fuse_every: int = 1
-    """Fuse every n-th frame of the sequence (after ``frame_step``) into the TSDF, the tracked
-    frames in between only registered: at camera rate consecutive frames see nearly the same
-    surface, and fusion is a large share of the run time (1 = every frame)."""
     save_volume: bool = False
     """Also save the TSDF volume (RUN/volume.npz; large) for rendering from the volume."""
 
@@ -87,7 +83,7 @@ class SlamConfig:
             self.backend_config = config_from_dict(cls, self.backend_config or {}, "backend_config")
 
     def validate(self) -> "SlamConfig":
-        check_positive(self, "frame_step", "checkpoint_every", "fuse_every")
+        check_positive(self, "frame_step", "checkpoint_every")
         check_positive(self, "max_frames", allow_zero=True)
         self.tsdf.validate()
         cls = get_backend(self.backend).Config
@@ -453,8 +449,10 @@ def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: boo
 
 
 def _fused(cfg: SlamConfig, index: int) -> bool:
-    """Whether the registered frame ``index`` (of the sequence) is fused (``fuse_every``)."""
-    return (index // cfg.frame_step) % cfg.fuse_every == 0
+    """Whether the registered frame ``index`` (of the sequence) is fused: every frame, or every
+    n-th with a backend option ``fuse_every`` = n (counted after ``frame_step``)."""
+    every = int(getattr(cfg.backend_config, "fuse_every", 1) or 1)
+    return (index // cfg.frame_step) % every == 0
 
 
 def _reintegrate(reader, volume, records, poses, cfg, intr, progress) -> None:

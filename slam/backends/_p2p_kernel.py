@@ -31,8 +31,7 @@ _NACC = 29
 sum of squared unweighted residuals."""
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def _band_sums(src_v, tgt_v, tgt_n, fx, fy, cx, cy, T, max_dist, huber):
+def _band_sums_py(src_v, tgt_v, tgt_n, fx, fy, cx, cy, T, max_dist, huber):
     H, W = src_v.shape[0], src_v.shape[1]
     Ht, Wt = tgt_v.shape[0], tgt_v.shape[1]
     nb = (H + _ROWS - 1) // _ROWS
@@ -164,6 +163,14 @@ def _band_sums(src_v, tgt_v, tgt_n, fx, fy, cx, cy, T, max_dist, huber):
     return out
 
 
+_band_sums = njit(parallel=True, cache=True, nogil=True)(_band_sums_py)
+_band_sums_serial = njit(cache=True, nogil=True)(_band_sums_py)
+"""The same bands on the calling thread only: identical sums (the same per-band code and order),
+for small images where waking the worker threads costs more than the work."""
+_PARALLEL_MIN_PIXELS = 40000
+"""Source images with fewer pixels are summed on the calling thread."""
+
+
 @njit(cache=True, nogil=True)
 def _ordered_sum(parts):
     tot = np.zeros(parts.shape[1])
@@ -179,7 +186,8 @@ def normal_equations(src_v: np.ndarray, tgt_v: np.ndarray, tgt_n: np.ndarray, K:
     linearisation. ``src_v`` (H, W, 3) float32 source vertices (NaN = invalid), ``tgt_v`` /
     ``tgt_n`` (Ht, Wt, 3) float32 target vertices and (possibly weight-scaled) normals, ``K``
     (3, 3) target intrinsics, ``T`` (4, 4) source-to-target; metres."""
-    tot = _ordered_sum(_band_sums(src_v, tgt_v, tgt_n, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+    fn = _band_sums if src_v.shape[0] * src_v.shape[1] >= _PARALLEL_MIN_PIXELS else _band_sums_serial
+    tot = _ordered_sum(fn(src_v, tgt_v, tgt_n, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
                                   float(K[1, 2]), np.ascontiguousarray(T, np.float64), float(max_dist), float(huber)))
     A = np.zeros((6, 6))
     A[np.triu_indices(6)] = tot[:21]
