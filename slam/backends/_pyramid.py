@@ -3,10 +3,9 @@
 Both online backends register a *source* frame to a *target* view by projective data
 association: every valid source pixel is moved by the current estimate of the
 source-to-target transform, projected into the target image with the target intrinsics, and
-paired with the target pixel it lands on (Open3D's kernels round to the nearest pixel, pixel
-centres at integer coordinates). Open3D's tensor kernels
-(``compute_odometry_result_point_to_plane`` / ``..._hybrid``) linearise and solve one
-Gauss-Newton step; the coarse-to-fine loop, the pyramids (built once per frame and reused
+paired with the target pixel it lands on (rounded to the nearest pixel, pixel centres at
+integer coordinates). A kernel linearises one Gauss-Newton step (point-to-plane:
+:mod:`slam.backends._p2p_kernel`; hybrid RGB-D: Open3D's ``compute_odometry_result_hybrid``); the coarse-to-fine loop, the pyramids (built once per frame and reused
 when a frame becomes the next target), convergence and the statistics are ours.
 
 Pyramid level 0 is the full image; level l is downsampled by 2^l with a 2x2 block mean over

@@ -34,7 +34,7 @@ and docs/performance.md):
 * ``repair_model``: dropping the hits that fail that check leaves slanted surfaces, which pin sideways
   motion, under-represented; they are searched again instead.
 * ``disparity_noise_px``: far, coarsely quantised depth dominates an unweighted fit, so each point is
-  weighted by its sensor's depth noise. Open3D's kernel has no per-point weight: the model normals are
+  weighted by its sensor's depth noise. The weight enters the ICP kernel as model normals
   scaled by sqrt(w), so the rejection distance applies to sqrt(w) x r; the failure check's fitness and
   RMS residual stay unweighted.
 """
