@@ -129,11 +129,11 @@ def print_profile(rows) -> None:
     keys = list(dict.fromkeys(k for r in ours for k in ("read", "track", "integrate", "write")))
     stages = list(dict.fromkeys(k for r in ours for k in r.get("stages", {})))
     print("\nper-stage profile, ms per frame (track = the stages below it + checks; the machine may be shared):")
-    head = f"{'dataset':8s} {'method':14s} " + " ".join(f"{k[:13]:>13s}" for k in keys + stages) + "   frames/s  e2e f/s  CPU ms"
+    head = f"{'dataset':8s} {'method':14s} " + " ".join(f"{k[:14]:>14s}" for k in keys + stages) + "   frames/s  e2e f/s  CPU ms"
     print(head)
     for r in ours:
         vals = [r["ms"].get(k) for k in keys] + [r["stages"].get(k) for k in stages]
-        print(f"{r['dataset']:8s} {r['method']:14s} " + " ".join(f"{v:13.1f}" if v is not None else f"{'-':>13s}"
+        print(f"{r['dataset']:8s} {r['method']:14s} " + " ".join(f"{v:14.1f}" if v is not None else f"{'-':>14s}"
                                                              for v in vals)
               + f"   {r['fps']:8.2f} {r.get('e2e_fps', float('nan')):8.2f} {r.get('cpu_ms', float('nan')):7.0f}")
 
