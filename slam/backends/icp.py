@@ -24,7 +24,7 @@ and docs/performance.md):
 * ``source_levels = (2, 1, 1)``: the model view is cast at half resolution, so full-resolution
   source points add four times the work of the last stage for the same target pixels and gave
   the same ATE.
-* ``raycast_every = 3``, ``fuse_every = 2``: at camera rate the model seen from the last pose
+* ``raycast_every = 2``, ``fuse_every = 2``: at camera rate the model seen from the last pose
   barely changes between frames; re-using it (re-cast anyway after 5 cm or 3 degrees) and
   fusing every other frame cut the two largest costs left without changing the ATE.
 
@@ -98,7 +98,7 @@ class ICPConfig(TrackingCheckConfig):
     """Fuse every n-th frame of the sequence (after ``frame_step``) into the TSDF; the frames in
     between are only registered: at camera rate consecutive frames see nearly the same surface,
     and fusion is a large share of the run time (1 = every frame, KinectFusion)."""
-    raycast_every: int = 3
+    raycast_every: int = 2
     """Ray cast the model at most every this many frames: in between, the frame is registered
     to the last model view (1 = every frame, KinectFusion)."""
     recast_translation_m: float = 0.05
