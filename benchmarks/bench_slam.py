@@ -58,7 +58,7 @@ def _datasets(work: Path, names: list[str]):
             dst = work / "chess"
             if not (dst / "depth.txt").is_file() or len((dst / "depth.txt").read_text().splitlines()) < 1000:
                 convert_7scenes(src, dst, progress=False)
-            out.append(("chess", dst, None, 0.03))
+            out.append(("chess", dst, None, 0.02))
         else:
             print(f"skip chess: {src} not found")
     if "tum" in names:
