@@ -156,9 +156,11 @@ class ModelView:
     def __init__(self, volume, intr: Intrinsics, pose_c2w: np.ndarray, n_levels: int, max_diff_m: float,
                  normals: str = "depth", refine: bool = False, repair: bool = False,
                  noise_depth_m: float = 0.0, raycaster: str = "open3d", hint: np.ndarray | None = None,
-                 times: dict | None = None):
+                 times: dict | None = None, cast: RaycastResult | None = None):
         t0 = time.perf_counter()
-        if raycaster == "kernel":
+        if cast is not None:            # a saved cast (resume): the same view without the volume
+            r = cast
+        elif raycaster == "kernel":
             from slam.raycast_kernel import cast_model
             d, w = cast_model(volume, intr, pose_c2w, hint)
             r = RaycastResult(d, None, None, w if noise_depth_m > 0 else None)
@@ -166,6 +168,8 @@ class ModelView:
             r = volume.raycast(intr, pose_c2w, with_color=False, with_normal=normals == "tsdf",
                                block_coords=volume.last_block_coords, refine=refine, repair=repair,
                                with_weight=noise_depth_m > 0, times=times)
+        self.cast = r
+        """The ray cast behind this view (saved in checkpoints to rebuild the view exactly)."""
         t1 = time.perf_counter()
         if times is not None and raycaster == "kernel":
             times["raycast_kernel"] = times.get("raycast_kernel", 0.0) + t1 - t0
@@ -404,12 +408,10 @@ class ICPBackend(RegistrationBackend):
 
     # ---------------------------------------------------------------- resume
     def state_dict(self) -> dict:
-        """The tracking state for a checkpoint. Also drops the cached model view, so that the
-        next frame is registered to a fresh ray cast in this run as in a run resumed from this
-        checkpoint (``raycast_every`` > 1 keeps a resumed run identical)."""
-        self._view = None
-        self._view_key = None
-        return {"last_pose": None if self.last_pose is None else self.last_pose.reshape(-1).tolist(),
+        """The tracking state for a checkpoint, with the cached model view's ray cast (so that a
+        resumed run re-uses the same view as an uninterrupted one, ``raycast_every`` > 1)."""
+        return {"view": self._view_state(),
+                "last_pose": None if self.last_pose is None else self.last_pose.reshape(-1).tolist(),
                 "prev_pose": None if self.prev_pose is None else self.prev_pose.reshape(-1).tolist(),
                 "last_t": self.last_t, "last_index": self.last_index,
                 "consecutive_failures": self.consecutive_failures,
@@ -428,3 +430,35 @@ class ICPBackend(RegistrationBackend):
         if self.keyframe_index >= 0:
             kf = reader[self.keyframe_index]
             self._kf_rgb, self._kf_depth = kf.rgb, kf.depth
+        self._load_view_state(state.get("view"), volume)
+
+    def _view_state(self) -> dict | None:
+        if self._view is None or self._view_key is None:
+            return None
+        import base64
+
+        def enc(a):
+            return None if a is None else base64.b64encode(np.ascontiguousarray(a, np.float32).tobytes()).decode()
+        n_view, pose_view, count = self._view_key
+        r = self._view.cast
+        return {"frames_integrated": int(n_view), "pose": pose_view.reshape(-1).tolist(), "count": int(count),
+                "shape": list(r.depth.shape), "depth": enc(r.depth), "weight": enc(r.weight), "normal": enc(r.normal)}
+
+    def _load_view_state(self, st: dict | None, volume) -> None:
+        self._view, self._view_key = None, None
+        if not st:
+            return
+        import base64
+        h, w = st["shape"]
+
+        def dec(a, *tail):
+            return None if a is None else np.frombuffer(base64.b64decode(a), np.float32).reshape(h, w, *tail).copy()
+        cast = RaycastResult(dec(st["depth"]), None, dec(st["normal"], 3), dec(st["weight"]))
+        pose = np.asarray(st["pose"], np.float64).reshape(4, 4)
+        c = self.config
+        k = self.depth_noise_per_m()
+        sigma0 = self.tsdf_config.voxel_size_m / math.sqrt(12.0)
+        noise_depth = math.sqrt(sigma0 / k) if k > 0 else 0.0
+        self._view = ModelView(volume, self._ray_intr, pose, self._n_tgt_levels, self.tsdf_config.sdf_trunc_m * 2,
+                               c.model_normals, c.refine_model, c.repair_model, noise_depth, cast=cast)
+        self._view_key = (int(st["frames_integrated"]), pose, int(st["count"]))
