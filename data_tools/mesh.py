@@ -45,17 +45,27 @@ class TriMesh:
     def canonical(self) -> "TriMesh":
         """The same surface with vertices in lexicographic (x, y, z) order and triangles sorted
         (each rotated to start at its smallest index, winding kept): meshes extracted by parallel
-        code, whose order follows the thread schedule, become byte-identical files."""
-        order = np.lexsort(self.vertices.T[::-1])
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
+        code, whose order follows the thread schedule, become byte-identical files. Vertices at
+        exactly the same position (Open3D's marching cubes emits some twice where blocks meet;
+        their order would follow the schedule) are merged into one, with the smallest colour."""
+        v = np.asarray(self.vertices)
+        keys = [v[:, 2], v[:, 1], v[:, 0]]
+        if self.vertex_colors is not None:
+            c = np.asarray(self.vertex_colors)
+            keys = [c[:, k] for k in range(c.shape[1] - 1, -1, -1)] + keys
+        order = np.lexsort(keys)
+        vs = v[order]
+        first = np.ones(len(vs), bool)
+        first[1:] = np.any(vs[1:] != vs[:-1], axis=1)
+        rank = np.empty(len(order), np.int64)
+        rank[order] = np.cumsum(first) - 1
         tri = rank[self.triangles].astype(np.int32)
         if len(tri):
             shift = np.argmin(tri, axis=1)
             tri = np.take_along_axis(tri, (shift[:, None] + np.arange(3)[None]) % 3, axis=1)
             tri = tri[np.lexsort(tri.T[::-1])]
-        colors = None if self.vertex_colors is None else self.vertex_colors[order]
-        return TriMesh(self.vertices[order], tri, self.name, self.material, colors)
+        colors = None if self.vertex_colors is None else np.asarray(self.vertex_colors)[order][first]
+        return TriMesh(vs[first], tri, self.name, self.material, colors)
 
     @property
     def bounds(self) -> np.ndarray:

@@ -139,11 +139,13 @@ def _score(res: JobResult, job: BatchJob, est, camera: Camera | None) -> None:
 
 
 def _set_threads(n: int) -> None:
-    """Limit this worker's Open3D (TBB) and OpenMP threads to ``n`` (0 = no limit)."""
+    """Limit this worker's Open3D (TBB), OpenMP and numba threads to ``n`` (0 = no limit)."""
     if n > 0:
         os.environ["OMP_NUM_THREADS"] = str(n)
+        import numba
         import open3d as o3d
         o3d.utility.set_max_threads(n)
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
 
 
 def _worker_init(threads: int) -> None:

@@ -424,7 +424,7 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
             bar.close()
             raise
         bar.close()
-    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta)
+    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend)
 
 
 def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
@@ -442,14 +442,21 @@ def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: boo
     res = backend.track(frame, volume)
     t2 = time.perf_counter()
     timing["track_s"] += t2 - t1
-    if not res.failed:
+    if not res.failed and _fused(cfg, i):
         volume.integrate(frame.depth, frame.rgb, intr, res.pose)
         timing["integrate_s"] += time.perf_counter() - t2
     return res
 
 
+def _fused(cfg: SlamConfig, index: int) -> bool:
+    """Whether the registered frame ``index`` (of the sequence) is fused: every frame, or every
+    n-th with a backend option ``fuse_every`` = n (counted after ``frame_step``)."""
+    every = int(getattr(cfg.backend_config, "fuse_every", 1) or 1)
+    return (index // cfg.frame_step) % every == 0
+
+
 def _reintegrate(reader, volume, records, poses, cfg, intr, progress) -> None:
-    todo = [(r["index"], p) for r, p in zip(records, poses) if p is not None]
+    todo = [(r["index"], p) for r, p in zip(records, poses) if p is not None and _fused(cfg, r["index"])]
     bar = _Progress(progress and len(todo) > 0, len(todo), 0, "resume: re-integrating")
     for i, p in todo:
         f = reader[i]
@@ -468,7 +475,7 @@ def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, 
     for i, res in zip(indices, results):
         records.append(res.record(reader.timestamps[i], i))
         poses.append(None if res.failed else res.pose.reshape(-1).tolist())
-        if not res.failed:
+        if not res.failed and _fused(cfg, i):
             t1 = time.perf_counter()
             f = reader[i]
             t2 = time.perf_counter()
@@ -479,13 +486,14 @@ def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, 
     bar.close()
 
 
-def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> SlamResult:
+def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend=None) -> SlamResult:
     ok = [(r["timestamp"], np.asarray(p).reshape(4, 4)) for r, p in zip(records, poses) if p is not None]
     failed = [r["timestamp"] for r in records if r["failed"]]
     spent = sum(timing.values())
     n = len(records)
     traj = Trajectory([t for t, _ in ok], [p for _, p in ok]) if ok else None
     mesh_info = None
+    t_write = time.perf_counter()
     if traj is not None:
         write_tum(out / "trajectory.txt", traj,
                   header=f"realgap slam {cfg.backend}: camera-to-world poses of the registered frames")
@@ -505,6 +513,9 @@ def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta) -> Slam
         "frames_per_second": (n / spent) if spent > 0 else None,
         "seconds": spent,
         "timing_ms_per_frame": {k.removesuffix("_s"): (1000 * v / n if n else None) for k, v in timing.items()},
+        "stage_ms_per_frame": {k: (1000 * v / n if n else None)
+                               for k, v in getattr(backend, "stage_times", {}).items()},
+        "write_s": time.perf_counter() - t_write,
         "failed_timestamps": failed,
         "mesh": mesh_info,
         "complete": True,

@@ -310,7 +310,8 @@ class TSDFVolume:
 
     def raycast(self, intr: Intrinsics, pose_c2w: np.ndarray, with_color: bool = True,
                 with_normal: bool = True, depth_max_m: float | None = None, block_coords=None,
-                refine: bool = True, repair: bool = True, with_weight: bool = False) -> RaycastResult:
+                refine: bool = True, repair: bool = True, with_weight: bool = False,
+                times: dict | None = None) -> RaycastResult:
         """Render the fused surface from ``pose_c2w`` (camera-to-world) with ``intr``.
 
         Open3D's ray marcher reads the TSDF of the voxel *below* each sample point (no
@@ -338,18 +339,26 @@ class TSDFVolume:
             attrs.append("normal")
         if refine:
             attrs += ["index", "interp_ratio", "mask"]
+        import time
+        t = [time.perf_counter()]
         r = self.raycast_tensors(intr, pose_c2w, attrs, block_coords, depth_max_m=depth_max_m)
         depth = r["depth"].cpu().numpy()[..., 0].astype(np.float32)
         depth[~np.isfinite(depth)] = 0.0
         color = r["color"].cpu().numpy().astype(np.float32) if "color" in attrs else None
         normal = r["normal"].cpu().numpy().astype(np.float32) if with_normal else None
+        t.append(time.perf_counter())
         if refine:
             depth, verified, weight = self._refine_depth(depth, r, intr, pose_c2w, with_weight)
+            t.append(time.perf_counter())
             suspect = (depth > 0) & ~verified
             if repair:
                 depth = self._repair_hits(depth, suspect, intr, pose_c2w, color, normal)
             else:
                 depth[suspect] = 0.0
+            t.append(time.perf_counter())
+        for name, a, b in zip(("raycast_open3d", "raycast_refine", "raycast_repair"), t, t[1:]):
+            if times is not None:   # seconds per step, added up (the tracking profile)
+                times[name] = times.get(name, 0.0) + b - a
         miss = depth <= 0
         if color is not None:
             color[miss] = 0.0

@@ -372,3 +372,18 @@ def test_canonical_mesh_ignores_vertex_and_triangle_order():
     n0 = trimesh.Trimesh(a.vertices, a.triangles, process=False).face_normals
     n1 = trimesh.Trimesh(ca.vertices, ca.triangles, process=False).face_normals
     np.testing.assert_allclose(np.sort(n0, axis=0), np.sort(n1, axis=0), atol=1e-12)
+
+
+def test_canonical_mesh_merges_vertices_at_the_same_position():
+    """Two squares whose shared edge has its two vertices emitted twice (as marching cubes does
+    where blocks meet), listed in either order: one canonical mesh, with 6 vertices, not 8."""
+    from data_tools.mesh import TriMesh
+    P = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [1, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0]], float)
+    T = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    perm = np.array([4, 7, 5, 6, 0, 1, 2, 3])          # the duplicates come first here
+    inv = np.argsort(perm)
+    a = TriMesh(P, T).canonical()
+    b = TriMesh(P[perm], inv[T]).canonical()
+    assert len(a.vertices) == 6
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.triangles, b.triangles)

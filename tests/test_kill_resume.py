@@ -244,7 +244,7 @@ def test_slam_run_killed_resumes_identically(room, tmp_path):
     assert r.returncode == 1 and "incomplete:" in r.stderr, r.stderr
     r = run_ok([*args, "--out", part])
     run_ok([*args, "--out", full])
-    # the same bytes: the run is deterministic (one-thread odometry sums, canonical mesh order)
+    # the same bytes: the run is deterministic (fixed-order ICP sums, canonical mesh order)
     assert (part / "trajectory.txt").read_bytes() == (full / "trajectory.txt").read_bytes()
     assert (part / "mesh.ply").read_bytes() == (full / "mesh.ply").read_bytes()
 

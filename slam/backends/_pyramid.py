@@ -3,10 +3,9 @@
 Both online backends register a *source* frame to a *target* view by projective data
 association: every valid source pixel is moved by the current estimate of the
 source-to-target transform, projected into the target image with the target intrinsics, and
-paired with the target pixel it lands on (Open3D's kernels round to the nearest pixel, pixel
-centres at integer coordinates). Open3D's tensor kernels
-(``compute_odometry_result_point_to_plane`` / ``..._hybrid``) linearise and solve one
-Gauss-Newton step; the coarse-to-fine loop, the pyramids (built once per frame and reused
+paired with the target pixel it lands on (rounded to the nearest pixel, pixel centres at
+integer coordinates). A kernel linearises one Gauss-Newton step (point-to-plane:
+:mod:`slam.backends._p2p_kernel`; hybrid RGB-D: Open3D's ``compute_odometry_result_hybrid``); the coarse-to-fine loop, the pyramids (built once per frame and reused
 when a frame becomes the next target), convergence and the statistics are ours.
 
 Pyramid level 0 is the full image; level l is downsampled by 2^l with a 2x2 block mean over
@@ -15,12 +14,13 @@ foreground and background are not averaged into flying pixels). Intrinsics follo
 :meth:`Intrinsics.scaled` (2x2 means move the sample centre by half a pixel).
 
 Reproducibility: Open3D's odometry kernels sum the normal equations over pixels on all its
-threads, in an order set by the thread schedule, so a registration differed in the last bits
-from run to run (trajectories ~1e-6 m apart after 60 frames). Every kernel call here runs on
-one Open3D thread (:func:`_odometry_kernels`): ``slam run`` is bit-reproducible on one machine,
-at a measured cost of 6 % of the run time (60 VGA frames of the simulated room: 8.5 -> 9.0 s).
-The TSDF integration and ray casting stay multi-threaded (they write independent voxels and
-pixels and are deterministic).
+threads, in an order set by the thread schedule, so a registration differs in the last bits
+from run to run. The point-to-plane ICP here (:func:`icp_point_to_plane`, the ``icp``
+backend) uses :mod:`slam.backends._p2p_kernel` instead, whose sums have a fixed order: the same
+bits on any number of threads, both cores used. The RGB-D odometry kernels of
+:func:`rgbd_hybrid` (the ``rgbd_odometry`` backend) still run on one Open3D thread
+(:func:`_odometry_kernels`). TSDF integration and ray casting write independent voxels and
+pixels and are deterministic on any number of threads.
 """
 from __future__ import annotations
 
@@ -277,42 +277,62 @@ def point_to_plane_stats(src_vertex, tgt_vertex, tgt_normal, K, T: np.ndarray, m
     return count, float(np.sqrt(max(2.0 * r.inlier_rmse, 0.0)))
 
 
+def _np(a) -> np.ndarray:
+    """float32 numpy array of an Open3D tensor or array."""
+    return np.ascontiguousarray(a.numpy() if hasattr(a, "numpy") else a, dtype=np.float32)
+
+
 def icp_point_to_plane(src: list, tgt: list, init: np.ndarray, iterations: list[int],
                        max_dist_m: list[float], huber_delta_m: float = 0.0, eps: float = 1e-6,
-                       stats_target: tuple | None = None) -> SolveResult:
+                       stats_target: tuple | None = None, stage_times: list | None = None) -> SolveResult:
     """Coarse-to-fine projective point-to-plane ICP (KinectFusion's tracking step).
 
-    ``src[k]`` is the source :class:`Level` and ``tgt[k]`` a (vertex, normal, K) tuple of Open3D
-    tensors for stage k (coarse to fine; the target may have another resolution than the
-    source: the source points are projected with the target's K). ``max_dist_m[k]`` rejects
-    pairs whose point-to-plane distance is larger; ``huber_delta_m`` > 0 down-weights residuals
-    above it (0 = plain truncated least squares). Target normals may be scaled by the square
-    root of per-point weights (weighted least squares); ``stats_target`` is then the finest
-    target with unit normals, for the statistics (default ``tgt[-1]``). Returns the
-    source-to-target transform.
+    ``src[k]`` is the source :class:`Level` and ``tgt[k]`` a (vertex, normal, K) tuple (numpy
+    arrays or Open3D tensors) for stage k (coarse to fine; the target may have another
+    resolution than the source: the source points are projected with the target's K).
+    ``max_dist_m[k]`` rejects pairs whose point-to-plane distance is larger; ``huber_delta_m`` >
+    0 down-weights residuals above it (0 = plain truncated least squares). Target normals may be
+    scaled by the square root of per-point weights (weighted least squares); ``stats_target`` is
+    then the finest target with unit normals, for the statistics (default ``tgt[-1]``). A stage
+    ends early when a step moves less than ``eps`` (metres and radians). The normal equations
+    come from :mod:`slam.backends._p2p_kernel` (fixed-order sums: the same result on any number
+    of threads). ``stage_times``, when given, receives the seconds spent per stage (one entry
+    per stage, then one for the statistics). Returns the source-to-target transform.
     """
-    o3d = o3d_quiet()
-    od = _odometry_kernels()
+    from slam.backends._p2p_kernel import normal_equations, twist_to_transform
+    import time
     T = np.asarray(init, dtype=np.float64).copy()
     its = 0
     for k, (lvl, (tv, tn, tK)) in enumerate(zip(src, tgt)):
+        t0 = time.perf_counter()
         huber = huber_delta_m if huber_delta_m > 0 else max_dist_m[k] * 10
+        sv, tv_np, tn_np = lvl.vertex_np(), _np(tv), _np(tn)
+        K = np.asarray(tK.numpy() if hasattr(tK, "numpy") else tK, np.float64)
         for _ in range(iterations[k]):
-            try:
-                r = od.compute_odometry_result_point_to_plane(
-                    lvl.vertex(), tv, tn, tK, o3d.core.Tensor(T), float(max_dist_m[k]), float(huber))
-            except RuntimeError as e:
+            A, b, n, _ = normal_equations(sv, tv_np, tn_np, K, T, max_dist_m[k], huber)
+            if n < 6:
                 return SolveResult(T, 0, src[-1].valid, float("nan"), its, False,
-                                   f"no correspondences at stage {k} ({str(e).splitlines()[0][:80]})")
-            D = r.transformation.numpy()
+                                   f"no correspondences at stage {k} ({n} pairs)")
+            try:
+                x = np.linalg.solve(A, -b)
+            except np.linalg.LinAlgError:
+                return SolveResult(T, 0, src[-1].valid, float("nan"), its, False, "degenerate normal equations")
+            D = twist_to_transform(x)
             if not np.all(np.isfinite(D)):
                 return SolveResult(T, 0, src[-1].valid, float("nan"), its, False, "solver diverged (NaN)")
             T = D @ T
             its += 1
             if _step_small(D, eps):
                 break
+        if stage_times is not None:
+            stage_times.append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
     tv, tn, tK = tgt[-1] if stats_target is None else stats_target
-    inl, rmse = point_to_plane_stats(src[-1].vertex(), tv, tn, tK, T, max_dist_m[-1])
+    K = np.asarray(tK.numpy() if hasattr(tK, "numpy") else tK, np.float64)
+    _, _, inl, ssr = normal_equations(src[-1].vertex_np(), _np(tv), _np(tn), K, T, max_dist_m[-1], max_dist_m[-1] * 10)
+    if stage_times is not None:
+        stage_times.append(time.perf_counter() - t0)
+    rmse = float(np.sqrt(ssr / inl)) if inl else float("nan")
     return SolveResult(T, inl, src[-1].valid, rmse, its, inl > 0, "" if inl > 0 else "no inliers")
 
 
