@@ -50,6 +50,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a generator already at GEN")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_train, on_interrupt=RESUMES)
+    register_views(sub)
 
 
 def _log(msg: str) -> None:
@@ -85,4 +86,63 @@ def _train(args) -> int:
           f"{cfg.train.iterations} steps ({info['timings_s']['train_s']:.0f} s, views "
           f"{info['timings_s']['views_s']:.0f} s); final losses " + " ".join(f"{k} {v:.4f}" for k, v in fl.items()
                                                                               if k != "step"))
+    return 0
+
+
+def register_views(sub) -> None:
+    """``synda map`` and ``synda augment``."""
+    p = sub.add_parser("map", help="map inputs through a generator: every intermediate modality as a PNG",
+                       description="Run h_G on each input and write every decoded modality (normals, depth, mask, "
+                                   "lightness) and the final output as a PNG with a colour bar, one folder per "
+                                   "input, plus contact_sheet.png (a row per input). Inputs: .npy arrays of "
+                                   "normalised patches ((S,S), (N,S,S) or (N,C,S,S) in [-1, 1]), S x S PNGs (8-bit "
+                                   "grey or RGB: 0..255 -> -1..1), or a 16-bit depth scan with --bbox (the patch "
+                                   "is cut as the recogniser cuts it).")
+    p.add_argument("gen", metavar="GEN")
+    p.add_argument("inputs", metavar="INPUT", nargs="+")
+    add_shared(p, "--out", "folder for the PNGs", required=True, metavar="DIR")
+    p.add_argument("--bbox", help="x0,y0,x1,y1: the window of a 16-bit depth scan (depth generators)")
+    p.add_argument("--camera", help="camera.json of a depth scan (default: next to it or in its parent folder)")
+    add_shared(p, "--overwrite", "a contact sheet already in DIR")
+    p.set_defaults(func=_map)
+
+    p = sub.add_parser("augment", help="a contact sheet of augmented training samples (what A does)",
+                       description="Simulate a few views of the objects as 'synda train' does and draw A on them: "
+                                   "contact_sheet.png shows per sample the clean view, (depth: the measured draw), "
+                                   "the augmented input and the targets; samples.npz holds the arrays.")
+    p.add_argument("--objects", required=True, help="as for synda train")
+    p.add_argument("--domain", required=True, choices=("rgb", "depth"), help="input domain")
+    add_shared(p, "--out", "folder for contact_sheet.png and samples.npz", required=True, metavar="DIR")
+    p.add_argument("--samples", type=positive_int("--samples"), default=12, help="samples to show (default 12)")
+    p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the views (default kinect_v1)")
+    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    add_shared(p, "--seed", "of the views and of A (default 0)", default=0)
+    add_shared(p, "--overwrite", "a contact sheet already in DIR")
+    p.set_defaults(func=_augment)
+
+
+def _map(args) -> int:
+    from app.synda_figures import map_figures
+    from data_tools.outputs import check_output_dir
+    from recog.synda.inputs import read_inputs
+    from recog.synda.io import load_generator
+    out = check_output_dir(args.out, finished="contact_sheet.png", overwrite=args.overwrite)
+    _, cfg, info = load_generator(args.gen)
+    names, x = read_inputs(args.inputs, cfg, info, bbox=args.bbox, camera=args.camera, gen_path=args.gen)
+    from recog.synda.run import modalities
+    maps, meta = modalities(args.gen, x)
+    n = map_figures(out, names, x, maps, meta)
+    print(f"{out}: {len(names)} inputs mapped by the {cfg.domain} generator; {n} PNGs and contact_sheet.png")
+    return 0
+
+
+def _augment(args) -> int:
+    from app.synda_figures import augment_sheet
+    from data_tools.outputs import check_output_dir
+    from recog.synda.inputs import augment_samples
+    out = check_output_dir(args.out, finished="contact_sheet.png", overwrite=args.overwrite)
+    samples = augment_samples(args.objects, args.domain, args.samples, args.seed, sensor=args.sensor,
+                              scale=args.scale)
+    augment_sheet(out, samples, args.domain)
+    print(f"{out}: contact_sheet.png and samples.npz of {args.samples} {args.domain} samples of A")
     return 0
