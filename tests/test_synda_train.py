@@ -175,3 +175,77 @@ def test_training_errors_are_one_line():
     rgbdata = dataclasses.replace(data, noisy=np.zeros((len(data), 0, S, S), np.float16))
     with pytest.raises(RealgapError, match="needs measured draws"):
         train_generator(config(), rgbdata, progress=False)
+
+
+# ------------------------------------------------------------------------------------------ commands
+def _gen_file(tmp_path, domain="depth"):
+    """A 64 px generator (narrow, untrained) saved with the patch configuration of its training."""
+    from recog.synda.model import Generator
+    g = GeneratorConfig(size=64, widths=(2, 2, 2, 2, 2, 2), distill_width=2)
+    g = dataclasses.replace(g, decoders=("normals", "depth", "mask"), target="depth") if domain == "depth" else g
+    cfg = SyndaConfig(domain, g, AugmentConfig(), SyndaTrainConfig()).validate()
+    torch.manual_seed(0)
+    path = tmp_path / f"{domain}.pt"
+    save_generator(path, Generator(g, domain).eval(), cfg, {"patch": {"size": 64, "crop_m": 0.2}})
+    return path
+
+
+def test_map_writes_every_modality_and_a_contact_sheet(tmp_path, capsys):
+    import cv2
+
+    from app.cli import main
+    gen = _gen_file(tmp_path)
+    x = np.random.default_rng(0).uniform(-1, 1, (2, 64, 64)).astype(np.float32)
+    np.save(tmp_path / "p.npy", x)
+    cv2.imwrite(str(tmp_path / "g.png"), (np.arange(64 * 64).reshape(64, 64) % 256).astype(np.uint8))
+    out = tmp_path / "m"
+    assert main(["synda", "map", str(gen), str(tmp_path / "p.npy"), str(tmp_path / "g.png"), "--out", str(out)]) == 0
+    assert (out / "contact_sheet.png").stat().st_size > 1000
+    for name in ("p_000", "p_001", "g"):
+        assert sorted(f.name for f in (out / name).iterdir()) == ["depth.png", "input.png", "mask.png",
+                                                                  "normals.png", "output.png"]
+    rgb = _gen_file(tmp_path, "rgb")
+    cv2.imwrite(str(tmp_path / "c.png"), np.zeros((64, 64, 3), np.uint8))
+    assert main(["synda", "map", str(rgb), str(tmp_path / "c.png"), "--out", str(tmp_path / "r")]) == 0
+    assert (tmp_path / "r" / "c" / "lightness.png").is_file()
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda d: np.save(d / "x.npy", np.zeros((2, 32, 32), np.float32)), "1-channel 64 x 64 images, got an array of "
+                                                                         "shape (2, 1, 32, 32)"),
+    (lambda d: __import__("cv2").imwrite(str(d / "x.png"), np.zeros((64, 64, 3), np.uint8)), "a colour image"),
+    (lambda d: __import__("cv2").imwrite(str(d / "x.png"), np.zeros((64, 64), np.uint16)), "needs --bbox"),
+    (lambda d: (d / "x.txt").write_text("hi"), "unknown input type"),
+])
+def test_map_bad_inputs_are_one_line(tmp_path, capsys, make, words):
+    from app.cli import main
+    gen = _gen_file(tmp_path)
+    make(tmp_path)
+    src = next(p for p in tmp_path.iterdir() if p.stem == "x")
+    assert main(["synda", "map", str(gen), str(src), "--out", str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and words in err and str(src) in err
+
+
+def test_bad_generator_and_objects_are_one_line(tmp_path, capsys):
+    from app.cli import main
+    bad = tmp_path / "bad.pt"
+    torch.save({"format": "realgap-synda-generator", "version": 99}, bad)
+    np.save(tmp_path / "p.npy", np.zeros((64, 64), np.float32))
+    assert main(["synda", "map", str(bad), str(tmp_path / "p.npy"), "--out", str(tmp_path / "o")]) == 1
+    assert "version 99" in capsys.readouterr().err
+    assert main(["synda", "train", "--objects", str(tmp_path / "none"), "--domain", "depth", "--out",
+                 str(tmp_path / "g.pt"), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "none" in err
+
+
+@pytest.mark.slow
+def test_augment_contact_sheet_of_the_chairs(tmp_path):
+    """``synda augment`` on the embedded chairs (simulates a few views: ~20 s)."""
+    from app.cli import main
+    assert main(["synda", "augment", "--objects", "chairs", "--domain", "depth", "--samples", "3", "--out",
+                 str(tmp_path / "a")]) == 0
+    z = np.load(tmp_path / "a" / "samples.npz")
+    assert z["input"].shape == (3, 1, 64, 64) and z["measured"].shape == (3, 1, 64, 64)
+    assert (tmp_path / "a" / "contact_sheet.png").stat().st_size > 1000
