@@ -398,6 +398,10 @@ def test_eval_reads_the_synda_mapping(trained, capsys):
     assert r["synda"] == str(gen) and "synda" in {i["role"] for i in r["header"]["inputs"]}
     rows = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
     assert len({row["descriptor_predicted"] for row in rows}) == 1       # all-zero output: one answer
+    from app.viewer.data import RecogSession                             # the viewer shows both patches
+    sc = RecogSession(out, trained / "t").scan(0)
+    assert sc["patch"].shape == sc["mapped"].shape == (64, 64) and np.all(sc["mapped"] == 0)
+    assert sc["patch"].std() > 0
     save_generator(gen, net, cfg, {"patch": {**dataclasses.asdict(m.patch), "crop_m": 9.0}})
     capsys.readouterr()
     assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--synda", str(gen), "--no-icp",
