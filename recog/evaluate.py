@@ -97,6 +97,7 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
     after = summarise(*err["after"]) if icp else summarise(*err["before"])
     result = {"accuracy": acc, "accuracy_descriptor": desc_correct / max(len(scans), 1), **after, "before_icp": summarise(*err["before"]), "icp": bool(icp),
               "n_scans": len(scans), "n_pose": len(err["before"][0]), "objects": names,
+              "synda": getattr(model, "patch_map_source", None),
               "confusion": conf.tolist(), "seconds": seconds,
               "per_object_accuracy": {n: float(conf[i, i] / max(conf[i].sum(), 1)) for i, n in enumerate(names)
                                       if conf[i].sum()}}
@@ -109,8 +110,10 @@ def write_eval_json(model, testset, result: dict, path: str | os.PathLike) -> Pa
     """``result`` (:func:`evaluate`'s) with its result header, written atomically to ``path``: the
     eval.json of ``--out`` and the file of ``recog eval --json OUT``."""
     from data_tools.results import make_header, write_result
-    header = make_header("recog.eval", inputs={"model": model.folder / "recogniser.json",
-                                                "testset": Path(testset) / "labels.json"},
+    inputs = {"model": model.folder / "recogniser.json", "testset": Path(testset) / "labels.json"}
+    if result.get("synda"):
+        inputs["synda"] = Path(result["synda"])
+    header = make_header("recog.eval", inputs=inputs,
                          parameters={"icp": result["icp"]}, timings_s={"total": result["seconds"]},
                          metrics={"accuracy": result["accuracy"],
                                   "rot_err_deg_median": result["rot_err_deg"]["median"],

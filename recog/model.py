@@ -81,6 +81,11 @@ class Recogniser:
         self.folder = folder
         self._loaded: dict[int, RecogObject] = {}
         self._casters: dict[int, object] = {}
+        self.patch_map = None
+        """Optional ``(S, S) patch -> (S, S) patch`` applied to a measured patch before its descriptor (SynDA's
+        generator, :func:`recog.synda.run.patch_mapper`); ICP and verification still use the measured depth."""
+        self.patch_map_source: str | None = None
+        """Where :attr:`patch_map` came from (the generator file), reported by the evaluation."""
 
     @property
     def names(self) -> list[str]:
@@ -140,7 +145,8 @@ class Recogniser:
         validation set of T-LESS obj_01-06 (structure sensor, 120 scans): 1 start 95.0 %,
         3 starts 97.5 % correct."""
         p = extract_patch(depth_m, intr, bbox, self.patch)
-        m = self.db.query(self.describe(p.image[None]), k, per_object=max(inits, 1))[0]
+        image = p.image if self.patch_map is None else np.asarray(self.patch_map(p.image), np.float32)
+        m = self.db.query(self.describe(image[None]), k, per_object=max(inits, 1))[0]
         votes = {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])}
 
         def initial(o: int) -> tuple[np.ndarray, float]:

@@ -32,7 +32,7 @@ import numpy as np
 from data_tools.camera import Intrinsics
 from data_tools.errors import RealgapError
 
-__all__ = ["PatchConfig", "Patch", "extract_patch", "ray_rotation", "to_ray_frame", "from_ray_frame",
+__all__ = ["PatchConfig", "Patch", "extract_patch", "depth_patch", "patch_pixels", "resample_nearest", "ray_rotation", "to_ray_frame", "from_ray_frame",
            "bbox_from_mask", "check_bbox"]
 
 
@@ -106,7 +106,6 @@ def ray_rotation(intr: Intrinsics, u: float, v: float) -> np.ndarray:
 def extract_patch(depth_m: np.ndarray, intr: Intrinsics, bbox, config: PatchConfig) -> Patch:
     """The patch of the window ``bbox`` in ``depth_m`` ((H, W) float metres, 0/NaN = no
     measurement). RealgapError when the window is outside the image or holds no depth."""
-    import cv2
     H, W = depth_m.shape
     x0, y0, x1, y1 = check_bbox(bbox, W, H)
     uc, vc = (x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0
@@ -120,14 +119,38 @@ def extract_patch(depth_m: np.ndarray, intr: Intrinsics, bbox, config: PatchConf
     zv_win = win[vv, uu] * (((uu + x0) - intr.cx) / intr.fx * axis[0] + ((vv + y0) - intr.cy) / intr.fy * axis[1]
                             + axis[2])
     z_ref = float(np.percentile(zv_win, 10))
+    return depth_patch(depth_m, intr, R, z_ref, (x0, y0, x1, y1), config)
+
+
+def patch_pixels(intr: Intrinsics, R: np.ndarray, z_ref: float, config: PatchConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) (size, size) real-image pixel coordinates of the rays of the virtual camera (rotation ``R``,
+    reference depth ``z_ref``; see the module docstring)."""
     n = int(config.size)
     f_v = n * z_ref / float(config.crop_m)
     g = (np.arange(n, dtype=np.float64) - (n - 1) / 2.0) / f_v
     gx, gy = np.meshgrid(g, g)
     dv = np.stack([gx, gy, np.ones_like(gx)], -1)                # virtual-camera ray directions
     dr = dv @ R.T                                                  # the same rays in the real camera
-    u = intr.fx * dr[..., 0] / dr[..., 2] + intr.cx
-    v = intr.fy * dr[..., 1] / dr[..., 2] + intr.cy
+    return intr.fx * dr[..., 0] / dr[..., 2] + intr.cx, intr.fy * dr[..., 1] / dr[..., 2] + intr.cy
+
+
+def resample_nearest(image: np.ndarray, intr: Intrinsics, R: np.ndarray, z_ref: float,
+                     config: PatchConfig) -> np.ndarray:
+    """(size, size) nearest-neighbour samples of any (H, W) ``image`` (a mask, instance ids) at the pixels of
+    the virtual camera (``R``, ``z_ref``); 0 outside the image. Pixel-aligned with :func:`depth_patch`."""
+    import cv2
+    u, v = patch_pixels(intr, R, z_ref, config)
+    return cv2.remap(np.asarray(image, np.float32), u.astype(np.float32), v.astype(np.float32), cv2.INTER_NEAREST,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+
+def depth_patch(depth_m: np.ndarray, intr: Intrinsics, R: np.ndarray, z_ref: float, bbox,
+                config: PatchConfig) -> Patch:
+    """The patch of ``depth_m`` seen by the virtual camera ``R`` at reference depth ``z_ref`` (steps 2-3 of the
+    module docstring); :func:`extract_patch` chooses R and z_ref from the window, SynDA's training data reuses a
+    clean view's R and z_ref for the noisy draws of the same view so that input and target align pixel by pixel."""
+    import cv2
+    u, v = patch_pixels(intr, R, z_ref, config)
     z = cv2.remap(np.nan_to_num(np.asarray(depth_m, np.float32), nan=0.0), u.astype(np.float32),
                   v.astype(np.float32), cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     # z-depth in the real camera -> z-depth in the virtual camera: the point z * K^-1 [u, v, 1]
@@ -137,7 +160,7 @@ def extract_patch(depth_m: np.ndarray, intr: Intrinsics, bbox, config: PatchConf
     zv = z * (ray_real @ R[:, 2])
     half = float(config.crop_m) / 2.0
     img = np.where(z > 0, np.clip((zv - z_ref) / half, -1.0, 1.0), 1.0).astype(np.float32)
-    return Patch(img, z_ref, R, (x0, y0, x1, y1))
+    return Patch(img, z_ref, R, tuple(int(b) for b in bbox))
 
 
 def to_ray_frame(T_obj2cam: np.ndarray, patch: Patch) -> tuple[np.ndarray, np.ndarray]:

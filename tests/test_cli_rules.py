@@ -29,8 +29,8 @@ def _required_args(cmd: str) -> list[str]:
     for a in p._actions:
         if not a.option_strings and a.dest not in ("help",) and a.nargs not in ("?", "*"):
             argv += ["X"] * (2 if a.nargs == 2 else 1)
-        elif a.required and a.option_strings:
-            argv += [a.option_strings[0], "X"]
+        elif a.required and a.option_strings:      # a required choice gets a valid one (synda's --domain)
+            argv += [a.option_strings[0], str(a.choices[0]) if a.choices else "X"]
     return argv
 
 

@@ -366,3 +366,45 @@ def test_physical_randomisation_keeps_far_objects_measured():
     cfg = sensor_config("physical", "kinect_v1", 160, 120).with_params(worst)
     res = SensorSimulator(cfg, None, wall_scene(3.0, albedo=0.5)).simulate(camera_pose(), seed=0)
     assert res.valid_fraction > 0.5
+
+
+def test_eval_reads_the_synda_mapping(trained, capsys):
+    """``recog eval --synda GEN``: the recogniser describes the generator's output instead of the measured patch
+    (a generator whose output is constant makes every scan's vote the same), eval.json names the generator; a
+    generator trained on other patches is a one-line error."""
+    import dataclasses
+
+    import torch
+
+    from recog.model import Recogniser
+    from recog.synda.config import AugmentConfig, GeneratorConfig, SyndaConfig, SyndaTrainConfig
+    from recog.synda.io import save_generator
+    from recog.synda.model import Generator
+    m = Recogniser.load(trained / "m")
+    g = GeneratorConfig(size=m.patch.size, widths=(2,) * 6, distill_width=2, decoders=("depth",), target="depth",
+                        distillation=False)
+    cfg = SyndaConfig("depth", g, AugmentConfig(), SyndaTrainConfig()).validate()
+    net = Generator(g, "depth")
+    with torch.no_grad():
+        for p in net.parameters():
+            p.zero_()
+    net.eval()
+    gen = trained / "synda.pt"
+    save_generator(gen, net, cfg, {"patch": dataclasses.asdict(m.patch)})
+    out = trained / "e_synda"
+    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--synda", str(gen), "--no-icp",
+                 "--out", str(out), "--no-progress"]) == 0
+    r = json.loads((out / "eval.json").read_text())
+    assert r["synda"] == str(gen) and "synda" in {i["role"] for i in r["header"]["inputs"]}
+    rows = [json.loads(line) for line in (out / "predictions.jsonl").read_text().splitlines()]
+    assert len({row["descriptor_predicted"] for row in rows}) == 1       # all-zero output: one answer
+    from app.viewer.data import RecogSession                             # the viewer shows both patches
+    sc = RecogSession(out, trained / "t").scan(0)
+    assert sc["patch"].shape == sc["mapped"].shape == (64, 64) and np.all(sc["mapped"] == 0)
+    assert sc["patch"].std() > 0
+    save_generator(gen, net, cfg, {"patch": {**dataclasses.asdict(m.patch), "crop_m": 9.0}})
+    capsys.readouterr()
+    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--synda", str(gen), "--no-icp",
+                 "--json", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "trained on 64 px patches of 9.0 m" in err

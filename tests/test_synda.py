@@ -305,11 +305,26 @@ def test_depth_domain_with_sensor_hook(bank):
     x = sphere(3)
     o1, p = a(x, 4)
     o2 = a.apply(x, p)
-    assert torch.equal(o1["input"], o2["input"]) and set(o1) == {"input"}
+    assert torch.equal(o1["input"], o2["input"]) and set(o1) == {"input", "target"}
     assert o1["input"].shape == (3, 1, S, S) and float(o1["input"].abs().max()) <= 1
     assert len(calls) == 2 and torch.equal(calls[0], p["sensor.seed"])
     no_hook = augmenter("depth", bank=bank).apply(x, p)["input"]
     assert not torch.equal(no_hook, o1["input"])
+
+
+def test_depth_measured_input_and_kept_background(bank):
+    """With measured inputs: a kept background is the measured one in the input and the clean one in the
+    target; a replaced one is the same procedural depth in both; the target never has occluders or blur."""
+    x = sphere(4)
+    measured = (x["depth"] + 0.05).clamp(-1, 1)
+    a = augmenter("depth", bank=bank, occluders=(0, 0), blurs=("none",))
+    p = a.draw(4, 7)
+    p["bg.keep"] = torch.tensor([True, False, True, False])
+    out = a.apply({**x, "measured": measured}, p)
+    assert torch.equal(out["input"][0], measured[0]) and torch.equal(out["target"][0], x["depth"][0])
+    m = x["mask"][1] > 0.5
+    assert torch.equal(out["target"][1][~m], out["input"][1][~m])
+    assert torch.allclose(out["input"][1][m], measured[1][m]) and torch.equal(out["target"][1][m], x["depth"][1][m])
 
 
 def test_bad_augmentation_input_is_one_line(bank):

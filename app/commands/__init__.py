@@ -95,7 +95,7 @@ OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")
 OUTPUT_POSITIONALS = ("dst",)
 """Positional arguments naming something a command writes (``data convert-* SRC DST``)."""
 INPUT_FLAGS = ("--model", "--gt", "--camera", "--config", "--compare-against", "--objects", "--worlds", "--planar",
-               "--lab", "--recog", "--calib")
+               "--lab", "--recog", "--calib", "--synda")
 """Options naming files or folders a command reads (besides its positional arguments)."""
 
 

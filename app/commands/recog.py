@@ -1,7 +1,7 @@
 """``realgap recog``: CAD-based recognition trained only on simulated depth (thesis 3.2.1 / 3.4.3).
 
 * ``recog train --objects DIR|FILES|chairs --variant physical|gaussian|clean --out MODEL``
-* ``recog eval MODEL TESTSET --out DIR`` (eval.json, predictions.jsonl, CDF figures) / ``--json OUT`` (the JSON only)
+* ``recog eval MODEL TESTSET --out DIR [--synda GEN]`` (eval.json, predictions.jsonl, CDF figures) / ``--json OUT`` (the JSON only)
 * ``recog predict MODEL DEPTH.png --bbox x0,y0,x1,y1``
 * ``recog testset --objects ... --out TESTSET`` (scans with another sensor, labels.json)
 """
@@ -56,6 +56,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("testset", metavar="TESTSET", help="folder with camera.json, depth/ and labels.json")
     add_shared(p, "--out", "folder for eval.json, predictions.jsonl and figures/", metavar="DIR")
     p.add_argument("--no-icp", action="store_true", help="report the database poses only")
+    p.add_argument("--synda", metavar="GEN", help="a SynDA depth generator (realgap synda train --domain depth): the "
+                                                 "recogniser reads its mapping of each measured patch")
     p.add_argument("--k", type=int, default=5, help="neighbours voting for the object (default 5)")
     add_shared(p, "--max-frames", "evaluate the first N scans")
     add_shared(p, "--overwrite", "an eval.json already in DIR, or the --json OUT file")
@@ -130,6 +132,10 @@ def _eval(args) -> int:
     if to_file:
         check_output_file(args.json, flag="--json", overwrite=args.overwrite)
     model = Recogniser.load(args.model)
+    if args.synda:
+        from recog.synda.run import patch_mapper
+        model.patch_map, _ = patch_mapper(args.synda, model.patch)
+        model.patch_map_source = str(args.synda)
     r = evaluate(model, args.testset, out, icp=not args.no_icp, k=args.k,
                  progress=not args.no_progress, max_scans=args.max_frames)
     if to_file:

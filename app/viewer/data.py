@@ -355,13 +355,19 @@ class RecogSession:
         self.scans = {s.file: s for s in scans}
         self.testset = Path(testset)
         self.summary = {k: ev.get(k) for k in ("accuracy", "accuracy_descriptor", "n_scans")}
+        self.synda = ev.get("synda")
+        """The SynDA generator the evaluation read through (``recog eval --synda``), or None."""
+        if self.synda:
+            from recog.synda.run import patch_mapper
+            self.model.patch_map, _ = patch_mapper(self.synda, self.model.patch)
 
     def __len__(self) -> int:
         return len(self.rows)
 
     def scan(self, i: int) -> dict:
         """Measured points (camera frame) of scan i's window, the recognised model's mesh at the
-        estimated pose, and whether it was right."""
+        estimated pose, and whether it was right; with a SynDA evaluation also the measured patch
+        (``patch``) and the generator's mapping of it (``mapped``), (S, S) normalised depth."""
         from data_tools.sequence import read_depth_png
         row = self.rows[i]
         sc = self.scans[row["file"]]
@@ -377,8 +383,13 @@ class RecogSession:
         pts = np.stack([(uu + x0 - intr.cx) / intr.fx * z, (vv + y0 - intr.cy) / intr.fy * z, z], 1)
         obj = self.model.object(self.model.index_of(pred.object))
         mesh = obj.merged().transformed(pred.pose)
-        return {"points": pts, "mesh": mesh, "object": sc.object, "predicted": pred.object,
-                "correct": pred.object == sc.object, "file": sc.file, "pose_true": sc.pose, "pose": pred.pose}
+        out = {"points": pts, "mesh": mesh, "object": sc.object, "predicted": pred.object,
+               "correct": pred.object == sc.object, "file": sc.file, "pose_true": sc.pose, "pose": pred.pose}
+        if self.synda:
+            from recog.patches import extract_patch
+            patch = extract_patch(depth, intr, sc.bbox, self.model.patch).image
+            out.update(patch=patch, mapped=np.asarray(self.model.patch_map(patch)))
+        return out
 
 
 SAME_FRAME_S = 1e-3

@@ -135,8 +135,13 @@ class Viewer:
             self._build_lab()
         elif isinstance(session, RecogSession):
             self.kind = "recog"
-            self.p = pv.Plotter(off_screen=off_screen, window_size=window_size)
-            self.panes = {"3d": (0, 0)}
+            if session.synda:    # the measured patch and its SynDA mapping beside the 3-D view
+                self.p = pv.Plotter(shape=(2, 3), groups=[(np.s_[:], np.s_[:2])], off_screen=off_screen,
+                                    window_size=window_size, border=False)
+                self.panes = {"3d": (0, 0), "patch": (0, 2), "mapped": (1, 2)}
+            else:
+                self.p = pv.Plotter(off_screen=off_screen, window_size=window_size)
+                self.panes = {"3d": (0, 0)}
             self.set_frame(0)
         else:
             raise TypeError(f"unknown session {type(session).__name__}")
@@ -484,6 +489,10 @@ class Viewer:
         self.p.camera_position = [(0, 0, 0), tuple(sc["pose"][:3, 3]), (0, -1, 0)]
         self.p.reset_camera()
         self.pane_images["3d"] = None
+        if "mapped" in sc:
+            self._image("patch", sc["patch"], "measured patch", cmap="viridis", clim=(-1, 1), bar="depth (patch units)")
+            self._image("mapped", sc["mapped"], "SynDA mapping (what the recogniser reads)", cmap="viridis",
+                        clim=(-1, 1), bar="depth (patch units)")
 
     # ------------------------------------------------------------------ keys, help, output
     def toggle_mesh(self) -> None:

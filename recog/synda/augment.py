@@ -174,13 +174,16 @@ class Augmenter:
         p["blur.kernel"] = ks[torch.randint(len(ks), (b,), generator=gen)]
         p["blur.sigma"] = _uniform(gen, b, c.blur_sigma)
         p["sensor.seed"] = torch.randint(0, 2 ** 62, (b,), generator=gen)
+        p["bg.keep"] = torch.rand(b, generator=gen) < float(c.depth_keep_background)
         return p
 
     # ------------------------------------------------------------------ apply
     def apply(self, sample: dict[str, torch.Tensor], params: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Pure: ``sample`` (normals (B, 3, S, S) unit, camera frame; mask (B, 1, S, S) in {0, 1};
-        depth (B, 1, S, S) in [-1, 1] for the depth domain) -> ``input`` (B, C, S, S) in [-1, 1]
-        and, for rgb, ``lightness`` (B, 1, S, S) in [-1, 1]."""
+        depth (B, 1, S, S) in [-1, 1] for the depth domain, optionally ``measured`` (B, 1, S, S): the same
+        views measured by a sensor) -> ``input`` (B, C, S, S) in [-1, 1] and, for rgb, ``lightness``
+        (B, 1, S, S) in [-1, 1]; for depth, ``target`` (B, 1, S, S): the clean depth with the same
+        background as the input (its own where ``bg.keep``, else the procedural one) and no occluders."""
         self._check(sample)
         mask = sample["mask"].to(torch.float32)
         dev = mask.device
@@ -189,7 +192,10 @@ class Augmenter:
             x, light = self._rgb(sample["normals"].to(torch.float32), mask, p)
             out = {"input": x * 2 - 1, "lightness": torch.where(mask > 0.5, light * 2 - 1, -torch.ones_like(light))}
         else:
-            out = {"input": self._depth(sample["depth"].to(torch.float32), mask, p)}
+            measured = sample.get("measured")
+            x, target = self._depth(sample["depth"].to(torch.float32), mask, p,
+                                    None if measured is None else measured.to(torch.float32))
+            out = {"input": x, "target": target}
         return out
 
     def __call__(self, sample: dict[str, torch.Tensor], seed: int | torch.Generator):
@@ -265,11 +271,15 @@ class Augmenter:
         img = occ * fill.clamp(0, 1) + (1 - occ) * img
         return self._blur(img, p).clamp(0, 1), lightness
 
-    def _depth(self, depth: torch.Tensor, mask: torch.Tensor, p: dict) -> torch.Tensor:
+    def _depth(self, depth: torch.Tensor, mask: torch.Tensor, p: dict,
+               measured: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         b = depth.shape[0]
         lo, hi = self.cfg.depth_background
-        bg = kornia.color.rgb_to_grayscale(self._background(p, b, depth.device))
-        d = mask * depth + (1 - mask) * (lo + (hi - lo) * bg)
+        bg = lo + (hi - lo) * kornia.color.rgb_to_grayscale(self._background(p, b, depth.device))
+        keep = p.get("bg.keep", torch.zeros(b, dtype=torch.bool, device=depth.device))[:, None, None, None]
+        target = torch.where(keep, depth, mask * depth + (1 - mask) * bg)
+        src = depth if measured is None else measured
+        d = torch.where(keep, src, mask * src + (1 - mask) * bg)
         near = torch.where(mask > 0.5, depth, torch.full_like(depth, 2.0)).amin((1, 2, 3))
         near = torch.where(near > 1.5, torch.zeros_like(near), near)
         occ, fill = self._occluders(p, b, depth.device)
@@ -277,7 +287,7 @@ class Augmenter:
         d = (occ * occ_depth + (1 - occ) * d).clamp(-1, 1)
         if self.sensor_hook is not None:
             d = self.sensor_hook(d, p["sensor.seed"])
-        return self._blur(d, p).clamp(-1, 1)
+        return self._blur(d, p).clamp(-1, 1), target
 
     def _blur(self, x: torch.Tensor, p: dict) -> torch.Tensor:
         out = x.clone()

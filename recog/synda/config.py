@@ -167,6 +167,11 @@ class AugmentConfig:
     """Depth domain: the range of the procedural background depth (normalised units; the patch
     convention puts the object's centre at 0 and nearer at negative values)."""
 
+    depth_keep_background: float = 0.0
+    """Depth domain: probability that a sample keeps its own background (the measured scene around the
+    object: ground, clutter) instead of a procedural one; needs measured inputs (see
+    :meth:`recog.synda.augment.Augmenter.apply`)."""
+
     def validate(self) -> "AugmentConfig":
         _range("augment.ambient", self.ambient, 0.0, 1.0)
         _range("augment.diffuse", self.diffuse, 0.0, 1.0)
@@ -184,6 +189,9 @@ class AugmentConfig:
         _range("augment.blur_sigma", self.blur_sigma, 0.0, None)
         _range("augment.depth_occluder_offset", self.depth_occluder_offset, 0.0, None)
         _range("augment.depth_background", self.depth_background, -1.0, 1.0)
+        if not 0.0 <= self.depth_keep_background <= 1.0:
+            raise ConfigError(f"synda option augment.depth_keep_background must be in [0, 1], "
+                              f"got {self.depth_keep_background}")
         if not self.focal_px > 0:
             raise ConfigError(f"synda option augment.focal_px must be > 0, got {self.focal_px}")
         if self.blur_kernel[0] % 2 == 0 or self.blur_kernel[1] % 2 == 0:
@@ -266,7 +274,8 @@ PRESET_NOTES = {
 
 def synda_preset(name: str, domain: str = "rgb") -> SyndaConfig:
     """The ``cpu`` or ``gpu`` preset for ``domain`` (validated). The depth domain decodes
-    normals, depth and mask with depth as the final output; rgb decodes all four with normals
+    normals, depth and mask with depth as the final output and keeps the measured background in
+    half of the samples; rgb decodes all four with normals
     as the final output (the thesis)."""
     if name not in PRESETS:
         raise ConfigError(f"unknown synda preset {name!r}; choose one of {', '.join(PRESETS)}")
@@ -281,4 +290,5 @@ def synda_preset(name: str, domain: str = "rgb") -> SyndaConfig:
         train = replace(train, iterations=3000, batch=16)
     else:
         train = replace(train, device="cuda")
-    return SyndaConfig(domain=domain, generator=gen, augment=AugmentConfig(), train=train).validate()
+    aug = AugmentConfig(depth_keep_background=0.5) if domain == "depth" else AugmentConfig()
+    return SyndaConfig(domain=domain, generator=gen, augment=aug, train=train).validate()

@@ -1,0 +1,148 @@
+"""``realgap synda``: SynDA (thesis ch. 5), a generator that maps real-like inputs into the clean
+synthetic domain the recogniser was trained on.
+
+* ``synda train --objects DIR|FILES|chairs --domain rgb|depth --out GEN`` (progress, checkpoints, resume)
+* ``synda map GEN INPUT... --out DIR`` (every intermediate modality as a PNG + a contact sheet)
+* ``synda augment --objects ... --out DIR`` (a contact sheet of A's samples)
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+
+from app.commands import RESUMES, add_group, add_shared, positive_int
+
+NAME = "synda"
+HELP = "SynDA: map measured / real-like inputs into the clean synthetic domain (thesis ch. 5)"
+DESCRIPTION = ("Train a multi-decoder U-Net with self-attentive distillation on augmented synthetic views of "
+               "CAD objects, map inputs with it, look at the augmentation.")
+
+
+def register(parser: argparse.ArgumentParser) -> None:
+    sub = add_group(parser)
+    p = sub.add_parser("train", help="simulate views of the objects and train the generator",
+                       description="Render clean views of every object (and, for --domain depth, measure them with "
+                                   "the sensor's physical pipeline under randomised parameters), then train h_G on "
+                                   "the online augmentation A. Killed runs continue when re-run.")
+    p.add_argument("--objects", required=True, help="a folder of .ply/.obj models, a comma list of files, or "
+                                                    "'chairs' (the three embedded office chairs)")
+    p.add_argument("--domain", required=True, choices=("rgb", "depth"),
+                   help="input domain: rgb (colour renders, the thesis) or depth (measured depth patches)")
+    add_shared(p, "--out", "the generator file", required=True, metavar="GEN")
+    p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
+                   help="size: cpu = narrow U-Net, batch 16, 3000 steps; gpu = the thesis' size, batch 64, 20000 steps")
+    p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
+    p.add_argument("--iterations", type=positive_int("--iterations"), help="training steps (overrides --preset)")
+    p.add_argument("--batch", type=positive_int("--batch"), help="samples per step (overrides --preset)")
+    p.add_argument("--device", help="torch device (overrides --preset)")
+    p.add_argument("--subdivisions", type=int, help="icosahedron subdivisions of the viewpoints (default 2)")
+    p.add_argument("--draws", type=int, default=2, help="measured draws per view, depth domain (default 2)")
+    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed; 0.001 for millimetre CAD)")
+    p.add_argument("--threads", type=positive_int("--threads"), default=1,
+                   help="torch threads (default 1: measured fastest on a busy 2-core machine)")
+    p.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), default=100, metavar="N",
+                   help="training checkpoint every N steps (default 100)")
+    p.add_argument("--work", help="folder for the simulated views and the checkpoint (default GEN.work)")
+    p.add_argument("--keep-work", action="store_true", help="keep the work folder at the end")
+    add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
+    add_shared(p, "--seed", "of views, weights and augmentation (default 0)", default=0)
+    add_shared(p, "--overwrite", "a generator already at GEN")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_train, on_interrupt=RESUMES)
+    register_views(sub)
+
+
+def _log(msg: str) -> None:
+    print(f"realgap: {msg}", file=sys.stderr)
+
+
+def synda_configs(args):
+    """(SyndaConfig, DataConfig) of ``synda train`` arguments."""
+    import dataclasses
+
+    from recog.data import DataConfig
+    from recog.synda.config import synda_preset
+    cfg = synda_preset(args.preset, args.domain)
+    over = {k: getattr(args, k) for k in ("iterations", "batch", "device") if getattr(args, k, None) is not None}
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over)).validate()
+    vo = {"subdivisions": args.subdivisions} if args.subdivisions is not None else {}
+    views = DataConfig(variant="physical", preset=args.sensor, seed=args.seed, draws=args.draws, **vo).validate()
+    return cfg, views
+
+
+def _train(args) -> int:
+    from recog.synda.run import train_synda
+    from recog.synda.train import pick_threads
+    pick_threads(args.threads)
+    cfg, views = synda_configs(args)
+    command = "realgap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    gen, info = train_synda(args.objects, args.out, cfg, views, work=args.work, scale=args.scale,
+                            workers=args.workers, overwrite=args.overwrite, keep_work=args.keep_work,
+                            progress=not args.no_progress, command=command, checkpoint_every=args.checkpoint_every,
+                            log=_log)
+    fl = info["final_losses"]
+    print(f"{gen}: SynDA {cfg.domain} generator of {', '.join(info['object_names'])}; {info['training_views']} views, "
+          f"{cfg.train.iterations} steps ({info['timings_s']['train_s']:.0f} s, views "
+          f"{info['timings_s']['views_s']:.0f} s); final losses " + " ".join(f"{k} {v:.4f}" for k, v in fl.items()
+                                                                              if k != "step"))
+    return 0
+
+
+def register_views(sub) -> None:
+    """``synda map`` and ``synda augment``."""
+    p = sub.add_parser("map", help="map inputs through a generator: every intermediate modality as a PNG",
+                       description="Run h_G on each input and write every decoded modality (normals, depth, mask, "
+                                   "lightness) and the final output as a PNG with a colour bar, one folder per "
+                                   "input, plus contact_sheet.png (a row per input). Inputs: .npy arrays of "
+                                   "normalised patches ((S,S), (N,S,S) or (N,C,S,S) in [-1, 1]), S x S PNGs (8-bit "
+                                   "grey or RGB: 0..255 -> -1..1), or a 16-bit depth scan with --bbox (the patch "
+                                   "is cut as the recogniser cuts it).")
+    p.add_argument("gen", metavar="GEN")
+    p.add_argument("inputs", metavar="INPUT", nargs="+")
+    add_shared(p, "--out", "folder for the PNGs", required=True, metavar="DIR")
+    p.add_argument("--bbox", help="x0,y0,x1,y1: the window of a 16-bit depth scan (depth generators)")
+    p.add_argument("--camera", help="camera.json of a depth scan (default: next to it or in its parent folder)")
+    add_shared(p, "--overwrite", "a contact sheet already in DIR")
+    p.set_defaults(func=_map)
+
+    p = sub.add_parser("augment", help="a contact sheet of augmented training samples (what A does)",
+                       description="Simulate a few views of the objects as 'synda train' does and draw A on them: "
+                                   "contact_sheet.png shows per sample the clean view, (depth: the measured draw), "
+                                   "the augmented input and the targets; samples.npz holds the arrays.")
+    p.add_argument("--objects", required=True, help="as for synda train")
+    p.add_argument("--domain", required=True, choices=("rgb", "depth"), help="input domain")
+    add_shared(p, "--out", "folder for contact_sheet.png and samples.npz", required=True, metavar="DIR")
+    p.add_argument("--samples", type=positive_int("--samples"), default=12, help="samples to show (default 12)")
+    p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the views (default kinect_v1)")
+    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    add_shared(p, "--seed", "of the views and of A (default 0)", default=0)
+    add_shared(p, "--overwrite", "a contact sheet already in DIR")
+    p.set_defaults(func=_augment)
+
+
+def _map(args) -> int:
+    from app.synda_figures import map_figures
+    from data_tools.outputs import check_output_dir
+    from recog.synda.inputs import read_inputs
+    from recog.synda.io import load_generator
+    out = check_output_dir(args.out, finished="contact_sheet.png", overwrite=args.overwrite)
+    _, cfg, info = load_generator(args.gen)
+    names, x = read_inputs(args.inputs, cfg, info, bbox=args.bbox, camera=args.camera, gen_path=args.gen)
+    from recog.synda.run import modalities
+    maps, meta = modalities(args.gen, x)
+    n = map_figures(out, names, x, maps, meta)
+    print(f"{out}: {len(names)} inputs mapped by the {cfg.domain} generator; {n} PNGs and contact_sheet.png")
+    return 0
+
+
+def _augment(args) -> int:
+    from app.synda_figures import augment_sheet
+    from data_tools.outputs import check_output_dir
+    from recog.synda.inputs import augment_samples
+    out = check_output_dir(args.out, finished="contact_sheet.png", overwrite=args.overwrite)
+    samples = augment_samples(args.objects, args.domain, args.samples, args.seed, sensor=args.sensor,
+                              scale=args.scale)
+    augment_sheet(out, samples, args.domain)
+    print(f"{out}: contact_sheet.png and samples.npz of {args.samples} {args.domain} samples of A")
+    return 0

@@ -1,0 +1,156 @@
+"""Benchmark: SynDA in front of the triplet recogniser (thesis Tables 5.2-5.4, depth domain), on the
+same test scans for every row.
+
+    .venv/bin/python benchmarks/bench_synda.py --recog clean=CLEAN_MODEL,physical=recog/weights/chairs \\
+        --generator recog/weights/synda_depth/generator.pt \\
+        --testset structure=TESTSET_A,changed=TESTSET_B [--icp] [--max-scans N] [--out bench_out/synda]
+    .venv/bin/python benchmarks/bench_synda.py ... --ablation --objects chairs --iterations 300
+
+Rows per test set: each recogniser alone, and each recogniser reading the generator's mapping of the
+measured patch (``recog eval --synda``). Columns: the descriptor's own k-NN vote accuracy and the
+symmetry-aware rotation error of its nearest database pose (median, before ICP, on the scans the
+vote gets right: the ``--no-icp`` evaluation); with ``--icp`` also the full pipeline (CAD
+verification + ICP) accuracy and rotation error after ICP.
+
+Test sets (``realgap recog testset``) should come from a sensor the recogniser and the generator did
+not see: the ``structure`` preset's physical pipeline, and the training sensor with effect parameters
+outside the training randomisation (a sensor_config.json).
+
+``--ablation``: thesis Table 5.4 - generators without the decoders other than depth, without
+distillation, without self-attention, without skip connections, and with the bottleneck triplet
+loss, each trained ``--iterations`` steps on the same views (``--objects``, kept in ``OUT/work``),
+then the first recogniser's vote accuracy / rotation error before ICP with each. Writes
+``OUT/bench_synda.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+ABLATIONS = {
+    "full": {},
+    "no_aux_decoders": {"decoders": ("depth",)},
+    "no_distillation": {"distillation": False},
+    "no_attention": {"attention": False},
+    "no_skips": {"skips": False},
+    "with_triplet": {"triplet": True},
+}
+"""Table 5.4's switches (GeneratorConfig overrides) of the depth generator."""
+
+
+def _pairs(text: str) -> dict[str, str]:
+    out = {}
+    for item in text.split(","):
+        name, _, path = item.partition("=")
+        if not path:
+            raise SystemExit(f"expected NAME=PATH, got {item!r}")
+        out[name] = path
+    return out
+
+
+def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool, max_scans: int | None) -> dict:
+    """Vote accuracy and rotation error before ICP (no-ICP run); with ``icp`` also the full pipeline."""
+    from recog.evaluate import evaluate
+    from recog.model import Recogniser
+    from recog.synda.run import patch_mapper
+    model = Recogniser.load(model_path)
+    if generator:
+        model.patch_map, _ = patch_mapper(generator, model.patch)
+        model.patch_map_source = generator
+    t0 = time.perf_counter()
+    r = evaluate(model, testset, None, icp=False, progress=False, max_scans=max_scans)
+    row = {"n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],
+           "rot_err_deg_median_before_icp": r["before_icp"]["rot_err_deg"]["median"],
+           "rot_within_20deg_before_icp": r["before_icp"]["rot_err_deg"].get("acc_at_20"),
+           "seconds_no_icp": round(time.perf_counter() - t0, 1)}
+    if icp:
+        t0 = time.perf_counter()
+        f = evaluate(model, testset, None, icp=True, progress=False, max_scans=max_scans)
+        row.update(accuracy_full=f["accuracy"], vote_accuracy_full_run=f["accuracy_descriptor"],
+                   rot_err_deg_median_after_icp=f["rot_err_deg"]["median"],
+                   trans_err_mm_median_after_icp=None if f["trans_err_m"]["median"] is None
+                   else 1000 * f["trans_err_m"]["median"], seconds_icp=round(time.perf_counter() - t0, 1))
+    return row
+
+
+def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dict:
+    """Train the Table 5.4 generators on the same views and evaluate them with ``first_model``."""
+    from data_tools.errors import RealgapError
+    from recog.data import DataConfig
+    from recog.synda.config import synda_preset
+    from recog.synda.run import train_synda
+    from recog.synda.train import pick_threads
+    pick_threads(1)
+    res = {}
+    for name, over in ABLATIONS.items():
+        cfg = synda_preset("cpu", "depth")
+        gen_cfg = dataclasses.replace(cfg.generator, **over)
+        cfg = dataclasses.replace(cfg, generator=gen_cfg,
+                                  train=dataclasses.replace(cfg.train, iterations=args.iterations, seed=args.seed))
+        views = DataConfig(variant="physical", seed=args.seed, subdivisions=args.subdivisions)
+        gen = out / f"ablation_{name}.pt"
+        t0 = time.perf_counter()
+        if not gen.is_file():
+            try:
+                train_synda(args.objects, gen, cfg.validate(), views, work=out / "work", keep_work=True,
+                            progress=False, command="bench_synda --ablation " + name)
+            except RealgapError as e:
+                res[name] = {"error": str(e)}
+                continue
+        res[name] = {"train_s": round(time.perf_counter() - t0, 1),
+                     **{ts: evaluate_row(first_model, path, str(gen), False, args.max_scans)
+                        for ts, path in testsets.items()}}
+        print(name, json.dumps(res[name]), flush=True)
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
+    ap.add_argument("--recog", required=True, help="NAME=MODEL,... recognisers (the first one is the ablation's)")
+    ap.add_argument("--generator", required=True, help="the SynDA depth generator")
+    ap.add_argument("--testset", required=True, help="NAME=TESTSET,...")
+    ap.add_argument("--icp", action="store_true", help="also the full pipeline (verification + ICP): slow")
+    ap.add_argument("--max-scans", type=int, default=None)
+    ap.add_argument("--ablation", action="store_true", help="thesis Table 5.4 (trains 6 generators)")
+    ap.add_argument("--objects", default="chairs", help="objects of the ablation's generators")
+    ap.add_argument("--iterations", type=int, default=300, help="steps of each ablation generator")
+    ap.add_argument("--subdivisions", type=int, default=1, help="viewpoint subdivisions of the ablation's views")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="bench_out/synda")
+    args = ap.parse_args(argv)
+    import torch
+    torch.set_num_threads(1)
+    recogs, testsets = _pairs(args.recog), _pairs(args.testset)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for ts, path in testsets.items():
+        for name, model in recogs.items():
+            for gen in (None, args.generator):
+                row = {"testset": ts, "recogniser": name, "synda": bool(gen),
+                       **evaluate_row(model, path, gen, args.icp, args.max_scans)}
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+    result = {"rows": rows, "generator": args.generator, "recognisers": recogs, "testsets": testsets}
+    if args.ablation:
+        result["ablation"] = ablation(args, next(iter(recogs.values())), testsets, out)
+    (out / "bench_synda.json").write_text(json.dumps(result, indent=2))
+    print(f"{'test set':10s} {'recogniser':10s} {'synda':5s} {'vote %':>7s} {'rot med before':>14s}"
+          + (f" {'full %':>7s} {'rot med after':>13s}" if args.icp else ""))
+    for r in rows:
+        line = (f"{r['testset']:10s} {r['recogniser']:10s} {str(r['synda']):5s} {100 * r['vote_accuracy']:7.1f} "
+                f"{r['rot_err_deg_median_before_icp'] or float('nan'):14.1f}")
+        if args.icp:
+            line += f" {100 * r['accuracy_full']:7.1f} {r['rot_err_deg_median_after_icp'] or float('nan'):13.1f}"
+        print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
