@@ -56,6 +56,7 @@ def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) 
 def add_config_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``slam run`` and ``batch``: preset, config file, and one flag per
     configuration field (``--tsdf.voxel_size_m``, ``--icp.min_fitness``, ...)."""
+    from slam.loop_closure import LoopClosureConfig
     from slam.pipeline import PRESETS, SlamConfig
     from slam.registration import backend_names, get_backend
     from slam.tsdf import TSDFConfig
@@ -69,6 +70,8 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
     _add_fields(g, SlamConfig, "", "", exclude=("backend",))
     g = p.add_argument_group("TSDF options (--tsdf.NAME VALUE)")
     _add_fields(g, TSDFConfig, "tsdf.", "tsdf.")
+    g = p.add_argument_group("loop closure options (--loop-closure.NAME VALUE; off: --loop-closure.enabled false)")
+    _add_fields(g, LoopClosureConfig, "loop-closure.", "loop_closure.")
     for name in backend_names():
         try:
             cls = get_backend(name).Config
@@ -103,6 +106,9 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
             target = f"backend_config.{name}"
         elif section == "tsdf":
             cls, target = TSDFConfig, dotted
+        elif section == "loop_closure":
+            from slam.loop_closure import LoopClosureConfig
+            cls, target = LoopClosureConfig, dotted
         else:
             cls, target = SlamConfig, dotted
         hints = typing.get_type_hints(cls)
@@ -134,6 +140,8 @@ def flag_names(message: str, backend: str) -> str:
     def dash(name: str) -> str:
         return name.replace("_", "-")
     message = re.sub(r"\bconfig\.tsdf\.(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
+    message = re.sub(r"\b(?:config\.loop_closure\.|LoopClosureConfig[.:] ?)(\w+)",
+                     lambda m: f"--loop-closure.{dash(m.group(1))}", message)
     message = re.sub(r"\bconfig\.backend_config\.(\w+)", lambda m: f"--{backend}.{dash(m.group(1))}", message)
     message = re.sub(r"\b(?:SlamConfig|config)\.(\w+)", lambda m: f"--{dash(m.group(1))}", message)
     message = re.sub(r"\bTSDFConfig[.:] ?(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
