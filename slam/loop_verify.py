@@ -81,8 +81,8 @@ class Verification:
     information: np.ndarray
     """(6, 6) information matrix of the transform (Open3D's, from the correspondences)."""
     constraint: float
-    """Smallest eigenvalue of the translation block of ``information`` divided by the number of
-    correspondences: 0 for a single plane, 1/3 for three orthogonal planes seen equally."""
+    """Smallest eigenvalue of the point-to-plane translation information per correspondence
+    (:func:`translation_constraint`): 0 for a single plane, 1/3 for three orthogonal planes seen equally."""
     reason: str = ""
     """'' when the loop is accepted, else why it was rejected."""
 
@@ -94,12 +94,15 @@ def information_matrix(src, tgt, T: np.ndarray, max_dist_m: float) -> np.ndarray
                                   src, tgt, max_dist_m, T))
 
 
-def translation_constraint(info: np.ndarray, n: int) -> float:
-    """Smallest eigenvalue of the translation block of ``info`` per correspondence (see
-    :attr:`Verification.constraint`)."""
-    if n <= 0:
+def translation_constraint(tgt, pairs: np.ndarray) -> float:
+    """Smallest eigenvalue of the point-to-plane translation information per correspondence,
+    (1/M) sum n n^T over the target normals of the (M, 2) ``pairs`` (see
+    :attr:`Verification.constraint`). Open3D's information matrix is point-to-point, whose
+    translation block is M times the identity whatever the geometry, so it cannot tell."""
+    if len(pairs) == 0:
         return 0.0
-    return float(np.linalg.eigvalsh(info[3:, 3:])[0]) / n
+    n = np.asarray(tgt.normals)[pairs[:, 1]]
+    return float(np.linalg.eigvalsh(n.T @ n / len(n))[0])
 
 
 def point_to_plane_rmse(src, tgt, T: np.ndarray, pairs: np.ndarray) -> float:
@@ -135,8 +138,9 @@ def verify_loop(src, tgt, init: np.ndarray, max_correspondence_m: tuple[float, .
     n = int(len(res.correspondence_set))
     fine = float(max_correspondence_m[-1])
     info = information_matrix(src, tgt, T, fine)
-    out = Verification(T, float(res.fitness), point_to_plane_rmse(src, tgt, T, np.asarray(res.correspondence_set)),
-                       n, info, translation_constraint(info, n))
+    pairs = np.asarray(res.correspondence_set)
+    out = Verification(T, float(res.fitness), point_to_plane_rmse(src, tgt, T, pairs), n, info,
+                       translation_constraint(tgt, pairs))
     if n < min_correspondences:
         out.reason = f"too few correspondences ({n} < {min_correspondences})"
     elif out.fitness < min_fitness:

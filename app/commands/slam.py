@@ -89,6 +89,8 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
     from slam.registration import backend_names, get_backend, parse_value
     from slam.tsdf import TSDFConfig
     from slam.pipeline import read_config_file
+    from slam.loop_closure import LoopClosureConfig
+    sections = {"tsdf": TSDFConfig, "loop_closure": LoopClosureConfig}
     base = read_config_file(args.config) if getattr(args, "config", None) else None
     overrides = {}
     backends = set(backend_names())
@@ -104,13 +106,8 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
                 raise ConfigError(f"--{dotted} is an option of backend {section}, not of {backend}")
             cls = get_backend(section).Config
             target = f"backend_config.{name}"
-        elif section == "tsdf":
-            cls, target = TSDFConfig, dotted
-        elif section == "loop_closure":
-            from slam.loop_closure import LoopClosureConfig
-            cls, target = LoopClosureConfig, dotted
-        else:
-            cls, target = SlamConfig, dotted
+        else:       # --tsdf.x, --loop-closure.x or a SlamConfig field
+            cls, target = sections.get(section, SlamConfig), dotted
         hints = typing.get_type_hints(cls)
         if name not in {f.name for f in dataclasses.fields(cls)}:
             raise ConfigError(f"unknown option --{dotted}")
