@@ -48,9 +48,11 @@ from slam.registration import check_positive
 class LoopClosureConfig:
     """Loop-closure options (``slam run --loop-closure.NAME VALUE``)."""
 
-    enabled: bool = True
+    enabled: bool = False
     """Close loops after tracking (for the backends in ``backends``); false leaves the odometry
-    poses and the map exactly as tracked."""
+    poses and the map exactly as tracked. Off by default: on 7-Scenes chess (the KinectFusion
+    reference) the closures it finds move the trajectory by about as much as the odometry is off,
+    ATE 2.83 -> 2.93 cm on 600 frames, at the cost of a second fusion pass (docs/slam.md)."""
     backends: tuple[str, ...] = ("icp",)
     """Backends whose runs get loop closure when ``enabled``."""
     keyframe_trans_m: float = 0.15
@@ -252,9 +254,12 @@ def _ground_truth_stats(reader, records, P_old, P_new, kfs, kept_loops, c: LoopC
     from slam.metrics import ate
     rows = [r for r, p in enumerate(P_old) if p is not None]
     ts = [records[r]["timestamp"] for r in rows]
+    import warnings
     try:
-        stats["ate_before_m"] = ate(reader.groundtruth, Trajectory(ts, [P_old[r] for r in rows])).rmse
-        stats["ate_after_m"] = ate(reader.groundtruth, Trajectory(ts, [P_new[r] for r in rows])).rmse
+        with warnings.catch_warnings():     # a short run's ill-conditioned alignment: not the user's concern here
+            warnings.simplefilter("ignore")
+            stats["ate_before_m"] = ate(reader.groundtruth, Trajectory(ts, [P_old[r] for r in rows])).rmse
+            stats["ate_after_m"] = ate(reader.groundtruth, Trajectory(ts, [P_new[r] for r in rows])).rmse
     except Exception as e:     # too few associated poses: report why instead of failing the run
         stats["ate_error"] = str(e)
     false = 0
@@ -279,6 +284,9 @@ def _close(reader, records, P, times, c: LoopClosureConfig, tsdf, intr, stats: d
     from slam.pose_graph import GraphEdge, interpolate_corrections, optimise_pose_graph
     new_P = P
     sel = select_keyframes(times, P, c.keyframe_trans_m, c.keyframe_rot_deg)
+    stats["keyframes"] = len(sel)
+    if len(sel) < 2 or times[sel[-1][0]] - times[sel[0][0]] < c.min_separation_s:
+        return P            # no two keyframes far enough apart in time: no candidate, nothing to read
     kfs: list[Keyframe] = []
     for row, path in sel:
         f = reader[records[row]["index"]]

@@ -121,18 +121,17 @@ def test_two_identical_boxes_are_not_a_loop(tmp_path):
 
 
 def test_loop_closure_off_is_the_plain_odometry(tmp_path, monkeypatch):
-    """--loop-closure.enabled false never calls the loop closer and writes no loop statistics;
-    with it on (the icp default) a short run without loops keeps the same trajectory bytes."""
+    """--loop-closure.enabled false (the default) never calls the loop closer and writes no loop
+    statistics; with it on, a short run without loops keeps the same trajectory bytes."""
     poses = [look_at(np.array([1.0 - 0.02 * k, -1.2, 1.3]), np.array([-0.3, 0.5, 0.35])) for k in range(8)]
     seq = write_sequence(tmp_path / "seq", render_frames(room_scene(0), poses))
-    on = run_slam(seq, tmp_path / "on", make_config("icp"), progress=False)
+    on = run_slam(seq, tmp_path / "on", make_config("icp", overrides={"loop_closure.enabled": True}), progress=False)
     assert on.stats["loop_closure"]["closures"] == 0 and not on.stats["loop_closure"]["applied"]
 
     def boom(*a, **k):
         raise AssertionError("close_loops called with loop closure off")
     monkeypatch.setattr("slam.loop_closure.close_loops", boom)
-    off = run_slam(seq, tmp_path / "off", make_config("icp", overrides={"loop_closure.enabled": False}),
-                   progress=False)
+    off = run_slam(seq, tmp_path / "off", make_config("icp"), progress=False)
     assert "loop_closure" not in off.stats
     assert (tmp_path / "off" / "trajectory.txt").read_bytes().splitlines()[1:] == \
         (tmp_path / "on" / "trajectory.txt").read_bytes().splitlines()[1:]
@@ -140,7 +139,7 @@ def test_loop_closure_off_is_the_plain_odometry(tmp_path, monkeypatch):
 
 
 def test_keyframes_and_correction_interpolation():
-    """Keyframes every 0.15 m on a straight 1 cm/frame walk: rows 0, 16, 32, ...; corrections are
+    """Keyframes beyond 0.155 m on a straight 1 cm/frame walk: rows 0, 16, 32, 48; corrections are
     exact at the keyframes and halfway in between (rotation by slerp, translation linear)."""
     poses = []
     for k in range(50):
@@ -148,7 +147,7 @@ def test_keyframes_and_correction_interpolation():
         T[0, 3] = 0.01 * k
         poses.append(T)
     poses[3] = None
-    kf = select_keyframes(np.arange(50.0), poses, 0.15, 15.0)
+    kf = select_keyframes(np.arange(50.0), poses, 0.155, 15.0)
     assert [r for r, _ in kf] == [0, 16, 32, 48]
     assert kf[1][1] == pytest.approx(0.16)
     C0, C1 = np.eye(4), _rot(2, 10.0)
@@ -167,4 +166,6 @@ def test_config_is_checked_and_exposed():
         LoopClosureConfig(keyframe_trans_m=0.0).validate()
     cfg = make_config("icp", overrides={"loop_closure.min_fitness": 0.5})
     assert cfg.loop_closure.min_fitness == 0.5 and cfg.to_dict()["loop_closure"]["min_fitness"] == 0.5
+    assert not cfg.loop_closure.applies_to("icp")                      # off by default
+    cfg = make_config("icp", overrides={"loop_closure.enabled": True})
     assert cfg.loop_closure.applies_to("icp") and not cfg.loop_closure.applies_to("rgbd_odometry")
