@@ -47,9 +47,10 @@ from data_tools.sequence import SequenceReader
 from data_tools.trajectory import Trajectory, read_tum, write_tum
 from slam.registration import (TrackResult, check_positive, config_from_dict, config_to_dict,
                                get_backend)
+from slam.loop_closure import LoopClosureConfig
 from slam.tsdf import TSDFConfig, TSDFVolume
 
-RUN_FILES = ("config.json", "camera.json", "checkpoint.json", "trajectory.txt", "stats.json",
+RUN_FILES = ("config.json", "camera.json", "checkpoint.json", "trajectory.txt", "trajectory_odometry.txt", "stats.json",
              "mesh.ply", "volume.npz", "volume.npz.json")
 """Files a run writes (and ``overwrite`` removes)."""
 
@@ -76,6 +77,9 @@ class SlamConfig:
     """Write a resumable checkpoint every this many frames."""
     save_volume: bool = False
     """Also save the TSDF volume (RUN/volume.npz; large) for rendering from the volume."""
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    """Loop closure after tracking (:mod:`slam.loop_closure`): keyframes, ORB candidates verified
+    by ICP, a pose graph, the TSDF re-integrated with the corrected poses."""
 
     def __post_init__(self) -> None:
         if self.backend_config is None or isinstance(self.backend_config, dict):
@@ -86,6 +90,7 @@ class SlamConfig:
         check_positive(self, "frame_step", "checkpoint_every")
         check_positive(self, "max_frames", allow_zero=True)
         self.tsdf.validate()
+        self.loop_closure.validate()
         cls = get_backend(self.backend).Config
         if not isinstance(self.backend_config, cls):
             raise ConfigError(f"backend_config is a {type(self.backend_config).__name__}, backend "
@@ -424,7 +429,20 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
             bar.close()
             raise
         bar.close()
-    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend)
+    # ---- loop closure (slam/loop_closure.py): after tracking, on the finished odometry
+    loop_stats = None
+    if backend_cls.online and cfg.loop_closure.applies_to(cfg.backend) and any(p is not None for p in poses):
+        from slam.loop_closure import close_loops
+        t0 = time.perf_counter()
+        odometry = poses
+        poses, new_volume, loop_stats = close_loops(reader, records, poses, cfg, intr, progress)
+        timing["loop_s"] = time.perf_counter() - t0
+        if new_volume is not None:
+            volume = new_volume
+            ok = [(r["timestamp"], np.asarray(p).reshape(4, 4)) for r, p in zip(records, odometry) if p is not None]
+            write_tum(out / "trajectory_odometry.txt", Trajectory([t for t, _ in ok], [p for _, p in ok]),
+                      header=f"realgap slam {cfg.backend}: odometry poses before loop closure")
+    return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend, loop_stats)
 
 
 def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
@@ -486,7 +504,8 @@ def _run_offline(backend, reader, indices, volume, records, poses, timing, cfg, 
     bar.close()
 
 
-def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend=None) -> SlamResult:
+def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend=None,
+            loop_stats=None) -> SlamResult:
     ok = [(r["timestamp"], np.asarray(p).reshape(4, 4)) for r, p in zip(records, poses) if p is not None]
     failed = [r["timestamp"] for r in records if r["failed"]]
     spent = sum(timing.values())
@@ -521,6 +540,8 @@ def _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend
         "complete": True,
         "per_frame": records,
     }
+    if loop_stats is not None:
+        stats["loop_closure"] = loop_stats
     from data_tools.results import make_header, write_result
     header = make_header("slam.run", inputs={"sequence": meta["sequence"]}, parameters=cfg.to_dict(),
                          timings_s={k: v for k, v in timing.items()},

@@ -8,6 +8,8 @@ from its arguments.
 * :func:`walkthrough` - a smooth hand-held-like path through a room at eye height that stays
   clear of all geometry and keeps looking at furniture/objects.
 * :func:`orbit` - a circle (or arc) around a point, always looking at it.
+* :func:`loop` - a closed walk around the room that comes back to its start and looks over the
+  start again (a sequence for loop closure).
 * :func:`planar` - a ground robot's path: the camera at a fixed height and pitch, moving on the
   floor plane with yaw turns (the setting of the neural memory, thesis 4.4.3).
 * :func:`handheld_jitter` - smooth, temporally correlated pose noise added to a trajectory.
@@ -268,6 +270,59 @@ def walkthrough(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEF
                        f"(try another seed or a smaller clearance)")
 
 
+# --------------------------------------------------------------------------- loop
+
+def loop(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEFAULT_FPS, turns: float = 1.15,
+         outward_deg: float = -30.0, look_around_deg: float = 20.0, pitch_deg: float = -20.0,
+         clearance_m: float = 0.35, height_m: float = 1.5, t0: float = 0.0) -> Trajectory:
+    """A closed walk around the content centre (:func:`content_center`) that returns to its start.
+
+    The eye goes ``turns`` times counter-clockwise around an ellipse (the last ``turns - 1`` of a
+    turn revisits the start, so the views of the first frames are seen again); the ellipse is the
+    largest one, up to 0.8 of the free half-extents of the scene's bounding box, whose every point
+    keeps ``clearance_m`` from all geometry (inside a room it must also stay enclosed). The camera
+    looks ``outward_deg`` away from the direction of travel towards the outside of the loop (walls
+    and furniture at the walls, not the centre an orbit looks at: long views of nearly planar walls
+    are what makes a tracker drift) plus a smooth +-``look_around_deg`` sway, ``pitch_deg`` down,
+    ``height_m`` above the floor (the lowest scene point, capped under the ceiling). The seed sets
+    the start angle, the aspect of the ellipse (+-10 %) and the sway's phase.
+    """
+    ts = _timestamps(n_frames, fps, t0)
+    if not turns >= 1.0:
+        raise ConfigError(f"loop: turns must be >= 1 (the walk must come back to its start), got {turns}")
+    rng = np.random.default_rng(seed)
+    clear = _Clearance(scene)
+    center, _size = content_center(scene)
+    lo, hi = _scene_bounds(scene)
+    z = min(lo[2] + height_m, hi[2] - clearance_m) if hi[2] - lo[2] > 2 * clearance_m else lo[2] + height_m
+    in_room = bool(clear.enclosed(np.array([center[0], center[1], z]))[0])
+    half = np.minimum(center[:2] - lo[:2], hi[:2] - center[:2]) - clearance_m
+    if np.any(half <= 0.1):
+        raise ConfigError("loop: the scene is too small for a loop with this clearance")
+    aspect = rng.uniform(0.9, 1.1, 2)
+    start = float(rng.uniform(0, 2 * math.pi))
+    phase = float(rng.uniform(0, 2 * math.pi))
+    a = start + 2 * math.pi * turns * np.arange(n_frames) / max(n_frames - 1, 1)
+    ring_a = np.linspace(0, 2 * math.pi, 240, endpoint=False)
+    for s in np.linspace(0.8, 0.2, 25):
+        r = np.minimum(half * aspect * s, half)
+        ring = np.stack([center[0] + r[0] * np.cos(ring_a), center[1] + r[1] * np.sin(ring_a),
+                         np.full_like(ring_a, z)], axis=1)
+        if np.all(clear.distance(ring) >= clearance_m) and (not in_room or np.all(clear.enclosed(ring))):
+            break
+    else:
+        raise RealgapError("loop: no collision-free closed path around the scene content")
+    eyes = np.stack([center[0] + r[0] * np.cos(a), center[1] + r[1] * np.sin(a), np.full(n_frames, z)], axis=1)
+    heading = np.arctan2(r[1] * np.cos(a), -r[0] * np.sin(a))      # direction of travel (d eye / d a)
+    sway = math.radians(look_around_deg) * np.sin(3 * (a - start) + phase)
+    yaw = heading - math.radians(outward_deg) + sway                # counter-clockwise: outside is right
+    pitch = math.radians(pitch_deg)
+    fwd = np.stack([np.cos(yaw) * math.cos(pitch), np.sin(yaw) * math.cos(pitch),
+                    np.full(n_frames, math.sin(pitch))], axis=1)
+    poses = np.stack([look_at(e, e + f) for e, f in zip(eyes, fwd)])
+    return Trajectory(ts, poses)
+
+
 def planar(scene: SceneSpec, n_frames: int, seed: int = 0, fps: float = DEFAULT_FPS, height_m: float = 1.0,
            pitch_deg: float = -10.0, speed_mps: float = 0.3, clearance_m: float = 0.4, segment_s: float = 2.0,
            look_around_deg: float = 40.0, t0: float = 0.0, max_attempts: int = 30) -> Trajectory:
@@ -445,6 +500,11 @@ def make_trajectory(kind: str, scene: SceneSpec, n_frames: int, seed: int = 0,
 @register_trajectory_kind("walkthrough")
 def _walkthrough_kind(scene: SceneSpec, n_frames: int, seed: int, fps: float) -> Trajectory:
     return walkthrough(scene, n_frames, seed=seed, fps=fps)
+
+
+@register_trajectory_kind("loop")
+def _loop_kind(scene: SceneSpec, n_frames: int, seed: int, fps: float) -> Trajectory:
+    return loop(scene, n_frames, seed=seed, fps=fps)
 
 
 @register_trajectory_kind("planar")

@@ -134,8 +134,23 @@ def test_orbit_kind_stays_inside_the_room():
     tr = traj_mod.make_trajectory("orbit", scene, 20, seed=0)
     p = tr.positions
     assert np.all((np.abs(p[:, 0]) < 2.5) & (np.abs(p[:, 1]) < 2.0) & (p[:, 2] < 2.6))
-    with pytest.raises(ConfigError, match="known: orbit, planar, walkthrough"):
+    with pytest.raises(ConfigError, match="known: loop, orbit, planar, walkthrough"):
         traj_mod.make_trajectory("spiral", scene, 5)
+
+
+def test_loop_kind_returns_to_its_start_and_sees_it_again():
+    """The loop walks 1.15 turns: frame k and frame k + n / 1.15 stand at the same place looking
+    the same way (the start is seen again); every eye keeps 0.35 m from the geometry."""
+    scene = build_scene("room")
+    n = 116
+    tr = traj_mod.make_trajectory("loop", scene, n, seed=0)
+    k = round((n - 1) / 1.15)          # one full turn later
+    np.testing.assert_allclose(tr.poses[k], tr.poses[0], atol=1e-9)
+    assert np.linalg.norm(tr.positions[n // 2] - tr.positions[0]) > 1.0     # it went somewhere
+    clear = traj_mod._Clearance(scene)
+    assert np.all(clear.distance(tr.positions) >= 0.35 - 1e-6)
+    with pytest.raises(ConfigError, match="turns"):
+        traj_mod.loop(scene, 10, turns=0.5)
 
 
 # --------------------------------------------------------------------------- sequences

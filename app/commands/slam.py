@@ -56,6 +56,7 @@ def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) 
 def add_config_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``slam run`` and ``batch``: preset, config file, and one flag per
     configuration field (``--tsdf.voxel_size_m``, ``--icp.min_fitness``, ...)."""
+    from slam.loop_closure import LoopClosureConfig
     from slam.pipeline import PRESETS, SlamConfig
     from slam.registration import backend_names, get_backend
     from slam.tsdf import TSDFConfig
@@ -69,6 +70,8 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
     _add_fields(g, SlamConfig, "", "", exclude=("backend",))
     g = p.add_argument_group("TSDF options (--tsdf.NAME VALUE)")
     _add_fields(g, TSDFConfig, "tsdf.", "tsdf.")
+    g = p.add_argument_group("loop closure options (--loop-closure.NAME VALUE; off: --loop-closure.enabled false)")
+    _add_fields(g, LoopClosureConfig, "loop-closure.", "loop_closure.")
     for name in backend_names():
         try:
             cls = get_backend(name).Config
@@ -86,6 +89,8 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
     from slam.registration import backend_names, get_backend, parse_value
     from slam.tsdf import TSDFConfig
     from slam.pipeline import read_config_file
+    from slam.loop_closure import LoopClosureConfig
+    sections = {"tsdf": TSDFConfig, "loop_closure": LoopClosureConfig}
     base = read_config_file(args.config) if getattr(args, "config", None) else None
     overrides = {}
     backends = set(backend_names())
@@ -101,10 +106,8 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
                 raise ConfigError(f"--{dotted} is an option of backend {section}, not of {backend}")
             cls = get_backend(section).Config
             target = f"backend_config.{name}"
-        elif section == "tsdf":
-            cls, target = TSDFConfig, dotted
-        else:
-            cls, target = SlamConfig, dotted
+        else:       # --tsdf.x, --loop-closure.x or a SlamConfig field
+            cls, target = sections.get(section, SlamConfig), dotted
         hints = typing.get_type_hints(cls)
         if name not in {f.name for f in dataclasses.fields(cls)}:
             raise ConfigError(f"unknown option --{dotted}")
@@ -134,6 +137,8 @@ def flag_names(message: str, backend: str) -> str:
     def dash(name: str) -> str:
         return name.replace("_", "-")
     message = re.sub(r"\bconfig\.tsdf\.(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
+    message = re.sub(r"\b(?:config\.loop_closure\.|LoopClosureConfig[.:] ?)(\w+)",
+                     lambda m: f"--loop-closure.{dash(m.group(1))}", message)
     message = re.sub(r"\bconfig\.backend_config\.(\w+)", lambda m: f"--{backend}.{dash(m.group(1))}", message)
     message = re.sub(r"\b(?:SlamConfig|config)\.(\w+)", lambda m: f"--{dash(m.group(1))}", message)
     message = re.sub(r"\bTSDFConfig[.:] ?(\w+)", lambda m: f"--tsdf.{dash(m.group(1))}", message)
