@@ -325,6 +325,9 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         get_backend(b)
     from data_tools.outputs import check_input_dir, check_output_dir
     seqs = [check_input_dir(s, "sequence folder").resolve() for s in sequences]
+    twice = sorted({str(s) for s in seqs if seqs.count(s) > 1})
+    if twice:   # the same sequence twice: two jobs into one run folder
+        raise ConfigError(f"sequence {twice[0]} is given twice (after resolving links); give each sequence once")
     out = check_output_dir(out, what="report folder")
     out.mkdir(parents=True, exist_ok=True)
     ex = get_executor(executor, workers)
