@@ -195,7 +195,7 @@ def _from_open3d_intrinsic(d: dict, path) -> dict:
     3x3 ``intrinsic_matrix`` stored column-major, as ``o3d.io.write_pinhole_camera_intrinsic``
     writes it). It has no depth scale: ``depth_scale`` from the file if present, else 1000
     (Open3D's default) with a warning."""
-    import warnings
+    from data_tools.errors import warn
     K = d.get("intrinsic_matrix")
     if not isinstance(K, list) or len(K) != 9:
         raise FormatError(path, "intrinsic_matrix must hold 9 numbers (Open3D: the 3x3 matrix, column-major)")
@@ -209,9 +209,8 @@ def _from_open3d_intrinsic(d: dict, path) -> dict:
     out = {"width": d.get("width"), "height": d.get("height"), "fx": M[0][0], "fy": M[1][1], "cx": M[0][2],
            "cy": M[1][2], "depth_scale": d.get("depth_scale", OPEN3D_DEFAULT_DEPTH_SCALE)}
     if "depth_scale" not in d:
-        warnings.warn(f"{path}: Open3D intrinsic JSON has no depth scale; assuming {OPEN3D_DEFAULT_DEPTH_SCALE:g} "
-                      f"units per metre (Open3D's default; add \"depth_scale\" to the file to change it)",
-                      stacklevel=3)
+        warn(f"{path}: Open3D intrinsic JSON has no depth scale; assuming {OPEN3D_DEFAULT_DEPTH_SCALE:g} "
+                      f"units per metre (Open3D's default; add \"depth_scale\" to the file to change it)")
     for k in ("sensor", "distortion"):
         if k in d:
             out[k] = d[k]

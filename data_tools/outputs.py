@@ -240,7 +240,7 @@ class output_lock:
 
     def __enter__(self) -> "output_lock":
         import socket
-        import warnings
+        from data_tools.errors import warn
         self.folder.mkdir(parents=True, exist_ok=True)
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
               "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
@@ -257,7 +257,7 @@ class output_lock:
                     raise RealgapError(f"{self.folder}: is being written by another process (pid {pid}, "
                                        f"{h.get('command', '?')}, started {h.get('started', '?')}); wait for it to "
                                        f"finish or choose another --out")
-                warnings.warn(f"{self.folder}: stale lock of pid {pid} (no longer running, started "
+                warn(f"{self.folder}: stale lock of pid {pid} (no longer running, started "
                               f"{h.get('started', '?')}) taken over")
                 self.path.unlink(missing_ok=True)
                 continue

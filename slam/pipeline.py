@@ -325,7 +325,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     writer's pid (:class:`data_tools.outputs.output_lock`). A sequence folder marked incomplete
     (a generator still running or killed) gives a warning.
     """
-    import warnings
+    from data_tools.errors import warn
 
     from data_tools.outputs import incomplete_text, output_lock, read_incomplete
     cfg = (config or SlamConfig()).validate()
@@ -333,7 +333,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     if not isinstance(sequence, SequenceReader):
         marker = read_incomplete(sequence)
         if marker is not None:
-            warnings.warn(f"{sequence}: the sequence is unfinished ({incomplete_text(marker)}); the run uses the "
+            warn(f"{sequence}: the sequence is unfinished ({incomplete_text(marker)}); the run uses the "
                           f"frames written so far")
     with output_lock(out, "realgap slam run"):
         return _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_after, skip_unreadable,

@@ -60,6 +60,15 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     return p.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
 
 
+def add_align(p: argparse.ArgumentParser, default: str | None = "auto", note: str = "") -> argparse.Action:
+    """The ``--align`` option of every command that scores a trajectory (``eval``, ``batch``,
+    ``demo``): the same choices (:data:`slam.metrics.ALIGNERS`) and help text everywhere."""
+    from slam.metrics import ALIGN_HELP, ALIGNERS
+    tail = f" ({note})" if note else f" (default: {default})"
+    return p.add_argument("--align", dest="align", choices=list(ALIGNERS), default=default,
+                          help=(ALIGN_HELP + tail).replace("%", "%%"))
+
+
 def positive_float(flag: str):
     """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
     import math

@@ -25,6 +25,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     docs, hints = field_docs(DemoConfig), typing.get_type_hints(DemoConfig)
     for f in dataclasses.fields(DemoConfig):
         flag = "--" + f.name.replace("_", "-")
+        if flag == "--align":        # the shared --align of eval and batch (same choices and help)
+            from app.commands import add_align
+            add_align(parser, argparse.SUPPRESS, "default: auto").dest = "cfg:align"
+            continue
         if flag == "--seed":
             add_shared(parser, "--seed", docs[f.name] + " (default 0)", dest="cfg:seed", default=argparse.SUPPRESS)
             continue

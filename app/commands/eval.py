@@ -27,6 +27,10 @@ def _add_config_flags(p: argparse.ArgumentParser, names: tuple[str, ...], note: 
                    help="named option set the flags below override (default: tum)")
     by_name = {f.name: f for f in fields(EvalConfig)}
     for name in names:
+        if name == "align":          # the shared --align of eval, batch and demo (default from --preset)
+            from app.commands import add_align
+            add_align(p, None, (note or {}).get(name, f"preset default: {by_name[name].default}"))
+            continue
         f = by_name[name]
         flag = "--" + name.replace("_", "-")
         extra = (note or {}).get(name, "")
@@ -117,7 +121,7 @@ def cmd_ate(args) -> int:
     if args.json:
         _print_json(ev)
         return 0
-    print(f"ATE ({cfg.align}): {stats_line(ev.results['ate'])}")
+    print(f"ATE (align {ev.results['ate'].alignment.label}): {stats_line(ev.results['ate'])}")
     if ev.files:
         print(f"wrote {', '.join(str(f) for f in ev.files)}")
     return 0
@@ -130,7 +134,7 @@ def cmd_rpe(args) -> int:
     if args.json:
         _print_json(ev)
         return 0
-    delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
+    delta = f"delta {cfg.delta:g} {cfg.delta_unit}, align {ev.results['rpe_translation'].alignment.label}"
     print(f"RPE translation ({delta}): {stats_line(ev.results['rpe_translation'])}")
     print(f"RPE rotation    ({delta}): {stats_line(ev.results['rpe_rotation'])}")
     if ev.files:
@@ -148,9 +152,12 @@ def cmd_run(args) -> int:
     i, delta = ev.info, f"delta {cfg.delta:g} {cfg.delta_unit}"
     print(f"{args.run}: {i['estimate_poses']} estimated poses, {ev.results['ate'].pairs} associated with "
           f"{i['ground_truth']} (max_dt {cfg.max_dt:g} s), {i['failed_frames']} failed frames")
-    labels = {"ate": f"ATE ({cfg.align})", "ape_rotation": "APE rotation",
-              "rpe_translation": f"RPE translation ({delta})", "rpe_rotation": f"RPE rotation ({delta})"}
+    how = ev.results["ate"].alignment.label
+    rpe_how = ev.results["rpe_translation"].alignment.label
+    labels = {"ate": f"ATE (align {how})", "ape_rotation": f"APE rotation (align {how})",
+              "rpe_translation": f"RPE translation ({delta}, align {rpe_how})",
+              "rpe_rotation": f"RPE rotation ({delta}, align {rpe_how})"}
     for key, res in ev.results.items():
-        print(f"  {labels[key] + ':':<30} {stats_line(res)}")
+        print(f"  {labels[key] + ':':<46} {stats_line(res)}")
     print(f"wrote {ev.files[-1]}/ (ate.json, ape_rotation.json, rpe.json, top_view.png, errors_over_time.png)")
     return 0

@@ -44,7 +44,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[s
               lambda: run_lab_part(out / "lab", cfg.mystery_seed, cfg.mystery_frames, log, cfg.mystery_effect)),
              ("explore", "exploration: icp and the neural memory on a simulated room walk",
               lambda: run_explore_part(out / "explore", cfg.room_seed, cfg.room_frames, cfg.novel_frame,
-                                       cfg.screenshot, log, progress)),
+                                       cfg.screenshot, log, progress, cfg.align)),
              ("recog", "recognition of chairs scanned by another sensor",
               lambda: run_recog_part(out / "recog", cfg.recog_scans, cfg.recog_model, cfg.seed, log, progress))]
     for i, (key, title, fn) in enumerate(parts):
@@ -82,7 +82,7 @@ def summary_lines(out: str | Path, facts: dict) -> list[str]:
              f"gap {gaps}"]
     for b, r in ex["backends"].items():
         if r.get("ok"):
-            lines.append(f"  exploration: {b:7s} ATE {r['ate_rmse_m'] * 100:.1f} cm (SE(3) aligned), "
+            lines.append(f"  exploration: {b:7s} ATE {r['ate_rmse_m'] * 100:.1f} cm (align {r.get('align') or 'se3'}), "
                          f"{r['frames_per_second']:.1f} frames/s")
         else:
             lines.append(f"  exploration: {b:7s} failed: {r.get('error')}")
