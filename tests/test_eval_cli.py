@@ -147,7 +147,7 @@ def test_run_with_sequence_folder(tmp_path, capsys):
     assert back.stats["rmse"] == ate["rmse"]
     printed = capsys.readouterr().out
     assert "2 failed frames" in printed and "ATE (align auto: se3)" in printed
-    assert "APE rotation (align auto: se3)" in printed and "RPE translation (delta 1 frames, align none)" in printed
+    assert "APE rotation (align auto: se3)" in printed and "RPE translation (delta 1 frames, align auto: se3)" in printed
 
 
 def test_run_with_tum_file_and_out(tmp_path):
