@@ -371,6 +371,7 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
                for k in ("ate_rmse_m", "frames_per_second", "frames_failed") if r.get("ok")}
     header = make_header("batch", inputs={f"sequence {n}": s for s, n in zip(seqs, _names(seqs))},
                          parameters={"backends": list(backends), "executor": ex.name, "workers": ex.workers,
+                                     "align": align,
                                      "config": config.to_dict() if hasattr(config, "to_dict") else config},
                          timings_s={"total": meta["seconds"]}, metrics=metrics)
     write_result(out / "results.json", header, {"meta": meta, "results": results})

@@ -70,8 +70,10 @@ def _metrics(res: MetricResult, prefix: str = "") -> dict:
     return d
 
 
-def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict) -> dict:
-    return make_header(kind, inputs=inputs, parameters=cfg.to_dict(), metrics=metrics)
+def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict, how: str) -> dict:
+    """The result header; ``parameters.alignment_used`` is the alignment's label (``auto: origin``), which
+    ``realgap show`` prints next to the metrics."""
+    return make_header(kind, inputs=inputs, parameters={**cfg.to_dict(), "alignment_used": how}, metrics=metrics)
 
 
 def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite: bool = False,
@@ -88,7 +90,8 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
     d = res.to_dict()
     d["config"] = cfg.to_dict()
-    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res))
+    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res),
+                     res.alignment.label)
     if out_dir is None:
         return Evaluation({"ate": res}, [], info, {"ate": json_safe({"header": header, **d})})
     outdir = Path(out_dir)
@@ -131,7 +134,8 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
     d = _rpe_dict(tr, rot, cfg)
     metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
-    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics)
+    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics,
+                     tr.alignment.label)
     if out_dir is None:
         return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info,
                           {"rpe": json_safe({"header": header, **d})})
@@ -225,7 +229,7 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool 
     d = res_t.to_dict()
     d["run"] = run_info
     d["config"] = cfg.to_dict()
-    write_result(out / "ate.json", _header("eval.run", cfg, inputs, metrics), d, allow_nan=False)
+    write_result(out / "ate.json", _header("eval.run", cfg, inputs, metrics, res_t.alignment.label), d, allow_nan=False)
     d = res_r.to_dict()
     d["config"] = cfg.to_dict()
     atomic_write_json(out / "ape_rotation.json", d, allow_nan=False)
