@@ -25,7 +25,7 @@ from pathlib import Path
 from data_tools.errors import FormatError, RealgapError
 
 __all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
-           "check_output_not_input", "output_lock", "LOCK_FILE",
+           "check_output_not_input", "output_lock", "LOCK_FILE", "check_rerun", "RERUN_RULE",
            "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
 
 INCOMPLETE_FILE = "incomplete.json"
@@ -99,6 +99,46 @@ def check_output_file(path: str | os.PathLike, *, what: str = "output file", fla
     else:
         _check_creatable(p, what, flag)
     return p
+
+
+RERUN_RULE = ("a finished output is replaced only with --overwrite (without it the command stops with one line "
+              "naming --overwrite); an unfinished one (incomplete.json) is continued by the same command")
+"""The one rule for running a command again onto an existing output (docs/cli.md, README)."""
+
+
+def check_rerun(path: str | os.PathLike | None, finished: tuple[str, ...] | None, *, overwrite: bool,
+                flag: str = "--out") -> str:
+    """The one re-run rule of every realgap command (:data:`RERUN_RULE`), checked before any work.
+
+    ``finished``: names of the files whose presence makes the folder ``path`` a finished output
+    (``("stats.json",)`` for a SLAM run); ``None`` when ``path`` is an output *file* (it is
+    finished when it exists). Returns ``"new"`` (nothing there, or nothing of ours), ``"resume"``
+    (an unfinished output: ``incomplete.json``; the command continues it where it can, else starts
+    again) or ``"replace"`` (finished, and ``overwrite``). A finished output without ``overwrite``
+    is a one-line :class:`RealgapError` naming ``--overwrite``; nothing is touched. The CLI applies
+    it to every command from one table (:data:`app.commands.RERUN`); a command outside that table
+    (e.g. the neural commands) calls it on its output first.
+    """
+    if path is None:
+        return "new"
+    p = Path(path)
+    if finished is None:
+        if not p.is_file():
+            return "new"
+        if overwrite:
+            return "replace"
+        raise RealgapError(f"{p}: exists (a finished output); pass --overwrite to replace it or choose another {flag}")
+    if not p.is_dir():
+        return "new"
+    if (p / INCOMPLETE_FILE).exists():
+        return "resume"
+    done = [n for n in finished if (p / n).exists()]
+    if not done:
+        return "new"
+    if overwrite:
+        return "replace"
+    raise RealgapError(f"{p}: already holds a finished result ({done[0]}); pass --overwrite to replace it or choose "
+                       f"another {flag}")
 
 
 def check_input_file(path: str | os.PathLike, what: str = "input file", flag: str | None = None) -> Path:

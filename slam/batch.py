@@ -65,6 +65,8 @@ class BatchJob:
     """OMP_NUM_THREADS for Open3D in the worker (0 = leave as is)."""
     align: str = "auto"
     """Alignment of the absolute errors (a key of :data:`slam.metrics.ALIGNERS`)."""
+    overwrite: bool = False
+    """Run again even when the run folder holds a finished run (``batch --overwrite``)."""
 
 
 @dataclass
@@ -103,7 +105,7 @@ def run_job(job: dict) -> dict:
         from slam.pipeline import run_slam
         cfg = SlamConfig.from_dict(j.config)
         cam = camera_from_dict(j.camera) if j.camera is not None else None
-        run = run_slam(j.sequence, j.run_dir, cfg, camera=cam, progress=False)
+        run = run_slam(j.sequence, j.run_dir, cfg, camera=cam, progress=False, overwrite=j.overwrite)
         s = run.stats
         res.frames, res.frames_tracked = int(s["frames"]), int(s["frames_tracked"])
         res.frames_failed = int(s["frames_failed"])
@@ -309,12 +311,14 @@ def _names(sequences: list[Path]) -> list[str]:
 def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str | os.PathLike,
               config: SlamConfig | dict[str, SlamConfig] | None = None, camera: Camera | None = None,
               executor: str = "local", workers: int = 0, progress: bool = True,
-              write_html: bool = True, threads_per_job: int = 0, align: str = "auto") -> BatchReport:
+              write_html: bool = True, threads_per_job: int = 0, align: str = "auto",
+              overwrite: bool = False) -> BatchReport:
     """Run every backend on every sequence and write REPORT/results.json and index.html.
 
     ``threads_per_job``: Open3D/OpenMP threads of each job (0 = ``cpu_count // workers``); 1 makes
     every number bit-for-bit reproducible across runs and executors.
 
+    ``overwrite``: every run is done again, finished ones included (default: a finished run is read).
     ``align``: alignment of the absolute errors (ATE, APE median, APE rotation), one for all three.
 
     ``config``: one SlamConfig (its backend is replaced per job, the backend options reset to
@@ -349,9 +353,9 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         for b in backends:
             cfg = _config_for(config, b)
             jobs.append(BatchJob(str(s), name, b, str((out / "runs" / name / b).resolve()), cfg.to_dict(),
-                                 camera.to_json() if camera is not None else None, threads, align))
+                                 camera.to_json() if camera is not None else None, threads, align, overwrite))
     from data_tools.outputs import clear_incomplete, mark_incomplete
-    kept = sum(_run_finished(Path(j.run_dir)) for j in jobs)
+    kept = 0 if overwrite else sum(_run_finished(Path(j.run_dir)) for j in jobs)
     mark_incomplete(out, "realgap batch", kept, n_jobs, unit="runs")
     t0 = time.perf_counter()
     results = ex.map(jobs, progress=progress,

@@ -99,6 +99,55 @@ def positive_int(flag: str):
     return parse
 
 
+RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {
+    "batch": (("out", ("results.json",)),),
+    "data convert-7scenes": (("dst", ("depth.txt",)), ("out", ("depth.txt",))),
+    "data convert-kinect-raw": (("dst", ("convert.json", "depth.txt")), ("out", ("convert.json", "depth.txt"))),
+    "data make-reference": (("out", ("reference_config.json", "scene.json")), ("seq", ("reference_config.json",))),
+    "demo": (("out", ("summary.json",)),),
+    "eval ate": (("out", ("ate.json",)),),
+    "eval rpe": (("out", ("rpe.json",)),),
+    "eval run": (("out", ("ate.json",)), ("run", None)),
+    "recog train": (("out", ("recogniser.json",)),),
+    "recog eval": (("out", ("eval.json",)),),
+    "recog testset": (("out", ("labels.json",)),),
+    "sensor simulate": (("out", ("depth.txt",)),),
+    "sensor compare": (("out", ("metrics.json",)),),
+    "sensor diagnose": (("out", ("diagnosis.json",)),),
+    "sensor fit": (("out", None),),
+    "slam run": (("out", ("stats.json", "trajectory.txt")),),
+    "slam render": (("out", None),),
+    "synth sequence": (("out", ("depth.txt",)),),
+    "synth views": (("out", ("views.jsonl",)),),
+    "view": (("screenshot", None), ("movie", None)),
+}
+"""The one re-run rule (:func:`data_tools.outputs.check_rerun`, docs/cli.md) over every command:
+command -> its outputs as ``(dest, finished)``: the argument naming the output and the files that make
+it a finished output folder (None: the output is a file, finished when it exists). The first given
+output of an entry is checked; a later entry is the default output when the earlier ones are not given
+(``eval run RUN`` writes ``RUN/eval``, ``data make-reference SEQ`` writes into SEQ). ``app.cli`` checks
+it before any work; ``tests/test_rerun.py`` runs every entry."""
+
+
+def check_rerun_args(args: argparse.Namespace) -> None:
+    """Apply the re-run rule to the parsed command ``args`` (see :data:`RERUN`)."""
+    from pathlib import Path
+
+    from data_tools.outputs import check_rerun
+    cmd = " ".join(x for x in (getattr(args, "command", None), getattr(args, "subcommand", None)) if x)
+    overwrite = bool(getattr(args, "overwrite", False))
+    for k, (dest, finished) in enumerate(RERUN.get(cmd, ())):
+        value = getattr(args, dest, None)
+        if not isinstance(value, str) or not value:
+            continue
+        if cmd == "eval run" and dest == "run":         # the default --out of eval run
+            value, finished = str(Path(value) / "eval"), ("ate.json",)
+        flag = "--" + dest if dest in ("out", "screenshot", "movie") else dest.upper()
+        check_rerun(value, finished, overwrite=overwrite, flag=flag)
+        if cmd != "view":
+            return
+
+
 OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")
 """Options naming something a command writes (``--json`` only where it takes a file name)."""
 OUTPUT_POSITIONALS = ("dst",)

@@ -11,7 +11,7 @@ DESCRIPTION = ("Run every --backends entry on every sequence (jobs in a local pr
                "Ray cluster), score each run against the sequence's ground truth (ATE rmse, APE "
                "median, APE rotation after --align; RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
                "backend table, one page per sequence) and REPORT/results.json. Runs go to "
-               "REPORT/runs/<sequence>/<backend>; re-running resumes unfinished runs.")
+               "REPORT/runs/<sequence>/<backend>; re-running continues an interrupted batch; a finished report is replaced only with --overwrite.")
 
 
 def _cm(x) -> str:
@@ -47,7 +47,8 @@ def _run(args) -> int:
     configs = {b: config_from_args(args, b, tuple(backends)) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
                     executor=args.executor, workers=args.workers, progress=not args.no_progress,
-                    threads_per_job=args.threads_per_job, align=args.align)
+                    threads_per_job=args.threads_per_job, align=args.align,
+                    overwrite=args.overwrite)
     from data_tools.results import format_table
     print(format_table(*_table(rep.results, args.align)))
     if rep.runs_kept:
@@ -74,6 +75,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                              "numbers bit-for-bit reproducible (multi-threaded float sums differ in the "
                              "last bits from run to run)")
     add_shared(parser, "--no-progress")
+    add_shared(parser, "--overwrite", "a finished report in REPORT: every run is done again (an interrupted "
+                                      "batch is continued without it)")
     from app.commands import add_align
     add_align(parser)
     add_config_arguments(parser)

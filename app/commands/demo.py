@@ -38,6 +38,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                             help=(docs[f.name] + f" (default: {getattr(DemoConfig(), f.name)!r})").replace("%", "%%"),
                             **kw)
     add_shared(parser, "--no-progress")
+    add_shared(parser, "--overwrite", "a finished demo in --out: its parts are computed again (an interrupted demo "
+                                      "is continued without it)")
     parser.set_defaults(func=run, on_interrupt=RESUMES)
 
 
@@ -50,7 +52,7 @@ def demo_config(args):
 
 def run(args) -> int:
     from app.demo.run import run_demo, summary_lines
-    facts = run_demo(args.out, demo_config(args), progress=not args.no_progress)
+    facts = run_demo(args.out, demo_config(args), progress=not args.no_progress, overwrite=args.overwrite)
     print()
     print("\n".join(summary_lines(args.out, facts)))
     return 0

@@ -1,7 +1,7 @@
 """``realgap recog``: CAD-based recognition trained only on simulated depth (thesis 3.2.1 / 3.4.3).
 
 * ``recog train --objects DIR|FILES|chairs --variant physical|gaussian|clean --out MODEL``
-* ``recog eval MODEL TESTSET --out DIR`` (eval.json, predictions.jsonl, CDF figures) / ``--json OUT`` (the JSON only)
+* ``recog eval MODEL TESTSET --out DIR`` (eval.json, predictions.jsonl, CDF figures); ``--json`` prints eval.json's content
 * ``recog predict MODEL DEPTH.png --bbox x0,y0,x1,y1``
 * ``recog testset --objects ... --out TESTSET`` (scans with another sensor, labels.json)
 """
@@ -58,10 +58,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--no-icp", action="store_true", help="report the database poses only")
     p.add_argument("--k", type=int, default=5, help="neighbours voting for the object (default 5)")
     add_shared(p, "--max-frames", "evaluate the first N scans")
-    add_shared(p, "--overwrite", "an eval.json already in DIR, or the --json OUT file")
-    add_shared(p, "--json", "(eval.json's content); --json OUT writes that JSON to the file OUT instead (the "
-                            "CDF figures and predictions.jsonl need --out DIR)", action="store", nargs="?",
-               const="-", default=None, metavar="OUT")
+    add_shared(p, "--overwrite", "an eval.json already in DIR")
+    add_shared(p, "--json", "eval.json's content (to write it to a file, give --out DIR: DIR/eval.json)")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_eval)
 
@@ -123,25 +121,17 @@ def _eval(args) -> int:
     from data_tools.outputs import check_output_dir
     from recog.evaluate import evaluate
     from recog.model import Recogniser
-    from data_tools.outputs import check_output_file
-    from recog.evaluate import write_eval_json
     out = check_output_dir(args.out, finished="eval.json", overwrite=args.overwrite) if args.out else None
-    to_file = args.json not in (None, "-")
-    if to_file:
-        check_output_file(args.json, flag="--json", overwrite=args.overwrite)
     model = Recogniser.load(args.model)
     r = evaluate(model, args.testset, out, icp=not args.no_icp, k=args.k,
                  progress=not args.no_progress, max_scans=args.max_frames)
-    if to_file:
-        write_eval_json(model, args.testset, r, args.json)
-    elif args.json:
+    if args.json:
         print(json.dumps(r, indent=2))
         return 0
     b = r["before_icp"]
     print(f"accuracy {100 * r['accuracy']:.1f} % on {r['n_scans']} scans; rotation error (symmetry-aware) median "
           f"{b['rot_err_deg']['median']:.1f} deg before ICP, {r['rot_err_deg']['median']:.1f} deg after; "
-          f"translation median {1000 * r['trans_err_m']['median']:.1f} mm" + (f"; {out}/eval.json" if out else "")
-          + (f"; {args.json}" if to_file else ""))
+          f"translation median {1000 * r['trans_err_m']['median']:.1f} mm" + (f"; {out}/eval.json" if out else ""))
     return 0
 
 

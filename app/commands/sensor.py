@@ -95,10 +95,14 @@ def _add_compare(sub) -> None:
                        description="Compare SEQ with its simulation: DIR/metrics.json (gap, breakdowns by "
                                    "distance, incidence, radial distance, material, edge distance), "
                                    "DIR/report.html (error maps, binned curves, worst regions, gap history). "
-                                   "Every run appends one step to DIR/history.json.")
+                                   "Every run appends one step to DIR/history.json; a finished DIR is replaced "
+                                   "only with --overwrite (or continue its history in a new folder with "
+                                   "--compare-against DIR).")
     _common(p, "compare")
     add_shared(p, "--out", "lab folder (report, metrics; each run adds a step to its history)", required=True,
                metavar="DIR")
+    add_shared(p, "--overwrite", "a finished comparison in DIR: report and metrics are replaced, the folder's gap "
+                                 "history keeps its steps and gets this one")
     p.add_argument("--compare-against", metavar="PREVDIR",
                    help="continue the gap history of an earlier lab folder")
     p.add_argument("--label", help="label of this step in the history (default: the effects)")

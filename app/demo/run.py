@@ -18,13 +18,19 @@ from pathlib import Path
 
 from app.demo.config import DemoConfig
 
-__all__ = ["run_demo", "summary_lines"]
+__all__ = ["run_demo", "summary_lines", "DEMO_OUTPUTS"]
+
+DEMO_OUTPUTS = ("lab", "explore", "recog", "index.html", "summary.json", "timings.json", "demo_config.json",
+                "incomplete.json")
+"""What ``run_demo`` writes into its folder (and ``--overwrite`` removes before it starts again)."""
 
 
 def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[str], None] = print,
-             progress: bool = True) -> dict:
+             progress: bool = True, overwrite: bool = False) -> dict:
     """Run the three parts into ``out`` and write ``out/index.html`` and ``out/summary.json``;
-    returns the facts (what the page shows)."""
+    returns the facts (what the page shows). Parts already in ``out`` are kept (an interrupted demo
+    continues); ``overwrite`` removes what an earlier demo wrote there (:data:`DEMO_OUTPUTS`, nothing
+    else) and computes every part again."""
     from data_tools.config import config_to_dict
     from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
     from data_tools.results import atomic_write_json, make_header, write_result
@@ -34,6 +40,14 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[s
     from app.demo.recognise import run_recog_part
     cfg = (config or DemoConfig()).validate()
     out = check_output_dir(out, what="demo folder")
+    if overwrite:
+        import shutil
+        for name in DEMO_OUTPUTS:
+            p = out / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "demo_config.json", config_to_dict(cfg))
     t0 = time.perf_counter()
