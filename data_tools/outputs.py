@@ -264,7 +264,8 @@ class output_lock:
     host is a one-line RealgapError naming its pid; a lock whose process no longer runs (a
     killed run) is stale: it is reported as a warning and taken over. A lock from another host
     cannot be checked and is an error naming the host (remove the file by hand when you know
-    that run is gone). The folder is created when missing.
+    that run is gone). The folder is created when missing, and removed again on exit when the
+    command wrote nothing into it (an input error must not leave an empty output behind).
     """
 
     def __init__(self, folder: str | os.PathLike, command: str):
@@ -281,6 +282,7 @@ class output_lock:
     def __enter__(self) -> "output_lock":
         import socket
         from data_tools.errors import warn
+        self._created = not self.folder.exists()
         self.folder.mkdir(parents=True, exist_ok=True)
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
               "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
@@ -309,3 +311,8 @@ class output_lock:
     def __exit__(self, *exc) -> None:
         if self._holder().get("pid") == os.getpid():
             self.path.unlink(missing_ok=True)
+        if getattr(self, "_created", False):     # a command that failed before writing leaves no empty folder
+            try:
+                self.folder.rmdir()
+            except OSError:                       # it holds what the command wrote: kept
+                pass

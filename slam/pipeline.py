@@ -99,11 +99,12 @@ class SlamConfig:
         return config_to_dict(self)
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "config") -> "SlamConfig":
-        """Build from JSON data (missing keys keep defaults; unknown keys are errors)."""
+    def from_dict(cls, d: dict, where: str = "config", strict: bool = False) -> "SlamConfig":
+        """Build from JSON data (missing keys keep defaults; unknown keys are errors). ``strict``
+        (data read from a file): a string where a number or boolean belongs is an error."""
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: expected a JSON object")
-        return config_from_dict(cls, d, where)
+        return config_from_dict(cls, d, where, strict=strict)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -122,7 +123,7 @@ def make_config(backend: str = "icp", preset: str = "default", overrides: dict[s
     """SlamConfig for ``backend`` from a preset (or a full JSON ``base``) plus dotted overrides
     such as ``{"tsdf.voxel_size_m": 0.02, "backend_config.min_fitness": 0.3}``."""
     if base is not None:
-        cfg = SlamConfig.from_dict(base)
+        cfg = SlamConfig.from_dict(base, strict=True)
         if backend and backend != cfg.backend:
             d = cfg.to_dict()
             d["backend"], d["backend_config"] = backend, {}

@@ -151,7 +151,7 @@ def test_max_frames_follows_the_documented_rule():
             assert ("first n" in text) if cmd in CONSECUTIVE else ("evenly spread" in text), (cmd, text)
     assert CONSECUTIVE <= seen and len(seen) >= 7
     rules = (REPO / "docs" / "cli.md").read_text()
-    for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output.**", "exit code"):
+    for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output: one rule.**", "exit code"):
         assert word in rules
 
 

@@ -85,6 +85,29 @@ def positive_float(flag: str):
     return parse
 
 
+def ranged(flag: str, kind: type = int, low: float | None = None, high: float | None = None,
+           low_open: bool = False):
+    """argparse ``type`` of a finite ``kind`` (int or float) in [low, high] (``low_open``: (low, high]);
+    a value outside is one line naming ``flag`` (exit 1), before any work."""
+    import math
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
+        if not math.isfinite(v) or (low is not None and (v <= low if low_open else v < low)) \
+                or (high is not None and v > high):
+            lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+            hi = "" if high is None else f"<= {high:g}"
+            raise argparse.ArgumentTypeError(f"must be {' and '.join(x for x in (lo, hi) if x) or 'finite'}, "
+                                             f"got {text}")
+        return v
+    parse.__name__ = flag
+    return parse
+
+
 def positive_int(flag: str):
     """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
     def parse(text: str) -> int:
@@ -135,7 +158,8 @@ def check_rerun_args(args: argparse.Namespace) -> None:
 
     from data_tools.outputs import check_rerun
     cmd = " ".join(x for x in (getattr(args, "command", None), getattr(args, "subcommand", None)) if x)
-    overwrite = bool(getattr(args, "overwrite", False))
+    # --resume (synth sequence/views) asks explicitly to add to a finished output (frames, views): let it through
+    overwrite = bool(getattr(args, "overwrite", False) or getattr(args, "resume", False))
     for k, (dest, finished) in enumerate(RERUN.get(cmd, ())):
         value = getattr(args, dest, None)
         if not isinstance(value, str) or not value:

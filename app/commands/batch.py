@@ -70,7 +70,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                         help="local: process pool on this machine; ray: Ray tasks (ray.init(), "
                              "RAY_ADDRESS for a cluster; needs the optional package ray)")
     add_shared(parser, "--workers", "jobs at once (default: the CPU count)", default=0)
-    parser.add_argument("--threads-per-job", type=int, default=0, metavar="N",
+    from app.commands import ranged
+    parser.add_argument("--threads-per-job", type=ranged("--threads-per-job", int, 0), default=0, metavar="N",
                         help="Open3D/OpenMP threads per job (default: CPU count / workers); 1 makes the "
                              "numbers bit-for-bit reproducible (multi-threaded float sums differ in the "
                              "last bits from run to run)")

@@ -21,6 +21,16 @@ _RPE_FIELDS = ("align", "max_dt", "delta", "delta_unit", "all_pairs", "rel_delta
 _RUN_FIELDS = _RPE_FIELDS
 
 
+def _ranges() -> dict:
+    from app.commands import positive_float, ranged
+    return {"max_dt": ranged("--max-dt", float, 0), "delta": positive_float("--delta"),
+            "rel_delta_tol": ranged("--rel-delta-tol", float, 0)}
+
+
+_RANGES = _ranges()
+"""argparse types of the EvalConfig fields with a range: a bad value is one line naming the flag."""
+
+
 def _add_config_flags(p: argparse.ArgumentParser, names: tuple[str, ...], note: dict[str, str] | None = None) -> None:
     """One flag per EvalConfig field (help from the field's metadata); defaults come from --preset."""
     p.add_argument("--preset", choices=sorted(PRESETS), default="tum",
@@ -38,7 +48,8 @@ def _add_config_flags(p: argparse.ArgumentParser, names: tuple[str, ...], note: 
         if f.type in (bool, "bool"):
             p.add_argument(flag, dest=name, action="store_const", const=True, default=None, help=help_)
         else:
-            typ = {"float": float, "str": str, "int": int}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+            typ = _RANGES.get(name) or {"float": float, "str": str, "int": int}.get(
+                f.type if isinstance(f.type, str) else f.type.__name__, str)
             p.add_argument(flag, dest=name, type=typ, default=None, choices=_CHOICES.get(name),
                            metavar=None if name in _CHOICES else name.split("_")[-1].upper(), help=help_)
 

@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from app.commands import RESUMES, add_group, add_shared
+from app.commands import RESUMES, add_group, add_shared, positive_float, positive_int, ranged
 from data_tools.errors import ConfigError
 
 NAME = "recog"
@@ -35,15 +35,18 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
                    help="training size: cpu = LeNet, 3000 steps (minutes on 2 cores); gpu = deeper net, 20000 steps")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
-    for flag, tp, h in (("--iterations", int, "training steps"), ("--batch", int, "triplets per step"),
-                        ("--subdivisions", int, "icosahedron subdivisions of the viewpoints (default 2)"),
+    for flag, tp, h in (("--iterations", positive_int("--iterations"), "training steps"),
+                        ("--batch", positive_int("--batch"), "triplets per step"),
+                        ("--subdivisions", ranged("--subdivisions", int, 0, 5),
+                         "icosahedron subdivisions of the viewpoints, 0..5 (default 2)"),
                         ("--network", str, "lenet or deeper"), ("--device", str, "torch device (cpu, cuda)"),
-                        ("--scale", float, "file units -> metres (default: guessed; 0.001 for millimetre CAD)")):
+                        ("--scale", positive_float("--scale"),
+                         "file units -> metres (default: guessed; 0.001 for millimetre CAD)")):
         p.add_argument(flag, type=tp, help=h + " (overrides --preset)" if flag in ("--iterations", "--batch",
                                                                                      "--network", "--device") else h)
     p.add_argument("--symmetry", action="append", metavar="NAME=AXIS:ORDER",
                    help="declare an object's symmetry instead of detecting it (e.g. obj_05=z:2, obj_01=z:inf)")
-    p.add_argument("--checkpoint-every", type=int, metavar="N", help="training checkpoint every N steps (default 250)")
+    p.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="N", help="training checkpoint every N steps (default 250)")
     p.add_argument("--drop-data", action="store_true", help="delete the simulated training patches at the end")
     add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
     add_shared(p, "--seed", "of views and training (default 0)", default=0)
@@ -56,7 +59,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("testset", metavar="TESTSET", help="folder with camera.json, depth/ and labels.json")
     add_shared(p, "--out", "folder for eval.json, predictions.jsonl and figures/", metavar="DIR")
     p.add_argument("--no-icp", action="store_true", help="report the database poses only")
-    p.add_argument("--k", type=int, default=5, help="neighbours voting for the object (default 5)")
+    p.add_argument("--k", type=ranged("--k", int, 1), default=5, help="neighbours voting for the object (default 5)")
     add_shared(p, "--max-frames", "evaluate the first N scans")
     add_shared(p, "--overwrite", "an eval.json already in DIR")
     add_shared(p, "--json", "eval.json's content (to write it to a file, give --out DIR: DIR/eval.json)")
@@ -78,7 +81,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--sensor", default="structure", help="sensor preset (default structure: not a training sensor)")
     p.add_argument("--effects", default="physical", help="physical, direct or a comma list (default physical)")
     p.add_argument("--per-object", type=int, default=40, help="scans per object (default 40)")
-    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    p.add_argument("--scale", type=positive_float("--scale"), help="file units -> metres (default: guessed)")
     add_shared(p, "--seed", "(default 1000)", default=1000)
     add_shared(p, "--overwrite", "a test set already in TESTSET")
     add_shared(p, "--no-progress")

@@ -29,7 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from app.commands import RESUMES, add_shared
+from app.commands import RESUMES, add_shared, ranged
 from synth.lab.runs import LabRequest, effect_names_option
 
 NAME = "sensor"
@@ -108,7 +108,7 @@ def _add_compare(sub) -> None:
     p.add_argument("--label", help="label of this step in the history (default: the effects)")
     p.add_argument("--compare-preset", default="default", choices=sorted(PRESETS),
                    help="sampling of the comparison (default 20k pixels/frame, fast 5k, exact all)")
-    p.add_argument("--report-frames", type=int, default=4, metavar="K",
+    p.add_argument("--report-frames", type=ranged("--report-frames", int, 0), default=4, metavar="K",
                    help="frames with error-map figures in the report (default 4)")
     p.set_defaults(func=_cmd_compare)
 
@@ -124,8 +124,9 @@ def _add_diagnose(sub) -> None:
     add_shared(p, "--overwrite", "a finished diagnosis in DIR (an interrupted one is continued)")
     p.add_argument("--candidates", metavar="E1,E2,...", help="candidate effects (default: every effect that "
                                                              "applies to the sensor type and is not in the model)")
-    p.add_argument("--top", type=int, default=3, metavar="K", help="candidates explained with figures (default 3)")
-    p.add_argument("--report-frames", type=int, default=3, metavar="K",
+    p.add_argument("--top", type=ranged("--top", int, 0), default=3, metavar="K",
+                   help="candidates explained with figures (default 3)")
+    p.add_argument("--report-frames", type=ranged("--report-frames", int, 0), default=3, metavar="K",
                    help="frames simulated per top candidate for the figures (default 3)")
     p.add_argument("--diagnose-option", action="append", default=[], metavar="KEY=VALUE",
                    help="DiagnoseConfig option, repeatable (e.g. candidate_evaluations=20, refit_model=false)")

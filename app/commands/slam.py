@@ -87,6 +87,11 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
     from slam.tsdf import TSDFConfig
     from slam.pipeline import read_config_file
     base = read_config_file(args.config) if getattr(args, "config", None) else None
+    if base is not None:    # a wrong type in the file names the file (not the flag it would be on the command line)
+        try:
+            SlamConfig.from_dict(base, strict=True)
+        except ConfigError as e:
+            raise ConfigError(f"{args.config}: {e}") from None
     overrides = {}
     backends = set(backend_names())
     for key, raw in vars(args).items():
@@ -220,7 +225,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--out", "colour image (.png); the depth image and the view's JSON are written next to it",
                required=True, metavar="PNG")
     add_shared(p, "--overwrite", "existing images of that name")
-    p.add_argument("--scale", type=float, default=1.0, help="image size relative to the run's camera (default 1)")
+    from app.commands import ranged
+    p.add_argument("--scale", type=ranged("--scale", float, 0, 8, low_open=True), default=1.0,
+                   help="image size relative to the run's camera, in (0, 8] (default 1)")
     p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume", "neural"),
                    help="render the mesh, the saved TSDF volume or decode the neural memory's recalled view "
                         "(auto: neural for a run of the neural backend, else the volume when saved)")
