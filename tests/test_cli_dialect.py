@@ -112,3 +112,20 @@ def test_config_errors_name_the_flag_not_the_field(argv, words, tmp_path, capsys
     for w in words:
         assert w in err, (w, err)
     assert not (tmp_path / "R").exists()
+
+
+def test_align_is_one_option_with_one_meaning():
+    """``--align`` of eval, batch and demo: the same choices and help text (issue 44 item 3); the default
+    of every command that scores absolute errors is auto (eval rpe keeps evo's none)."""
+    from slam.metrics import ALIGN_HELP, ALIGNERS, PRESETS
+    cmds = leaf_parsers()
+    found = {}
+    for cmd in ("eval ate", "eval rpe", "eval run", "batch", "demo"):
+        a = options(cmds[cmd])["--align"]
+        assert list(a.choices) == list(ALIGNERS) and a.help.startswith(ALIGN_HELP), (cmd, a.help)
+        found[cmd] = a.default
+    assert found["batch"] == "auto" and PRESETS["tum"].align == "auto" and "default: auto" in options(
+        cmds["demo"])["--align"].help
+    from app.commands.demo import demo_config
+    args = build_parser().parse_args(["demo", "--align", "origin"])
+    assert demo_config(args).align == "origin"
