@@ -140,7 +140,8 @@ def make_config(backend: str = "icp", preset: str = "default", overrides: dict[s
 
 
 def read_config_file(path: str | os.PathLike) -> dict:
-    """The SlamConfig data of a JSON file: a saved config, or a run's config.json (its "config")."""
+    """The SlamConfig data of a JSON file: a saved config, or a run's config.json (its "config").
+    Its types are checked strictly (a string where a number belongs is an error naming the file)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -148,7 +149,12 @@ def read_config_file(path: str | os.PathLike) -> dict:
         raise FormatError(path, "file not found") from None
     except json.JSONDecodeError as e:
         raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
-    return data.get("config", data) if isinstance(data, dict) else data
+    data = data.get("config", data) if isinstance(data, dict) else data
+    try:
+        SlamConfig.from_dict(data, strict=True)
+    except ConfigError as e:
+        raise FormatError(path, str(e)) from None
+    return data
 
 
 def _apply(cfg: SlamConfig, dotted: dict[str, Any]) -> SlamConfig:

@@ -87,11 +87,6 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
     from slam.tsdf import TSDFConfig
     from slam.pipeline import read_config_file
     base = read_config_file(args.config) if getattr(args, "config", None) else None
-    if base is not None:    # a wrong type in the file names the file (not the flag it would be on the command line)
-        try:
-            SlamConfig.from_dict(base, strict=True)
-        except ConfigError as e:
-            raise ConfigError(f"{args.config}: {e}") from None
     overrides = {}
     backends = set(backend_names())
     for key, raw in vars(args).items():
