@@ -125,7 +125,7 @@ def positive_int(flag: str):
 RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {
     "batch": (("out", ("results.json",)),),
     "data convert-7scenes": (("dst", ("depth.txt",)), ("out", ("depth.txt",))),
-    "data convert-kinect-raw": (("dst", ("convert.json", "depth.txt")), ("out", ("convert.json", "depth.txt"))),
+    "data convert-kinect-raw": (("dst", ("convert.json",)), ("out", ("convert.json",))),
     "data make-reference": (("out", ("reference_config.json", "scene.json")), ("seq", ("reference_config.json",))),
     "demo": (("out", ("summary.json",)),),
     "eval ate": (("out", ("ate.json",)),),
