@@ -12,7 +12,9 @@ not a usage dump) and any other, unexpected exception (one line plus "re-run wit
 Python warning is one ``realgap: warning:`` line; Ctrl-C exits with 130, leaves finished
 outputs in place and says what a re-run does: a command that continues sets
 ``on_interrupt`` (``parser.set_defaults(on_interrupt=RESUMES)``), any other says it starts again.
-``--no-progress`` on any command switches every progress display off. A closed stdout
+``--no-progress`` on any command switches every progress display off. Before any work every command
+checks that no output lands in an input and applies the one re-run rule (a finished output needs
+``--overwrite``; an unfinished one is continued: :data:`app.commands.RERUN`). A closed stdout
 (``realgap sensor effects | head``) ends quietly with :data:`EXIT_BROKEN_PIPE`.
 """
 from __future__ import annotations
@@ -121,8 +123,9 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings(), running_command(sys.argv[1:] if argv is None else argv):
             warnings.simplefilter("default")
             warnings.showwarning = _one_line_warning
-            from app.commands import check_io
+            from app.commands import check_io, check_rerun_args
             check_io(args)
+            check_rerun_args(args)
             rc = func(args)
             sys.stdout.flush()
     except BrokenPipeError:

@@ -141,6 +141,21 @@ def camera_from_dict(d: dict, path: str | os.PathLike | None = None) -> Camera:
     missing = [k for k in _REQUIRED if k not in d]
     if missing:
         raise FormatError(path, f"camera.json is missing key(s): {', '.join(missing)}")
+    # JSON types must be right: a string or true/false where a number belongs is an error, not converted
+    if d.get("sensor") is not None and not isinstance(d["sensor"], dict):
+        raise FormatError(path, f"sensor must be a JSON object, got {d['sensor']!r}")
+    sensor_d = d.get("sensor") or {}
+    dist_d = d.get("distortion") or []
+    off_d = sensor_d.get("projector_offset_m") or []
+    if not isinstance(dist_d, list):
+        raise FormatError(path, f"distortion must be a list of numbers, got {dist_d!r}")
+    if not isinstance(off_d, list):
+        raise FormatError(path, f"sensor.projector_offset_m must be a list of 3 numbers, got {off_d!r}")
+    for key, value in [*((k, d[k]) for k in _REQUIRED), *(("distortion", v) for v in dist_d),
+                       *((f"sensor.{k}", sensor_d[k]) for k in ("baseline_m",) if k in sensor_d),
+                       *(("sensor.projector_offset_m", v) for v in off_d)]:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise FormatError(path, f"{key} must be a number, got {value!r}")
     try:
         dist = d.get("distortion")
         intr = Intrinsics(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"],
@@ -180,7 +195,7 @@ def _from_open3d_intrinsic(d: dict, path) -> dict:
     3x3 ``intrinsic_matrix`` stored column-major, as ``o3d.io.write_pinhole_camera_intrinsic``
     writes it). It has no depth scale: ``depth_scale`` from the file if present, else 1000
     (Open3D's default) with a warning."""
-    import warnings
+    from data_tools.errors import warn
     K = d.get("intrinsic_matrix")
     if not isinstance(K, list) or len(K) != 9:
         raise FormatError(path, "intrinsic_matrix must hold 9 numbers (Open3D: the 3x3 matrix, column-major)")
@@ -194,9 +209,8 @@ def _from_open3d_intrinsic(d: dict, path) -> dict:
     out = {"width": d.get("width"), "height": d.get("height"), "fx": M[0][0], "fy": M[1][1], "cx": M[0][2],
            "cy": M[1][2], "depth_scale": d.get("depth_scale", OPEN3D_DEFAULT_DEPTH_SCALE)}
     if "depth_scale" not in d:
-        warnings.warn(f"{path}: Open3D intrinsic JSON has no depth scale; assuming {OPEN3D_DEFAULT_DEPTH_SCALE:g} "
-                      f"units per metre (Open3D's default; add \"depth_scale\" to the file to change it)",
-                      stacklevel=3)
+        warn(f"{path}: Open3D intrinsic JSON has no depth scale; assuming {OPEN3D_DEFAULT_DEPTH_SCALE:g} "
+                      f"units per metre (Open3D's default; add \"depth_scale\" to the file to change it)")
     for k in ("sensor", "distortion"):
         if k in d:
             out[k] = d[k]

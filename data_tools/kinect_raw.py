@@ -163,11 +163,10 @@ def convert_kinect_raw(src: str | os.PathLike, dst: str | os.PathLike, calib_pat
     with_colour = [colour_of(name) is not None for _, name in frames]
     use_colour = all(with_colour)
     if any(with_colour) and not use_colour:
-        import warnings
+        from data_tools.errors import warn
         missing = next(name for (_, name), c in zip(frames, with_colour) if not c)
-        warnings.warn(f"{src}: {with_colour.count(False)} of {len(frames)} frames have no colour image (e.g. "
-                      f"{missing}); the sequence is written without colour so that no depth frame is dropped",
-                      stacklevel=2)
+        warn(f"{src}: {with_colour.count(False)} of {len(frames)} frames have no colour image (e.g. "
+                      f"{missing}); the sequence is written without colour so that no depth frame is dropped")
     first = cv2.imread(str(src / frames[0][1]), cv2.IMREAD_UNCHANGED)
     if first is None or first.dtype != np.uint16 or first.ndim != 2:
         raise FormatError(src / frames[0][1], "not a 16-bit single-channel PGM of raw disparity")

@@ -25,7 +25,7 @@ from pathlib import Path
 from data_tools.errors import FormatError, RealgapError
 
 __all__ = ["INCOMPLETE_FILE", "check_output_dir", "check_output_file", "check_input_file", "check_input_dir",
-           "check_output_not_input", "output_lock", "LOCK_FILE",
+           "check_output_not_input", "output_lock", "LOCK_FILE", "check_rerun", "RERUN_RULE",
            "mark_incomplete", "clear_incomplete", "read_incomplete", "incomplete_text"]
 
 INCOMPLETE_FILE = "incomplete.json"
@@ -99,6 +99,46 @@ def check_output_file(path: str | os.PathLike, *, what: str = "output file", fla
     else:
         _check_creatable(p, what, flag)
     return p
+
+
+RERUN_RULE = ("a finished output is replaced only with --overwrite (without it the command stops with one line "
+              "naming --overwrite); an unfinished one (incomplete.json) is continued by the same command")
+"""The one rule for running a command again onto an existing output (docs/cli.md, README)."""
+
+
+def check_rerun(path: str | os.PathLike | None, finished: tuple[str, ...] | None, *, overwrite: bool,
+                flag: str = "--out") -> str:
+    """The one re-run rule of every realgap command (:data:`RERUN_RULE`), checked before any work.
+
+    ``finished``: names of the files whose presence makes the folder ``path`` a finished output
+    (``("stats.json",)`` for a SLAM run); ``None`` when ``path`` is an output *file* (it is
+    finished when it exists). Returns ``"new"`` (nothing there, or nothing of ours), ``"resume"``
+    (an unfinished output: ``incomplete.json``; the command continues it where it can, else starts
+    again) or ``"replace"`` (finished, and ``overwrite``). A finished output without ``overwrite``
+    is a one-line :class:`RealgapError` naming ``--overwrite``; nothing is touched. The CLI applies
+    it to every command from one table (:data:`app.commands.RERUN`); a command outside that table
+    (e.g. the neural commands) calls it on its output first.
+    """
+    if path is None:
+        return "new"
+    p = Path(path)
+    if finished is None:
+        if not p.is_file():
+            return "new"
+        if overwrite:
+            return "replace"
+        raise RealgapError(f"{p}: exists (a finished output); pass --overwrite to replace it or choose another {flag}")
+    if not p.is_dir():
+        return "new"
+    if (p / INCOMPLETE_FILE).exists():
+        return "resume"
+    done = [n for n in finished if (p / n).exists()]
+    if not done:
+        return "new"
+    if overwrite:
+        return "replace"
+    raise RealgapError(f"{p}: already holds a finished result ({done[0]}); pass --overwrite to replace it or choose "
+                       f"another {flag}")
 
 
 def check_input_file(path: str | os.PathLike, what: str = "input file", flag: str | None = None) -> Path:
@@ -224,7 +264,8 @@ class output_lock:
     host is a one-line RealgapError naming its pid; a lock whose process no longer runs (a
     killed run) is stale: it is reported as a warning and taken over. A lock from another host
     cannot be checked and is an error naming the host (remove the file by hand when you know
-    that run is gone). The folder is created when missing.
+    that run is gone). The folder is created when missing, and removed again on exit when the
+    command wrote nothing into it (an input error must not leave an empty output behind).
     """
 
     def __init__(self, folder: str | os.PathLike, command: str):
@@ -240,7 +281,8 @@ class output_lock:
 
     def __enter__(self) -> "output_lock":
         import socket
-        import warnings
+        from data_tools.errors import warn
+        self._created = not self.folder.exists()
         self.folder.mkdir(parents=True, exist_ok=True)
         me = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.command,
               "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
@@ -257,7 +299,7 @@ class output_lock:
                     raise RealgapError(f"{self.folder}: is being written by another process (pid {pid}, "
                                        f"{h.get('command', '?')}, started {h.get('started', '?')}); wait for it to "
                                        f"finish or choose another --out")
-                warnings.warn(f"{self.folder}: stale lock of pid {pid} (no longer running, started "
+                warn(f"{self.folder}: stale lock of pid {pid} (no longer running, started "
                               f"{h.get('started', '?')}) taken over")
                 self.path.unlink(missing_ok=True)
                 continue
@@ -269,3 +311,8 @@ class output_lock:
     def __exit__(self, *exc) -> None:
         if self._holder().get("pid") == os.getpid():
             self.path.unlink(missing_ok=True)
+        if getattr(self, "_created", False):     # a command that failed before writing leaves no empty folder
+            try:
+                self.folder.rmdir()
+            except OSError:                       # it holds what the command wrote: kept
+                pass

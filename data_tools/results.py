@@ -402,10 +402,19 @@ def results_table(results: list[Result], names: list[str] | None = None) -> tupl
     rows = [["kind", "", *(r.kind for r in results)],
             ["seed", "", *("" if r.header.get("seed") is None else str(r.header["seed"]) for r in results)],
             ["created", "", *(str(r.header.get("created", "")) for r in results)]]
+    aligned = [_alignment(r) for r in results]
+    if any(aligned):        # trajectory errors: the alignment they were computed after (one metric, one meaning)
+        rows.append(["alignment", "", *(a or "-" for a in aligned)])
     for k in keys:
         unit = "|".join(dict.fromkeys(metric_unit(r.kind, k, r.header) for r in results if k in r.metrics))
         rows.append([k, unit, *(_fmt(r.metrics.get(k)) for r in results)])
     return cols, rows
+
+
+def _alignment(result: Result) -> str:
+    """How a trajectory result's estimate was aligned (``auto: se3``), '' for other results."""
+    p = result.header.get("parameters") or {}
+    return str(p.get("alignment_used") or p.get("align") or "") if isinstance(p, dict) else ""
 
 
 def _fmt(v) -> str:

@@ -7,7 +7,7 @@ timestamps, NaN/inf values, quaternions that are not unit length.
 from __future__ import annotations
 
 import os
-import warnings
+from data_tools.errors import warn
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -117,8 +117,8 @@ def read_tum(path: str | os.PathLike, drop_duplicate_timestamps: bool = True) ->
         if len(dropped):
             first = int(dropped[0])
             more = f" (and {len(dropped) - 1} more)" if len(dropped) > 1 else ""
-            warnings.warn(f"{path}: line {rows[first][0]}: timestamp {data[first, 0]:.6f} repeats the previous "
-                          f"pose's; kept the first, dropped this one{more}", stacklevel=2)
+            warn(f"{path}: line {rows[first][0]}: timestamp {data[first, 0]:.6f} repeats the previous "
+                          f"pose's; kept the first, dropped this one{more}")
             data = data[keep]
     check_timestamps(data[:, 0], path)
     return Trajectory(data[:, 0], pose_from_tum(data[:, 1:]))

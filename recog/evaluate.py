@@ -108,7 +108,7 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
 
 def write_eval_json(model, testset, result: dict, path: str | os.PathLike) -> Path:
     """``result`` (:func:`evaluate`'s) with its result header, written atomically to ``path``: the
-    eval.json of ``--out`` and the file of ``recog eval --json OUT``."""
+    eval.json of ``recog eval --out DIR``."""
     from data_tools.results import make_header, write_result
     inputs = {"model": model.folder / "recogniser.json", "testset": Path(testset) / "labels.json"}
     if result.get("synda"):

@@ -4,13 +4,14 @@ A job runs :func:`slam.pipeline.run_slam` into ``REPORT/runs/<sequence>/<backend
 interrupted batch resumes where its runs stopped) and evaluates the trajectory against the
 sequence's ground truth with :mod:`slam.metrics`:
 
-* ``ate_rmse_m``: ATE, RMS of the position error after SE(3) alignment (metres);
+* ``ate_rmse_m``: ATE, RMS of the position error after the batch's alignment (``align``, default
+  ``auto``: SE(3) when the run's motion determines a rotation, else first poses; ``slam.metrics``), metres;
 * ``ape_median_m``: median of the same absolute position errors (metres);
-* ``ape_rot_rmse_deg``: RMS of the absolute rotation error (angle, degrees), first poses aligned (evo
-  ``evo_ape --pose_relation angle_deg --align_origin``): a trajectory whose positions are right but whose heading
-  is not shows here, not in the ATE. Not after the ATE's SE(3) alignment: fitted on the positions alone, it is
-  undetermined about the line of a near-straight path and may turn the estimate by 180 deg about it (measured: a
-  neural run on the built-in planar room scored 180 deg);
+* ``ape_rot_rmse_deg``: RMS of the absolute rotation error (angle, degrees) after the same alignment, so that
+  every absolute number of a row has one meaning and equals what ``realgap eval run --align`` prints for the
+  run. (A fitted SE(3) is undetermined about the line of a near-straight path and may turn the estimate by up
+  to 180 deg about it - measured on a neural run of the built-in planar room - which is why ``auto`` falls back
+  to the first poses there.) ``align`` holds the alignment used (``auto: se3``, ``auto: origin``, ``se3``...);
 * ``rpe_trans_rmse_m`` / ``rpe_rot_rmse_deg``: RPE between consecutive registered frames
   (evo's default, delta = 1 frame), translation (metres) and rotation angle (degrees);
 * ``frames_per_second`` and the failed frames from the run's stats.json.
@@ -62,6 +63,10 @@ class BatchJob:
     """camera.json content overriding the sequence's camera, or None."""
     threads: int = 0
     """OMP_NUM_THREADS for Open3D in the worker (0 = leave as is)."""
+    align: str = "auto"
+    """Alignment of the absolute errors (a key of :data:`slam.metrics.ALIGNERS`)."""
+    overwrite: bool = False
+    """Run again even when the run folder holds a finished run (``batch --overwrite``)."""
 
 
 @dataclass
@@ -84,6 +89,8 @@ class JobResult:
     ape_rot_rmse_deg: float | None = None
     rpe_trans_rmse_m: float | None = None
     rpe_rot_rmse_deg: float | None = None
+    align: str | None = None
+    """The alignment the absolute errors were computed after (:attr:`slam.metrics.Alignment.label`)."""
     pairs: int = 0
     seconds: float = 0.0
 
@@ -98,7 +105,7 @@ def run_job(job: dict) -> dict:
         from slam.pipeline import run_slam
         cfg = SlamConfig.from_dict(j.config)
         cam = camera_from_dict(j.camera) if j.camera is not None else None
-        run = run_slam(j.sequence, j.run_dir, cfg, camera=cam, progress=False)
+        run = run_slam(j.sequence, j.run_dir, cfg, camera=cam, progress=False, overwrite=j.overwrite)
         s = run.stats
         res.frames, res.frames_tracked = int(s["frames"]), int(s["frames_tracked"])
         res.frames_failed = int(s["frames_failed"])
@@ -128,9 +135,10 @@ def _score(res: JobResult, job: BatchJob, est, camera: Camera | None) -> None:
     if not reader.has_groundtruth or est is None:
         return
     ref = reader.trajectory
-    a = metrics.ate(ref, est, align="se3", ref_name="ground truth", est_name=job.backend)
+    a = metrics.ate(ref, est, align=job.align, ref_name="ground truth", est_name=job.backend)
     res.ate_rmse_m, res.ape_median_m, res.pairs = a.stats["rmse"], a.stats["median"], a.pairs
-    res.ape_rot_rmse_deg = metrics.ape(ref, est, relation="rotation_angle_deg", align="origin",
+    res.align = a.alignment.label
+    res.ape_rot_rmse_deg = metrics.ape(ref, est, relation="rotation_angle_deg", align=job.align,
                                        ref_name="ground truth", est_name=job.backend).stats["rmse"]
     if a.pairs >= 2:
         rt = metrics.rpe(ref, est, delta=1, delta_unit="frames", relation="translation")
@@ -305,11 +313,15 @@ def _names(sequences: list[Path]) -> list[str]:
 def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str | os.PathLike,
               config: SlamConfig | dict[str, SlamConfig] | None = None, camera: Camera | None = None,
               executor: str = "local", workers: int = 0, progress: bool = True,
-              write_html: bool = True, threads_per_job: int = 0) -> BatchReport:
+              write_html: bool = True, threads_per_job: int = 0, align: str = "auto",
+              overwrite: bool = False) -> BatchReport:
     """Run every backend on every sequence and write REPORT/results.json and index.html.
 
     ``threads_per_job``: Open3D/OpenMP threads of each job (0 = ``cpu_count // workers``); 1 makes
     every number bit-for-bit reproducible across runs and executors.
+
+    ``overwrite``: every run is done again, finished ones included (default: a finished run is read).
+    ``align``: alignment of the absolute errors (ATE, APE median, APE rotation), one for all three.
 
     ``config``: one SlamConfig (its backend is replaced per job, the backend options reset to
     that backend's defaults unless it is the same backend) or a dict backend -> SlamConfig.
@@ -325,8 +337,14 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         raise ConfigError(f"threads per job must be >= 0 (0 = automatic), got {threads_per_job}")
     for b in backends:
         get_backend(b)
+    from slam.metrics import ALIGNERS
+    if align not in ALIGNERS:
+        raise ConfigError(f"--align: unknown alignment {align!r}; choose one of {', '.join(ALIGNERS)}")
     from data_tools.outputs import check_input_dir, check_output_dir
     seqs = [check_input_dir(s, "sequence folder").resolve() for s in sequences]
+    twice = sorted({str(s) for s in seqs if seqs.count(s) > 1})
+    if twice:   # the same sequence twice: two jobs into one run folder
+        raise ConfigError(f"sequence {twice[0]} is given twice (after resolving links); give each sequence once")
     out = check_output_dir(out, what="report folder")
     out.mkdir(parents=True, exist_ok=True)
     ex = get_executor(executor, workers)
@@ -337,9 +355,9 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
         for b in backends:
             cfg = _config_for(config, b)
             jobs.append(BatchJob(str(s), name, b, str((out / "runs" / name / b).resolve()), cfg.to_dict(),
-                                 camera.to_json() if camera is not None else None, threads))
+                                 camera.to_json() if camera is not None else None, threads, align, overwrite))
     from data_tools.outputs import clear_incomplete, mark_incomplete
-    kept = sum(_run_finished(Path(j.run_dir)) for j in jobs)
+    kept = 0 if overwrite else sum(_run_finished(Path(j.run_dir)) for j in jobs)
     mark_incomplete(out, "realgap batch", kept, n_jobs, unit="runs")
     t0 = time.perf_counter()
     results = ex.map(jobs, progress=progress,
@@ -347,9 +365,10 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
     meta = {"executor": ex.name, "workers": ex.workers, "threads_per_job": threads,
             "seconds": time.perf_counter() - t0, "sequences": [str(s) for s in seqs],
             "backends": list(backends), "created": time.strftime("%Y-%m-%d %H:%M:%S"),
-            "metrics": {"ate_rmse_m": "ATE: RMS position error after SE(3) alignment, metres",
-                        "ape_median_m": "median absolute position error after SE(3) alignment, metres",
-                        "ape_rot_rmse_deg": "RMS absolute rotation error (angle), first poses aligned, degrees",
+            "align": align,
+            "metrics": {"ate_rmse_m": f"ATE: RMS position error after alignment '{align}' (per run: align), metres",
+                        "ape_median_m": f"median absolute position error after alignment '{align}', metres",
+                        "ape_rot_rmse_deg": f"RMS absolute rotation error (angle) after alignment '{align}', degrees",
                         "rpe_trans_rmse_m": "RPE translation RMS, consecutive registered frames, metres",
                         "rpe_rot_rmse_deg": "RPE rotation RMS, consecutive registered frames, degrees",
                         "frames_per_second": "frames processed per second (read + register + fuse)"}}
@@ -358,6 +377,7 @@ def run_batch(sequences: list[str | os.PathLike], backends: list[str], out: str 
                for k in ("ate_rmse_m", "frames_per_second", "frames_failed") if r.get("ok")}
     header = make_header("batch", inputs={f"sequence {n}": s for s, n in zip(seqs, _names(seqs))},
                          parameters={"backends": list(backends), "executor": ex.name, "workers": ex.workers,
+                                     "align": align,
                                      "config": config.to_dict() if hasattr(config, "to_dict") else config},
                          timings_s={"total": meta["seconds"]}, metrics=metrics)
     write_result(out / "results.json", header, {"meta": meta, "results": results})
@@ -412,7 +432,9 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
     tab = report.table()
     rows = []
     head = "".join(f'<th colspan="6">{html.escape(b)}</th>' for b in backends)
-    sub = "".join("<th>ATE rmse [cm]</th><th>APE median [cm]</th><th>APE rot rmse [deg]</th><th>RPE [mm, deg]</th>"
+    al = html.escape(meta.get("align", "se3"))
+    sub = "".join(f"<th>ATE rmse [cm] (align {al})</th><th>APE median [cm] (align {al})</th>"
+                  f"<th>APE rot rmse [deg] (align {al})</th><th>RPE [mm, deg]</th>"
                   "<th>frames/s</th><th>failed</th>" for _ in backends)
     for n in names:
         cells = []
@@ -432,15 +454,17 @@ def write_html_report(report: BatchReport, meta: dict) -> Path:
                              f'<td>{r["frames_failed"]}/{r["frames"]}</td>')
         rows.append(f'<tr><td class="l"><a href="{html.escape(n)}.html">{html.escape(n)}</a></td>{"".join(cells)}</tr>')
         _sequence_page(out, n, [tab[(n, b)] for b in backends if (n, b) in tab])
-    comparison = _comparison_plot(out, names, backends, tab)
+    comparison = _comparison_plot(out, names, backends, tab, meta.get("align", ""))
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>realgap batch</title><style>{_CSS}</style>"
            f"</head><body><h1>SLAM batch report</h1>"
            f"<p>{len(names)} sequence(s) x {len(backends)} backend(s), executor <b>{html.escape(meta['executor'])}</b> "
            f"({meta['workers']} workers, {meta['threads_per_job']} thread(s) per job), {meta['seconds']:.0f} s, "
            f"{html.escape(meta['created'])}. Numbers: <a href='results.json'>results.json</a>.</p>"
            f"<table><tr><th class='l' rowspan='2'>sequence</th>{head}</tr><tr>{sub}</tr>{''.join(rows)}</table>"
-           f"<p>ATE: RMS position error after SE(3) alignment; APE median: median of the same errors; APE rot: "
-           f"RMS rotation angle error, first poses aligned; "
+           f"<p>ATE: RMS position error after alignment <b>{al}</b> (auto: SE(3) when the run's motion determines "
+           f"a rotation - at least 10 poses spread in two directions - else the first poses; each run's page says "
+           f"which); APE median: median of the same errors; APE rot: RMS rotation angle error after the same "
+           f"alignment; "
            f"RPE: RMS between consecutive registered frames; failed: frames the backend could not "
            f"register (left out of the trajectory).</p>"
            + (f"<p><img src='{html.escape(comparison)}' width='720'></p>" if comparison else "") + "</body></html>")
@@ -463,6 +487,7 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
         rel = os.path.relpath(r["run_dir"], out)
         parts.append("<table>" + "".join(
             f"<tr><th class='l'>{k}</th><td>{v}</td></tr>" for k, v in [
+                ("alignment", html.escape(str(r.get("align") or "se3"))),
                 ("ATE rmse", _fmt(r["ate_rmse_m"], 100, 2, " cm")), ("APE median", _fmt(r["ape_median_m"], 100, 2, " cm")),
                 ("APE rotation rmse", _fmt(r["ape_rot_rmse_deg"], 1, 3, " deg")),
                 ("RPE translation rmse", _fmt(r["rpe_trans_rmse_m"], 1000, 2, " mm")),
@@ -482,7 +507,7 @@ def _sequence_page(out: Path, name: str, results: list[dict]) -> None:
     atomic_write_text(out / f"{name}.html", "".join(parts))
 
 
-def _comparison_plot(out: Path, names: list[str], backends: list[str], tab: dict) -> str | None:
+def _comparison_plot(out: Path, names: list[str], backends: list[str], tab: dict, align: str = "") -> str | None:
     """plots/comparison.png: ATE, APE median and frames/s of every backend on every sequence, side by side
     (:func:`slam.plots.plot_backend_comparison`; failed runs marked n/a). None when nothing ran."""
     values = {k: r for k, r in tab.items() if r["ok"]}
@@ -490,7 +515,7 @@ def _comparison_plot(out: Path, names: list[str], backends: list[str], tab: dict
         return None
     from slam import plots
     (out / "plots").mkdir(exist_ok=True)
-    plots.plot_backend_comparison(out / "plots" / "comparison.png", names, backends, values,
+    plots.plot_backend_comparison(out / "plots" / "comparison.png", names, backends, values, align=align,
                                   title=f"{len(names)} sequence(s) x {len(backends)} backend(s)")
     return "plots/comparison.png"
 
@@ -507,11 +532,12 @@ def _plot(out: Path, name: str, r: dict) -> str | None:
         cam_path = run / "camera.json"
         from data_tools.camera import read_camera_json
         ref = SequenceReader(r["sequence"], camera=read_camera_json(cam_path)).trajectory
-        a = metrics.ate(ref, read_tum(run / "trajectory.txt"))
+        how = r.get("align") or "se3"
+        a = metrics.ate(ref, read_tum(run / "trajectory.txt"), align=how.split(": ")[-1])
         rel = f"plots/{name}_{r['backend']}.png"
         (out / "plots").mkdir(exist_ok=True)
         plots.plot_top_view(out / rel, a.reference, a.aligned, title=f"{name}: {r['backend']} "
-                            f"(ATE {a.stats['rmse'] * 100:.2f} cm)")
+                            f"(ATE {a.stats['rmse'] * 100:.2f} cm, align {how})")
         return rel
     except Exception:  # plots are a convenience; the numbers are in results.json
         return None

@@ -54,8 +54,8 @@ def stats_line(res: MetricResult) -> str:
     """One line of a metric's statistics (rmse, mean, median, std, min, max, counts)."""
     u = f" {res.unit}" if res.unit else ""
     s = res.stats
-    return (f"rmse {s['rmse']:.6g}{u}, mean {s['mean']:.6g}, median {s['median']:.6g}, std {s['std']:.6g}, "
-            f"min {s['min']:.6g}, max {s['max']:.6g} ({len(res.errors)} values, {res.pairs} associated pairs)")
+    return (f"rmse {s['rmse']:.6g}{u}, mean {s['mean']:.6g}{u}, median {s['median']:.6g}{u}, std {s['std']:.6g}{u}, "
+            f"min {s['min']:.6g}{u}, max {s['max']:.6g}{u} ({len(res.errors)} values, {res.pairs} associated pairs)")
 
 
 def _stats_dict(res: MetricResult) -> dict:
@@ -70,8 +70,10 @@ def _metrics(res: MetricResult, prefix: str = "") -> dict:
     return d
 
 
-def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict) -> dict:
-    return make_header(kind, inputs=inputs, parameters=cfg.to_dict(), metrics=metrics)
+def _header(kind: str, cfg: EvalConfig, inputs: dict, metrics: dict, how: str) -> dict:
+    """The result header; ``parameters.alignment_used`` is the alignment's label (``auto: origin``), which
+    ``realgap show`` prints next to the metrics."""
+    return make_header(kind, inputs=inputs, parameters={**cfg.to_dict(), "alignment_used": how}, metrics=metrics)
 
 
 def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite: bool = False,
@@ -88,7 +90,8 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
     d = res.to_dict()
     d["config"] = cfg.to_dict()
-    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res))
+    header = _header("eval.ate", cfg, {"reference": ref_path, "estimate": est_path}, _metrics(res),
+                     res.alignment.label)
     if out_dir is None:
         return Evaluation({"ate": res}, [], info, {"ate": json_safe({"header": header, **d})})
     outdir = Path(out_dir)
@@ -97,9 +100,10 @@ def evaluate_ate(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
     write_result(out, header, d, allow_nan=False)
     outdir.mkdir(parents=True, exist_ok=True)
-    write_tum(aligned_path, res.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
-    plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate ({cfg.align}-aligned)"),
-                  title=f"ATE ({cfg.align}): rmse {res.rmse:.4f} m over {res.pairs} poses")
+    how = res.alignment.label
+    write_tum(aligned_path, res.aligned, header=f"{est_path} after {how} alignment onto {ref_path}")
+    plot_top_view(png, res.reference, res.aligned, labels=("reference", f"estimate (align {how})"),
+                  title=f"ATE (align {how}): rmse {res.rmse:.4f} m over {res.pairs} poses")
     return Evaluation({"ate": res}, [out, aligned_path, png], info, {"ate": json.loads(out.read_text())})
 
 
@@ -130,7 +134,8 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     info = {"reference_poses": len(ref), "estimate_poses": len(est)}
     d = _rpe_dict(tr, rot, cfg)
     metrics = {**_metrics(tr), **_metrics(rot, "rotation_")}
-    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics)
+    header = _header("eval.rpe", cfg, {"reference": ref_path, "estimate": est_path}, metrics,
+                     tr.alignment.label)
     if out_dir is None:
         return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [], info,
                           {"rpe": json_safe({"header": header, **d})})
@@ -140,11 +145,11 @@ def evaluate_rpe(ref_path, est_path, cfg: EvalConfig, out_dir=None, *, overwrite
     d["files"] = {"aligned_estimate": str(aligned_path), "plot": str(png)}
     write_result(out, header, d)
     outdir.mkdir(parents=True, exist_ok=True)
-    write_tum(aligned_path, tr.aligned, header=f"{est_path} after {cfg.align} alignment onto {ref_path}")
+    write_tum(aligned_path, tr.aligned, header=f"{est_path} after {tr.alignment.label} alignment onto {ref_path}")
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     plot_errors_over_time(png, [("RPE translation", tr.timestamps, tr.errors, "m"),
                                 ("RPE rotation", rot.timestamps, rot.errors, "deg")],
-                          title=f"RPE ({delta}, align: {cfg.align})")
+                          title=f"RPE ({delta}, align {tr.alignment.label})")
     return Evaluation({"rpe_translation": tr, "rpe_rotation": rot}, [out, aligned_path, png], info,
                       {"rpe": json.loads(out.read_text())})
 
@@ -224,27 +229,28 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool 
     d = res_t.to_dict()
     d["run"] = run_info
     d["config"] = cfg.to_dict()
-    write_result(out / "ate.json", _header("eval.run", cfg, inputs, metrics), d, allow_nan=False)
+    write_result(out / "ate.json", _header("eval.run", cfg, inputs, metrics, res_t.alignment.label), d, allow_nan=False)
     d = res_r.to_dict()
     d["config"] = cfg.to_dict()
     atomic_write_json(out / "ape_rotation.json", d, allow_nan=False)
     atomic_write_json(out / "rpe.json", _rpe_dict(rpe_t, rpe_r, cfg), allow_nan=False)
     atomic_write_json(out / "config.json", cfg.to_dict(), allow_nan=False)
-    write_tum(out / "estimate_aligned.txt", res_t.aligned, header=f"{traj_path} after {cfg.align} alignment onto {gt_path}")
+    how = res_t.alignment.label
+    write_tum(out / "estimate_aligned.txt", res_t.aligned, header=f"{traj_path} after {how} alignment onto {gt_path}")
     res_t.save(out / "ate")
     res_r.save(out / "ape_rotation")
     rpe_t.save(out / "rpe")
 
     plot_top_view(out / "top_view.png", res_t.reference, res_t.aligned,
-                  labels=("ground truth", f"estimate ({cfg.align}-aligned)"),
+                  labels=("ground truth", f"estimate (align {how})"),
                   markers=nearest_positions(gt_traj, failed, cfg.max_dt),
-                  title=f"{run.name}: ATE rmse {res_t.rmse:.4f} m ({cfg.align}, {res_t.pairs} poses)")
+                  title=f"{run.name}: ATE rmse {res_t.rmse:.4f} m (align {how}, {res_t.pairs} poses)")
     delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
     plot_errors_over_time(out / "errors_over_time.png",
-                          [("ATE", res_t.timestamps, res_t.errors, "m"),
-                           ("APE rotation", res_r.timestamps, res_r.errors, "deg"),
+                          [(f"ATE (align {how})", res_t.timestamps, res_t.errors, "m"),
+                           (f"APE rotation (align {how})", res_r.timestamps, res_r.errors, "deg"),
                            (f"RPE ({delta})", rpe_t.timestamps, rpe_t.errors, "m")],
-                          failed_timestamps=failed, title=f"{run.name} vs {gt_path.name} (align: {cfg.align})")
+                          failed_timestamps=failed, title=f"{run.name} vs {gt_path.name} (align {how})")
     return Evaluation({"ate": res_t, "ape_rotation": res_r, "rpe_translation": rpe_t, "rpe_rotation": rpe_r},
                       [out / "ate.json", out], {**run_info, "ground_truth": str(gt_path)},
                       {n: json.loads((out / f"{n}.json").read_text()) for n in ("ate", "ape_rotation", "rpe")})

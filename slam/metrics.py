@@ -13,7 +13,12 @@ The conventions are those of evo (github.com/MichaelGrupp/evo, ``evo/core/metric
 * Alignment (estimate onto reference, on the associated positions): ``se3`` Umeyama/Horn rigid,
   ``sim3`` Umeyama with scale (positions scaled by s first, then the rigid motion applied, so the
   aligned poses stay rigid), ``origin`` (first associated estimate pose moved onto the first
-  associated reference pose, evo's ``align_origin``), ``none``.
+  associated reference pose, evo's ``align_origin``), ``none``, and ``auto`` (the default of
+  the CLI): se3 when the estimate's motion determines a rotation (at least
+  :data:`ILL_CONDITIONED_MIN_POSES` associated poses spread in two directions, spread ratio >=
+  :data:`ILL_CONDITIONED_SPREAD_RATIO`), else origin - a short or straight run is then compared
+  from its first pose instead of through a rotation fitted to noise. The result records the mode
+  used (``se3`` or ``origin``) and that ``auto`` chose it (:attr:`Alignment.label`).
 * APE error pose ``E_i = P_i^-1 Q_i`` (estimate P, reference Q); translation error is
   ``|p_i - q_i|`` (metres).
 * RPE error pose ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the index pairs (i, j) are chosen on the
@@ -38,6 +43,10 @@ from data_tools.errors import ConfigError, FormatError, RealgapError
 from data_tools.geometry import invert_pose, rotation_angle_rad
 from data_tools.trajectory import DEFAULT_MAX_DT, Trajectory, associate, read_tum, write_tum
 
+ALIGN_HELP = ("alignment of the estimate onto the reference before absolute errors: auto (se3 when the run has "
+              ">= 10 poses spread in two directions, else origin), se3, sim3, origin (first poses), none")
+"""Help text of every ``--align`` option (``eval``, ``batch``, ``demo``)."""
+
 STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max")
 """Keys of :attr:`MetricResult.stats`, in evo's order (evo also reports sse)."""
 
@@ -50,8 +59,8 @@ STAT_KEYS = ("rmse", "mean", "median", "std", "min", "max")
 class EvalConfig:
     """Options of a trajectory evaluation (saved as JSON next to the outputs)."""
 
-    align: str = field(default="se3", metadata={"help": "alignment of the estimate onto the reference: se3 | sim3 | origin | none"})
-    """Alignment mode, a key of :data:`ALIGNERS` (se3, sim3, origin, none)."""
+    align: str = field(default="auto", metadata={"help": ALIGN_HELP})
+    """Alignment mode, a key of :data:`ALIGNERS` (auto, se3, sim3, origin, none)."""
     max_dt: float = field(default=DEFAULT_MAX_DT, metadata={"help": "largest timestamp difference of an associated pose pair, seconds"})
     """Largest |t_ref - t_est| of an associated pose pair, seconds (TUM: 0.02; evo: 0.01)."""
     delta: float = field(default=1.0, metadata={"help": "RPE pair distance, in --delta-unit"})
@@ -93,7 +102,7 @@ PRESETS: dict[str, EvalConfig] = {
     "tum": EvalConfig(),
     "evo": EvalConfig(max_dt=0.01),
 }
-"""Named presets: ``tum`` (TUM benchmark: association within 0.02 s, SE(3) alignment) and
+"""Named presets: ``tum`` (TUM benchmark: association within 0.02 s, auto alignment) and
 ``evo`` (``evo_ape -a`` / ``evo_rpe`` defaults: association within 0.01 s)."""
 
 
@@ -145,6 +154,8 @@ class Alignment:
     """(3,) translation, metres."""
     s: float = 1.0
     """Scale factor (1 except for sim3)."""
+    requested: str = ""
+    """The mode asked for when it differs from ``mode`` (``auto``, which chose se3 or origin); else ''."""
 
     def __post_init__(self) -> None:
         self.R = np.asarray(self.R, dtype=np.float64).reshape(3, 3)
@@ -167,12 +178,18 @@ class Alignment:
         return Trajectory(traj.timestamps.copy(), poses)
 
     def to_dict(self) -> dict:
-        return {"mode": self.mode, "R": self.R.tolist(), "t": self.t.tolist(), "s": self.s,
-                "matrix": self.matrix.tolist()}
+        return {"mode": self.mode, "requested": self.requested or self.mode, "label": self.label,
+                "R": self.R.tolist(), "t": self.t.tolist(), "s": self.s, "matrix": self.matrix.tolist()}
+
+    @property
+    def label(self) -> str:
+        """How the estimate was aligned, as printed next to every number: ``se3`` or ``auto: origin``."""
+        return f"{self.requested}: {self.mode}" if self.requested and self.requested != self.mode else self.mode
 
     @classmethod
     def from_dict(cls, d: dict) -> "Alignment":
-        return cls(d["mode"], np.array(d["R"]), np.array(d["t"]), float(d["s"]))
+        req = d.get("requested", "")
+        return cls(d["mode"], np.array(d["R"]), np.array(d["t"]), float(d["s"]), "" if req == d["mode"] else req)
 
 
 class Aligner(ABC):
@@ -242,6 +259,20 @@ class OriginAlignment(Aligner):
         return Alignment(self.name, T[:3, :3], T[:3, 3], 1.0)
 
 
+@register_aligner
+class AutoAlignment(Aligner):
+    """se3 when the estimate determines a rotation (:func:`is_well_conditioned`), else origin: the
+    default of the CLI, so that a short or straight run is not scored through a rotation fitted
+    to noise (issue 44: a 30-frame chess run scored 23 deg APE rotation after SE(3), 0.2 deg from its first pose)."""
+
+    name = "auto"
+
+    def estimate(self, ref, est):
+        mode = "se3" if is_well_conditioned(est) else "origin"
+        a = ALIGNERS[mode].estimate(ref, est)
+        return Alignment(mode, a.R, a.t, a.s, requested=self.name)
+
+
 def align(ref: Trajectory, est: Trajectory, mode: str = "se3") -> tuple[Trajectory, Alignment]:
     """Align ``est`` onto ``ref`` (already associated: same length, pose k matches pose k).
 
@@ -275,17 +306,23 @@ def alignment_condition(est: Trajectory) -> float:
     return float(sv[1] / sv[0]) if len(sv) > 1 and sv[0] > 0 else 0.0
 
 
+def is_well_conditioned(est: Trajectory) -> bool:
+    """Whether a rotational alignment (se3, sim3) of ``est`` is determined: at least
+    :data:`ILL_CONDITIONED_MIN_POSES` poses whose positions spread in two directions."""
+    return len(est) >= ILL_CONDITIONED_MIN_POSES and alignment_condition(est) >= ILL_CONDITIONED_SPREAD_RATIO
+
+
 def warn_if_ill_conditioned(est: Trajectory, mode: str) -> None:
-    """A ``UserWarning`` (one CLI line) when a rotational alignment rests on too few poses or on
-    near-collinear motion: the fitted rotation, and every rotation error after it, is then
-    unreliable (``--align origin`` or ``none`` avoid fitting a rotation)."""
-    import warnings
+    """One realgap warning (:func:`data_tools.errors.warn`) when an explicitly requested rotational
+    alignment rests on too few poses or on near-collinear motion: the fitted rotation, and every
+    rotation error after it, is then unreliable (``--align auto``, ``origin`` or ``none`` avoid it)."""
+    from data_tools.errors import warn
     n, ratio = len(est), alignment_condition(est)
-    if n < ILL_CONDITIONED_MIN_POSES or ratio < ILL_CONDITIONED_SPREAD_RATIO:
+    if not is_well_conditioned(est):
         why = (f"only {n} associated poses" if n < ILL_CONDITIONED_MIN_POSES else
                f"near-collinear motion (spread ratio {ratio:.3f} < {ILL_CONDITIONED_SPREAD_RATIO})")
-        warnings.warn(f"{mode} alignment is ill-conditioned: {why}; the fitted rotation and rotation errors "
-                      f"are unreliable (consider --align origin or none)", stacklevel=3)
+        warn(f"{mode} alignment is ill-conditioned: {why}; the fitted rotation and rotation errors "
+             f"are unreliable (--align auto or origin compares from the first pose)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -501,7 +538,7 @@ class MetricResult:
         d.update({k: float(self.stats[k]) for k in STAT_KEYS})
         d["pairs"] = int(self.pairs)
         d["n_errors"] = int(len(self.errors))
-        d["align"] = self.alignment.mode
+        d["align"] = self.alignment.mode          # the mode used; alignment.label says whether auto chose it
         d["alignment"] = self.alignment.to_dict()
         d["info"] = self.info
         return d
@@ -511,7 +548,7 @@ class MetricResult:
 
     def title(self) -> str:
         u = f" {self.unit}" if self.unit else ""
-        return f"{self.metric.upper()} ({self.relation}, {self.alignment.mode} alignment): rmse {self.rmse:.4g}{u}"
+        return f"{self.metric.upper()} ({self.relation}, align {self.alignment.label}): rmse {self.rmse:.4g}{u}"
 
     # evo save_res_file style, as a folder
     def save(self, directory: str | os.PathLike) -> Path:
@@ -528,7 +565,7 @@ class MetricResult:
         atomic_save_npy(d / "timestamps.npy", np.asarray(self.timestamps, dtype=np.float64))
         if self.index_pairs is not None:
             atomic_save_npy(d / "index_pairs.npy", np.asarray(self.index_pairs, dtype=np.int64))
-        hdr = f"{self.metric} {self.relation}: {self.alignment.mode}-aligned estimate"
+        hdr = f"{self.metric} {self.relation}: estimate aligned by {self.alignment.label}"
         write_tum(d / "estimate_aligned.txt", self.aligned, header=hdr)
         write_tum(d / "reference.txt", self.reference, header="associated reference")
         return d

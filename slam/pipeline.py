@@ -104,11 +104,12 @@ class SlamConfig:
         return config_to_dict(self)
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "config") -> "SlamConfig":
-        """Build from JSON data (missing keys keep defaults; unknown keys are errors)."""
+    def from_dict(cls, d: dict, where: str = "config", strict: bool = False) -> "SlamConfig":
+        """Build from JSON data (missing keys keep defaults; unknown keys are errors). ``strict``
+        (data read from a file): a string where a number or boolean belongs is an error."""
         if not isinstance(d, dict):
             raise ConfigError(f"{where}: expected a JSON object")
-        return config_from_dict(cls, d, where)
+        return config_from_dict(cls, d, where, strict=strict)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -127,7 +128,7 @@ def make_config(backend: str = "icp", preset: str = "default", overrides: dict[s
     """SlamConfig for ``backend`` from a preset (or a full JSON ``base``) plus dotted overrides
     such as ``{"tsdf.voxel_size_m": 0.02, "backend_config.min_fitness": 0.3}``."""
     if base is not None:
-        cfg = SlamConfig.from_dict(base)
+        cfg = SlamConfig.from_dict(base, strict=True)
         if backend and backend != cfg.backend:
             d = cfg.to_dict()
             d["backend"], d["backend_config"] = backend, {}
@@ -144,7 +145,8 @@ def make_config(backend: str = "icp", preset: str = "default", overrides: dict[s
 
 
 def read_config_file(path: str | os.PathLike) -> dict:
-    """The SlamConfig data of a JSON file: a saved config, or a run's config.json (its "config")."""
+    """The SlamConfig data of a JSON file: a saved config, or a run's config.json (its "config").
+    Its types are checked strictly (a string where a number belongs is an error naming the file)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -152,7 +154,12 @@ def read_config_file(path: str | os.PathLike) -> dict:
         raise FormatError(path, "file not found") from None
     except json.JSONDecodeError as e:
         raise FormatError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
-    return data.get("config", data) if isinstance(data, dict) else data
+    data = data.get("config", data) if isinstance(data, dict) else data
+    try:
+        SlamConfig.from_dict(data, strict=True)
+    except ConfigError as e:
+        raise FormatError(path, str(e)) from None
+    return data
 
 
 def _apply(cfg: SlamConfig, dotted: dict[str, Any]) -> SlamConfig:
@@ -330,7 +337,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     writer's pid (:class:`data_tools.outputs.output_lock`). A sequence folder marked incomplete
     (a generator still running or killed) gives a warning.
     """
-    import warnings
+    from data_tools.errors import warn
 
     from data_tools.outputs import incomplete_text, output_lock, read_incomplete
     cfg = (config or SlamConfig()).validate()
@@ -338,7 +345,7 @@ def run_slam(sequence: str | os.PathLike | SequenceReader, out: str | os.PathLik
     if not isinstance(sequence, SequenceReader):
         marker = read_incomplete(sequence)
         if marker is not None:
-            warnings.warn(f"{sequence}: the sequence is unfinished ({incomplete_text(marker)}); the run uses the "
+            warn(f"{sequence}: the sequence is unfinished ({incomplete_text(marker)}); the run uses the "
                           f"frames written so far")
     with output_lock(out, "realgap slam run"):
         return _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_after, skip_unreadable,

@@ -109,12 +109,15 @@ def plot_errors_over_time(path: str | os.PathLike,
 
 
 def plot_backend_comparison(path: str | os.PathLike, sequences: Sequence[str], backends: Sequence[str],
-                            values: dict[tuple[str, str], dict[str, float | None]], *, title: str = "") -> Path:
+                            values: dict[tuple[str, str], dict[str, float | None]], *, title: str = "",
+                            align: str = "") -> Path:
     """The batch report's comparison: one panel per metric (ATE rmse [cm], APE median [cm], frames/s), a group of
     bars per sequence, one colour per backend. ``values[(sequence, backend)]``: ``ate_rmse_m``, ``ape_median_m``
     (metres) and ``frames_per_second``; a missing pair or a None value (a failed run) is left out and marked
-    "n/a" at the bar's place. Returns the PNG path."""
-    metrics = (("ate_rmse_m", "ATE rmse [cm]", 100.0), ("ape_median_m", "APE median [cm]", 100.0),
+    "n/a" at the bar's place. ``align``: the alignment the absolute errors were computed after, named in
+    their axis labels. Returns the PNG path."""
+    how = f"\n(align {align})" if align else ""
+    metrics = (("ate_rmse_m", f"ATE rmse [cm]{how}", 100.0), ("ape_median_m", f"APE median [cm]{how}", 100.0),
                ("frames_per_second", "frames/s", 1.0))
     fig = _figure(max(6.0, 1.2 + 0.9 * len(sequences) * max(1, len(backends)) / 2), 7.5)
     axs = fig.subplots(len(metrics), 1, sharex=True, squeeze=False)[:, 0]

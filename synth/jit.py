@@ -17,9 +17,9 @@ try:
     import numba as _nb
 except ImportError:  # pragma: no cover - exercised only on a broken install
     _nb = None
-    import warnings
-    warnings.warn("realgap: numba is not installed: the sensor simulator's kernels run as plain Python "
-                  "(about 100x slower); install the project's dependencies (make setup)", stacklevel=2)
+    from data_tools.errors import warn
+    warn("numba is not installed: the sensor simulator's kernels run as plain Python "
+                  "(about 100x slower); install the project's dependencies (make setup)")
 
 
 THREADS: int | None = None

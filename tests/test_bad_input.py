@@ -184,7 +184,7 @@ CASES = [
     ("synth sequence: unknown scene", ["synth", "sequence", "--scene", "castle", "--out", "{T}/O"], _nothing,
      ["castle"]),
     ("synth sequence: existing sequence", ["synth", "sequence", "--preset", "small", "--out", "{S}"], _nothing,
-     ["already holds a sequence", "--overwrite"]),
+     ["already holds a finished result", "--overwrite"]),
     ("synth views: missing model", ["synth", "views", "--model", "{T}/none.ply", "--out", "{T}/O"], _nothing,
      ["none.ply"]),
     ("synth views: empty mesh", ["synth", "views", "--model", "{T}/empty.ply", "--out", "{T}/O"], _empty_mesh,

@@ -17,9 +17,8 @@ from app.commands import FORBIDDEN_SYNONYMS, SHARED_FLAGS
 LONG_COMMANDS = ("sensor simulate", "sensor compare", "sensor diagnose", "sensor fit", "slam run", "batch",
                  "data make-reference", "data convert-7scenes", "data info", "synth sequence", "synth views", "demo")
 """Commands with a progress display: each has --no-progress."""
-WRITERS_WITHOUT_OVERWRITE = ("sensor compare", "batch", "demo")
-"""Commands with --out that never replace a finished result: compare adds a step to its lab
-folder's history; batch and demo continue (their runs are resumed, not replaced)."""
+WRITERS_WITHOUT_OVERWRITE = ()
+"""Commands with --out and no --overwrite: none (the one re-run rule, tests/test_rerun.py)."""
 
 
 def leaf_parsers() -> dict[str, argparse.ArgumentParser]:
@@ -78,17 +77,11 @@ def test_every_writer_has_overwrite():
 
 
 def test_json_is_a_flag_that_prints():
-    """``--json`` alone prints JSON on every command. Only ``recog eval`` also takes a file
-    (issue #18 writes ``recog eval MODEL TESTSET --json OUT``); there the bare flag still prints
-    (const '-'), so the flag means the same everywhere."""
+    """``--json`` is a switch that prints JSON on stdout on every command (files are written by --out)."""
     for cmd, p in leaf_parsers().items():
         opts = options(p)
         if "--json" in opts:
-            a = opts["--json"]
-            if cmd == "recog eval":
-                assert a.nargs == "?" and a.const == "-", cmd
-            else:
-                assert a.nargs == 0, cmd  # a switch, never a file name
+            assert opts["--json"].nargs == 0, cmd  # a switch, never a file name
 
 
 @pytest.mark.parametrize("argv, flag", [
@@ -119,3 +112,20 @@ def test_config_errors_name_the_flag_not_the_field(argv, words, tmp_path, capsys
     for w in words:
         assert w in err, (w, err)
     assert not (tmp_path / "R").exists()
+
+
+def test_align_is_one_option_with_one_meaning():
+    """``--align`` of eval, batch and demo: the same choices and help text (issue 44 item 3); the default
+    of every command that scores absolute errors is auto (eval rpe keeps evo's none)."""
+    from slam.metrics import ALIGN_HELP, ALIGNERS, PRESETS
+    cmds = leaf_parsers()
+    found = {}
+    for cmd in ("eval ate", "eval rpe", "eval run", "batch", "demo"):
+        a = options(cmds[cmd])["--align"]
+        assert list(a.choices) == list(ALIGNERS) and a.help.startswith(ALIGN_HELP), (cmd, a.help)
+        found[cmd] = a.default
+    assert found["batch"] == "auto" and PRESETS["tum"].align == "auto" and "default: auto" in options(
+        cmds["demo"])["--align"].help
+    from app.commands.demo import demo_config
+    args = build_parser().parse_args(["demo", "--align", "origin"])
+    assert demo_config(args).align == "origin"

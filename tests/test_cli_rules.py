@@ -151,7 +151,7 @@ def test_max_frames_follows_the_documented_rule():
             assert ("first n" in text) if cmd in CONSECUTIVE else ("evenly spread" in text), (cmd, text)
     assert CONSECUTIVE <= seen and len(seen) >= 7
     rules = (REPO / "docs" / "cli.md").read_text()
-    for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output.**", "exit code"):
+    for word in ("**`--json`**", "**`--max-frames N`**", "**Re-running onto an existing output: one rule.**", "exit code"):
         assert word in rules
 
 
@@ -165,3 +165,26 @@ def test_a_huge_sequence_is_refused_before_any_allocation(tmp_path, capsys):
     assert time.perf_counter() - t0 < 10 and not (tmp_path / "S").exists()
     assert "--frames 100000000" in err[0] and "at most" in err[0]
     assert "--frames 900000" in err[1] and "GB free" in err[1]
+
+
+def test_max_frames_is_obeyed_as_documented(tmp_path, capsys, monkeypatch):
+    """Behaviour, not only help text: ``slam run --max-frames 2`` registers the first 2 frames; ``sensor
+    simulate --max-frames 2`` simulates 2 frames evenly spread (the first and the last of 4)."""
+    from dataclasses import replace
+
+    from data_tools.sequence import SequenceReader
+    from data_tools.trajectory import read_tum
+    from synth.sequence import SEQUENCE_PRESETS, generate_sequence
+    monkeypatch.setenv("REALGAP_NO_PROGRESS", "1")
+    seq = tmp_path / "S"
+    generate_sequence(replace(SEQUENCE_PRESETS["kinect_v1"], frames=4, seed=0).with_resolution(64, 48), seq,
+                      progress=False)
+    stamps = [float(ln.split()[0]) for ln in (seq / "depth.txt").read_text().splitlines()
+              if ln.strip() and not ln.startswith("#")]
+    assert main(["slam", "run", str(seq), "--out", str(tmp_path / "R"), "--max-frames", "2",
+                 "--tsdf.voxel-size-m", "0.05"]) in (0, 3)
+    run = read_tum(tmp_path / "R" / "trajectory.txt").timestamps
+    assert len(run) <= 2 and set(run) <= set(stamps[:2])
+    assert main(["sensor", "simulate", str(seq), "--effects", "none", "--out", str(tmp_path / "Q"),
+                 "--max-frames", "2"]) == 0
+    assert list(SequenceReader(tmp_path / "Q").timestamps) == pytest.approx([stamps[0], stamps[-1]])

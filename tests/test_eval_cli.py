@@ -63,7 +63,7 @@ def test_ate_outputs(files, capsys):
     png = d / "res" / "ate_top.png"
     assert png.read_bytes()[:8] == PNG_MAGIC
     printed = capsys.readouterr().out
-    assert "ATE (se3): rmse" in printed and "40 associated pairs" in printed
+    assert "ATE (align auto: se3): rmse" in printed and "40 associated pairs" in printed
 
 
 def test_ate_out_options_overwrite_and_json(files, capsys):
@@ -146,7 +146,8 @@ def test_run_with_sequence_folder(tmp_path, capsys):
     back = M.MetricResult.load(out / "ate")
     assert back.stats["rmse"] == ate["rmse"]
     printed = capsys.readouterr().out
-    assert "2 failed frames" in printed and "ATE (se3)" in printed
+    assert "2 failed frames" in printed and "ATE (align auto: se3)" in printed
+    assert "APE rotation (align auto: se3)" in printed and "RPE translation (delta 1 frames, align auto: se3)" in printed
 
 
 def test_run_with_tum_file_and_out(tmp_path):
@@ -189,6 +190,7 @@ def test_ate_bad_input_is_one_line(tmp_path, capsys, case):
         names += ["gt.txt", "no associated poses"]
     elif case == "two_pairs":
         write_tum(e, est.subset(np.arange(2)))
+        extra = ["--align", "se3"]                 # auto would compare 2 poses from the first one
         names = ["gt.txt", "est.txt", "at least 3"]
     elif case == "bad_align":
         write_tum(e, est)

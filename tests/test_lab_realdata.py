@@ -49,7 +49,8 @@ def _lab_run(seq: Path, lab: Path, frames: int, diag_frames: int) -> dict:
     the CLI; the history in ``lab`` must fall at every step. Returns the numbers."""
     common = ["--max-frames", str(frames), "--report-frames", "2"]
     assert main(["sensor", "compare", str(seq), "--effects", "none", "--out", str(lab), *common]) == 0
-    assert main(["sensor", "compare", str(seq), "--effects", "axial_noise", "--out", str(lab), *common]) == 0
+    assert main(["sensor", "compare", str(seq), "--effects", "axial_noise", "--out", str(lab), "--overwrite",
+                 *common]) == 0      # a finished lab folder: --overwrite (the re-run rule); the history keeps its steps
     diag_dir = lab / "diagnosis"
     assert main(["sensor", "diagnose", str(seq), "--effects", "axial_noise", "--out", str(diag_dir),
                  "--max-frames", str(diag_frames)]) == 0
@@ -57,7 +58,7 @@ def _lab_run(seq: Path, lab: Path, frames: int, diag_frames: int) -> dict:
     assert diag["ranking"] and diag["ranking"][0]["gain"] > 0, diag["ranking"]
     # the best fitted model = the diagnosis's best candidate (axial noise refitted + that effect)
     best = diag_dir / "best_model.json"
-    assert main(["sensor", "compare", str(seq), "--model", str(best), "--out", str(lab), *common]) == 0
+    assert main(["sensor", "compare", str(seq), "--model", str(best), "--out", str(lab), "--overwrite", *common]) == 0
     hist = json.loads((lab / "history.json").read_text())["entries"]
     gaps = [e["gap"] for e in hist]
     assert len(gaps) == 3

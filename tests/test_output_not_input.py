@@ -37,7 +37,7 @@ CMDS = [
     ("neural eval", ["neural", "eval", "{IN}", "--out", "{OUT}"], ALL),
     ("recog train", ["recog", "train", "--objects", "{IN}", "--out", "{OUT}"], ALL),
     ("recog eval", ["recog", "eval", "M", "{IN}", "--out", "{OUT}"], ALL),
-    ("recog eval --json", ["recog", "eval", "{IN}", "T", "--json", "{OUT}"], ALL),
+    ("recog eval MODEL", ["recog", "eval", "{IN}", "T", "--out", "{OUT}"], ALL),
     ("recog testset", ["recog", "testset", "--objects", "{IN}", "--out", "{OUT}"], ALL),
     ("sensor simulate", ["sensor", "simulate", "{IN}", "--effects", "none", "--out", "{OUT}"], ALL),
     ("sensor compare", ["sensor", "compare", "{IN}", "--effects", "none", "--out", "{OUT}"], ALL),

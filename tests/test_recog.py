@@ -281,24 +281,25 @@ def test_eval_and_predict_cli(trained, capsys):
     assert pred["object"] in ("box", "bracket") and np.asarray(pred["pose"]).shape == (4, 4)
 
 
-def test_eval_json_out_as_the_issue_writes_it(trained, capsys):
-    """``recog eval MODEL TESTSET --json OUT`` writes eval.json's content to OUT; an existing OUT is a
-    one-line error without --overwrite; plain ``--json`` still prints it."""
-    out = trained / "eval_out.json"
-    out.unlink(missing_ok=True)
-    argv = ["recog", "eval", str(trained / "m"), str(trained / "t"), "--json", str(out), "--no-progress"]
+def test_eval_json_prints_and_out_writes_the_file(trained, capsys):
+    """One dialect: ``--json`` prints eval.json's content on stdout (a switch, as everywhere); the file is
+    written by ``--out DIR`` (DIR/eval.json), and a finished DIR is a one-line error without --overwrite.
+    ``--json OUT`` (issue #18's spelling) is a one-line usage error naming OUT."""
+    out = trained / "eval_dir"
+    argv = ["recog", "eval", str(trained / "m"), str(trained / "t"), "--out", str(out), "--json", "--no-progress"]
     assert main(argv) == 0
-    r = json.loads(out.read_text())
-    assert r["header"]["kind"] == "recog.eval" and r["n_scans"] == 8
+    printed = json.loads(capsys.readouterr().out)
+    r = json.loads((out / "eval.json").read_text())
+    assert r["header"]["kind"] == "recog.eval" and r["n_scans"] == printed["n_scans"] == 8
     assert {"accuracy", "rot_err_deg", "rot_err_deg_plain", "trans_err_m", "before_icp", "confusion"} <= set(r)
-    capsys.readouterr()
     assert main(argv) == 1
     err = capsys.readouterr().err
-    assert "exists" in err and len(err.strip().splitlines()) == 1
+    assert "--overwrite" in err and len(err.strip().splitlines()) == 1
     assert main(argv + ["--overwrite"]) == 0
     capsys.readouterr()
-    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--json", "--no-progress"]) == 0
-    assert json.loads(capsys.readouterr().out)["n_scans"] == 8
+    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--json", str(trained / "x.json")]) == 1
+    err = capsys.readouterr().err
+    assert "x.json" in err and len(err.strip().splitlines()) == 1 and not (trained / "x.json").exists()
 
 
 def test_saved_model_predicts_identically_after_reload(trained):

@@ -74,9 +74,12 @@ def test_compare_metrics_report_and_history_accumulates(measured, tmp_path):
     cfg = json.loads((lab / "lab_config.json").read_text())
     assert cfg["effects_used"] == [] and cfg["command"] == "sensor compare"
 
-    # the true effects (with the preset defaults the sequence was made with) close most of the gap
-    assert main(["sensor", "compare", str(measured), "--effects", ",".join(TRUE_EFFECTS), "--out", str(lab),
-                 "--compare-preset", "fast", "--report-frames", "1"]) == 0
+    # the true effects (with the preset defaults the sequence was made with) close most of the gap; a finished
+    # lab folder is replaced only with --overwrite (the re-run rule), and its gap history keeps its steps
+    again = ["sensor", "compare", str(measured), "--effects", ",".join(TRUE_EFFECTS), "--out", str(lab),
+             "--compare-preset", "fast", "--report-frames", "1"]
+    assert main(again) == 1
+    assert main(again + ["--overwrite"]) == 0
     hist = json.loads((lab / "history.json").read_text())["entries"]
     assert [e["effects"] for e in hist] == [[], list(TRUE_EFFECTS)]
     assert hist[1]["gap"] < 0.5 * hist[0]["gap"]
@@ -112,7 +115,10 @@ def test_simulate_keeps_timestamps_and_names_and_resumes(measured, tmp_path):
     assert not np.array_equal(d0, a.read_depth(0))  # a different model and seed than the measurement
     first = {rel: (out / rel).read_bytes() for rel in b.depth_files}
 
-    # interrupt: drop the last frame's index line and image, re-run -> identical result
+    # interrupt: drop the last frame's index line and image, as a killed run leaves it (with its incomplete
+    # marker), re-run -> identical result
+    from data_tools.outputs import mark_incomplete
+    mark_incomplete(out, "realgap sensor simulate", len(b.depth_files) - 1, len(b.depth_files))
     lines = (out / "depth.txt").read_text().splitlines()
     (out / "depth.txt").write_text("\n".join(lines[:-1]) + "\n")
     (out / b.depth_files[-1]).unlink()
@@ -120,7 +126,8 @@ def test_simulate_keeps_timestamps_and_names_and_resumes(measured, tmp_path):
     assert {rel: (out / rel).read_bytes() for rel in b.depth_files} == first
     assert _data_lines(out / "depth.txt") == _data_lines(measured / "depth.txt")
 
-    # another model into the same folder needs --overwrite
+    # the finished folder, and another model into it, need --overwrite
+    assert main(args) == 1
     r = _run("sensor", "simulate", measured, "--effects", "axial_noise", "--out", out)
     assert r.returncode == 1 and "--overwrite" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert main(["sensor", "simulate", str(measured), "--effects", "none", "--out", str(out), "--overwrite",

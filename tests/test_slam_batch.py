@@ -104,6 +104,43 @@ def test_cli_batch(tmp_path, two_sequences, capsys):
     assert read_result(tmp_path / "rep").kind == "batch"
     meta = json.loads((tmp_path / "rep" / "results.json").read_text())["meta"]
     assert meta["threads_per_job"] == 1 and meta["workers"] == 1
+    # one metric, one meaning: every absolute metric's header names the alignment, and the 5-pose run was
+    # scored from its first pose (auto: too few poses for a fitted rotation)
+    assert "ATE cm (auto)" in out and "APE rot deg (auto)" in out and "auto: origin" in out, out
+    assert meta["align"] == "auto"
+
+
+def test_batch_and_eval_run_give_the_same_numbers(tmp_path, two_sequences, capsys):
+    """The cross-check of issue 44 item 3: for each alignment, batch's ATE and APE rotation of a run are what
+    ``eval run`` prints for that run with the same --align (auto chooses origin for this 5-pose run; se3, asked
+    for explicitly, warns once, as a realgap warning line, that it is ill-conditioned). The se3 row is batch's
+    own scoring function on the same run (one batch run keeps the test short)."""
+    from data_tools.trajectory import read_tum
+    from slam.batch import BatchJob, JobResult, _score
+    seq = two_sequences[0]
+    rep = tmp_path / "rep"
+    assert main(["batch", str(seq), "--out", str(rep), "--workers", "1", "--threads-per-job", "1", "--no-progress",
+                 "--tsdf.voxel_size_m", "0.02", "--tsdf.mesh_weight_threshold", "1", "--icp.raycast_scale", "1",
+                 "--backends", "icp"]) == 0
+    auto = json.loads((rep / "results.json").read_text())["results"][0]
+    job = BatchJob(str(seq), "a", "icp", auto["run_dir"], {}, align="se3")
+    se3 = JobResult(job.sequence, "a", "icp", job.run_dir, ok=True)
+    _score(se3, job, read_tum(f"{auto['run_dir']}/trajectory.txt"), None)
+    for align, row in (("auto", auto), ("se3", vars(se3))):
+        capsys.readouterr()
+        assert main(["eval", "run", auto["run_dir"], "--gt", str(seq), "--align", align, "--json",
+                     "--out", str(tmp_path / f"ev_{align}")]) == 0
+        cap = capsys.readouterr()
+        ev = json.loads(cap.out)
+        assert ev["ate"]["rmse"] == pytest.approx(row["ate_rmse_m"], abs=1e-12)
+        assert ev["ape_rotation"]["rmse"] == pytest.approx(row["ape_rot_rmse_deg"], abs=1e-12)
+        assert ev["ate"]["alignment"]["label"] == row["align"] == {"auto": "auto: origin", "se3": "se3"}[align]
+        warned = [ln for ln in cap.err.splitlines() if "ill-conditioned" in ln]
+        assert len(warned) == (align == "se3") and all(ln.startswith("realgap: warning: ") for ln in warned)
+        assert "UserWarning" not in cap.err and ".py:" not in cap.err, cap.err
+        assert main(["show", str(tmp_path / f"ev_{align}"), str(rep)]) == 0       # show names it too
+        shown = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("alignment")]
+        assert shown and row["align"] in shown[0] and shown[0].split()[-1] == "auto", shown
 
 
 def test_negative_threads_per_job_is_a_config_error(tmp_path, two_sequences):

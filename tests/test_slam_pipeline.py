@@ -182,10 +182,12 @@ def test_cli_run_and_render(tmp_path, seq, capsys):
     res = read_result(run)   # stats.json with the result header
     assert res.kind == "slam.run" and res.header["inputs"][0]["role"] == "sequence"
     assert res.header["parameters"]["backend"] == "icp" and res.metrics["frames_tracked"] == N_FRAMES
-    # re-running the finished command is a no-op that reports the same run
+    # re-running the finished command is refused before any work, naming --overwrite (the re-run rule)
+    before = (run / "trajectory.txt").read_bytes()
     assert main(["slam", "run", str(seq), "--backend", "icp", "--out", str(run), "--no-progress",
                  "--tsdf.voxel_size_m", "0.01", "--tsdf.mesh-weight-threshold", "1",
-                 "--icp.raycast_scale", "1", "--icp.iterations", "10,5,4"]) == 0
+                 "--icp.raycast_scale", "1", "--icp.iterations", "10,5,4"]) == 1
+    assert (run / "trajectory.txt").read_bytes() == before
     png = tmp_path / "view.png"
     assert main(["slam", "render", str(run), "--frame", "2", "--out", str(png)]) == 0
     assert png.is_file() and (tmp_path / "view_depth.png").is_file() and (tmp_path / "view.json").is_file()

@@ -94,9 +94,9 @@ def test_make_reference_cli_copies_and_does_not_touch_source(ideal_seq, tmp_path
     r = SequenceReader(out)
     assert len(r) == 8 and r.has_scene and len(r.scene.meshes) == 1
     np.testing.assert_array_equal(r.read_depth(3), SequenceReader(ideal_seq).read_depth(3))
-    # same options again: finished output is kept; other options need --overwrite
+    # same options again: the finished output is kept, and the command says --overwrite (the re-run rule)
     mtime = (out / "meshes" / "reference.ply").stat().st_mtime_ns
-    assert main(args) == 0
+    assert main(args) == 1
     assert (out / "meshes" / "reference.ply").stat().st_mtime_ns == mtime
     p = subprocess.run([sys.executable, "-m", "app", *args[:-2], "--max-frames", "3"], capture_output=True, text=True,
                        cwd=REPO, timeout=120)

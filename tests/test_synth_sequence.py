@@ -258,8 +258,8 @@ def test_cli_sequence_and_scenes(tmp_path, capsys):
     seq = SequenceReader(out)
     assert len(seq) == 3 and seq.intrinsics.width == 160 and seq.intrinsics.fx == pytest.approx(145.0)
     assert json.loads((out / "config.json").read_text())["seed"] == 2
-    assert main(argv) == 1  # exists, neither --resume nor --overwrite
-    assert "already holds a sequence" in capsys.readouterr().err
+    assert main(argv) == 1  # finished, neither --resume nor --overwrite: the re-run rule
+    assert "--overwrite" in capsys.readouterr().err
     assert main(argv + ["--resume"]) == 0
     assert "kept 3" in capsys.readouterr().out
     assert main(["synth", "sequence", "--scene", "nowhere", "--out", str(tmp_path / "x")]) == 1

@@ -60,6 +60,15 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     return p.add_argument(flag, help=help_text.replace("%", "%%"), **kwargs)
 
 
+def add_align(p: argparse.ArgumentParser, default: str | None = "auto", note: str = "") -> argparse.Action:
+    """The ``--align`` option of every command that scores a trajectory (``eval``, ``batch``,
+    ``demo``): the same choices (:data:`slam.metrics.ALIGNERS`) and help text everywhere."""
+    from slam.metrics import ALIGN_HELP, ALIGNERS
+    tail = f" ({note})" if note else f" (default: {default})"
+    return p.add_argument("--align", dest="align", choices=list(ALIGNERS), default=default,
+                          help=(ALIGN_HELP + tail).replace("%", "%%"))
+
+
 def positive_float(flag: str):
     """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
     import math
@@ -71,6 +80,29 @@ def positive_float(flag: str):
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
         if not (math.isfinite(v) and v > 0):
             raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+        return v
+    parse.__name__ = flag
+    return parse
+
+
+def ranged(flag: str, kind: type = int, low: float | None = None, high: float | None = None,
+           low_open: bool = False):
+    """argparse ``type`` of a finite ``kind`` (int or float) in [low, high] (``low_open``: (low, high]);
+    a value outside is one line naming ``flag`` (exit 1), before any work."""
+    import math
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
+        if not math.isfinite(v) or (low is not None and (v <= low if low_open else v < low)) \
+                or (high is not None and v > high):
+            lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+            hi = "" if high is None else f"<= {high:g}"
+            raise argparse.ArgumentTypeError(f"must be {' and '.join(x for x in (lo, hi) if x) or 'finite'}, "
+                                             f"got {text}")
         return v
     parse.__name__ = flag
     return parse
@@ -88,6 +120,56 @@ def positive_int(flag: str):
         return v
     parse.__name__ = flag
     return parse
+
+
+RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {
+    "batch": (("out", ("results.json",)),),
+    "data convert-7scenes": (("dst", ("depth.txt",)), ("out", ("depth.txt",))),
+    "data convert-kinect-raw": (("dst", ("convert.json",)), ("out", ("convert.json",))),
+    "data make-reference": (("out", ("reference_config.json", "scene.json")), ("seq", ("reference_config.json",))),
+    "demo": (("out", ("summary.json",)),),
+    "eval ate": (("out", ("ate.json",)),),
+    "eval rpe": (("out", ("rpe.json",)),),
+    "eval run": (("out", ("ate.json",)), ("run", None)),
+    "recog train": (("out", ("recogniser.json",)),),
+    "recog eval": (("out", ("eval.json",)),),
+    "recog testset": (("out", ("labels.json",)),),
+    "sensor simulate": (("out", ("depth.txt",)),),
+    "sensor compare": (("out", ("metrics.json",)),),
+    "sensor diagnose": (("out", ("diagnosis.json",)),),
+    "sensor fit": (("out", None),),
+    "slam run": (("out", ("stats.json", "trajectory.txt")),),
+    "slam render": (("out", None),),
+    "synth sequence": (("out", ("depth.txt",)),),
+    "synth views": (("out", ("views.jsonl",)),),
+    "view": (("screenshot", None), ("movie", None)),
+}
+"""The one re-run rule (:func:`data_tools.outputs.check_rerun`, docs/cli.md) over every command:
+command -> its outputs as ``(dest, finished)``: the argument naming the output and the files that make
+it a finished output folder (None: the output is a file, finished when it exists). The first given
+output of an entry is checked; a later entry is the default output when the earlier ones are not given
+(``eval run RUN`` writes ``RUN/eval``, ``data make-reference SEQ`` writes into SEQ). ``app.cli`` checks
+it before any work; ``tests/test_rerun.py`` runs every entry."""
+
+
+def check_rerun_args(args: argparse.Namespace) -> None:
+    """Apply the re-run rule to the parsed command ``args`` (see :data:`RERUN`)."""
+    from pathlib import Path
+
+    from data_tools.outputs import check_rerun
+    cmd = " ".join(x for x in (getattr(args, "command", None), getattr(args, "subcommand", None)) if x)
+    # --resume (synth sequence/views) asks explicitly to add to a finished output (frames, views): let it through
+    overwrite = bool(getattr(args, "overwrite", False) or getattr(args, "resume", False))
+    for k, (dest, finished) in enumerate(RERUN.get(cmd, ())):
+        value = getattr(args, dest, None)
+        if not isinstance(value, str) or not value:
+            continue
+        if cmd == "eval run" and dest == "run":         # the default --out of eval run
+            value, finished = str(Path(value) / "eval"), ("ate.json",)
+        flag = "--" + dest if dest in ("out", "screenshot", "movie") else dest.upper()
+        check_rerun(value, finished, overwrite=overwrite, flag=flag)
+        if cmd != "view":
+            return
 
 
 OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")

@@ -9,27 +9,30 @@ NAME = "batch"
 HELP = "run SLAM backends on several sequences; REPORT/index.html + results.json"
 DESCRIPTION = ("Run every --backends entry on every sequence (jobs in a local process pool or on a "
                "Ray cluster), score each run against the sequence's ground truth (ATE rmse, APE "
-               "median, APE rotation, RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
+               "median, APE rotation after --align; RPE, frames/s, failed frames) and write REPORT/index.html (sequence x "
                "backend table, one page per sequence) and REPORT/results.json. Runs go to "
-               "REPORT/runs/<sequence>/<backend>; re-running resumes unfinished runs.")
+               "REPORT/runs/<sequence>/<backend>; re-running continues an interrupted batch; a finished report is replaced only with --overwrite.")
 
 
 def _cm(x) -> str:
     return "-" if x is None else f"{100 * x:.2f}"
 
 
-def _table(results) -> tuple[list[str], list[list[str]]]:
-    """The sequence x backend table printed after a batch (ATE and APE in cm, APE rotation in degrees)."""
+def _table(results, align: str = "auto") -> tuple[list[str], list[list[str]]]:
+    """The sequence x backend table printed after a batch (ATE and APE in cm, APE rotation in degrees),
+    each absolute metric's header naming the alignment ``align``; the column 'align used' says what
+    ``auto`` chose for each run."""
     rows = []
     for r in results:
         if r["ok"]:
             fps = f"{r['frames_per_second']:.1f}" if r["frames_per_second"] else "-"
             rot = "-" if r["ape_rot_rmse_deg"] is None else f"{r['ape_rot_rmse_deg']:.2f}"
-            rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), rot, fps,
-                         f"{r['frames_failed']}/{r['frames']}"])
+            rows.append([r["name"], r["backend"], _cm(r["ate_rmse_m"]), _cm(r["ape_median_m"]), rot,
+                         r.get("align") or "-", fps, f"{r['frames_failed']}/{r['frames']}"])
         else:
-            rows.append([r["name"], r["backend"], "error: " + (r["error"] or "").splitlines()[0], "", "", "", ""])
-    return ["sequence", "backend", "ATE cm", "APE med cm", "APE rot deg", "fps", "failed"], rows
+            rows.append([r["name"], r["backend"], "error: " + (r["error"] or "").splitlines()[0], "", "", "", "", ""])
+    return ["sequence", "backend", f"ATE cm ({align})", f"APE med cm ({align})", f"APE rot deg ({align})",
+            "align used", "frames/s", "failed frames"], rows
 
 
 def _run(args) -> int:
@@ -44,9 +47,10 @@ def _run(args) -> int:
     configs = {b: config_from_args(args, b, tuple(backends)) for b in backends}
     rep = run_batch(args.sequences, backends, args.out, configs, camera=_camera(args),
                     executor=args.executor, workers=args.workers, progress=not args.no_progress,
-                    threads_per_job=args.threads_per_job)
+                    threads_per_job=args.threads_per_job, align=args.align,
+                    overwrite=args.overwrite)
     from data_tools.results import format_table
-    print(format_table(*_table(rep.results)))
+    print(format_table(*_table(rep.results, args.align)))
     if rep.runs_kept:
         print(f"resumed: {rep.runs_kept} of {len(rep.results)} runs had finished before and were read, not redone")
     print(f"report: {rep.out / 'index.html'}")
@@ -66,10 +70,15 @@ def register(parser: argparse.ArgumentParser) -> None:
                         help="local: process pool on this machine; ray: Ray tasks (ray.init(), "
                              "RAY_ADDRESS for a cluster; needs the optional package ray)")
     add_shared(parser, "--workers", "jobs at once (default: the CPU count)", default=0)
-    parser.add_argument("--threads-per-job", type=int, default=0, metavar="N",
+    from app.commands import ranged
+    parser.add_argument("--threads-per-job", type=ranged("--threads-per-job", int, 0), default=0, metavar="N",
                         help="Open3D/OpenMP threads per job (default: CPU count / workers); 1 makes the "
                              "numbers bit-for-bit reproducible (multi-threaded float sums differ in the "
                              "last bits from run to run)")
     add_shared(parser, "--no-progress")
+    add_shared(parser, "--overwrite", "a finished report in REPORT: every run is done again (an interrupted "
+                                      "batch is continued without it)")
+    from app.commands import add_align
+    add_align(parser)
     add_config_arguments(parser)
     parser.set_defaults(func=_run, on_interrupt=RESUMES)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from app.commands import RESUMES, add_group, add_shared, positive_float, positive_int
+from app.commands import RESUMES, add_group, add_shared, positive_float, positive_int, ranged
 from data_tools.errors import ConfigError
 
 NAME = "data"
@@ -69,8 +69,9 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="ignore depth beyond this many metres (default 4)")
     add_shared(p, "--max-frames", "fuse N frames evenly spread (default: every frame with a pose)")
     p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")
-    p.add_argument("--albedo", type=float, default=0.5, help="albedo of that material (default 0.5)")
-    p.add_argument("--min-component", type=int, default=200, metavar="TRIANGLES",
+    p.add_argument("--albedo", type=ranged("--albedo", float, 0, 1), default=0.5,
+                   help="albedo of that material, in [0, 1] (default 0.5)")
+    p.add_argument("--min-component", type=ranged("--min-component", int, 0), default=200, metavar="TRIANGLES",
                    help="drop connected pieces with fewer triangles (default 200)")
     p.add_argument("--plane", action="store_true",
                    help="a capture of a flat target without poses: fit the dominant plane per frame (RANSAC + "

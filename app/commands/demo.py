@@ -25,6 +25,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     docs, hints = field_docs(DemoConfig), typing.get_type_hints(DemoConfig)
     for f in dataclasses.fields(DemoConfig):
         flag = "--" + f.name.replace("_", "-")
+        if flag == "--align":        # the shared --align of eval and batch (same choices and help)
+            from app.commands import add_align
+            add_align(parser, argparse.SUPPRESS, "default: auto").dest = "cfg:align"
+            continue
         if flag == "--seed":
             add_shared(parser, "--seed", docs[f.name] + " (default 0)", dest="cfg:seed", default=argparse.SUPPRESS)
             continue
@@ -34,6 +38,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                             help=(docs[f.name] + f" (default: {getattr(DemoConfig(), f.name)!r})").replace("%", "%%"),
                             **kw)
     add_shared(parser, "--no-progress")
+    add_shared(parser, "--overwrite", "a finished demo in --out: its parts are computed again (an interrupted demo "
+                                      "is continued without it)")
     parser.set_defaults(func=run, on_interrupt=RESUMES)
 
 
@@ -46,7 +52,7 @@ def demo_config(args):
 
 def run(args) -> int:
     from app.demo.run import run_demo, summary_lines
-    facts = run_demo(args.out, demo_config(args), progress=not args.no_progress)
+    facts = run_demo(args.out, demo_config(args), progress=not args.no_progress, overwrite=args.overwrite)
     print()
     print("\n".join(summary_lines(args.out, facts)))
     return 0

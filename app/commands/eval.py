@@ -21,12 +21,26 @@ _RPE_FIELDS = ("align", "max_dt", "delta", "delta_unit", "all_pairs", "rel_delta
 _RUN_FIELDS = _RPE_FIELDS
 
 
+def _ranges() -> dict:
+    from app.commands import positive_float, ranged
+    return {"max_dt": ranged("--max-dt", float, 0), "delta": positive_float("--delta"),
+            "rel_delta_tol": ranged("--rel-delta-tol", float, 0)}
+
+
+_RANGES = _ranges()
+"""argparse types of the EvalConfig fields with a range: a bad value is one line naming the flag."""
+
+
 def _add_config_flags(p: argparse.ArgumentParser, names: tuple[str, ...], note: dict[str, str] | None = None) -> None:
     """One flag per EvalConfig field (help from the field's metadata); defaults come from --preset."""
     p.add_argument("--preset", choices=sorted(PRESETS), default="tum",
                    help="named option set the flags below override (default: tum)")
     by_name = {f.name: f for f in fields(EvalConfig)}
     for name in names:
+        if name == "align":          # the shared --align of eval, batch and demo (default from --preset)
+            from app.commands import add_align
+            add_align(p, None, (note or {}).get(name, f"preset default: {by_name[name].default}"))
+            continue
         f = by_name[name]
         flag = "--" + name.replace("_", "-")
         extra = (note or {}).get(name, "")
@@ -34,7 +48,8 @@ def _add_config_flags(p: argparse.ArgumentParser, names: tuple[str, ...], note: 
         if f.type in (bool, "bool"):
             p.add_argument(flag, dest=name, action="store_const", const=True, default=None, help=help_)
         else:
-            typ = {"float": float, "str": str, "int": int}.get(f.type if isinstance(f.type, str) else f.type.__name__, str)
+            typ = _RANGES.get(name) or {"float": float, "str": str, "int": int}.get(
+                f.type if isinstance(f.type, str) else f.type.__name__, str)
             p.add_argument(flag, dest=name, type=typ, default=None, choices=_CHOICES.get(name),
                            metavar=None if name in _CHOICES else name.split("_")[-1].upper(), help=help_)
 
@@ -117,7 +132,7 @@ def cmd_ate(args) -> int:
     if args.json:
         _print_json(ev)
         return 0
-    print(f"ATE ({cfg.align}): {stats_line(ev.results['ate'])}")
+    print(f"ATE (align {ev.results['ate'].alignment.label}): {stats_line(ev.results['ate'])}")
     if ev.files:
         print(f"wrote {', '.join(str(f) for f in ev.files)}")
     return 0
@@ -130,7 +145,7 @@ def cmd_rpe(args) -> int:
     if args.json:
         _print_json(ev)
         return 0
-    delta = f"delta {cfg.delta:g} {cfg.delta_unit}"
+    delta = f"delta {cfg.delta:g} {cfg.delta_unit}, align {ev.results['rpe_translation'].alignment.label}"
     print(f"RPE translation ({delta}): {stats_line(ev.results['rpe_translation'])}")
     print(f"RPE rotation    ({delta}): {stats_line(ev.results['rpe_rotation'])}")
     if ev.files:
@@ -148,9 +163,12 @@ def cmd_run(args) -> int:
     i, delta = ev.info, f"delta {cfg.delta:g} {cfg.delta_unit}"
     print(f"{args.run}: {i['estimate_poses']} estimated poses, {ev.results['ate'].pairs} associated with "
           f"{i['ground_truth']} (max_dt {cfg.max_dt:g} s), {i['failed_frames']} failed frames")
-    labels = {"ate": f"ATE ({cfg.align})", "ape_rotation": "APE rotation",
-              "rpe_translation": f"RPE translation ({delta})", "rpe_rotation": f"RPE rotation ({delta})"}
+    how = ev.results["ate"].alignment.label
+    rpe_how = ev.results["rpe_translation"].alignment.label
+    labels = {"ate": f"ATE (align {how})", "ape_rotation": f"APE rotation (align {how})",
+              "rpe_translation": f"RPE translation ({delta}, align {rpe_how})",
+              "rpe_rotation": f"RPE rotation ({delta}, align {rpe_how})"}
     for key, res in ev.results.items():
-        print(f"  {labels[key] + ':':<30} {stats_line(res)}")
+        print(f"  {labels[key] + ':':<46} {stats_line(res)}")
     print(f"wrote {ev.files[-1]}/ (ate.json, ape_rotation.json, rpe.json, top_view.png, errors_over_time.png)")
     return 0

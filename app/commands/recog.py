@@ -1,7 +1,8 @@
 """``realgap recog``: CAD-based recognition trained only on simulated depth (thesis 3.2.1 / 3.4.3).
 
 * ``recog train --objects DIR|FILES|chairs --variant physical|gaussian|clean --out MODEL``
-* ``recog eval MODEL TESTSET --out DIR [--synda GEN]`` (eval.json, predictions.jsonl, CDF figures) / ``--json OUT`` (the JSON only)
+* ``recog eval MODEL TESTSET --out DIR [--synda GEN]`` (eval.json, predictions.jsonl, CDF figures); ``--json`` prints
+  eval.json's content
 * ``recog predict MODEL DEPTH.png --bbox x0,y0,x1,y1``
 * ``recog testset --objects ... --out TESTSET`` (scans with another sensor, labels.json)
 """
@@ -11,7 +12,7 @@ import argparse
 import json
 import sys
 
-from app.commands import RESUMES, add_group, add_shared
+from app.commands import RESUMES, add_group, add_shared, positive_float, positive_int, ranged
 from data_tools.errors import ConfigError
 
 NAME = "recog"
@@ -35,15 +36,18 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
                    help="training size: cpu = LeNet, 3000 steps (minutes on 2 cores); gpu = deeper net, 20000 steps")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
-    for flag, tp, h in (("--iterations", int, "training steps"), ("--batch", int, "triplets per step"),
-                        ("--subdivisions", int, "icosahedron subdivisions of the viewpoints (default 2)"),
+    for flag, tp, h in (("--iterations", positive_int("--iterations"), "training steps"),
+                        ("--batch", positive_int("--batch"), "triplets per step"),
+                        ("--subdivisions", ranged("--subdivisions", int, 0, 5),
+                         "icosahedron subdivisions of the viewpoints, 0..5 (default 2)"),
                         ("--network", str, "lenet or deeper"), ("--device", str, "torch device (cpu, cuda)"),
-                        ("--scale", float, "file units -> metres (default: guessed; 0.001 for millimetre CAD)")):
+                        ("--scale", positive_float("--scale"),
+                         "file units -> metres (default: guessed; 0.001 for millimetre CAD)")):
         p.add_argument(flag, type=tp, help=h + " (overrides --preset)" if flag in ("--iterations", "--batch",
                                                                                      "--network", "--device") else h)
     p.add_argument("--symmetry", action="append", metavar="NAME=AXIS:ORDER",
                    help="declare an object's symmetry instead of detecting it (e.g. obj_05=z:2, obj_01=z:inf)")
-    p.add_argument("--checkpoint-every", type=int, metavar="N", help="training checkpoint every N steps (default 250)")
+    p.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="N", help="training checkpoint every N steps (default 250)")
     p.add_argument("--drop-data", action="store_true", help="delete the simulated training patches at the end")
     add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
     add_shared(p, "--seed", "of views and training (default 0)", default=0)
@@ -58,12 +62,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--no-icp", action="store_true", help="report the database poses only")
     p.add_argument("--synda", metavar="GEN", help="a SynDA depth generator (realgap synda train --domain depth): the "
                                                  "recogniser reads its mapping of each measured patch")
-    p.add_argument("--k", type=int, default=5, help="neighbours voting for the object (default 5)")
+    p.add_argument("--k", type=ranged("--k", int, 1), default=5, help="neighbours voting for the object (default 5)")
     add_shared(p, "--max-frames", "evaluate the first N scans")
-    add_shared(p, "--overwrite", "an eval.json already in DIR, or the --json OUT file")
-    add_shared(p, "--json", "(eval.json's content); --json OUT writes that JSON to the file OUT instead (the "
-                            "CDF figures and predictions.jsonl need --out DIR)", action="store", nargs="?",
-               const="-", default=None, metavar="OUT")
+    add_shared(p, "--overwrite", "an eval.json already in DIR")
+    add_shared(p, "--json", "eval.json's content (to write it to a file, give --out DIR: DIR/eval.json)")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_eval)
 
@@ -82,7 +84,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--sensor", default="structure", help="sensor preset (default structure: not a training sensor)")
     p.add_argument("--effects", default="physical", help="physical, direct or a comma list (default physical)")
     p.add_argument("--per-object", type=int, default=40, help="scans per object (default 40)")
-    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    p.add_argument("--scale", type=positive_float("--scale"), help="file units -> metres (default: guessed)")
     add_shared(p, "--seed", "(default 1000)", default=1000)
     add_shared(p, "--overwrite", "a test set already in TESTSET")
     add_shared(p, "--no-progress")
@@ -125,12 +127,7 @@ def _eval(args) -> int:
     from data_tools.outputs import check_output_dir
     from recog.evaluate import evaluate
     from recog.model import Recogniser
-    from data_tools.outputs import check_output_file
-    from recog.evaluate import write_eval_json
     out = check_output_dir(args.out, finished="eval.json", overwrite=args.overwrite) if args.out else None
-    to_file = args.json not in (None, "-")
-    if to_file:
-        check_output_file(args.json, flag="--json", overwrite=args.overwrite)
     model = Recogniser.load(args.model)
     if args.synda:
         from recog.synda.run import patch_mapper
@@ -138,16 +135,13 @@ def _eval(args) -> int:
         model.patch_map_source = str(args.synda)
     r = evaluate(model, args.testset, out, icp=not args.no_icp, k=args.k,
                  progress=not args.no_progress, max_scans=args.max_frames)
-    if to_file:
-        write_eval_json(model, args.testset, r, args.json)
-    elif args.json:
+    if args.json:
         print(json.dumps(r, indent=2))
         return 0
     b = r["before_icp"]
     print(f"accuracy {100 * r['accuracy']:.1f} % on {r['n_scans']} scans; rotation error (symmetry-aware) median "
           f"{b['rot_err_deg']['median']:.1f} deg before ICP, {r['rot_err_deg']['median']:.1f} deg after; "
-          f"translation median {1000 * r['trans_err_m']['median']:.1f} mm" + (f"; {out}/eval.json" if out else "")
-          + (f"; {args.json}" if to_file else ""))
+          f"translation median {1000 * r['trans_err_m']['median']:.1f} mm" + (f"; {out}/eval.json" if out else ""))
     return 0
 
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from app.commands import RESUMES, add_shared
+from app.commands import RESUMES, add_shared, ranged
 from synth.lab.runs import LabRequest, effect_names_option
 
 NAME = "sensor"
@@ -95,16 +95,20 @@ def _add_compare(sub) -> None:
                        description="Compare SEQ with its simulation: DIR/metrics.json (gap, breakdowns by "
                                    "distance, incidence, radial distance, material, edge distance), "
                                    "DIR/report.html (error maps, binned curves, worst regions, gap history). "
-                                   "Every run appends one step to DIR/history.json.")
+                                   "Every run appends one step to DIR/history.json; a finished DIR is replaced "
+                                   "only with --overwrite (or continue its history in a new folder with "
+                                   "--compare-against DIR).")
     _common(p, "compare")
     add_shared(p, "--out", "lab folder (report, metrics; each run adds a step to its history)", required=True,
                metavar="DIR")
+    add_shared(p, "--overwrite", "a finished comparison in DIR: report and metrics are replaced, the folder's gap "
+                                 "history keeps its steps and gets this one")
     p.add_argument("--compare-against", metavar="PREVDIR",
                    help="continue the gap history of an earlier lab folder")
     p.add_argument("--label", help="label of this step in the history (default: the effects)")
     p.add_argument("--compare-preset", default="default", choices=sorted(PRESETS),
                    help="sampling of the comparison (default 20k pixels/frame, fast 5k, exact all)")
-    p.add_argument("--report-frames", type=int, default=4, metavar="K",
+    p.add_argument("--report-frames", type=ranged("--report-frames", int, 0), default=4, metavar="K",
                    help="frames with error-map figures in the report (default 4)")
     p.set_defaults(func=_cmd_compare)
 
@@ -120,8 +124,9 @@ def _add_diagnose(sub) -> None:
     add_shared(p, "--overwrite", "a finished diagnosis in DIR (an interrupted one is continued)")
     p.add_argument("--candidates", metavar="E1,E2,...", help="candidate effects (default: every effect that "
                                                              "applies to the sensor type and is not in the model)")
-    p.add_argument("--top", type=int, default=3, metavar="K", help="candidates explained with figures (default 3)")
-    p.add_argument("--report-frames", type=int, default=3, metavar="K",
+    p.add_argument("--top", type=ranged("--top", int, 0), default=3, metavar="K",
+                   help="candidates explained with figures (default 3)")
+    p.add_argument("--report-frames", type=ranged("--report-frames", int, 0), default=3, metavar="K",
                    help="frames simulated per top candidate for the figures (default 3)")
     p.add_argument("--diagnose-option", action="append", default=[], metavar="KEY=VALUE",
                    help="DiagnoseConfig option, repeatable (e.g. candidate_evaluations=20, refit_model=false)")

@@ -225,7 +225,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--out", "colour image (.png); the depth image and the view's JSON are written next to it",
                required=True, metavar="PNG")
     add_shared(p, "--overwrite", "existing images of that name")
-    p.add_argument("--scale", type=float, default=1.0, help="image size relative to the run's camera (default 1)")
+    from app.commands import ranged
+    p.add_argument("--scale", type=ranged("--scale", float, 0, 8, low_open=True), default=1.0,
+                   help="image size relative to the run's camera, in (0, 8] (default 1)")
     p.add_argument("--source", default="auto", choices=("auto", "mesh", "volume", "neural"),
                    help="render the mesh, the saved TSDF volume or decode the neural memory's recalled view "
                         "(auto: neural for a run of the neural backend, else the volume when saved)")

@@ -18,7 +18,7 @@ import json
 import sys
 from dataclasses import replace
 
-from app.commands import RESUMES, positive_float, positive_int
+from app.commands import RESUMES, positive_float, positive_int, ranged
 from data_tools.errors import ConfigError
 
 NAME = "synth"
@@ -89,8 +89,8 @@ def add_sequence_arguments(p: argparse.ArgumentParser) -> None:
     add_shared(p, "--workers", "with --sensor, simulate N frames at once (same frames, more frames/s when cores "
                               "are free; default 1)", default=1)
     add_shared(p, "--no-progress")
-    p.add_argument("--width", type=int, help=argparse.SUPPRESS)
-    p.add_argument("--height", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--width", type=positive_int("--width"), help=argparse.SUPPRESS)
+    p.add_argument("--height", type=positive_int("--height"), help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="continue the sequence in SEQ (an unfinished one, marked by incomplete.json, continues "
@@ -212,29 +212,29 @@ def _add_views(sub) -> argparse.ArgumentParser:
                    help="'physical' (default), 'direct' or a comma list of effect names")
     p.add_argument("--scale", type=positive_float("--scale"), default=1.0,
                    help="factor from the model's units to metres (T-LESS models are in mm: 0.001; default 1)")
-    p.add_argument("--subdivisions", type=int, default=1,
+    p.add_argument("--subdivisions", type=ranged("--subdivisions", int, 0, 5), default=1,
                    help="icosahedron subdivisions: 0 -> 4, 1 -> 17, 2 -> 73 viewpoints above 5 deg elevation "
                         "(default 1)")
     rolls = p.add_mutually_exclusive_group()
-    rolls.add_argument("--rolls", type=int, default=None, metavar="N",
+    rolls.add_argument("--rolls", type=positive_int("--rolls"), default=None, metavar="N",
                        help="in-plane rotations per viewpoint, evenly spaced over 360 deg (default 1: none)")
     rolls.add_argument("--roll-angles", default=None, metavar="A,B,...",
                        help="explicit in-plane angles in degrees (write --roll-angles=-30,0,30)")
-    p.add_argument("--distance", type=float, default=None, metavar="M",
+    p.add_argument("--distance", type=positive_float("--distance"), default=None, metavar="M",
                    help="camera distance to the object centre, metres (default: the object fills ~40%% of "
                         "the image height)")
     p.add_argument("--min-elevation", type=float, default=5.0, metavar="DEG",
                    help="lowest viewpoint elevation above the ground, degrees (default 5)")
-    p.add_argument("--clutter", type=int, default=0, metavar="N", help="random clutter boxes around the object")
+    p.add_argument("--clutter", type=ranged("--clutter", int, 0), default=0, metavar="N", help="random clutter boxes around the object")
     p.add_argument("--background", action="store_true", help="surround the set-up with four walls")
     p.add_argument("--no-ground", action="store_true", help="no ground plane under the object")
     p.add_argument("--no-ideal", action="store_true", help="do not write the ideal depth images")
     add_shared(p, "--seed", "of the clutter and of the sensor draws (default 0)", default=0)
     add_shared(p, "--no-progress")
-    p.add_argument("--limit", type=int, default=None, metavar="N",
+    p.add_argument("--limit", type=positive_int("--limit"), default=None, metavar="N",
                    help="render only the first N views (a later --resume without --limit adds the rest)")
-    p.add_argument("--width", type=int, help=argparse.SUPPRESS)   # centred crop of the sensor image (tests)
-    p.add_argument("--height", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--width", type=positive_int("--width"), help=argparse.SUPPRESS)   # centred crop (tests)
+    p.add_argument("--height", type=positive_int("--height"), help=argparse.SUPPRESS)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--resume", action="store_true",
                    help="add views to DIR (an unfinished run, marked by incomplete.json, continues without it)")

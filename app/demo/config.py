@@ -35,6 +35,9 @@ class DemoConfig:
     """Render a viewer screenshot of the exploration (off-screen, EGL); off where no GL is available."""
     seed: int = 0
     """Seed of every simulation the demo runs besides the mystery sensor."""
+    align: str = "auto"
+    """Alignment of the exploration's absolute errors (ATE, APE), as ``realgap batch --align``: auto is SE(3)
+    when a run's motion determines a rotation, else its first poses (the neural run has few poses)."""
 
     def validate(self) -> "DemoConfig":
         for name in ("mystery_frames", "room_frames", "recog_scans"):
@@ -49,6 +52,9 @@ class DemoConfig:
         if self.mystery_effect not in EFFECTS + ("random",):
             raise ConfigError(f"demo option mystery_effect must be one of {', '.join(EFFECTS)} or random, "
                               f"got {self.mystery_effect!r}")
+        from slam.metrics import ALIGNERS
+        if self.align not in ALIGNERS:
+            raise ConfigError(f"demo option align must be one of {', '.join(ALIGNERS)}, got {self.align!r}")
         if not 0 <= self.novel_frame < self.room_frames:
             raise ConfigError(f"demo option novel_frame must be in 0..{self.room_frames - 1}, got {self.novel_frame}")
         return self

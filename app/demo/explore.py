@@ -70,7 +70,7 @@ def _views(seq: Path, icp_run: Path, neural_run: Path, frame: int, out: Path) ->
 
 
 def run_explore_part(out: Path, room_seed: int, frames: int, novel_frame: int, screenshot: bool,
-                     log: Callable[[str], None] = print, progress: bool = True) -> dict:
+                     log: Callable[[str], None] = print, progress: bool = True, align: str = "auto") -> dict:
     """Exploration into ``out`` (``out/room`` the simulated sequence, ``out/batch`` the icp + neural
     report, ``out/views`` the novel views, ``out/viewer.png``). Returns the part's facts."""
     from app.pipelines import simulate_planar_room
@@ -80,9 +80,12 @@ def run_explore_part(out: Path, room_seed: int, frames: int, novel_frame: int, s
         log(f"      simulating the room walk ({frames} frames, kinect_v1 physical pipeline) -> {seq}")
         simulate_planar_room(room_seed, frames, seq, progress=progress)
     batch = out / "batch"
-    if not (batch / "results.json").is_file() or (batch / "incomplete.json").exists():
-        log("      registering it with icp and neural (batch)")
-        run_batch([seq], ["icp", "neural"], batch, progress=progress)
+    def scored_with(a: str) -> bool:      # the batch's runs are kept; another --align only rescores them
+        return all((r.get("align") or "").split(":")[0] == a for r in load_results(batch) if r.get("ok"))
+    if (not (batch / "results.json").is_file() or (batch / "incomplete.json").exists()
+            or not scored_with(align)):
+        log(f"      registering it with icp and neural (batch, align {align})")
+        run_batch([seq], ["icp", "neural"], batch, progress=progress, align=align)
     rows = {r["backend"]: r for r in load_results(batch)}
     runs = batch / "runs" / seq.name
     log("      novel views from the TSDF and from the memory")
@@ -101,5 +104,5 @@ def run_explore_part(out: Path, room_seed: int, frames: int, novel_frame: int, s
     return {"sequence": str(seq), "frames": frames, "report": str(batch / "index.html"),
             "comparison_plot": str(batch / "plots" / "comparison.png"),
             "backends": {b: {k: r.get(k) for k in ("ok", "ate_rmse_m", "ape_median_m", "frames_per_second",
-                                                    "frames_failed", "error")} for b, r in rows.items()},
+                                                    "frames_failed", "error", "align")} for b, r in rows.items()},
             "views": views, "screenshot": str(shot) if shot.is_file() else None, "screenshot_note": shot_note}

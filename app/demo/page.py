@@ -56,7 +56,8 @@ again. The <b>gap</b> measures how differently the errors of the measured and si
 
 def _explore(f: dict, root: Path) -> str:
     rows = "".join(
-        f"<tr><td>{b}</td><td>{(r.get('ate_rmse_m') or float('nan')) * 100:.1f}</td>"
+        f"<tr><td>{b}</td><td>{html.escape(str(r.get('align') or 'se3'))}</td>"
+        f"<td>{(r.get('ate_rmse_m') or float('nan')) * 100:.1f}</td>"
         f"<td>{(r.get('ape_median_m') or float('nan')) * 100:.1f}</td>"
         f"<td>{(r.get('frames_per_second') or float('nan')):.1f}</td><td>{'ok' if r.get('ok') else 'failed'}</td></tr>"
         for b, r in f["backends"].items())
@@ -67,8 +68,10 @@ def _explore(f: dict, root: Path) -> str:
 <p>A ground robot walked {f['frames']} frames through a furnished room the neural model never saw in training,
 measured by our full Kinect v1 simulation (projector, IR camera, block matching). <code>icp</code> registers
 every frame against a TSDF model; <code>neural</code> writes every tenth frame into an allocentric neural memory
-(thesis ch. 4) and localises in it. ATE after SE(3) alignment; APE median after the same alignment.</p>
-<table><tr><th>backend</th><th>ATE RMSE (cm)</th><th>APE median (cm)</th><th>frames/s</th><th></th></tr>{rows}</table>
+(thesis ch. 4) and localises in it. ATE and APE median after the alignment in the second column (auto: SE(3)
+when a run's motion determines a rotation - at least 10 poses spread in two directions - else its first pose).</p>
+<table><tr><th>backend</th><th>alignment</th><th>ATE RMSE (cm, after alignment)</th>
+<th>APE median (cm, after alignment)</th><th>frames/s</th><th></th></tr>{rows}</table>
 {_img(f['comparison_plot'], root, 'comparison plot', '45%')}
 <p>Novel views at one pose: the TSDF ray cast copies what was seen; the memory recalls it from its features, and
 turned 90 deg to the right its hallucination module fills cells nobody observed.</p>

@@ -18,13 +18,19 @@ from pathlib import Path
 
 from app.demo.config import DemoConfig
 
-__all__ = ["run_demo", "summary_lines"]
+__all__ = ["run_demo", "summary_lines", "DEMO_OUTPUTS"]
+
+DEMO_OUTPUTS = ("lab", "explore", "recog", "index.html", "summary.json", "timings.json", "demo_config.json",
+                "incomplete.json")
+"""What ``run_demo`` writes into its folder (and ``--overwrite`` removes before it starts again)."""
 
 
 def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[str], None] = print,
-             progress: bool = True) -> dict:
+             progress: bool = True, overwrite: bool = False) -> dict:
     """Run the three parts into ``out`` and write ``out/index.html`` and ``out/summary.json``;
-    returns the facts (what the page shows)."""
+    returns the facts (what the page shows). Parts already in ``out`` are kept (an interrupted demo
+    continues); ``overwrite`` removes what an earlier demo wrote there (:data:`DEMO_OUTPUTS`, nothing
+    else) and computes every part again."""
     from data_tools.config import config_to_dict
     from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
     from data_tools.results import atomic_write_json, make_header, write_result
@@ -34,6 +40,14 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[s
     from app.demo.recognise import run_recog_part
     cfg = (config or DemoConfig()).validate()
     out = check_output_dir(out, what="demo folder")
+    if overwrite:
+        import shutil
+        for name in DEMO_OUTPUTS:
+            p = out / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            elif p.exists() or p.is_symlink():
+                p.unlink()
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_json(out / "demo_config.json", config_to_dict(cfg))
     t0 = time.perf_counter()
@@ -44,7 +58,7 @@ def run_demo(out: str | Path, config: DemoConfig | None = None, log: Callable[[s
               lambda: run_lab_part(out / "lab", cfg.mystery_seed, cfg.mystery_frames, log, cfg.mystery_effect)),
              ("explore", "exploration: icp and the neural memory on a simulated room walk",
               lambda: run_explore_part(out / "explore", cfg.room_seed, cfg.room_frames, cfg.novel_frame,
-                                       cfg.screenshot, log, progress)),
+                                       cfg.screenshot, log, progress, cfg.align)),
              ("recog", "recognition of chairs scanned by another sensor",
               lambda: run_recog_part(out / "recog", cfg.recog_scans, cfg.recog_model, cfg.seed, log, progress))]
     for i, (key, title, fn) in enumerate(parts):
@@ -82,7 +96,7 @@ def summary_lines(out: str | Path, facts: dict) -> list[str]:
              f"gap {gaps}"]
     for b, r in ex["backends"].items():
         if r.get("ok"):
-            lines.append(f"  exploration: {b:7s} ATE {r['ate_rmse_m'] * 100:.1f} cm (SE(3) aligned), "
+            lines.append(f"  exploration: {b:7s} ATE {r['ate_rmse_m'] * 100:.1f} cm (align {r.get('align') or 'se3'}), "
                          f"{r['frames_per_second']:.1f} frames/s")
         else:
             lines.append(f"  exploration: {b:7s} failed: {r.get('error')}")

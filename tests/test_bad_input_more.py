@@ -1,0 +1,143 @@
+"""More bad input of the kinds issue 44 lists (wrong types, zero or negative numbers, outputs in inputs
+through symlinks, partial folders, bad JSON, wrong image sizes, a finished output re-run), a sibling
+table of ``tests/test_bad_input.py`` with the same contract: exit 1, ONE line naming the file or the
+flag and the problem, every file that existed before byte-identical afterwards - and, here, nothing
+new left behind (no empty output folder).
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from app.cli import main
+from tests.test_bad_input import _edit_lines, _png_size, _write, good  # noqa: F401 (good: the fixture)
+
+
+def _json_edit(path: Path, fn) -> None:
+    d = json.loads(path.read_text())
+    fn(d)
+    path.write_text(json.dumps(d))
+
+
+def _camera(**values):
+    return lambda t: _json_edit(t / "S" / "camera.json", lambda d: d.update(values))
+
+
+def _camera_sensor_baseline_string(t: Path) -> None:
+    _json_edit(t / "S" / "camera.json",
+               lambda d: d.update(sensor={"type": "structured_light", "baseline_m": "0.075"}))
+
+
+def _run_folder(t: Path, stats: str | None = None) -> None:
+    """A run folder R with the sequence's trajectory (and ``stats`` as its stats.json)."""
+    (t / "R").mkdir()
+    shutil.copy(t / "traj.txt", t / "R" / "trajectory.txt")
+    if stats is not None:
+        _write(t / "R" / "stats.json", stats)
+
+
+def _link_to_sequence(t: Path) -> None:
+    os.symlink(t / "S", t / "lnk")
+
+
+CASES = [
+    # camera.json / scene.json: wrong types and values (strict JSON types, ported from branch rel2)
+    ("info: camera.json fx is a string", ["data", "info", "{S}"], _camera(fx="525"), ["camera.json", "fx", "number"]),
+    ("slam run: camera.json depth_scale is true", ["slam", "run", "{S}", "--out", "{T}/R"], _camera(depth_scale=True),
+     ["camera.json", "depth_scale", "number"]),
+    ("compare: sensor.baseline_m is a string", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L"],
+     _camera_sensor_baseline_string, ["camera.json", "baseline_m", "number"]),
+    ("info: camera width negative", ["data", "info", "{S}"], _camera(width=-160), ["camera.json", "width"]),
+    ("slam run: camera fx zero", ["slam", "run", "{S}", "--out", "{T}/R"], _camera(fx=0), ["camera.json", "fx"]),
+    ("info: camera.json is a list", ["data", "info", "{S}"], lambda t: _write(t / "S" / "camera.json", "[1, 2]"),
+     ["camera.json", "object"]),
+    ("compare: scene.json meshes not a list", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L"],
+     lambda t: _write(t / "S" / "scene.json", '{"meshes": 5}'), ["scene.json", "meshes"]),
+    # configuration files: a string where a number belongs is an error naming the file, not converted
+    ("slam run: --config number as a string", ["slam", "run", "{S}", "--config", "{T}/c.json", "--out", "{T}/R"],
+     lambda t: _write(t / "c.json", '{"config": {"tsdf": {"voxel_size_m": "0.01"}}}'),
+     ["c.json", "voxel_size_m", "number"]),
+    ("slam run: --config boolean frame count", ["slam", "run", "{S}", "--config", "{T}/c.json", "--out", "{T}/R"],
+     lambda t: _write(t / "c.json", '{"config": {"max_frames": true}}'), ["c.json", "max_frames"]),
+    # zero / negative / out-of-range numbers: one line naming the flag
+    ("ate: --max-dt negative", ["eval", "ate", "{S}/groundtruth.txt", "{T}/traj.txt", "--max-dt", "-1"], None,
+     ["--max-dt", ">= 0"]),
+    ("rpe: --delta 0", ["eval", "rpe", "{S}/groundtruth.txt", "{T}/traj.txt", "--delta", "0"], None, ["--delta"]),
+    ("slam render: --scale 0", ["slam", "render", "{T}/R", "--frame", "0", "--scale", "0", "--out", "{T}/v.png"],
+     _run_folder, ["--scale"]),
+    ("compare: --report-frames -1", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L",
+                                     "--report-frames", "-1"], None, ["--report-frames", ">= 0"]),
+    ("diagnose: --top -1", ["sensor", "diagnose", "{S}", "--effects", "none", "--out", "{T}/D", "--top", "-1"],
+     None, ["--top"]),
+    ("recog train: --scale -1", ["recog", "train", "--objects", "chairs", "--out", "{T}/M", "--scale", "-1"], None,
+     ["--scale", "> 0"]),
+    ("recog eval: --k 0", ["recog", "eval", "{T}/M", "{T}/TS", "--k", "0"], None, ["--k"]),
+    ("make-reference: --albedo 2", ["data", "make-reference", "{S}", "--out", "{T}/O", "--albedo", "2"], None,
+     ["--albedo", "<= 1"]),
+    ("make-reference: --min-component -5", ["data", "make-reference", "{S}", "--out", "{T}/O", "--min-component",
+                                            "-5"], None, ["--min-component"]),
+    ("synth views: --subdivisions 9", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--subdivisions",
+                                       "9"], None, ["--subdivisions", "<= 5"]),
+    ("synth views: --clutter -2", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--clutter", "-2"],
+     None, ["--clutter"]),
+    ("synth views: --distance -1", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--distance", "-1"],
+     None, ["--distance"]),
+    ("synth sequence: --width 0", ["synth", "sequence", "--out", "{T}/O", "--width", "0"], None, ["--width"]),
+    ("batch: --threads-per-job -1", ["batch", "{S}", "--out", "{T}/B", "--threads-per-job", "-1"], None,
+     ["--threads-per-job"]),
+    # one dialect: --json is a switch (recog eval's file comes from --out DIR)
+    ("recog eval: --json FILE", ["recog", "eval", "{T}/M", "{T}/TS", "--json", "{T}/x.json"], None, ["x.json"]),
+    # partial folders, bad JSON, wrong image sizes
+    ("eval run: stats.json corrupt", ["eval", "run", "{T}/R", "--gt", "{S}", "--out", "{T}/E"],
+     lambda t: _run_folder(t, '{"frames": '), ["stats.json", "JSON"]),
+    ("compare: depth.txt missing", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L"],
+     lambda t: (t / "S" / "depth.txt").unlink(), ["depth.txt"]),
+    ("compare: depth image of the wrong size", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L"],
+     _png_size, ["80x60", "160x120"]),
+    ("slam run: ground truth line of 3 values", ["slam", "run", "{S}", "--out", "{T}/R"],
+     lambda t: _write(t / "S" / "groundtruth.txt", (t / "S" / "groundtruth.txt").read_text() + "1 2 3\n"),
+     ["groundtruth.txt", "8 values"]),
+    # outputs in inputs through symlinks; the same sequence twice through a symlink
+    ("compare: --out inside the sequence through a link", ["sensor", "compare", "{S}", "--effects", "none",
+                                                           "--out", "{T}/lnk/lab"], _link_to_sequence,
+     ["--out", "input"]),
+    ("batch: a sequence twice through a link", ["batch", "{S}", "{T}/lnk", "--backends", "icp", "--out", "{T}/B"],
+     _link_to_sequence, ["given twice"]),
+    # a finished output re-run without --overwrite (the one re-run rule)
+    ("slam run: onto a finished run", ["slam", "run", "{S}", "--out", "{T}/R"],
+     lambda t: _run_folder(t, '{"complete": true}'), ["R", "finished", "--overwrite"]),
+    ("compare: onto a finished lab folder", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L"],
+     lambda t: _write(t / "L" / "metrics.json", "{}"), ["metrics.json", "--overwrite"]),
+]
+
+
+def _paths(root: Path) -> dict[str, bytes | None]:
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
+
+
+def test_at_least_twenty_more_cases_over_the_command_groups():
+    assert len(CASES) >= 20
+    assert {argv[0] for _, argv, _, _ in CASES} >= {"data", "sensor", "slam", "eval", "recog", "synth", "batch"}
+
+
+@pytest.mark.parametrize("name, argv, breaks, words", CASES, ids=[c[0] for c in CASES])
+def test_more_bad_input_is_one_line_exit_1_and_changes_nothing(name, argv, breaks, words, good, tmp_path, capsys,
+                                                               monkeypatch):
+    monkeypatch.setenv("REALGAP_NO_PROGRESS", "1")
+    shutil.copytree(good, tmp_path, dirs_exist_ok=True)
+    if breaks is not None:
+        breaks(tmp_path)
+    before = _paths(tmp_path)
+    rc = main([a.replace("{S}", str(tmp_path / "S")).replace("{T}", str(tmp_path)) for a in argv])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("realgap: warning:")]
+    assert rc == 1, (rc, err)
+    assert len(lines) == 1 and lines[0].startswith("realgap: error: "), err
+    assert "Traceback" not in err and "unexpected" not in err and "usage:" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert _paths(tmp_path) == before, "files changed, removed or left behind"
