@@ -46,6 +46,10 @@ CMDS = [
     ("sensor fit", ["sensor", "fit", "{IN}", "--effects", "none", "--out", "{OUT}"], ALL),
     ("slam run", ["slam", "run", "{IN}", "--out", "{OUT}"], ALL),
     ("slam render", ["slam", "render", "{IN}", "--frame", "0", "--out", "{OUT}"], ("same", "contains", "symlink")),
+    ("synda train", ["synda", "train", "--objects", "{IN}", "--domain", "depth", "--out", "{OUT}"], ALL),
+    ("synda map", ["synda", "map", "G.pt", "{IN}", "--out", "{OUT}"], ALL),
+    ("synda map GEN", ["synda", "map", "{IN}", "x.png", "--out", "{OUT}"], ALL),
+    ("synda augment", ["synda", "augment", "--objects", "{IN}", "--domain", "depth", "--out", "{OUT}"], ALL),
     ("synth views", ["synth", "views", "--model", "{IN}/f.txt", "--out", "{OUT}"], ("same",)),
     ("view", ["view", "{IN}", "--screenshot", "{OUT}"], ("same", "contains", "symlink")),
 ]
