@@ -24,7 +24,7 @@ def _close(got, want):
 
 def fingerprint_2d():
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     torch.set_num_threads(1)
     model, cfg, _ = load_model(WEIGHTS / "front_2d")
     agent = AGENTS[cfg.agent]
@@ -41,7 +41,7 @@ def fingerprint_2d():
 
 
 def fingerprint_3d():
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     torch.set_num_threads(1)
     model, cfg, _ = load_model(WEIGHTS / "planar_3d")
     m = model.cfg
@@ -90,9 +90,10 @@ def test_planar_3d_fingerprint():
 
 def train_log_2d():
     """The log and weight sums of a short seeded 2D training run through all three phases."""
-    from slam.neural.train import NeuralTrainConfig, train_memory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import train_memory
     torch.set_num_threads(1)
-    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=4, width=8, iterations=12,
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=4, width=8), iterations=12,
                             pretrain_steps=3, teacher_steps=3, hallucination_from=8, log_every=2, lr=3e-3,
                             lr_decay_from=6)
     model, disc, log = train_memory(cfg, None, progress=False)
