@@ -129,7 +129,7 @@ def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 
     """Render a RUN folder from ``pose_c2w`` with the run's camera (``scale`` resizes it).
 
     ``source``: ``mesh`` (RUN/mesh.ply), ``volume`` (RUN/volume.npz), ``neural`` (the view the run's
-    neural memory recalls, :func:`slam.neural.run.recall_view`, resized from the decoder's small image;
+    neural memory recalls, :func:`slam.neural.inference.recall_view`, resized from the decoder's small image;
     ``hallucinate``: after its hallucination module filled the unobserved cells) or ``auto`` (neural for
     a run of the neural backend, else the volume when saved, else the mesh).
     """

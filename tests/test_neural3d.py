@@ -19,7 +19,8 @@ _INTR = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
 def _image_model(**kw):
     """The small 3D (image input) memory the unit tests share: 3 features, 33-cell view, 45-cell memory, 12 headings,
     search 2, 30 x 40 images; ``kw`` overrides :class:`MemoryConfig` fields."""
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+    from slam.neural.memory import NeuralMemory
     return NeuralMemory(MemoryConfig(**{**dict(channels=4, features=3, view=33, memory=45, width=4, rotations=12,
                                                search=2, input="image", image_size=(30, 40)), **kw}))
 
@@ -82,7 +83,7 @@ def test_allocentric_round_trip_and_consistency():
 def test_rotation_bank_matches_quarter_turns_and_turns_left():
     import torch
 
-    from slam.neural.model import rotate_grid, rotation_bank
+    from slam.neural.memory import rotate_grid, rotation_bank
     x = torch.zeros(1, 1, 9, 9)
     x[0, 0, 0, 4] = 1.0              # a point straight ahead (up)
     b = rotation_bank(x, 12)
@@ -168,17 +169,18 @@ def test_planar_trajectory_keeps_height_pitch_and_clearance():
 def planar_seq(tmp_path_factory):
     """A 24-frame simulated kinect_v1 planar sequence of a procedural room and a tiny
     untrained 3D model (the backend's plumbing, not its accuracy, is tested here)."""
-    from slam.neural.data3d import World3DConfig
-    from slam.neural.train import NeuralTrainConfig, memory_config, save_model
-    from slam.neural.model import NeuralMemory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig, World3DConfig
+    from slam.neural.io import save_model
+    from slam.neural.config import derived_model
+    from slam.neural.memory import NeuralMemory
     from synth.sequence import SequenceConfig, generate_simulated_sequence
     root = tmp_path_factory.mktemp("neural3d")
     cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
     generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20))
+    tcfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), world=World3DConfig(image_h=15, image_w=20))
     import torch
     torch.manual_seed(0)
-    save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
+    save_model(root / "model", NeuralMemory(derived_model(tcfg)), tcfg)
     from slam.neural.topview import TopViewDecoder, save_topview
     save_topview(root / "model", TopViewDecoder(4, 4))
     return root
@@ -257,10 +259,10 @@ def test_train_3d_all_phases_and_resume(tmp_path):
     import torch
 
     from app.pipelines import simulate_planar_room
-    from slam.neural.data3d import World3DConfig
-    from slam.neural.train import NeuralTrainConfig, train_memory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig, World3DConfig
+    from slam.neural.train import train_memory
     world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2, iterations=6,
                             pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
                             topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
     sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
@@ -280,7 +282,9 @@ def test_motion_prior_is_a_gaussian_on_the_move_from_the_previous_estimate():
     from the previous estimate (the search window is clamped at the memory's border)."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+
+    from slam.neural.memory import NeuralMemory
     model = NeuralMemory(MemoryConfig(channels=4, features=3, view=5, memory=15, width=4, rotations=12, search=1,
                                       input="image", image_size=(30, 40)))
     prev = torch.tensor([[2, -1, 11]])
@@ -335,7 +339,7 @@ def test_overlap_score_by_hand_and_blind_to_unobserved_cells():
     the largest overlap highest. Never-observed cells do not enter the overlap score."""
     import torch
 
-    from slam.neural.model import rotation_bank
+    from slam.neural.memory import rotation_bank
     model = _image_model(features=1, view=3, memory=15, rotations=4, search=1)
     m = torch.ones(1, 1, 3, 3)                                  # a full 3 x 3 view
     mbank = rotation_bank(m, 4)                                # (1, 4, 1, 3, 3)
@@ -417,7 +421,7 @@ def test_evaluation_says_when_the_trainings_rooms_folder_is_gone(tmp_path, monke
     """The 3D evaluation reads the test rooms from the training's worlds_dir; when that folder is gone it falls back
     to the default cache and says so in one line (the rooms are re-made from their seeds there)."""
     from slam.neural.evaluate3d import worlds_root
-    from slam.neural.train import NeuralTrainConfig
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
     monkeypatch.setenv("REALGAP_CACHE", str(tmp_path / "cache"))
     default = tmp_path / "cache" / "neural_worlds" / f"f{NeuralTrainConfig().world.frames}"
     said = []

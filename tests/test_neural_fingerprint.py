@@ -93,7 +93,8 @@ def train_log_2d():
     from slam.neural.config import MemoryConfig, NeuralTrainConfig
     from slam.neural.train import train_memory
     torch.set_num_threads(1)
-    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=4, width=8), iterations=12,
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=4, width=8),
+                            iterations=12,
                             pretrain_steps=3, teacher_steps=3, hallucination_from=8, log_every=2, lr=3e-3,
                             lr_decay_from=6)
     model, disc, log = train_memory(cfg, None, progress=False)
