@@ -205,21 +205,24 @@ def test_thesis_ssim_by_hand():
 
 
 @pytest.fixture(scope="module")
-def shipped_2d_eval():
-    """The shipped front_2d model, its training configuration and its evaluation on 16 fixed test walks (one
-    evaluation for the tests that read it)."""
+def shipped_2d_eval(tmp_path_factory):
+    """The shipped front_2d model, its training configuration, its evaluation on 16 fixed test walks by ``neural
+    eval`` (:func:`slam.neural.run.evaluate_folder`) and the folder it wrote: one evaluation of the shipped 2D model
+    for every test that reads one."""
     from pathlib import Path
 
-    from slam.neural.evaluate import evaluate_2d
     from slam.neural.io import load_model
-    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
-    return model, cfg, evaluate_2d(model, cfg, sequences=16, progress=False)
+    from slam.neural.run import evaluate_folder
+    shipped = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    model, cfg, _ = load_model(shipped)
+    out = tmp_path_factory.mktemp("front_2d_eval") / "ev"
+    return model, cfg, evaluate_folder(shipped, out, 16, progress=False), out
 
 
 def test_shipped_weights_load_and_the_hallucination_module_helps(shipped_2d_eval):
     """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
     hole-filled memory predicts later views better than the memory without the module."""
-    model, cfg, r = shipped_2d_eval
+    model, cfg, r, _ = shipped_2d_eval
     assert cfg.agent == "front" and model.cfg == cfg.model
     assert r["hallucination"]["l1"] < r["ablation_no_hallucination_module"]["l1"]
     # it localises: the untrained memory's estimates are uniform over the +-16 px search window (median
@@ -486,16 +489,12 @@ def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
     assert (got["hallu"].occ_steps, got["hallu"].steps) == (7, 600)
 
 
-def test_eval_result_has_the_standard_header(tmp_path):
+def test_eval_result_has_the_standard_header(shipped_2d_eval):
     """neural_eval.json carries the result header (kind neural.eval, the model as input, flat metrics), so
     ``realgap show`` tabulates it beside other results."""
-    from pathlib import Path
-
     from data_tools.results import read_result, results_table
-    from slam.neural.run import evaluate_folder
-    model = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
-    res = evaluate_folder(model, tmp_path / "ev", 2, progress=False)
-    r = read_result(tmp_path / "ev")
+    _, _, res, folder = shipped_2d_eval
+    r = read_result(folder)
     assert r.kind == "neural.eval" and r.header["inputs"][0]["role"] == "model"
     assert r.metrics["anamnesis_l1"] == res["anamnesis"]["l1"] and r.metrics["ape_px_median"] == res["ape_px"]["median"]
     cols, rows = results_table([r])

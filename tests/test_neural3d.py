@@ -166,23 +166,14 @@ def test_planar_trajectory_keeps_height_pitch_and_clearance():
 
 
 @pytest.fixture(scope="module")
-def planar_seq(tmp_path_factory):
-    """A 24-frame simulated kinect_v1 planar sequence of a procedural room and a tiny
+def planar_seq(tmp_path_factory, tiny_3d_model):
+    """A 24-frame simulated kinect_v1 planar sequence of a procedural room and (``model``) the session's tiny
     untrained 3D model (the backend's plumbing, not its accuracy, is tested here)."""
-    from slam.neural.config import MemoryConfig, NeuralTrainConfig, World3DConfig
-    from slam.neural.io import save_model
-    from slam.neural.config import derived_model
-    from slam.neural.memory import NeuralMemory
     from synth.sequence import SequenceConfig, generate_simulated_sequence
     root = tmp_path_factory.mktemp("neural3d")
     cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
     generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
-    tcfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), world=World3DConfig(image_h=15, image_w=20))
-    import torch
-    torch.manual_seed(0)
-    save_model(root / "model", NeuralMemory(derived_model(tcfg)), tcfg)
-    from slam.neural.topview import TopViewDecoder, save_topview
-    save_topview(root / "model", TopViewDecoder(4, 4))
+    (root / "model").symlink_to(tiny_3d_model, target_is_directory=True)
     return root
 
 
@@ -252,20 +243,18 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
 
 
-def test_train_3d_all_phases_and_resume(tmp_path):
+def test_train_3d_all_phases_and_resume(tmp_path, tiny_worlds):
     """``train_memory`` in 3D on a tiny simulated room goes through pre-training, memory + recall and the
     hallucination GAN, and a re-run resumes from the
     checkpoint of the last step (same weights)."""
     import torch
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.config import MemoryConfig, NeuralTrainConfig, World3DConfig
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
     from slam.neural.train import train_memory
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2, iterations=6,
-                            pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
-                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=6, pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2,
+                            log_every=1, topview_steps=0, world=world, worlds_dir=str(worlds))
     model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
     assert model.cfg.input == "image" and model.cfg.image_size == (15, 20)
     phases = [set(s) for s in log.steps]

@@ -129,27 +129,24 @@ def test_cli_refuses_to_write_into_the_model_itself(capsys):
     assert (m / "weights.pt").read_bytes() == before
 
 
-def test_train_with_refinement_then_refine_a_copy(tmp_path):
+def test_train_with_refinement_then_refine_a_copy(tmp_path, tiny_worlds):
     """``neural train`` with ``refine.steps`` runs the refinement after the memory phases and records it; ``neural
     refine-decoder`` on the result writes a copy whose weights differ from the model's in the decoder only, with
     the earlier refinement kept in its info (one tiny simulated room)."""
     import json
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.config import World3DConfig
-    from slam.neural.run import refine_folder, train_to_folder
     from slam.neural.config import MemoryConfig, NeuralTrainConfig, RefineConfig
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2, iterations=4,
-                            pretrain_steps=2, teacher_steps=2, hallucination_from=3, log_every=1, topview_steps=0,
-                            refine=RefineConfig(steps=3, rooms=1, pool_batches=1), world=world,
-                            worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    from slam.neural.run import refine_folder, train_to_folder
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=4, pretrain_steps=2, teacher_steps=2, hallucination_from=3, log_every=1,
+                            topview_steps=0, refine=RefineConfig(steps=3, rooms=1, pool_batches=1), world=world,
+                            worlds_dir=str(worlds))
     train_to_folder(cfg, tmp_path / "m", progress=False, simulate=sim)
     info = json.loads((tmp_path / "m" / "neural.json").read_text())["info"]
     assert info["decoder_refinement"]["log"][-1]["step"] == 3
     assert not (tmp_path / "m" / "refine_checkpoint.pt").exists()
-    (tmp_path / "worlds2").symlink_to(tmp_path / "worlds")           # --worlds: used, not written into the model
+    (tmp_path / "worlds2").symlink_to(worlds)           # --worlds: used, not written into the model
     refine_folder(tmp_path / "m", tmp_path / "m2", RefineConfig(rooms=1, steps=2, pool_batches=1), progress=False,
                   simulate=sim, worlds=str(tmp_path / "worlds2"))
     a = torch.load(tmp_path / "m" / "weights.pt", weights_only=True)
@@ -159,7 +156,7 @@ def test_train_with_refinement_then_refine_a_copy(tmp_path):
     info2 = json.loads((tmp_path / "m2" / "neural.json").read_text())["info"]
     assert info2["decoder_refinement"]["config"]["steps"] == 2
     assert info2["earlier_decoder_refinement"]["config"]["steps"] == 3
-    assert json.loads((tmp_path / "m2" / "neural.json").read_text())["train"]["worlds_dir"] == str(tmp_path / "worlds")
+    assert json.loads((tmp_path / "m2" / "neural.json").read_text())["train"]["worlds_dir"] == str(worlds)
 
 
 def test_2d_refinement_on_walks_changes_only_the_decoder():

@@ -116,19 +116,16 @@ def test_cli_refuses_to_write_into_the_model_itself(capsys):
     assert (m / "weights.pt").read_bytes() == before
 
 
-def test_3d_folder_copy_with_a_new_topview(tmp_path):
+def test_3d_folder_copy_with_a_new_topview(tmp_path, tiny_worlds):
     """On a tiny trained 3D model: the copy differs in the occupancy LSTM and the module only, says ``affine`` in its
     neural.json, loads, records the stage, and has a top-view decoder trained on the new mask."""
-    from app.pipelines import simulate_planar_room
-    from slam.neural.config import World3DConfig
+    from slam.neural.io import load_model
     from slam.neural.run import refine_hallucination_folder, train_to_folder
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.io import load_model
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2, iterations=3,
-                            pretrain_steps=1, teacher_steps=1, hallucination_from=2, log_every=1, topview_steps=0,
-                            world=world, worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=3, pretrain_steps=1, teacher_steps=1, hallucination_from=2, log_every=1,
+                            topview_steps=0, world=world, worlds_dir=str(worlds))
     train_to_folder(cfg, tmp_path / "m", progress=False, simulate=sim)
     assert not (tmp_path / "m" / TOPVIEW_FILE).exists()
     refine_hallucination_folder(tmp_path / "m", tmp_path / "m2", HallucinationConfig(occ_steps=3, steps=2, topview_steps=2),

@@ -120,29 +120,17 @@ def test_train_topview_cli_rejects_a_2d_model(tmp_path, capsys):
     assert not (shipped / "topview.pt").exists()
 
 
-def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
+def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path, tiny_worlds, tiny_3d_model):
     """evaluate_3d on one simulated 40-frame test room with a tiny untrained model (+ its top-view decoder):
     localisation (neural and icp), images, ablations, baseline, top view and speed all come out finite and
     JSON-serialisable. The plumbing, not the accuracy (the shipped model's numbers are in the README)."""
     import json
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.config import World3DConfig
     from slam.neural.evaluate3d import evaluate_3d
-    from slam.neural.memory import NeuralMemory
-    from slam.neural.topview import TopViewDecoder
-    from slam.neural.config import MemoryConfig, NeuralTrainConfig
-    from slam.neural.io import load_model, save_model
-    from slam.neural.config import derived_model
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=40, stride_min=2, stride_max=3)
-    tcfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), world=world, worlds_dir=str(tmp_path / "worlds"))
-    torch.manual_seed(0)
-    save_model(tmp_path / "model", NeuralMemory(derived_model(tcfg)), tcfg)
-    save_topview(tmp_path / "model", TopViewDecoder(4, 4))
-    model, cfg, _ = load_model(tmp_path / "model")
+    from slam.neural.io import load_model
+    model, cfg, _ = load_model(tiny_3d_model)
     ex: dict = {}
-    res = evaluate_3d(model, cfg, tmp_path / "ev", tmp_path / "model", samples=2, progress=False,
-                      simulate=lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False),
+    res = evaluate_3d(model, cfg, tmp_path / "ev", tiny_3d_model, samples=2, progress=False, simulate=tiny_worlds[2],
                       examples=ex)
     json.dumps(res)
     from slam.neural.figures import write_figures
@@ -158,8 +146,7 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     # angle between frame t and frame 0 is the yaw turned
     from data_tools.sequence import SequenceReader
     from slam.neural.geometry3d import planar_relative
-    from slam.neural.data3d import default_worlds_dir
-    root = tmp_path / "worlds" if (tmp_path / "worlds").is_dir() else default_worlds_dir(world)   # as evaluate_3d
+    root = tiny_worlds[0]
     P = SequenceReader(root / "test_000").poses
     yaw = np.degrees([abs(planar_relative(P[0], T, 0.15)[2]) for T in P])
     assert yaw.max() > 5                                       # the planar path turns
