@@ -344,19 +344,6 @@ def test_loss_means_by_hand_and_set_lr():
     assert [g["lr"] for o in opts for g in o.param_groups] == [0.25, 0.25, 0.25]
 
 
-def test_loc_weight_follows_the_learning_rate_schedule_to_its_own_final_value():
-    """L_loc's weight factor: 1 until lr_decay_from, then linear to loc_weight_final (1 = constant, the default)."""
-    from data_tools.errors import ConfigError
-    from slam.neural.config import MemoryConfig, NeuralTrainConfig
-    from slam.neural.train import loc_factor
-    cfg = NeuralTrainConfig(iterations=11, lr_decay_from=6, lr_final=0.5, loc_weight_final=0.2)
-    assert [loc_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
-    assert loc_factor(cfg, 8) == pytest.approx(0.6) and loc_factor(cfg, 10) == pytest.approx(0.2)
-    assert loc_factor(NeuralTrainConfig(iterations=11, lr_decay_from=6), 10) == 1.0
-    with pytest.raises(ConfigError, match="loc_weight_final"):
-        NeuralTrainConfig(loc_weight_final=-1.0).validate()
-
-
 def test_occupancy_loss_trains_the_occupancy_lstm_and_nothing_else():
     """occ_weight > 0: the mask becomes (h + 1) / 2 and L_occ (BCE against ``seen``) trains the occupancy LSTM on
     its own optimiser - L_occ falls; every other weight is bit-identical to the same seed's run without it (before

@@ -210,10 +210,6 @@ class NeuralTrainConfig:
     """Weight of L_loc against L_anam (weight 1) in the memory phases. L_loc's gradient on the shared encoder
     dwarfs L_anam's, so at 1 the encoder serves localisation alone; the 2D ``cpu-long`` preset uses 0.01
     (docs/not_kept.md has the sweep)."""
-    loc_weight_final: Annotated[float, Range(0)] = 1.0
-    """L_loc's weight at the last step over ``loc_weight``: from ``lr_decay_from`` on it falls linearly with the
-    learning rate (:func:`slam.neural.train.loc_factor`); 1 = constant. Lets localisation be learnt at
-    ``loc_weight`` first and recall take the encoder over at the end; in no preset (docs/not_kept.md)."""
     occ_weight: Annotated[float, Range(0)] = 0.0
     """Weight of L_occ (BCE of the occupancy mask b against the observed cells ``seen``, memory phases); > 0 makes
     the model's occupancy mask ``affine`` (:attr:`MemoryConfig.occupancy`). 0: no loss reaches the occupancy LSTM

@@ -21,7 +21,7 @@ CKPT_FORMAT = "realgap-neural-memory"
 CKPT_VERSION = 2
 
 REMOVED_OPTIONS = {"decoder": "learned", "correlation": "dot", "equivariance": "none", "subcell": False,
-                   "colour_skip": False, "decoder_skip": False}
+                   "colour_skip": False, "decoder_skip": False, "loc_weight_final": 1.0}
 """Options of earlier code that no shipped model used, with the one value the code implements now
 (docs/neural_not_kept.md): a saved model that records them with that value loads, any other value is refused. The
 ``rays`` decoder's camera fields (:data:`RAY_FIELDS`) only mattered with ``decoder = "rays"`` and are dropped."""

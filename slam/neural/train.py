@@ -29,7 +29,7 @@ from data_tools.errors import ConfigError
 from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
 from slam.neural.config import OCC_LR, NeuralTrainConfig
 
-__all__ = ["train_memory", "TrainLog", "lr_factor", "loc_factor"]
+__all__ = ["train_memory", "TrainLog", "lr_factor"]
 
 
 @dataclass
@@ -46,12 +46,6 @@ def lr_factor(cfg: NeuralTrainConfig, step: int) -> float:
     """The learning rate of ``step`` over the base one: 1 until ``lr_decay_from``, then linear to ``lr_final`` at
     the last step (:func:`data_tools.training.linear_ramp`)."""
     return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.lr_final)
-
-
-def loc_factor(cfg: NeuralTrainConfig, step: int) -> float:
-    """L_loc's weight at ``step`` over ``loc_weight``: the learning rate's schedule (:func:`lr_factor`) falling to
-    ``loc_weight_final``."""
-    return linear_ramp(step, cfg.lr_decay_from, cfg.iterations, cfg.loc_weight_final)
 
 
 def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, progress: bool = True,
@@ -130,7 +124,7 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         l_loc = loc_loss(out["logits"], truth)
         rec = model.recall(out["psi"], exact_t.flatten(0, 1), vm, memory_index(out["psi"], T))
         l_anam = (torch.abs(rec - obs_t.flatten(0, 1)) * img_mask).mean()
-        loss = cfg.loc_weight * loc_factor(cfg, step) * l_loc + l_anam
+        loss = cfg.loc_weight * l_loc + l_anam
         losses.update(loc=float(l_loc.detach()), anam=float(l_anam.detach()))
         if occ_own:       # its gradient reaches the occupancy LSTM only (its input is detached)
             l_occ = F.binary_cross_entropy(out["occ"].clamp(1e-6, 1 - 1e-6), out["seen"])
