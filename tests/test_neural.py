@@ -216,7 +216,37 @@ def shipped_2d_eval(tmp_path_factory):
     shipped = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
     model, cfg, _ = load_model(shipped)
     out = tmp_path_factory.mktemp("front_2d_eval") / "ev"
-    return model, cfg, evaluate_folder(shipped, out, 16, progress=False), out
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)            # the recorded numbers of test_shipped_2d_evaluation_numbers_as_recorded
+    try:
+        return model, cfg, evaluate_folder(shipped, out, 16, progress=False), out
+    finally:
+        torch.set_num_threads(threads)
+
+
+EXPECTED_EVAL_2D = {
+    'ape_px': {'median': 2.236067977, 'mean': 5.667644502, 'std': 7.004663146},
+    'ate_px': {'median': 5.005468205, 'mean': 4.832928965, 'std': 3.241256973},
+    'anamnesis': {'l1': 0.09496565296, 'ssim_thesis': 0.9160190124, 'ssim_skimage': 0.8797861746},
+    'anamnesis_true_poses': {'l1': 0.08765016868, 'ssim_thesis': 0.9459650296, 'ssim_skimage': 0.9094086171},
+    'hallucination': {'l1': 0.1122115315, 'ssim_thesis': 0.8580433128, 'ssim_skimage': 0.8261511059},
+    'ablation_no_hallucination_module': {'l1': 0.1955084745, 'ssim_thesis': 0.7544641039, 'ssim_skimage': 0.7114528439},
+    'ablation_no_localisation_anamnesis': {'l1': 0.1996431187, 'ssim_thesis': 0.6317750469, 'ssim_skimage': 0.5204952887},
+    'ablation_no_culling_anamnesis': {'l1': 0.2156197518, 'ssim_thesis': 0.6656891585, 'ssim_skimage': 0.6048459367},
+    'ablation_no_culling_hallucination': {'l1': 0.2516801609, 'ssim_thesis': 0.5958576846, 'ssim_skimage': 0.5354869192},
+    'baseline_mosaic_inpainting': {'l1': 0.04187488854, 'ssim_thesis': 0.899503573, 'ssim_skimage': 0.8967920029},
+}
+"""front_2d's evaluation on the 16 test walks of the fixture (one torch thread), recorded from the code before the
+package's reshaping (issue 45): the localisation, recall, hallucination and ablation numbers, tolerance 1e-6."""
+
+
+def test_shipped_2d_evaluation_numbers_as_recorded(shipped_2d_eval):
+    """The shipped 2D model's evaluation numbers (a fingerprint of the evaluation code: test walks, ablations,
+    metrics) are those the code gave before it was reshaped."""
+    r = shipped_2d_eval[2]
+    for key, want in EXPECTED_EVAL_2D.items():
+        for k, v in want.items():
+            assert r[key][k] == pytest.approx(v, rel=1e-6, abs=1e-6), (key, k)
 
 
 def test_shipped_weights_load_and_the_hallucination_module_helps(shipped_2d_eval):
