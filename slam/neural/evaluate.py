@@ -20,13 +20,9 @@ seeds), agents walk ``steps`` steps; then
   (the classic, geometry-only memory: perfect recall of what was seen, unseen pixels filled by
   OpenCV inpainting - the 2D counterpart of TSDF raycast + inpainting), the memory without the
   hallucination module, and registration with the true poses (no localisation error);
-* the ablations of thesis Table 4.2 at inference (the thesis retrains a model without each
-  module; we take the trained model and switch the module off, which measures how much the
-  trained model relies on it - an approximation, said here): *no localisation* - every
-  observation is written at the first pose (the agent does not know where it went), views are
-  recalled at the true poses; *no culling* - the decoder gets the whole q x q memory window at the
-  pose instead of the view-field cells (view-field channel all ones). With a square agent the view
-  field is the whole window and "no culling" changes nothing.
+* the ablations of thesis Table 4.2 at inference, *no localisation* and *no culling*
+  (:mod:`slam.neural.ablations`, shared with the 3D evaluation). With a square agent the view field is the
+  whole window and "no culling" changes nothing.
 """
 from __future__ import annotations
 

@@ -19,10 +19,8 @@
   ``skimage.metrics.structural_similarity``, at the decoder's 40 x 30 pixels.
 * **Baselines and ablations** (same samples): the classic memory - the first ``observe`` frames
   fused at their true poses into a TSDF (``slam.tsdf``), ray cast at the later poses, resized to
-  40 x 30, holes filled by OpenCV inpainting (Telea) -; the memory without the hallucination module;
-  recall from a memory registered at the true poses (no localisation error); thesis Table 4.2's
-  *no localisation* and *no culling* at inference, as in :mod:`slam.neural.evaluate` (the trained
-  model with the module switched off, not a model retrained without it).
+  40 x 30, holes filled by OpenCV inpainting (Telea) -; the ablations of :mod:`slam.neural.ablations`
+  (shared with the 2D evaluation).
 * **Top view** (when the model has a trained top-view decoder, :mod:`slam.neural.topview`): on the
   same samples, the decoded colour floor plan of the memory the model registered itself and of the
   memory at the true poses, L1 (RGB in [0, 1]) against the views' pixels binned per cell, on the
