@@ -71,6 +71,8 @@ def add_config_flags(p, cls, prefix: str = "", *, exclude: tuple = (), aliases: 
             continue
         default = getattr(inst, f.name)
         shown = ",".join(str(x) for x in default) if isinstance(default, tuple) else default
+        if typed and default == "":
+            shown = "''"
         help_text = f"{docs.get(f.name, '')} (default: {shown})".strip()
         flag = f"--{prefix}{f.name.replace('_', '-')}"
         if flag in SHARED_FLAGS:
