@@ -36,18 +36,19 @@ def register(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("train", help="train the neural memory (2d: agents on images; 3d: RGB-D robot in rooms)",
                        description="Train encoder, localisation, LSTM memory, decoder and hallucination module "
                                    "(phases: pre-training, memory + recall, + hallucination GAN). Resumable.")
-    p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents walking on images; 3d: a ground robot's simulated "
-                        "kinect_v1 RGB-D sequences in procedural rooms")
+    from app.commands.flags import add_config_flags
+    from slam.neural.config import PRESETS, HallucinationConfig, NeuralTrainConfig, RefineConfig, TopviewConfig
+    p.add_argument("--mode", default="2d", choices=tuple(PRESETS),
+                   help="2d: agents walking on images; 3d: a ground robot's simulated kinect_v1 RGB-D sequences in "
+                        "procedural rooms")
     add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
-    p.add_argument("--preset", default="cpu", choices=("cpu", "cpu-long", "gpu"),
+    p.add_argument("--preset", default="cpu", choices=tuple(PRESETS["2d"]),
                    help="cpu: <= 30 min on 2 cores; cpu-long: the shipped recipe (2d: front_2d, ~1 h 15 min on one "
                         "core; 3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
     add_shared(p, "--overwrite", "a model already in MODEL")
     add_shared(p, "--no-progress")
-    from app.commands.flags import add_config_flags
-    from slam.neural.config import HallucinationConfig, NeuralTrainConfig, RefineConfig, TopviewConfig
     add_config_flags(p.add_argument_group("training options (override --preset; defaults: NeuralTrainConfig's)"),
                      NeuralTrainConfig, exclude=TRAIN_FLAG_EXCLUDED, aliases=TRAIN_FLAG_ALIASES)
     p.set_defaults(func=_train, on_interrupt=RESUMES)
