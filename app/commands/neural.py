@@ -25,10 +25,10 @@ TRAIN_FLAG_ALIASES = {"model.features": ("--features",), "model.width": ("--widt
                       "refine.pool_batches": ("--refine-pool-batches", "--refine_pool_batches")}
 """``neural train`` flags of fields that moved into the nested configurations, kept under their names."""
 TRAIN_FLAG_EXCLUDED = ("mode", "worlds_dir", "refine.seed", "model.channels", "model.view", "model.memory",
-                       "model.search", "model.rotations", "model.input", "model.image_size")
+                       "model.search", "model.rotations", "model.input", "model.image_size", "model.occupancy")
 """``neural train`` fields without a generated flag: ``--mode`` and ``--worlds`` are written out (they choose the
 preset and name an input folder), the refinement runs with the training's seed, the model's other sizes follow
-from the data (:func:`slam.neural.config.derived_model`)."""
+from the data and its occupancy mask from ``--occ-weight`` (:func:`slam.neural.config.derived_model`)."""
 
 
 def register(parser: argparse.ArgumentParser) -> None:
