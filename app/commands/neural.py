@@ -24,11 +24,11 @@ TRAIN_FLAG_ALIASES = {"model.features": ("--features",), "model.width": ("--widt
                       "refine.rooms": ("--refine-rooms", "--refine_rooms"),
                       "refine.pool_batches": ("--refine-pool-batches", "--refine_pool_batches")}
 """``neural train`` flags of fields that moved into the nested configurations, kept under their names."""
-TRAIN_FLAG_EXCLUDED = ("mode", "worlds_dir", "refine.seed", "model.channels", "model.view", "model.memory",
-                       "model.search", "model.rotations", "model.input", "model.image_size", "model.occupancy")
-"""``neural train`` fields without a generated flag: ``--mode`` and ``--worlds`` are written out (they choose the
-preset and name an input folder), the refinement runs with the training's seed, the model's other sizes follow
-from the data and its occupancy mask from ``--occ-weight`` (:func:`slam.neural.config.derived_model`)."""
+TRAIN_FLAG_EXCLUDED = ("mode", "worlds_dir", "refine.seed", "model.occupancy")
+"""``neural train`` fields without a generated flag (besides the model's sizes the data gives,
+:data:`slam.neural.config.DERIVED_MODEL_FIELDS`): ``--mode`` and ``--worlds`` are written out (they choose the
+preset and name an input folder), the refinement runs with the training's seed, the occupancy mask follows
+``--occ-weight`` (:func:`slam.neural.config.derived_model`)."""
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -37,7 +37,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                        description="Train encoder, localisation, LSTM memory, decoder and hallucination module "
                                    "(phases: pre-training, memory + recall, + hallucination GAN). Resumable.")
     from app.commands.flags import add_config_flags
-    from slam.neural.config import PRESETS, HallucinationConfig, NeuralTrainConfig, RefineConfig, TopviewConfig
+    from slam.neural.config import (DERIVED_MODEL_FIELDS, PRESETS, HallucinationConfig, NeuralTrainConfig,
+                                    RefineConfig, TopviewConfig)
     p.add_argument("--mode", default="2d", choices=tuple(PRESETS),
                    help="2d: agents walking on images; 3d: a ground robot's simulated kinect_v1 RGB-D sequences in "
                         "procedural rooms")
@@ -50,7 +51,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--overwrite", "a model already in MODEL")
     add_shared(p, "--no-progress")
     add_config_flags(p.add_argument_group("training options (override --preset; defaults: NeuralTrainConfig's)"),
-                     NeuralTrainConfig, exclude=TRAIN_FLAG_EXCLUDED, aliases=TRAIN_FLAG_ALIASES)
+                     NeuralTrainConfig, aliases=TRAIN_FLAG_ALIASES,
+                     exclude=(*TRAIN_FLAG_EXCLUDED, *(f"model.{k}" for k in DERIVED_MODEL_FIELDS)))
     p.set_defaults(func=_train, on_interrupt=RESUMES)
     p = sub.add_parser("train-topview", help="give a 3d model a trained top-view decoder (memory frozen)",
                        description="Train the per-cell read-out of a 3d model's memory into a colour floor plan "

@@ -19,7 +19,7 @@ from data_tools.errors import ConfigError
 
 __all__ = ["MemoryConfig", "World3DConfig", "RefineConfig", "HallucinationConfig", "TopviewConfig",
            "NeuralTrainConfig", "TRAIN_PRESETS", "TRAIN_PRESETS_3D", "PRESETS", "IMAGE_CHANNELS", "POSE_SCORES",
-           "derived_model", "OCC_LR"]
+           "derived_model", "DERIVED_MODEL_FIELDS", "OCC_LR"]
 
 Positive = Annotated[int, Range(1)]
 NonNegative = Annotated[int, Range(0)]
@@ -255,7 +255,7 @@ class NeuralTrainConfig:
         self.refine.validate()
         self.model.validate()
         derived, unset = derived_model(self), MemoryConfig()
-        for k in _DERIVED:
+        for k in DERIVED_MODEL_FIELDS:
             v = getattr(self.model, k)
             if tuple(np.atleast_1d(v)) not in (tuple(np.atleast_1d(getattr(derived, k))),
                                                tuple(np.atleast_1d(getattr(unset, k)))):
@@ -268,7 +268,7 @@ class NeuralTrainConfig:
         return replace(self, model=derived_model(self))
 
 
-_DERIVED = ("channels", "view", "memory", "search", "rotations", "input", "image_size")
+DERIVED_MODEL_FIELDS = ("channels", "view", "memory", "search", "rotations", "input", "image_size")
 """The :class:`MemoryConfig` fields the training data fixes."""
 
 
