@@ -99,7 +99,7 @@ def test_refinement_resumes_exactly(tmp_path, monkeypatch):
         assert torch.equal(a, b), k
 
 
-@pytest.mark.parametrize("field,value", [("steps", 0), ("rooms", 0), ("batch", 0), ("ssim_weight", -1.0),
+@pytest.mark.parametrize("field,value", [("steps", -1), ("rooms", 0), ("batch", 0), ("ssim_weight", -1.0),
                                          ("ssim_weight", float("nan")), ("lr", 0.0)])
 def test_config_validation(field, value):
     from data_tools.errors import ConfigError
