@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     import torch
 
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     if args.threads:
         torch.set_num_threads(args.threads)
     dev = torch.device(args.device)

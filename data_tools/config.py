@@ -21,7 +21,65 @@ import numpy as np
 
 from data_tools.errors import ConfigError
 
-__all__ = ["config_to_dict", "config_from_dict", "config_replace", "config_from_options"]
+__all__ = ["config_to_dict", "config_from_dict", "config_replace", "config_from_options", "Range", "check_fields",
+           "field_range", "field_choices"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """The allowed values of a number field, declared once in its annotation (``Annotated[int, Range(1)]``) and
+    read by :func:`check_fields` (a config's ``validate()``) and by the command-line flags generated from the
+    dataclass (``app.commands.flags``): ``lo`` / ``hi`` the bounds (None: unbounded), ``open_lo`` / ``open_hi``
+    whether a bound itself is excluded. Every checked number must also be finite."""
+
+    lo: float | None = None
+    hi: float | None = None
+    open_lo: bool = False
+    open_hi: bool = False
+
+    def problem(self, v) -> str | None:
+        """None when ``v`` is allowed, else what it must be (``must be >= 1``)."""
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+            return "must be a finite number"
+        low_ok = self.lo is None or (v > self.lo if self.open_lo else v >= self.lo)
+        high_ok = self.hi is None or (v < self.hi if self.open_hi else v <= self.hi)
+        if low_ok and high_ok:
+            return None
+        if self.hi is None:
+            return f"must be {'>' if self.open_lo else '>='} {self.lo:g}"
+        if self.lo is None:
+            return f"must be {'<' if self.open_hi else '<='} {self.hi:g}"
+        return (f"must be in {'(' if self.open_lo else '['}{self.lo:g}, {self.hi:g}{')' if self.open_hi else ']'}")
+
+
+def field_range(cls: type, name: str) -> Range | None:
+    """The :class:`Range` annotated on field ``name`` of dataclass ``cls``, or None."""
+    tp = typing.get_type_hints(cls, include_extras=True)[name]
+    if typing.get_origin(tp) is typing.Annotated:
+        return next((m for m in tp.__metadata__ if isinstance(m, Range)), None)
+    return None
+
+
+def field_choices(tp: Any) -> tuple | None:
+    """The allowed values of a ``Literal[...]`` annotation (None for any other type)."""
+    if typing.get_origin(tp) is typing.Annotated:
+        tp = typing.get_args(tp)[0]
+    return typing.get_args(tp) if typing.get_origin(tp) is typing.Literal else None
+
+
+def check_fields(obj: Any) -> None:
+    """Check every field of dataclass ``obj`` against its annotation: a :class:`Range` bound, a ``Literal`` choice;
+    raises :class:`ConfigError` naming the first field that is not allowed (``steps must be >= 1, got 0``). Nested
+    dataclasses are checked by their own ``validate()``."""
+    hints = typing.get_type_hints(type(obj), include_extras=True)
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        choices = field_choices(hints[f.name])
+        if choices is not None and v not in choices:
+            raise ConfigError(f"{f.name} must be one of {', '.join(map(str, choices))}, got {v!r}")
+        rng = field_range(type(obj), f.name)
+        if rng is not None and (msg := rng.problem(v)) is not None:
+            raise ConfigError(f"{f.name} {msg}, got {v!r}")
 
 
 def config_to_dict(cfg: Any) -> Any:
@@ -47,6 +105,10 @@ def _coerce(value: Any, tp: Any, where: str, strict: bool = False) -> Any:
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if tp is Any:
+        return value
+    if origin is typing.Literal:
+        if value not in args:
+            raise ConfigError(f"{where}: expected one of {', '.join(map(str, args))}, got {value!r}")
         return value
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:

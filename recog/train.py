@@ -19,10 +19,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Annotated, Callable
 
 import numpy as np
 
+from data_tools.config import Range, check_fields
 from data_tools.errors import ConfigError
 from data_tools.training import TrainingState, run_steps
 from recog.data import TrainingData
@@ -35,28 +36,28 @@ class TrainConfig:
     """How the network is trained (saved with the recogniser)."""
 
     network: str = "lenet"
-    """Network name (:data:`recog.net.NETWORKS`)."""
-    descriptor: int = 64
+    """Network name (:data:`recog.net.NETWORKS`: lenet, deeper)."""
+    descriptor: Annotated[int, Range(1)] = 64
     """Descriptor dimension d."""
-    iterations: int = 3000
+    iterations: Annotated[int, Range(1)] = 3000
     """Optimiser steps."""
-    batch: int = 64
+    batch: Annotated[int, Range(1)] = 64
     """Triplets per step (each also gives one pair): 4 x batch patches go through the network."""
-    lr: float = 1e-3
+    lr: Annotated[float, Range(0, open_lo=True)] = 1e-3
     """Adam learning rate."""
-    weight_decay: float = 1e-5
+    weight_decay: Annotated[float, Range(0)] = 1e-5
     """lambda of the loss (L2 on the weights, as the optimiser's weight decay)."""
-    class_margin: float = 4.0
+    class_margin: Annotated[float, Range(math.pi, open_lo=True)] = 4.0
     """Margin for negatives of another object (> pi)."""
-    same_object_negatives: float = 0.5
+    same_object_negatives: Annotated[float, Range(0, 1)] = 0.5
     """Fraction of negatives taken from the anchor's own object (another pose)."""
-    hard_negatives: float = 0.5
+    hard_negatives: Annotated[float, Range(0, 1)] = 0.5
     """Fraction of negatives mined by pose (see :class:`TripletMiner`); the rest are uniform."""
-    pair_weight: float = 1.0
+    pair_weight: Annotated[float, Range(0)] = 1.0
     """Weight of the pair loss."""
-    checkpoint_every: int = 250
+    checkpoint_every: Annotated[int, Range(1)] = 250
     """Write checkpoint.pt every this many steps."""
-    log_every: int = 50
+    log_every: Annotated[int, Range(1)] = 50
     """Record the losses every this many steps."""
     seed: int = 0
     """Seed of the initial weights and of the mining."""
@@ -67,15 +68,7 @@ class TrainConfig:
         from recog.net import NETWORKS
         if self.network not in NETWORKS:
             raise ConfigError(f"unknown network {self.network!r}; choose one of {', '.join(NETWORKS)}")
-        for name in ("iterations", "batch", "descriptor", "checkpoint_every", "log_every"):
-            if int(getattr(self, name)) < 1:
-                raise ConfigError(f"train option {name} must be >= 1, got {getattr(self, name)}")
-        if not self.class_margin > math.pi:
-            raise ConfigError(f"class_margin must exceed pi, got {self.class_margin}")
-        if not 0.0 <= self.hard_negatives <= 1.0:
-            raise ConfigError(f"hard_negatives must be in [0, 1], got {self.hard_negatives}")
-        if not 0.0 <= self.same_object_negatives <= 1.0:
-            raise ConfigError(f"same_object_negatives must be in [0, 1], got {self.same_object_negatives}")
+        check_fields(self)
         return self
 
 

@@ -129,7 +129,7 @@ def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 
     """Render a RUN folder from ``pose_c2w`` with the run's camera (``scale`` resizes it).
 
     ``source``: ``mesh`` (RUN/mesh.ply), ``volume`` (RUN/volume.npz), ``neural`` (the view the run's
-    neural memory recalls, :func:`slam.neural.run.recall_view`, resized from the decoder's small image;
+    neural memory recalls, :func:`slam.neural.inference.recall_view`, resized from the decoder's small image;
     ``hallucinate``: after its hallucination module filled the unobserved cells) or ``auto`` (neural for
     a run of the neural backend, else the volume when saved, else the mesh).
     """
@@ -149,7 +149,7 @@ def render_run(run_dir: str | os.PathLike, pose_c2w: np.ndarray, scale: float = 
     if hallucinate and not neural:
         raise RealgapError(f"{run_dir}: --hallucinate needs a run of the neural backend (it has no memory/)")
     if neural:
-        from slam.neural.run import recall_view
+        from slam.neural.inference import recall_view
         rgb, depth = recall_view(run, pose_c2w, hallucinate, size=(intr.width, intr.height))
         return RenderedView(rgb, depth, np.asarray(pose_c2w, float), intr)
     use_volume = source == "volume" or (source == "auto" and (run / "volume.npz").is_file())

@@ -3,6 +3,7 @@ field of a view against a memory built from it peaks at the true shift and rotat
 save -> load, a short training that lowers L_loc, thesis SSIM by hand, bad checkpoints."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -11,7 +12,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from slam.neural.data2d import AGENTS, allocentric, environment, make_batch, view_mask, walk  # noqa: E402
-from slam.neural.model import MemoryConfig, NeuralMemory, correlate, register, rotation_bank  # noqa: E402
+from slam.neural.config import MemoryConfig  # noqa: E402
+from slam.neural.memory import NeuralMemory, correlate, register, rotation_bank  # noqa: E402
 
 
 @pytest.mark.parametrize("agent", ["square", "front"])
@@ -114,10 +116,13 @@ def test_seen_mask_is_the_union_of_the_registered_view_fields():
 
 
 def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
-    from slam.neural.train import NeuralTrainConfig, loc_loss, load_model, memory_config, save_model
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.io import load_model, save_model
+    from slam.neural.losses import loc_loss
+    from slam.neural.config import derived_model
     torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=8, width=8)
-    model = NeuralMemory(memory_config(cfg))
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=8, width=8))
+    model = NeuralMemory(derived_model(cfg))
     rng = np.random.default_rng(1)
     _, obs, _, allo = make_batch(rng, 4, AGENTS[cfg.agent], 4, 23)
     o, a = torch.from_numpy(obs), torch.from_numpy(allo)
@@ -142,37 +147,49 @@ def test_training_lowers_the_localisation_loss_and_save_load(tmp_path):
         x, y = model.eval()(o, vm, None), back(o, vm, None)
     assert torch.equal(x["psi"], y["psi"]) and torch.equal(x["estimates"], y["estimates"])
     # bad checkpoints: another version, another shape -> one line naming the file
-    from data_tools.errors import FormatError
-    meta = json.loads((tmp_path / "m" / "neural.json").read_text())
-    meta["version"] = 7
-    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+    from data_tools.errors import ConfigError, FormatError
+    path = tmp_path / "m" / "neural.json"
+    meta = json.loads(path.read_text())
+    assert meta["version"] == 2 and meta["train"]["model"]["features"] == 8 and "memory" not in meta
+
+    def load_with(m):
+        path.write_text(json.dumps(m))
+        return load_model(tmp_path / "m")
     with pytest.raises(FormatError, match="version"):
-        load_model(tmp_path / "m")
-    meta["version"] = 1
-    meta["memory"]["features"] = 16
-    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+        load_with({**meta, "version": 7})
+    bad = json.loads(json.dumps(meta))
+    bad["train"]["model"]["features"] = 16
     with pytest.raises(FormatError, match="weights.pt.*do not fit"):
-        load_model(tmp_path / "m")
-    # options of earlier code (docs/neural_not_kept.md): recorded at the value the code implements they load (the
-    # shipped models record them so), any other value is refused by name; the model's choices are checked once
-    meta["memory"]["features"] = 8
-    meta["train"].update(correlation="dot", equivariance="none", decoder="learned")
-    meta["memory"].update(correlation="dot", subcell=False, camera=[], ray_samples=12)
-    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
-    assert load_model(tmp_path / "m")[0].cfg == model.cfg
-    meta["memory"]["correlation"] = "cosine"
-    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
+        load_with(bad)
+    bad["train"]["model"].update(features=8, occupancy="linear")       # a choice is checked where it is read
+    with pytest.raises(ConfigError, match="occupancy"):
+        load_with(bad)
+    bad["train"]["model"].update(occupancy="sigmoid", view=21)         # a size the data fixes must fit the data
+    with pytest.raises(ConfigError, match="model.view"):
+        load_with(bad)
+    # version 1 (the shipped models' files): the network's sizes in a 'memory' block, the training's features /
+    # width / refine_* flat, options of earlier code (docs/neural_not_kept.md) recorded at the value the code
+    # implements; converted on reading to the same configuration, any other value of a removed option refused
+    train = {k: v for k, v in meta["train"].items() if k not in ("model", "refine")}
+    train.update(features=8, width=8, refine_steps=0, refine_rooms=48, refine_pool_batches=450,
+                 correlation="dot", equivariance="none", decoder="learned")
+    v1 = {"format": meta["format"], "version": 1, "train": train, "info": {},
+          "memory": {**meta["train"]["model"], "correlation": "dot", "subcell": False, "camera": [], "ray_samples": 12}}
+    back1, cfg1, _ = load_with(v1)
+    assert cfg1 == cfg2 and back1.cfg == model.cfg
+    for k, v in back1.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k]), k
+    v1["memory"]["correlation"] = "cosine"
     with pytest.raises(FormatError, match="neural.json.*correlation = 'cosine'"):
-        load_model(tmp_path / "m")
-    meta["memory"].update(correlation="dot", occupancy="linear")
-    (tmp_path / "m" / "neural.json").write_text(json.dumps(meta))
-    from data_tools.errors import ConfigError
-    with pytest.raises(ConfigError, match="occupancy must be sigmoid or affine"):
-        load_model(tmp_path / "m")
+        load_with(v1)
+    v1["memory"].update(correlation="dot")
+    v1["train"]["width"] = 16
+    with pytest.raises(FormatError, match="train.width and memory.width differ"):
+        load_with(v1)
 
 
 def test_thesis_ssim_by_hand():
-    from slam.neural.evaluate import rigid_ate, ssim_thesis
+    from slam.neural.ablations import rigid_ate, ssim_thesis
     a = np.random.default_rng(0).random((10, 10))
     assert ssim_thesis(a, a) == pytest.approx(1.0)
     assert ssim_thesis(a, 1 - a) < 0
@@ -183,25 +200,60 @@ def test_thesis_ssim_by_hand():
     gt = np.random.default_rng(1).normal(size=(8, 2))
     R = np.array([[0.6, -0.8], [0.8, 0.6]])
     assert rigid_ate(gt @ R.T + [3, -1], gt) == pytest.approx(0.0, abs=1e-9)
+    # estimates all at one point: no rotation to fit, the best translation leaves the spread about the mean
+    assert rigid_ate(np.zeros((8, 2)), gt) == pytest.approx(np.sqrt(((gt - gt.mean(0)) ** 2).sum(1).mean()))
 
 
 @pytest.fixture(scope="module")
-def shipped_2d_eval():
-    """The shipped front_2d model, its training configuration and its evaluation on 16 fixed test walks (one
-    evaluation for the tests that read it)."""
+def shipped_2d_eval(tmp_path_factory):
+    """The shipped front_2d model, its training configuration, its evaluation on 16 fixed test walks by ``neural
+    eval`` (:func:`slam.neural.run.evaluate_folder`) and the folder it wrote: one evaluation of the shipped 2D model
+    for every test that reads one."""
     from pathlib import Path
 
-    from slam.neural.evaluate import evaluate_2d
-    from slam.neural.train import load_model
-    model, cfg, _ = load_model(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d")
-    return model, cfg, evaluate_2d(model, cfg, sequences=16, progress=False)
+    from slam.neural.io import load_model
+    from slam.neural.run import evaluate_folder
+    shipped = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    model, cfg, _ = load_model(shipped)
+    out = tmp_path_factory.mktemp("front_2d_eval") / "ev"
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)            # the recorded numbers of test_shipped_2d_evaluation_numbers_as_recorded
+    try:
+        return model, cfg, evaluate_folder(shipped, out, 16, progress=False), out
+    finally:
+        torch.set_num_threads(threads)
+
+
+EXPECTED_EVAL_2D = {
+    'ape_px': {'median': 2.236067977, 'mean': 5.667644502, 'std': 7.004663146},
+    'ate_px': {'median': 5.005468205, 'mean': 4.832928965, 'std': 3.241256973},
+    'anamnesis': {'l1': 0.09496565296, 'ssim_thesis': 0.9160190124, 'ssim_skimage': 0.8797861746},
+    'anamnesis_true_poses': {'l1': 0.08765016868, 'ssim_thesis': 0.9459650296, 'ssim_skimage': 0.9094086171},
+    'hallucination': {'l1': 0.1122115315, 'ssim_thesis': 0.8580433128, 'ssim_skimage': 0.8261511059},
+    'ablation_no_hallucination_module': {'l1': 0.1955084745, 'ssim_thesis': 0.7544641039, 'ssim_skimage': 0.7114528439},
+    'ablation_no_localisation_anamnesis': {'l1': 0.1996431187, 'ssim_thesis': 0.6317750469, 'ssim_skimage': 0.5204952887},
+    'ablation_no_culling_anamnesis': {'l1': 0.2156197518, 'ssim_thesis': 0.6656891585, 'ssim_skimage': 0.6048459367},
+    'ablation_no_culling_hallucination': {'l1': 0.2516801609, 'ssim_thesis': 0.5958576846, 'ssim_skimage': 0.5354869192},
+    'baseline_mosaic_inpainting': {'l1': 0.04187488854, 'ssim_thesis': 0.899503573, 'ssim_skimage': 0.8967920029},
+}
+"""front_2d's evaluation on the 16 test walks of the fixture (one torch thread), recorded from the code before the
+package's reshaping (issue 45): the localisation, recall, hallucination and ablation numbers, tolerance 1e-6."""
+
+
+def test_shipped_2d_evaluation_numbers_as_recorded(shipped_2d_eval):
+    """The shipped 2D model's evaluation numbers (a fingerprint of the evaluation code: test walks, ablations,
+    metrics) are those the code gave before it was reshaped."""
+    r = shipped_2d_eval[2]
+    for key, want in EXPECTED_EVAL_2D.items():
+        for k, v in want.items():
+            assert r[key][k] == pytest.approx(v, rel=1e-6, abs=1e-6), (key, k)
 
 
 def test_shipped_weights_load_and_the_hallucination_module_helps(shipped_2d_eval):
     """The weights the project trained (slam/neural/weights/front_2d) load, and on fixed test walks the
     hole-filled memory predicts later views better than the memory without the module."""
-    model, cfg, r = shipped_2d_eval
-    assert cfg.agent == "front" and model.cfg.features == cfg.features
+    model, cfg, r, _ = shipped_2d_eval
+    assert cfg.agent == "front" and model.cfg == cfg.model
     assert r["hallucination"]["l1"] < r["ablation_no_hallucination_module"]["l1"]
     # it localises: the untrained memory's estimates are uniform over the +-16 px search window (median
     # error ~10 px); the shipped weights have a median of 0.0 px on these walks (66 % within 1 px)
@@ -221,8 +273,9 @@ def test_table_4_2_ablations_at_inference_cost_quality(shipped_2d_eval):
 def test_train_2d_all_phases_pretraining_recalls_single_views(tmp_path):
     """``train_memory`` in 2D goes through the three phases; the pre-training's auto-encoder of single views (each
     view's grid recalled as a memory of its own at its centre) is the decoder of the masked grid."""
-    from slam.neural.train import NeuralTrainConfig, train_memory
-    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=4, width=8, iterations=8,
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import train_memory
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=4, width=8), iterations=8,
                             pretrain_steps=5, teacher_steps=1, hallucination_from=7, log_every=1, lr=3e-3)
     model, _, log = train_memory(cfg, None, progress=False)
     assert "loc" not in log.steps[0] and "loc" in log.steps[5] and "hallu" in log.steps[-1]
@@ -242,10 +295,10 @@ def test_interrupted_training_marker_counts_the_checkpointed_steps(tmp_path, mon
     import slam.neural.data2d as data2d
     from data_tools.outputs import read_incomplete
     from slam.neural.run import train_to_folder
-    from slam.neural.train import NeuralTrainConfig
-    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=6,
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig, RefineConfig
+    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, model=MemoryConfig(features=4, width=4), iterations=6,
                             pretrain_steps=1, teacher_steps=1, hallucination_from=4, checkpoint_every=2,
-                            refine_steps=4, refine_pool_batches=1)
+                            refine=RefineConfig(steps=4, pool_batches=1))
     real, calls = data2d.make_batch, {"n": 0}
 
     def interrupted(*a, **kw):
@@ -271,10 +324,12 @@ def test_neural_eval_writes_json_and_figures(tmp_path):
     import cv2
 
     from app.cli import main
-    from slam.neural.train import NeuralTrainConfig, memory_config, save_model
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.io import save_model
+    from slam.neural.config import derived_model
     torch.manual_seed(0)
-    cfg = NeuralTrainConfig(image=23, features=4, width=4)
-    save_model(tmp_path / "m", NeuralMemory(memory_config(cfg)), cfg)
+    cfg = NeuralTrainConfig(image=23, model=MemoryConfig(features=4, width=4))
+    save_model(tmp_path / "m", NeuralMemory(derived_model(cfg)), cfg)
     assert main(["neural", "eval", str(tmp_path / "m"), "--out", str(tmp_path / "ev"), "--sequences", "6",
                  "--no-progress"]) == 0
     res = json.loads((tmp_path / "ev" / "neural_eval.json").read_text())
@@ -295,7 +350,8 @@ def test_neural_eval_writes_json_and_figures(tmp_path):
 def test_learning_rate_schedule_is_a_function_of_the_step():
     """Constant until lr_decay_from, then linear to lr_final at the last step; 0 = constant throughout (a resumed
     run recomputes the same rates from its step)."""
-    from slam.neural.train import NeuralTrainConfig, lr_factor
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import lr_factor
     cfg = NeuralTrainConfig(iterations=11, lr_decay_from=6, lr_final=0.5)
     assert [lr_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
     assert lr_factor(cfg, 8) == pytest.approx(0.75) and lr_factor(cfg, 10) == pytest.approx(0.5)
@@ -318,28 +374,17 @@ def test_loss_means_by_hand_and_set_lr():
     assert [g["lr"] for o in opts for g in o.param_groups] == [0.25, 0.25, 0.25]
 
 
-def test_loc_weight_follows_the_learning_rate_schedule_to_its_own_final_value():
-    """L_loc's weight factor: 1 until lr_decay_from, then linear to loc_weight_final (1 = constant, the default)."""
-    from data_tools.errors import ConfigError
-    from slam.neural.train import NeuralTrainConfig, loc_factor
-    cfg = NeuralTrainConfig(iterations=11, lr_decay_from=6, lr_final=0.5, loc_weight_final=0.2)
-    assert [loc_factor(cfg, s) for s in (0, 5, 6)] == [1.0, 1.0, 1.0]
-    assert loc_factor(cfg, 8) == pytest.approx(0.6) and loc_factor(cfg, 10) == pytest.approx(0.2)
-    assert loc_factor(NeuralTrainConfig(iterations=11, lr_decay_from=6), 10) == 1.0
-    with pytest.raises(ConfigError, match="loc_weight_final"):
-        NeuralTrainConfig(loc_weight_final=-1.0).validate()
-
-
 def test_occupancy_loss_trains_the_occupancy_lstm_and_nothing_else():
     """occ_weight > 0: the mask becomes (h + 1) / 2 and L_occ (BCE against ``seen``) trains the occupancy LSTM on
     its own optimiser - L_occ falls; every other weight is bit-identical to the same seed's run without it (before
     the hallucination phase, which reads the mask); with occ_weight 0 the occupancy LSTM keeps its init (the models
     trained before the loss existed)."""
-    from slam.neural.model import NeuralMemory
-    from slam.neural.train import NeuralTrainConfig, memory_config, train_memory
+    from slam.neural.memory import NeuralMemory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig, derived_model
+    from slam.neural.train import train_memory
 
     def run(w):
-        cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=60,
+        cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, model=MemoryConfig(features=4, width=4), iterations=60,
                                 pretrain_steps=2, teacher_steps=2, hallucination_from=100, occ_weight=w, log_every=20)
         return train_memory(cfg, progress=False)[0::2], cfg
     (a, la), cfg0 = run(0.0)
@@ -351,7 +396,7 @@ def test_occupancy_loss_trains_the_occupancy_lstm_and_nothing_else():
     assert all(torch.equal(sa[k], sb[k]) for k in sa if not k.startswith("occ_lstm"))
     assert not all(torch.equal(sa[k], sb[k]) for k in sa if k.startswith("occ_lstm"))
     torch.manual_seed(cfg0.seed)
-    init = NeuralMemory(memory_config(cfg0)).state_dict()
+    init = NeuralMemory(derived_model(cfg0)).state_dict()
     assert all(torch.equal(init[k], sa[k]) for k in sa if k.startswith("occ_lstm"))
 
 
@@ -362,9 +407,11 @@ def test_lstm_forget_bias_sets_only_the_forget_gates():
     trained models still show the init."""
     import torch
 
-    from slam.neural.train import NeuralTrainConfig, train_memory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+
+    from slam.neural.train import train_memory
     def trained(bias):
-        return train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=1,
+        return train_memory(NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, model=MemoryConfig(features=4, width=4), iterations=1,
                                               pretrain_steps=1, lstm_forget_bias=bias), progress=False)[0]
     models = [trained(0.0), trained(1.5)]
     a, b = (m.state_dict() for m in models)
@@ -381,8 +428,9 @@ def test_corrupt_training_checkpoint_is_a_one_line_error_naming_it(tmp_path):
     """A training checkpoint cut short (a disk full, a copy interrupted) or of another model: FormatError naming the
     file, telling how to start again; the file is left as it was."""
     from data_tools.errors import FormatError
-    from slam.neural.train import NeuralTrainConfig, train_memory
-    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, features=4, width=4, iterations=2, pretrain_steps=1,
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import train_memory
+    cfg = NeuralTrainConfig(image=23, batch=2, steps=4, observe=2, model=MemoryConfig(features=4, width=4), iterations=2, pretrain_steps=1,
                             checkpoint_every=1)
     ck = tmp_path / "checkpoint.pt"
     train_memory(cfg, ck, progress=False)
@@ -393,7 +441,7 @@ def test_corrupt_training_checkpoint_is_a_one_line_error_naming_it(tmp_path):
     assert str(ck) in str(e.value) and "\n" not in str(e.value) and len(ck.read_bytes()) == len(whole) // 2
     ck.write_bytes(whole)                                   # another model's: features 4 -> 6
     with pytest.raises(FormatError, match="unreadable training checkpoint"):
-        train_memory(NeuralTrainConfig(**{**cfg.__dict__, "features": 6}), ck, progress=False)
+        train_memory(dataclasses.replace(cfg, model=MemoryConfig(features=6, width=4)), ck, progress=False)
 
 
 @pytest.mark.parametrize("preset", ["cpu", "cpu-long", "gpu"])
@@ -406,10 +454,11 @@ def test_2d_presets_build_a_model_that_runs(preset):
     import torch
 
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.model import NeuralMemory, PatchDiscriminator, memory_index
-    from slam.neural.train import TRAIN_PRESETS, memory_config
+    from slam.neural.memory import NeuralMemory, memory_index
+    from slam.neural.networks import PatchDiscriminator
+    from slam.neural.config import TRAIN_PRESETS, derived_model
     cfg = dataclasses.replace(TRAIN_PRESETS[preset], device="cpu").validate()
-    mc = memory_config(cfg)
+    mc = derived_model(cfg)
     model, disc = NeuralMemory(mc).eval(), PatchDiscriminator(mc)
     agent = AGENTS[cfg.agent]
     vm = torch.from_numpy(view_mask(agent).astype(np.float32))
@@ -417,13 +466,13 @@ def test_2d_presets_build_a_model_that_runs(preset):
     with torch.no_grad():
         out = model(torch.from_numpy(obs), vm, None)
         psi = out["psi"]
-        assert psi.shape == (1, cfg.features, mc.memory, mc.memory) and out["estimates"].shape == (1, cfg.steps, 3)
+        assert psi.shape == (1, mc.features, mc.memory, mc.memory) and out["estimates"].shape == (1, cfg.steps, 3)
         a = torch.from_numpy(allo).flatten(0, 1)
         rec = model.recall(psi, a, vm, memory_index(psi, cfg.steps))
         assert rec.shape == (cfg.steps, 3, agent.view, agent.view) and torch.isfinite(rec).all()
         filled = model.hallucinate(psi, out["occ"])
         assert filled.shape == psi.shape
-        assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :cfg.features]).dim() == 4
+        assert disc(model.cull(filled, a, vm, memory_index(psi, cfg.steps))[:, :mc.features]).dim() == 4
 
 
 def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
@@ -434,7 +483,7 @@ def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
 
     import slam.neural.run as run
     from app.cli import main
-    from slam.neural.train import TRAIN_PRESETS_3D
+    from slam.neural.config import TRAIN_PRESETS_3D
     got = {}
 
     def fake_train(cfg, out, **kw):
@@ -457,16 +506,12 @@ def test_cli_flags_are_generated_from_the_configs(monkeypatch, tmp_path):
     assert (got["hallu"].occ_steps, got["hallu"].steps) == (7, 600)
 
 
-def test_eval_result_has_the_standard_header(tmp_path):
+def test_eval_result_has_the_standard_header(shipped_2d_eval):
     """neural_eval.json carries the result header (kind neural.eval, the model as input, flat metrics), so
     ``realgap show`` tabulates it beside other results."""
-    from pathlib import Path
-
     from data_tools.results import read_result, results_table
-    from slam.neural.run import evaluate_folder
-    model = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
-    res = evaluate_folder(model, tmp_path / "ev", 2, progress=False)
-    r = read_result(tmp_path / "ev")
+    _, _, res, folder = shipped_2d_eval
+    r = read_result(folder)
     assert r.kind == "neural.eval" and r.header["inputs"][0]["role"] == "model"
     assert r.metrics["anamnesis_l1"] == res["anamnesis"]["l1"] and r.metrics["ape_px_median"] == res["ape_px"]["median"]
     cols, rows = results_table([r])

@@ -19,7 +19,8 @@ _INTR = Intrinsics(40, 30, 36.25, 36.25, 19.5, 14.5)
 def _image_model(**kw):
     """The small 3D (image input) memory the unit tests share: 3 features, 33-cell view, 45-cell memory, 12 headings,
     search 2, 30 x 40 images; ``kw`` overrides :class:`MemoryConfig` fields."""
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+    from slam.neural.memory import NeuralMemory
     return NeuralMemory(MemoryConfig(**{**dict(channels=4, features=3, view=33, memory=45, width=4, rotations=12,
                                                search=2, input="image", image_size=(30, 40)), **kw}))
 
@@ -82,7 +83,7 @@ def test_allocentric_round_trip_and_consistency():
 def test_rotation_bank_matches_quarter_turns_and_turns_left():
     import torch
 
-    from slam.neural.model import rotate_grid, rotation_bank
+    from slam.neural.memory import rotate_grid, rotation_bank
     x = torch.zeros(1, 1, 9, 9)
     x[0, 0, 0, 4] = 1.0              # a point straight ahead (up)
     b = rotation_bank(x, 12)
@@ -165,22 +166,14 @@ def test_planar_trajectory_keeps_height_pitch_and_clearance():
 
 
 @pytest.fixture(scope="module")
-def planar_seq(tmp_path_factory):
-    """A 24-frame simulated kinect_v1 planar sequence of a procedural room and a tiny
+def planar_seq(tmp_path_factory, tiny_3d_model):
+    """A 24-frame simulated kinect_v1 planar sequence of a procedural room and (``model``) the session's tiny
     untrained 3D model (the backend's plumbing, not its accuracy, is tested here)."""
-    from slam.neural.data3d import World3DConfig
-    from slam.neural.train import NeuralTrainConfig, memory_config, save_model
-    from slam.neural.model import NeuralMemory
     from synth.sequence import SequenceConfig, generate_simulated_sequence
     root = tmp_path_factory.mktemp("neural3d")
     cfg = SequenceConfig(scene="procedural_room", seed=2, frames=24, trajectory="planar")
     generate_simulated_sequence(cfg, root / "seq", "kinect_v1", progress=False)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=World3DConfig(image_h=15, image_w=20))
-    import torch
-    torch.manual_seed(0)
-    save_model(root / "model", NeuralMemory(memory_config(tcfg)), tcfg)
-    from slam.neural.topview import TopViewDecoder, save_topview
-    save_topview(root / "model", TopViewDecoder(4, 4))
+    (root / "model").symlink_to(tiny_3d_model, target_is_directory=True)
     return root
 
 
@@ -250,20 +243,18 @@ def test_eval_mode_mismatch_is_one_line(tmp_path):
         evaluate_folder(shipped, tmp_path / "ev", 1, mode="3d", progress=False)
 
 
-def test_train_3d_all_phases_and_resume(tmp_path):
+def test_train_3d_all_phases_and_resume(tmp_path, tiny_worlds):
     """``train_memory`` in 3D on a tiny simulated room goes through pre-training, memory + recall and the
     hallucination GAN, and a re-run resumes from the
     checkpoint of the last step (same weights)."""
     import torch
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.data3d import World3DConfig
-    from slam.neural.train import NeuralTrainConfig, train_memory
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=6,
-                            pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2, log_every=1,
-                            topview_steps=0, world=world, worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import train_memory
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=6, pretrain_steps=2, teacher_steps=2, hallucination_from=4, checkpoint_every=2,
+                            log_every=1, topview_steps=0, world=world, worlds_dir=str(worlds))
     model, _, log = train_memory(cfg, tmp_path / "ck.pt", progress=False, simulate=sim)
     assert model.cfg.input == "image" and model.cfg.image_size == (15, 20)
     phases = [set(s) for s in log.steps]
@@ -280,7 +271,9 @@ def test_motion_prior_is_a_gaussian_on_the_move_from_the_previous_estimate():
     from the previous estimate (the search window is clamped at the memory's border)."""
     import torch
 
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+
+    from slam.neural.memory import NeuralMemory
     model = NeuralMemory(MemoryConfig(channels=4, features=3, view=5, memory=15, width=4, rotations=12, search=1,
                                       input="image", image_size=(30, 40)))
     prev = torch.tensor([[2, -1, 11]])
@@ -335,7 +328,7 @@ def test_overlap_score_by_hand_and_blind_to_unobserved_cells():
     the largest overlap highest. Never-observed cells do not enter the overlap score."""
     import torch
 
-    from slam.neural.model import rotation_bank
+    from slam.neural.memory import rotation_bank
     model = _image_model(features=1, view=3, memory=15, rotations=4, search=1)
     m = torch.ones(1, 1, 3, 3)                                  # a full 3 x 3 view
     mbank = rotation_bank(m, 4)                                # (1, 4, 1, 3, 3)
@@ -417,7 +410,7 @@ def test_evaluation_says_when_the_trainings_rooms_folder_is_gone(tmp_path, monke
     """The 3D evaluation reads the test rooms from the training's worlds_dir; when that folder is gone it falls back
     to the default cache and says so in one line (the rooms are re-made from their seeds there)."""
     from slam.neural.evaluate3d import worlds_root
-    from slam.neural.train import NeuralTrainConfig
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
     monkeypatch.setenv("REALGAP_CACHE", str(tmp_path / "cache"))
     default = tmp_path / "cache" / "neural_worlds" / f"f{NeuralTrainConfig().world.frames}"
     said = []

@@ -24,7 +24,7 @@ def _close(got, want):
 
 def fingerprint_2d():
     from slam.neural.data2d import AGENTS, make_batch, view_mask
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     torch.set_num_threads(1)
     model, cfg, _ = load_model(WEIGHTS / "front_2d")
     agent = AGENTS[cfg.agent]
@@ -41,7 +41,7 @@ def fingerprint_2d():
 
 
 def fingerprint_3d():
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     torch.set_num_threads(1)
     model, cfg, _ = load_model(WEIGHTS / "planar_3d")
     m = model.cfg
@@ -88,11 +88,34 @@ def test_planar_3d_fingerprint():
     _check(fingerprint_3d(), EXPECTED_3D)
 
 
+def ablations_3d():
+    """planar_3d's views of the evaluation's ablations (:func:`slam.neural.ablations.recall_ablations`, the routine
+    both evaluations share) on a seeded random RGB-D sample of 6 steps, 3 observed, recalled at exact poses."""
+    from slam.neural.ablations import recall_ablations
+    from slam.neural.io import load_model
+    torch.set_num_threads(1)
+    model, _, _ = load_model(WEIGHTS / "planar_3d")
+    m = model.cfg
+    rng = np.random.default_rng(3)
+    T, H, W = 6, *m.image_size
+    obs = torch.from_numpy(np.clip(rng.normal(0, 0.5, (1, T, m.channels, H, W)), -1, 1).astype(np.float32))
+    cells = torch.from_numpy(rng.integers(-1, m.view * m.view, (1, T, m.rotations, H * W)))
+    vm = torch.from_numpy((rng.random((m.view, m.view)) > 0.3).astype(np.float32))
+    allo = torch.from_numpy(np.stack([rng.integers(-3, 4, T), rng.integers(-3, 4, T), rng.integers(0, 12, T)], 1))
+    allo[0] = 0
+    exact = allo.float() + torch.from_numpy(rng.uniform(-0.4, 0.4, (T, 3)).astype(np.float32))
+    v = recall_ablations(model, obs, vm, allo[None], exact[None], 3, cells=cells,
+                         backend={"motion_prior": (2.0, 1.0), "score": "overlap"})
+    return {k: _stats(v[k].numpy()) for k in sorted(v) if k not in ("own", "true", "filled")}
+
+
 def train_log_2d():
     """The log and weight sums of a short seeded 2D training run through all three phases."""
-    from slam.neural.train import NeuralTrainConfig, train_memory
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig
+    from slam.neural.train import train_memory
     torch.set_num_threads(1)
-    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, features=4, width=8, iterations=12,
+    cfg = NeuralTrainConfig(image=23, batch=4, steps=4, observe=2, model=MemoryConfig(features=4, width=8),
+                            iterations=12,
                             pretrain_steps=3, teacher_steps=3, hallucination_from=8, log_every=2, lr=3e-3,
                             lr_decay_from=6)
     model, disc, log = train_memory(cfg, None, progress=False)
@@ -119,7 +142,29 @@ def test_short_2d_training_log():
     _close(got["weights"], EXPECTED_TRAIN_LOG["weights"])
 
 
+EXPECTED_ABLATIONS_3D = {
+    'anam': [3460.9116785277147, 3245.1185142039553, -89.76519039072798],
+    'anam_backend': [3619.9329938281735, 3526.02606504872, -14.352214131553069],
+    'anam_no_culling': [3159.786214076041, 3349.98205083847, -69.55669945358568],
+    'anam_no_localisation': [3803.461758504942, 3813.1125718656776, 113.72405650771293],
+    'anam_true_poses': [3393.5988672623935, 3115.3315915443422, -170.8176318614652],
+    'hallu': [1764.982604713674, 1791.6534004771966, -111.10381464877463],
+    'hallu_no_culling': [1826.484359405993, 1871.1308064917007, -119.91973593065438],
+    'hallu_no_module': [1788.936668407463, 1850.20844351909, -115.34020481800223],
+}
+
+
+def test_planar_3d_ablation_fingerprint():
+    """planar_3d's recalled and hallucinated views with each module switched off, as recorded (the ablation routine
+    gave the same views as the two evaluations' own code before it, bit for bit, on such a sample)."""
+    got = ablations_3d()
+    assert sorted(got) == sorted(EXPECTED_ABLATIONS_3D)
+    for k, want in EXPECTED_ABLATIONS_3D.items():
+        _close(got[k], want)
+
+
 if __name__ == "__main__":
     print("EXPECTED_2D =", fingerprint_2d())
     print("EXPECTED_3D =", fingerprint_3d())
     print("EXPECTED_TRAIN_LOG =", train_log_2d())
+    print("EXPECTED_ABLATIONS_3D =", ablations_3d())

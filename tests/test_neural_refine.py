@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from slam.neural.refine import RefineConfig, _pairs, build_pool, refine_decoder
+from slam.neural.config import RefineConfig
+
+from slam.neural.refine import _pairs, build_pool, refine_decoder
 from tests.test_neural_topview import _Bank as _TopviewBank
 from tests.test_neural_topview import _tiny_model
 
@@ -97,7 +99,7 @@ def test_refinement_resumes_exactly(tmp_path, monkeypatch):
         assert torch.equal(a, b), k
 
 
-@pytest.mark.parametrize("field,value", [("steps", 0), ("rooms", 0), ("batch", 0), ("ssim_weight", -1.0),
+@pytest.mark.parametrize("field,value", [("steps", -1), ("rooms", 0), ("batch", 0), ("ssim_weight", -1.0),
                                          ("ssim_weight", float("nan")), ("lr", 0.0)])
 def test_config_validation(field, value):
     from data_tools.errors import ConfigError
@@ -127,27 +129,24 @@ def test_cli_refuses_to_write_into_the_model_itself(capsys):
     assert (m / "weights.pt").read_bytes() == before
 
 
-def test_train_with_refinement_then_refine_a_copy(tmp_path):
-    """``neural train`` with ``refine_steps`` runs the refinement after the memory phases and records it; ``neural
+def test_train_with_refinement_then_refine_a_copy(tmp_path, tiny_worlds):
+    """``neural train`` with ``refine.steps`` runs the refinement after the memory phases and records it; ``neural
     refine-decoder`` on the result writes a copy whose weights differ from the model's in the decoder only, with
     the earlier refinement kept in its info (one tiny simulated room)."""
     import json
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.data3d import World3DConfig
+    from slam.neural.config import MemoryConfig, NeuralTrainConfig, RefineConfig
     from slam.neural.run import refine_folder, train_to_folder
-    from slam.neural.train import NeuralTrainConfig
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=4,
-                            pretrain_steps=2, teacher_steps=2, hallucination_from=3, log_every=1, topview_steps=0,
-                            refine_steps=3, refine_rooms=1, refine_pool_batches=1, world=world,
-                            worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=4, pretrain_steps=2, teacher_steps=2, hallucination_from=3, log_every=1,
+                            topview_steps=0, refine=RefineConfig(steps=3, rooms=1, pool_batches=1), world=world,
+                            worlds_dir=str(worlds))
     train_to_folder(cfg, tmp_path / "m", progress=False, simulate=sim)
     info = json.loads((tmp_path / "m" / "neural.json").read_text())["info"]
     assert info["decoder_refinement"]["log"][-1]["step"] == 3
     assert not (tmp_path / "m" / "refine_checkpoint.pt").exists()
-    (tmp_path / "worlds2").symlink_to(tmp_path / "worlds")           # --worlds: used, not written into the model
+    (tmp_path / "worlds2").symlink_to(worlds)           # --worlds: used, not written into the model
     refine_folder(tmp_path / "m", tmp_path / "m2", RefineConfig(rooms=1, steps=2, pool_batches=1), progress=False,
                   simulate=sim, worlds=str(tmp_path / "worlds2"))
     a = torch.load(tmp_path / "m" / "weights.pt", weights_only=True)
@@ -157,14 +156,15 @@ def test_train_with_refinement_then_refine_a_copy(tmp_path):
     info2 = json.loads((tmp_path / "m2" / "neural.json").read_text())["info"]
     assert info2["decoder_refinement"]["config"]["steps"] == 2
     assert info2["earlier_decoder_refinement"]["config"]["steps"] == 3
-    assert json.loads((tmp_path / "m2" / "neural.json").read_text())["train"]["worlds_dir"] == str(tmp_path / "worlds")
+    assert json.loads((tmp_path / "m2" / "neural.json").read_text())["train"]["worlds_dir"] == str(worlds)
 
 
 def test_2d_refinement_on_walks_changes_only_the_decoder():
     """2D: the pool holds training walks of the model's agent (integer poses), the loss is on the view field; the
     decoder learns (L1 falls) and nothing else moves."""
-    from slam.neural.model import MemoryConfig, NeuralMemory
-    from slam.neural.refine import Walks2D
+    from slam.neural.config import MemoryConfig
+    from slam.neural.memory import NeuralMemory
+    from slam.neural.data import Walks2D
     torch.manual_seed(0)
     model = NeuralMemory(MemoryConfig(channels=3, features=4, view=15, memory=71, width=4, search=16))
     before = {k: v.clone() for k, v in model.state_dict().items()}

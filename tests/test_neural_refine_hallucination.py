@@ -9,21 +9,24 @@ import numpy as np
 import pytest
 import torch
 
-from slam.neural.refine_hallucination import HallucinationConfig, refine_hallucination
-from slam.neural.train import NeuralTrainConfig
+from slam.neural.config import HallucinationConfig
+
+from slam.neural.refine_hallucination import refine_hallucination
+from slam.neural.config import MemoryConfig, NeuralTrainConfig
 
 SHIPPED = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights"
 _CFG = NeuralTrainConfig(batch=4, steps=4, observe=2)
 
 
 def _tiny_2d():
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+    from slam.neural.memory import NeuralMemory
     torch.manual_seed(0)
     return NeuralMemory(MemoryConfig(channels=3, features=4, view=15, memory=71, width=4, search=16))
 
 
 def _walks():
-    from slam.neural.refine import Walks2D
+    from slam.neural.data import Walks2D
     return Walks2D("front", 43)
 
 
@@ -57,7 +60,7 @@ def test_mask_learns_the_observed_cells_and_only_mask_and_module_change():
 
 def test_resumes_exactly(tmp_path, monkeypatch):
     """Interrupted in stage 2 and re-run on its checkpoint, it ends with the weights of an uninterrupted run."""
-    from slam.neural.refine import Walks2D
+    from slam.neural.data import Walks2D
     hc = HallucinationConfig(occ_steps=4, steps=6, checkpoint_every=3)
     whole = _tiny_2d()
     refine_hallucination(whole, _walks(), _CFG, hc, progress=False)
@@ -91,8 +94,8 @@ def test_config_validation(field, value):
         HallucinationConfig(**{field: value}).validate()
 
 
-@pytest.mark.parametrize("extra,msg", [(["--steps", "0"], "steps must be >= 1"),
-                                       (["--topview-steps", "-1"], "topview-steps must be >= 0")])
+@pytest.mark.parametrize("extra,msg", [(["--steps", "0"], "--steps: must be >= 1, got 0"),
+                                       (["--topview-steps", "-1"], "must be >= 0, got -1")])
 def test_cli_errors_are_one_line(tmp_path, capsys, extra, msg):
     from app.cli import main
     out = tmp_path / "retrained"
@@ -113,29 +116,26 @@ def test_cli_refuses_to_write_into_the_model_itself(capsys):
     assert (m / "weights.pt").read_bytes() == before
 
 
-def test_3d_folder_copy_with_a_new_topview(tmp_path):
+def test_3d_folder_copy_with_a_new_topview(tmp_path, tiny_worlds):
     """On a tiny trained 3D model: the copy differs in the occupancy LSTM and the module only, says ``affine`` in its
     neural.json, loads, records the stage, and has a top-view decoder trained on the new mask."""
-    from app.pipelines import simulate_planar_room
-    from slam.neural.data3d import World3DConfig
+    from slam.neural.io import load_model
     from slam.neural.run import refine_hallucination_folder, train_to_folder
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import load_model
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=16, stride_min=1, stride_max=2)
-    cfg = NeuralTrainConfig(mode="3d", features=4, width=4, batch=2, steps=4, observe=2, iterations=3,
-                            pretrain_steps=1, teacher_steps=1, hallucination_from=2, log_every=1, topview_steps=0,
-                            world=world, worlds_dir=str(tmp_path / "worlds"))
-    sim = lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False)     # noqa: E731
+    worlds, world, sim = tiny_worlds
+    cfg = NeuralTrainConfig(mode="3d", model=MemoryConfig(features=4, width=4), batch=2, steps=4, observe=2,
+                            iterations=3, pretrain_steps=1, teacher_steps=1, hallucination_from=2, log_every=1,
+                            topview_steps=0, world=world, worlds_dir=str(worlds))
     train_to_folder(cfg, tmp_path / "m", progress=False, simulate=sim)
     assert not (tmp_path / "m" / TOPVIEW_FILE).exists()
-    refine_hallucination_folder(tmp_path / "m", tmp_path / "m2", HallucinationConfig(occ_steps=3, steps=2),
-                                topview_steps=2, progress=False, simulate=sim)
+    refine_hallucination_folder(tmp_path / "m", tmp_path / "m2", HallucinationConfig(occ_steps=3, steps=2, topview_steps=2),
+                                progress=False, simulate=sim)
     a = torch.load(tmp_path / "m" / "weights.pt", weights_only=True)
     b = torch.load(tmp_path / "m2" / "weights.pt", weights_only=True)
     changed = {k for k in a if not torch.equal(a[k], b[k])}
     assert changed and all(k.startswith(("occ_lstm.", "hallucinator.")) for k in changed), changed
     meta = json.loads((tmp_path / "m2" / "neural.json").read_text())
-    assert meta["memory"]["occupancy"] == "affine"
+    assert meta["train"]["model"]["occupancy"] == "affine"
     hinfo = meta["info"]["hallucination_retraining"]
     assert hinfo["config"]["steps"] == 2 and hinfo["topview"]["steps"] == 2
     assert (tmp_path / "m2" / TOPVIEW_FILE).is_file()

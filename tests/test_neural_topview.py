@@ -75,7 +75,8 @@ class _Bank:
 
 
 def _tiny_model():
-    from slam.neural.model import MemoryConfig, NeuralMemory
+    from slam.neural.config import MemoryConfig
+    from slam.neural.memory import NeuralMemory
     torch.manual_seed(0)
     return NeuralMemory(MemoryConfig(channels=4, features=4, view=7, memory=15, width=4, rotations=4, search=2,
                                      input="image", image_size=(4, 6)))
@@ -119,27 +120,17 @@ def test_train_topview_cli_rejects_a_2d_model(tmp_path, capsys):
     assert not (shipped / "topview.pt").exists()
 
 
-def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
+def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path, tiny_worlds, tiny_3d_model):
     """evaluate_3d on one simulated 40-frame test room with a tiny untrained model (+ its top-view decoder):
     localisation (neural and icp), images, ablations, baseline, top view and speed all come out finite and
     JSON-serialisable. The plumbing, not the accuracy (the shipped model's numbers are in the README)."""
     import json
 
-    from app.pipelines import simulate_planar_room
-    from slam.neural.data3d import World3DConfig
     from slam.neural.evaluate3d import evaluate_3d
-    from slam.neural.model import NeuralMemory
-    from slam.neural.topview import TopViewDecoder
-    from slam.neural.train import NeuralTrainConfig, load_model, memory_config, save_model
-    world = World3DConfig(image_h=15, image_w=20, rooms=1, test_rooms=1, frames=40, stride_min=2, stride_max=3)
-    tcfg = NeuralTrainConfig(mode="3d", features=4, width=4, world=world, worlds_dir=str(tmp_path / "worlds"))
-    torch.manual_seed(0)
-    save_model(tmp_path / "model", NeuralMemory(memory_config(tcfg)), tcfg)
-    save_topview(tmp_path / "model", TopViewDecoder(4, 4))
-    model, cfg, _ = load_model(tmp_path / "model")
+    from slam.neural.io import load_model
+    model, cfg, _ = load_model(tiny_3d_model)
     ex: dict = {}
-    res = evaluate_3d(model, cfg, tmp_path / "ev", tmp_path / "model", samples=2, progress=False,
-                      simulate=lambda seed, frames, out: simulate_planar_room(seed, frames, out, progress=False),
+    res = evaluate_3d(model, cfg, tmp_path / "ev", tiny_3d_model, samples=2, progress=False, simulate=tiny_worlds[2],
                       examples=ex)
     json.dumps(res)
     from slam.neural.figures import write_figures
@@ -155,8 +146,7 @@ def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path):
     # angle between frame t and frame 0 is the yaw turned
     from data_tools.sequence import SequenceReader
     from slam.neural.geometry3d import planar_relative
-    from slam.neural.data3d import default_worlds_dir
-    root = tmp_path / "worlds" if (tmp_path / "worlds").is_dir() else default_worlds_dir(world)   # as evaluate_3d
+    root = tiny_worlds[0]
     P = SequenceReader(root / "test_000").poses
     yaw = np.degrees([abs(planar_relative(P[0], T, 0.15)[2]) for T in P])
     assert yaw.max() > 5                                       # the planar path turns
@@ -179,56 +169,51 @@ def test_every_train_preset_exists_in_both_modes():
     import argparse
 
     from app.commands.neural import register
-    from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
+    from slam.neural.config import TRAIN_PRESETS, TRAIN_PRESETS_3D
     p = argparse.ArgumentParser()
     register(p)
     sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction)).choices["train"]
     choices = set(next(a for a in sub._actions if a.dest == "preset").choices)
     assert choices == set(TRAIN_PRESETS) == set(TRAIN_PRESETS_3D) == {"cpu", "cpu-long", "gpu"}
     big, small = TRAIN_PRESETS["cpu-long"], TRAIN_PRESETS["cpu"]
-    assert (big.features, big.width) == (16, 32) and big.iterations == small.iterations
+    assert (big.model.features, big.model.width) == (16, 32) and big.iterations == small.iterations
     c = TRAIN_PRESETS_3D["cpu"]            # the <= 30 min schedule (see its docstring for the step costs)
     assert c.pretrain_steps < c.hallucination_from < c.iterations and c.topview_steps > 0
 
 
 def test_2d_cpu_long_preset_is_the_shipped_front_2d_recipe():
     """The shipped front_2d weights were trained by the 2D ``cpu-long`` preset (its decoder refinement included):
-    every field of the preset equals what neural.json ``train`` records, and the refinement recorded is the
-    preset's."""
+    the configuration its neural.json records (version 1, converted on reading) is the preset's with the network's
+    sizes the data gives, and the refinement recorded is the preset's."""
     import json
-    from dataclasses import asdict
+    from dataclasses import asdict, replace
     from pathlib import Path
 
-    from data_tools.config import config_from_dict
-    from slam.neural.train import TRAIN_PRESETS, NeuralTrainConfig, without_removed_options
-    meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
-                       / "neural.json").read_text())
-    preset = asdict(TRAIN_PRESETS["cpu-long"])
-    recorded = without_removed_options(meta["train"], "neural.json")      # options removed since: at their value
-    assert preset == asdict(config_from_dict(NeuralTrainConfig, recorded))     # fields added later: defaults
-    assert {k: preset[k] for k in recorded} == recorded
-    ref = meta["info"]["decoder_refinement"]["config"]
-    assert (preset["refine_steps"], preset["refine_pool_batches"], preset["seed"]) == \
-        (ref["steps"], ref["pool_batches"], ref["seed"])
+    from slam.neural.config import TRAIN_PRESETS
+    from slam.neural.io import read_config
+    folder = Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "front_2d"
+    cfg, info = read_config(folder)
+    preset = TRAIN_PRESETS["cpu-long"]
+    assert cfg == preset.resolved()
+    ref = info["decoder_refinement"]["config"]
+    assert asdict(replace(preset.refine, seed=preset.seed)) == ref
+    assert json.loads((folder / "neural.json").read_text())["version"] == 1       # the shipped file is untouched
 
 
 def test_3d_cpu_long_preset_is_the_shipped_planar_3d_recipe():
-    """The shipped planar_3d weights record the configuration they were trained with (neural.json ``train``); the
-    ``cpu-long`` 3D preset must be that configuration (its memory phases; the decoder refinement, run afterwards
-    by ``neural refine-decoder``, is recorded in ``info.decoder_refinement`` and is the preset's ``refine_*``)."""
-    import json
-    from dataclasses import asdict
+    """The shipped planar_3d weights record the configuration they were trained with; the ``cpu-long`` 3D preset
+    must be that configuration: its memory phases (the occupancy mask trained afterwards by ``neural
+    refine-hallucination``: ``affine``), and the decoder refinement, run afterwards by ``neural refine-decoder`` and
+    recorded in ``info.decoder_refinement``, is the preset's ``refine``."""
+    from dataclasses import replace
     from pathlib import Path
 
-    from slam.neural.train import TRAIN_PRESETS_3D, without_removed_options
-    meta = json.loads((Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "planar_3d"
-                       / "neural.json").read_text())
-    preset = asdict(TRAIN_PRESETS_3D["cpu-long"])
-    recorded = without_removed_options(meta["train"], "neural.json")
-    for k, v in recorded.items():
-        if k != "refine_steps":
-            assert preset[k] == v, (k, preset[k], v)
-    ref = meta["info"]["decoder_refinement"]["config"]
-    assert (preset["refine_steps"], preset["refine_rooms"], preset["refine_pool_batches"]) == \
+    from slam.neural.config import TRAIN_PRESETS_3D
+    from slam.neural.io import read_config
+    cfg, info = read_config(Path(__file__).resolve().parents[1] / "slam" / "neural" / "weights" / "planar_3d")
+    preset = TRAIN_PRESETS_3D["cpu-long"]
+    ref = info["decoder_refinement"]["config"]
+    assert cfg.refine.steps == 0 and (preset.refine.steps, preset.refine.rooms, preset.refine.pool_batches) == \
         (ref["steps"], ref["rooms"], ref["pool_batches"])
-    assert preset["world"]["view"] == 49 and preset["world"]["max_range_m"] == 3.6
+    assert cfg == replace(preset, refine=cfg.refine, model=replace(preset.resolved().model, occupancy="affine"))
+    assert cfg.world.view == 49 and cfg.world.max_range_m == 3.6

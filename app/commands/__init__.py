@@ -7,7 +7,8 @@ function -> save the result.
 One dialect: the same idea has the same flag in every command, added by :func:`add_shared`
 with the help text of :data:`SHARED_FLAGS` (``tests/test_cli_dialect.py`` walks the parser and
 checks it): ``--out``, ``--overwrite``, ``--max-frames``, ``--seed``, ``--workers``,
-``--no-progress``, ``--json``.
+``--no-progress``, ``--json``. A configuration dataclass's options are not written here but generated from
+its fields by :func:`app.commands.flags.add_config_flags`.
 """
 from __future__ import annotations
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import typing
 
 NAME = "demo"
 HELP = "the story of realgap on embedded data: lab, exploration, recognition -> demo_out/index.html"
@@ -17,26 +16,14 @@ HELP = "the story of realgap on embedded data: lab, exploration, recognition -> 
 
 def register(parser: argparse.ArgumentParser) -> None:
     from app.commands import RESUMES, add_shared
+    from app.commands.flags import add_config_flags
     from app.demo.config import DEMO_PRESETS, DemoConfig
-    from data_tools.config import field_docs
     add_shared(parser, "--out", "the demo folder (default demo_out)", default="demo_out")
     parser.add_argument("--preset", default="default", choices=sorted(DEMO_PRESETS),
                         help="named configuration (default: the full story; quick: a smaller one)")
-    docs, hints = field_docs(DemoConfig), typing.get_type_hints(DemoConfig)
-    for f in dataclasses.fields(DemoConfig):
-        flag = "--" + f.name.replace("_", "-")
-        if flag == "--align":        # the shared --align of eval and batch (same choices and help)
-            from app.commands import add_align
-            add_align(parser, argparse.SUPPRESS, "default: auto").dest = "cfg:align"
-            continue
-        if flag == "--seed":
-            add_shared(parser, "--seed", docs[f.name] + " (default 0)", dest="cfg:seed", default=argparse.SUPPRESS)
-            continue
-        tp = hints[f.name]
-        kw = {"action": argparse.BooleanOptionalAction} if tp is bool else {"type": tp, "metavar": tp.__name__.upper()}
-        parser.add_argument(flag, dest=f"cfg:{f.name}", default=argparse.SUPPRESS,
-                            help=(docs[f.name] + f" (default: {getattr(DemoConfig(), f.name)!r})").replace("%", "%%"),
-                            **kw)
+    add_config_flags(parser, DemoConfig, underscore_alias=False, exclude=("align",))
+    from app.commands import add_align       # the shared --align of eval and batch (same choices and help)
+    add_align(parser, argparse.SUPPRESS, "default: auto").dest = "cfg:align"
     add_shared(parser, "--no-progress")
     add_shared(parser, "--overwrite", "a finished demo in --out: its parts are computed again (an interrupted demo "
                                       "is continued without it)")

@@ -11,32 +11,24 @@ NAME = "neural"
 HELP = "neural allocentric spatial memory (localise, memorise, recall, hallucinate): train and evaluate"
 
 
-def _config_flags(p: argparse.ArgumentParser, cls, prefix: str = "", exclude: tuple = ()) -> None:
-    """One flag per field of dataclass ``cls`` (``--NAME VALUE``; a nested dataclass field's fields as
-    ``--NAME.FIELD``), its help the field's docstring and default - as ``slam run`` generates its flags - so a new
-    training option is on the command line without being written here. Values land in ``args`` as ``cfg:NAME``."""
-    import dataclasses
-    import typing
-
-    from data_tools.config import field_docs
-    docs, hints, inst = field_docs(cls), typing.get_type_hints(cls), cls()
-    for f in dataclasses.fields(cls):
-        if f.name in exclude:
-            continue
-        if dataclasses.is_dataclass(hints[f.name]):
-            _config_flags(p, hints[f.name], f"{prefix}{f.name}.")
-            continue
-        doc = " ".join(docs.get(f.name, "").split()).replace("%", "%%")
-        names = [f"--{prefix}{f.name.replace('_', '-')}"] + ([f"--{prefix}{f.name}"] if "_" in f.name else [])
-        p.add_argument(*names, dest=f"cfg:{prefix}{f.name}", default=argparse.SUPPRESS, metavar="VALUE",
-                       help=f"{doc} (default: {getattr(inst, f.name)})".lstrip())
-
-
 def _configured(cfg, args, where: str):
     """``cfg`` (a dataclass) with the generated flags given on the command line applied, validated."""
+    from app.commands.flags import config_overrides
     from data_tools.config import config_replace
-    over = {k[4:]: v for k, v in vars(args).items() if k.startswith("cfg:")}
+    over = config_overrides(args)
     return config_replace(cfg, over, where).validate() if over else cfg.validate()
+
+
+TRAIN_FLAG_ALIASES = {"model.features": ("--features",), "model.width": ("--width",),
+                      "refine.steps": ("--refine-steps", "--refine_steps"),
+                      "refine.rooms": ("--refine-rooms", "--refine_rooms"),
+                      "refine.pool_batches": ("--refine-pool-batches", "--refine_pool_batches")}
+"""``neural train`` flags of fields that moved into the nested configurations, kept under their names."""
+TRAIN_FLAG_EXCLUDED = ("mode", "worlds_dir", "refine.seed", "model.occupancy")
+"""``neural train`` fields without a generated flag (besides the model's sizes the data gives,
+:data:`slam.neural.config.DERIVED_MODEL_FIELDS`): ``--mode`` and ``--worlds`` are written out (they choose the
+preset and name an input folder), the refinement runs with the training's seed, the occupancy mask follows
+``--occ-weight`` (:func:`slam.neural.config.derived_model`)."""
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -44,27 +36,30 @@ def register(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("train", help="train the neural memory (2d: agents on images; 3d: RGB-D robot in rooms)",
                        description="Train encoder, localisation, LSTM memory, decoder and hallucination module "
                                    "(phases: pre-training, memory + recall, + hallucination GAN). Resumable.")
-    p.add_argument("--mode", default="2d", choices=("2d", "3d"), help="2d: agents walking on images; 3d: a ground robot's simulated "
-                        "kinect_v1 RGB-D sequences in procedural rooms")
+    from app.commands.flags import add_config_flags
+    from slam.neural.config import (DERIVED_MODEL_FIELDS, PRESETS, HallucinationConfig, NeuralTrainConfig,
+                                    RefineConfig, TopviewConfig)
+    p.add_argument("--mode", default="2d", choices=tuple(PRESETS),
+                   help="2d: agents walking on images; 3d: a ground robot's simulated kinect_v1 RGB-D sequences in "
+                        "procedural rooms")
     add_shared(p, "--out", "the model folder", required=True, metavar="MODEL")
-    p.add_argument("--preset", default="cpu", choices=("cpu", "cpu-long", "gpu"),
+    p.add_argument("--preset", default="cpu", choices=tuple(PRESETS["2d"]),
                    help="cpu: <= 30 min on 2 cores; cpu-long: the shipped recipe (2d: front_2d, ~1 h 15 min on one "
                         "core; 3d: planar_3d, ~50 min on 2 cores + 18 min of refinement); gpu: larger")
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training/test rooms (made on "
                                                    "first use, reused after; default ~/.cache/realgap/neural_worlds)")
-    add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in MODEL")
     add_shared(p, "--no-progress")
-    from slam.neural.train import NeuralTrainConfig
-    _config_flags(p.add_argument_group("training options (override --preset; defaults: NeuralTrainConfig's)"),
-                  NeuralTrainConfig, exclude=("mode", "seed", "worlds_dir"))
+    add_config_flags(p.add_argument_group("training options (override --preset; defaults: NeuralTrainConfig's)"),
+                     NeuralTrainConfig, aliases=TRAIN_FLAG_ALIASES,
+                     exclude=(*TRAIN_FLAG_EXCLUDED, *(f"model.{k}" for k in DERIVED_MODEL_FIELDS)))
     p.set_defaults(func=_train, on_interrupt=RESUMES)
     p = sub.add_parser("train-topview", help="give a 3d model a trained top-view decoder (memory frozen)",
                        description="Train the per-cell read-out of a 3d model's memory into a colour floor plan "
                                    "(MODEL/topview.pt; 'neural train --mode 3d' makes one itself), the memory's "
                                    "weights untouched. slam run --backend neural then writes memory/topview.png.")
     p.add_argument("model", metavar="MODEL")
-    p.add_argument("--steps", type=int, default=300, help="optimiser steps (default 300)")
+    add_config_flags(p.add_argument_group("top-view decoder options"), TopviewConfig)
     p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
     add_shared(p, "--overwrite", "a top-view decoder already in MODEL")
     add_shared(p, "--no-progress")
@@ -76,10 +71,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "re-run with the same --out.")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "the refined model's folder", required=True, metavar="OUT")
-    from slam.neural.refine import RefineConfig
-    _config_flags(p.add_argument_group("refinement options"), RefineConfig, exclude=("seed",))
+    add_config_flags(p.add_argument_group("refinement options"), RefineConfig)
     p.add_argument("--worlds", metavar="DIR", help="folder of the simulated training rooms (default: the model's)")
-    add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in OUT")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_refine, on_interrupt=RESUMES)
@@ -93,12 +86,8 @@ def register(parser: argparse.ArgumentParser) -> None:
                                    "same --out.")
     p.add_argument("model", metavar="MODEL")
     add_shared(p, "--out", "the retrained model's folder", required=True, metavar="OUT")
-    from slam.neural.refine_hallucination import HallucinationConfig
-    _config_flags(p.add_argument_group("retraining options"), HallucinationConfig, exclude=("seed",))
-    p.add_argument("--topview-steps", type=int, default=300,
-                   help="3d: steps of the top-view decoder's retraining (default 300; 0 = none)")
+    add_config_flags(p.add_argument_group("retraining options"), HallucinationConfig)
     p.add_argument("--worlds", metavar="DIR", help="3d: folder of the simulated training rooms (default: the model's)")
-    add_shared(p, "--seed", "(default 0)", default=0)
     add_shared(p, "--overwrite", "a model already in OUT")
     add_shared(p, "--no-progress")
     p.set_defaults(func=_refine_hallucination, on_interrupt=RESUMES)
@@ -119,11 +108,10 @@ def register(parser: argparse.ArgumentParser) -> None:
 def _train(args) -> int:
     import dataclasses
 
+    from slam.neural.config import PRESETS
     from slam.neural.run import train_to_folder
-    from slam.neural.train import TRAIN_PRESETS, TRAIN_PRESETS_3D
     over = {"worlds_dir": str(args.worlds)} if args.worlds else {}
-    presets = TRAIN_PRESETS_3D if args.mode == "3d" else TRAIN_PRESETS
-    cfg = _configured(dataclasses.replace(presets[args.preset], mode=args.mode, seed=args.seed, **over), args,
+    cfg = _configured(dataclasses.replace(PRESETS[args.mode][args.preset], mode=args.mode, **over), args,
                       "neural train")
     from app.pipelines import simulate_planar_room
     _model, tlog, folder = train_to_folder(cfg, args.out, overwrite=args.overwrite, progress=not args.no_progress,
@@ -136,9 +124,10 @@ def _train(args) -> int:
 
 
 def _train_topview(args) -> int:
+    from slam.neural.config import TopviewConfig
     from slam.neural.run import add_topview
     from app.pipelines import simulate_planar_room
-    info = add_topview(args.model, args.steps, overwrite=args.overwrite, worlds=args.worlds,
+    info = add_topview(args.model, _configured(TopviewConfig(), args, "neural train-topview"), overwrite=args.overwrite, worlds=args.worlds,
                        progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                        simulate=simulate_planar_room)
     last = info["log"][-1]["topview_l1"] if info["log"] else float("nan")
@@ -148,10 +137,10 @@ def _train_topview(args) -> int:
 
 
 def _refine(args) -> int:
-    from slam.neural.refine import RefineConfig
+    from slam.neural.config import RefineConfig
     from slam.neural.run import refine_folder
     from app.pipelines import simulate_planar_room
-    rcfg = _configured(RefineConfig(seed=args.seed), args, "neural refine-decoder")
+    rcfg = _configured(RefineConfig(), args, "neural refine-decoder")
     info = refine_folder(args.model, args.out, rcfg, worlds=args.worlds, overwrite=args.overwrite,
                          progress=not args.no_progress, log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                          simulate=simulate_planar_room)
@@ -162,12 +151,11 @@ def _refine(args) -> int:
 
 
 def _refine_hallucination(args) -> int:
-    from slam.neural.refine_hallucination import HallucinationConfig
+    from slam.neural.config import HallucinationConfig
     from slam.neural.run import refine_hallucination_folder
     from app.pipelines import simulate_planar_room
-    hcfg = _configured(HallucinationConfig(seed=args.seed), args, "neural refine-hallucination")
-    info = refine_hallucination_folder(args.model, args.out, hcfg, topview_steps=args.topview_steps,
-                                       worlds=args.worlds, overwrite=args.overwrite, progress=not args.no_progress,
+    hcfg = _configured(HallucinationConfig(), args, "neural refine-hallucination")
+    info = refine_hallucination_folder(args.model, args.out, hcfg, worlds=args.worlds, overwrite=args.overwrite, progress=not args.no_progress,
                                        log=lambda m: print(f"realgap: {m}", file=sys.stderr),
                                        simulate=simulate_planar_room)
     occ = info["occ_log"][-1]["occ"] if info["occ_log"] else float("nan")

@@ -36,18 +36,16 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
                    help="training size: cpu = LeNet, 3000 steps (minutes on 2 cores); gpu = deeper net, 20000 steps")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
-    for flag, tp, h in (("--iterations", positive_int("--iterations"), "training steps"),
-                        ("--batch", positive_int("--batch"), "triplets per step"),
-                        ("--subdivisions", ranged("--subdivisions", int, 0, 5),
-                         "icosahedron subdivisions of the viewpoints, 0..5 (default 2)"),
-                        ("--network", str, "lenet or deeper"), ("--device", str, "torch device (cpu, cuda)"),
-                        ("--scale", positive_float("--scale"),
-                         "file units -> metres (default: guessed; 0.001 for millimetre CAD)")):
-        p.add_argument(flag, type=tp, help=h + " (overrides --preset)" if flag in ("--iterations", "--batch",
-                                                                                     "--network", "--device") else h)
+    p.add_argument("--subdivisions", type=ranged("--subdivisions", int, 0, 5),
+                   help="icosahedron subdivisions of the viewpoints, 0..5 (default 2)")
+    p.add_argument("--scale", type=positive_float("--scale"),
+                   help="file units -> metres (default: guessed; 0.001 for millimetre CAD)")
+    from app.commands.flags import add_config_flags
+    from recog.train import TrainConfig
+    add_config_flags(p.add_argument_group("training options (override --preset; defaults: the cpu preset's)"),
+                     TrainConfig, exclude=("seed",))
     p.add_argument("--symmetry", action="append", metavar="NAME=AXIS:ORDER",
                    help="declare an object's symmetry instead of detecting it (e.g. obj_05=z:2, obj_01=z:inf)")
-    p.add_argument("--checkpoint-every", type=positive_int("--checkpoint-every"), metavar="N", help="training checkpoint every N steps (default 250)")
     p.add_argument("--drop-data", action="store_true", help="delete the simulated training patches at the end")
     add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
     add_shared(p, "--seed", "of views and training (default 0)", default=0)
@@ -114,11 +112,12 @@ def train_configs(args):
     """(DataConfig, TrainConfig) of ``recog train`` arguments."""
     import dataclasses
 
+    from app.commands.flags import config_overrides
+    from data_tools.config import config_replace
     from recog.data import DataConfig
     from recog.train import TRAIN_PRESETS
-    train = dataclasses.replace(TRAIN_PRESETS[args.preset], seed=args.seed,
-                                **{k: getattr(args, k) for k in ("iterations", "batch", "network", "device",
-                                                                 "checkpoint_every") if getattr(args, k) is not None})
+    train = config_replace(dataclasses.replace(TRAIN_PRESETS[args.preset], seed=args.seed), config_overrides(args),
+                           "recog train")
     over = {"subdivisions": args.subdivisions} if args.subdivisions is not None else {}
     return DataConfig(variant=args.variant, preset=args.sensor, seed=args.seed, **over).validate(), train.validate()
 

@@ -5,7 +5,6 @@ import argparse
 import sys
 import typing
 
-from app.commands import SHARED_FLAGS
 from data_tools.camera import read_camera_json
 from data_tools.errors import ConfigError
 
@@ -22,37 +21,6 @@ DESCRIPTION = ("Register every frame of an RGB-D sequence with a backend (icp: f
 # configuration flags generated from the config dataclasses
 
 
-def _type_name(tp) -> str:
-    origin = typing.get_origin(tp)
-    if origin is tuple:
-        return "LIST"
-    return {int: "INT", float: "FLOAT", bool: "BOOL", str: "STR"}.get(tp, "VALUE")
-
-
-def _add_fields(group, cls, prefix: str, dest_prefix: str, exclude: tuple = ()) -> None:
-    import dataclasses
-    from data_tools.config import field_docs
-    docs = field_docs(cls)
-    hints = typing.get_type_hints(cls)
-    inst = cls()
-    for f in dataclasses.fields(cls):
-        tp = hints[f.name]
-        if dataclasses.is_dataclass(tp) or tp is typing.Any or f.name in exclude:
-            continue
-        default = getattr(inst, f.name)
-        if isinstance(default, tuple):
-            default = ",".join(str(x) for x in default)
-        help_text = docs.get(f.name, "").replace("%", "%%") + f" (default: {default})"
-        shared = f"--{prefix}{f.name.replace('_', '-')}"
-        if shared in SHARED_FLAGS:
-            help_text = SHARED_FLAGS[shared].replace("%", "%%") + ": " + help_text
-        names = [shared]     # the dashed spelling is the one shown; the field's own name is accepted too
-        if "_" in f.name:
-            names.append(f"--{prefix}{f.name}")
-        group.add_argument(*names, dest=f"cfg:{dest_prefix}{f.name}", metavar=_type_name(tp),
-                           default=argparse.SUPPRESS, help=help_text)
-
-
 def add_config_arguments(p: argparse.ArgumentParser) -> None:
     """Options shared by ``slam run`` and ``batch``: preset, config file, and one flag per
     configuration field (``--tsdf.voxel_size_m``, ``--icp.min_fitness``, ...)."""
@@ -66,19 +34,20 @@ def add_config_arguments(p: argparse.ArgumentParser) -> None:
                    "'config' object); flags below override it")
     p.add_argument("--camera", metavar="JSON", help="camera.json to use instead of the sequence's "
                    "own (e.g. TUM fr1 intrinsics)")
+    from app.commands.flags import add_config_flags
     g = p.add_argument_group("run options")
-    _add_fields(g, SlamConfig, "", "", exclude=("backend",))
+    add_config_flags(g, SlamConfig, exclude=("backend",), typed=False, nested=False)
     g = p.add_argument_group("TSDF options (--tsdf.NAME VALUE)")
-    _add_fields(g, TSDFConfig, "tsdf.", "tsdf.")
+    add_config_flags(g, TSDFConfig, "tsdf.", typed=False, nested=False)
     g = p.add_argument_group("loop closure options (--loop-closure.NAME VALUE; off: --loop-closure.enabled false)")
-    _add_fields(g, LoopClosureConfig, "loop-closure.", "loop_closure.")
+    add_config_flags(g, LoopClosureConfig, "loop_closure.", typed=False, nested=False, flag_prefix="loop-closure.")
     for name in backend_names():
         try:
             cls = get_backend(name).Config
         except Exception:  # a backend whose module cannot load does not break the CLI
             continue
         g = p.add_argument_group(f"{name} backend options (--{name}.NAME VALUE)")
-        _add_fields(g, cls, f"{name}.", f"{name}.")
+        add_config_flags(g, cls, f"{name}.", typed=False, nested=False)
 
 
 def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):

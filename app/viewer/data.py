@@ -201,7 +201,7 @@ class SequenceSession:
         for r in self.runs:
             if r.backend == "neural":
                 from data_tools.errors import RealgapError
-                from slam.neural.run import recall_view
+                from slam.neural.inference import recall_view
                 try:
                     rgb, depth = recall_view(r.run_dir, pose_c2w, hallucinate, size=(intr.width, intr.height))
                     out["neural"] = RenderedView(rgb, depth, pose_c2w, intr)

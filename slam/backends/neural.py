@@ -22,7 +22,7 @@ ground-truth pose (``groundtruth.txt``) gives the world frame, the camera height
 ``fitness`` of a step is the pose field's maximum probability (1 = certain). The memory (features
 and occupancy, ``.npy``) and PNG pictures of the occupancy (stretched to its own range) and of the
 memory's three principal feature components on the observed cells (those some registered view field
-covered, ``observed.npy``; not the occupancy LSTM's output, see :mod:`slam.neural.model`) are
+covered, ``observed.npy``; not the occupancy LSTM's output, see :mod:`slam.neural.memory`) are
 written to ``RUN/memory/`` (:meth:`NeuralBackend.save_outputs`), with the decoded top view
 (``topview.png``: the trained per-cell colour read-out of :mod:`slam.neural.topview`, row 0 = ahead of
 the first frame) when the model has one.
@@ -76,7 +76,7 @@ class NeuralConfig:
         if not (self.prior_move_m >= 0 and self.prior_turn_deg >= 0):
             raise ConfigError(f"neural.prior_move_m and neural.prior_turn_deg must be >= 0, got "
                               f"{self.prior_move_m}, {self.prior_turn_deg}")
-        from slam.neural import POSE_SCORES
+        from slam.neural.config import POSE_SCORES
         if self.score not in POSE_SCORES:
             raise ConfigError(f"neural.score must be one of {POSE_SCORES}, got {self.score!r}")
         if (self.prior_move_m == 0) != (self.prior_turn_deg == 0):
@@ -103,7 +103,7 @@ class NeuralBackend(RegistrationBackend):
         self._snap: dict | None = None
 
     def _load(self):
-        from slam.neural.train import load_model
+        from slam.neural.io import load_model
         folder = Path(self.config.model) if self.config.model else DEFAULT_MODEL
         model, tcfg, info = load_model(folder)
         if tcfg.mode != "3d":
@@ -143,7 +143,7 @@ class NeuralBackend(RegistrationBackend):
         if bar is not None:
             bar.close()
         reach = int(math.ceil(self.config.max_reach_m / w.cell_m))
-        from slam.neural.run import register_sequence
+        from slam.neural.inference import register_sequence
         out = register_sequence(model, np.stack(imgs), np.stack(cells), wedge, w.view + 2 * reach,
                                 motion_prior=self.config.motion_prior(w.cell_m, model.cfg.rotations),
                                 score=self.config.score)

@@ -20,59 +20,24 @@ frame's egocentric grid, rounded to the grid (the memory's resolution, as MapNet
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from data_tools.errors import ConfigError, FormatError
+from data_tools.errors import FormatError
+from slam.neural.config import World3DConfig
 
-__all__ = ["World3DConfig", "default_worlds_dir", "view_geometry", "cache_name", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
+__all__ = ["default_worlds_dir", "view_geometry", "cache_name", "TEST_SEED0", "frame_arrays", "load_sequence_arrays", "build_worlds", "WorldBank",
            "sequence_geometry"]
 
 TEST_SEED0 = 100_000
 """First ``procedural_room`` seed of the test worlds (training uses seeds 0 .. rooms - 1)."""
 
 
-@dataclass
-class World3DConfig:
-    """Grid, image and data settings of the 3D memory (saved with the weights)."""
-
-    cell_m: float = 0.15
-    """Side of a memory cell, metres."""
-    view: int = 33
-    """Side q of the egocentric grid, cells (odd): the view reaches (q // 2) x cell_m ahead."""
-    max_range_m: float = 2.4
-    """Depth beyond this is not projected (and the depth channel saturates), metres."""
-    image_h: int = 30
-    """Height of the network's images, pixels."""
-    image_w: int = 40
-    """Width of the network's images, pixels."""
-    rotations: int = 12
-    """Headings r (360 / r degrees apart)."""
-    rooms: int = 12
-    """Training rooms (sequences), seeds 0 .. rooms - 1."""
-    test_rooms: int = 3
-    """Test rooms, seeds TEST_SEED0 ..."""
-    frames: int = 200
-    """Frames per room sequence (30 fps)."""
-    stride_min: int = 5
-    """Fewest frames between two steps of a training sample."""
-    stride_max: int = 15
-    """Most frames between two steps of a training sample."""
-
-    def validate(self) -> "World3DConfig":
-        if self.view % 2 == 0 or self.view < 5:
-            raise ConfigError(f"view must be odd and >= 5, got {self.view}")
-        if not (self.cell_m > 0 and self.max_range_m > 0):
-            raise ConfigError("cell_m and max_range_m must be positive")
-        if not 1 <= self.stride_min <= self.stride_max:
-            raise ConfigError("need 1 <= stride_min <= stride_max")
-        return self
-
-
 def block_resize(rgb: np.ndarray | None, depth: np.ndarray, H: int, W: int):
+    """(colour (H, W, 3) float32 in [0, 1], depth (H, W) metres, 0 = none) of a full-size frame: colour by area
+    averaging, depth by the median of each block's valid pixels (none where fewer than a quarter are valid)."""
     import cv2
     h0, w0 = depth.shape
     by, bx = h0 // H, w0 // W
@@ -242,7 +207,3 @@ class WorldBank:
             poses.append(s["poses"][idx])
             allo.append(self.allocentric(s["poses"][idx]))
         return np.stack(imgs), np.stack(cells), np.stack(allo), np.stack(poses)
-
-
-def config_dict(cfg: World3DConfig) -> dict:
-    return asdict(cfg)

@@ -20,13 +20,9 @@ seeds), agents walk ``steps`` steps; then
   (the classic, geometry-only memory: perfect recall of what was seen, unseen pixels filled by
   OpenCV inpainting - the 2D counterpart of TSDF raycast + inpainting), the memory without the
   hallucination module, and registration with the true poses (no localisation error);
-* the ablations of thesis Table 4.2 at inference (the thesis retrains a model without each
-  module; we take the trained model and switch the module off, which measures how much the
-  trained model relies on it - an approximation, said here): *no localisation* - every
-  observation is written at the first pose (the agent does not know where it went), views are
-  recalled at the true poses; *no culling* - the decoder gets the whole q x q memory window at the
-  pose instead of the view-field cells (view-field channel all ones). With a square agent the view
-  field is the whole window and "no culling" changes nothing.
+* the ablations of thesis Table 4.2 at inference, *no localisation* and *no culling*
+  (:mod:`slam.neural.ablations`, shared with the 3D evaluation). With a square agent the view field is the
+  whole window and "no culling" changes nothing.
 """
 from __future__ import annotations
 
@@ -34,32 +30,10 @@ import time
 
 import numpy as np
 
-__all__ = ["ssim_thesis", "evaluate_2d", "rigid_ate"]
+from slam.neural.ablations import ANAMNESIS_SETS, HALLUCINATION_SETS, image_summary, recall_ablations, rigid_ate, \
+    ssim_thesis
 
-
-def ssim_thesis(a: np.ndarray, b: np.ndarray, n: int = 5, c1: float = 0.001, c2: float = 0.003) -> float:
-    """Thesis Eq. 4.14: mean over non-overlapping n x n windows of grey [0, 1] images (H, W)."""
-    H, W = a.shape
-    vals = []
-    for i in range(0, H - n + 1, n):
-        for j in range(0, W - n + 1, n):
-            x, y = a[i:i + n, j:j + n].astype(np.float64), b[i:i + n, j:j + n].astype(np.float64)
-            mx, my = x.mean(), y.mean()
-            vx, vy, cxy = x.var(), y.var(), ((x - mx) * (y - my)).mean()
-            vals.append(((2 * mx * my + c1) * (2 * cxy + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2)))
-    return float(np.mean(vals)) if vals else float("nan")
-
-
-def rigid_ate(est: np.ndarray, gt: np.ndarray) -> float:
-    """RMSE (px) of (N, 2) positions after the best proper rotation + translation (2D Kabsch)."""
-    est, gt = np.asarray(est, float), np.asarray(gt, float)
-    me, mg = est.mean(0), gt.mean(0)
-    H = (est - me).T @ (gt - mg)
-    U_, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U_.T)) or 1.0])
-    R = Vt.T @ D @ U_.T
-    al = (est - me) @ R.T + mg
-    return float(np.sqrt(np.mean(np.sum((al - gt) ** 2, 1))))
+__all__ = ["evaluate_2d"]
 
 
 def _grey01(x: np.ndarray) -> np.ndarray:
@@ -111,7 +85,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     import torch
 
     from slam.neural.data2d import AGENTS, KINDS, make_batch, view_mask
-    from slam.neural.model import memory_index, peak_poses
+    from slam.neural.fields import peak_poses
     agent = AGENTS[cfg.agent]
     mask = view_mask(agent)
     vm = torch.from_numpy(mask.astype(np.float32))
@@ -119,9 +93,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     U = model.cfg.memory
     ape, ate, ape_kind, one = [], [], [], []
     img_kind = {"anam": [], "hallu": []}        # the environment kind of every row of rows["anam"] / rows["hallu"]
-    rows = {k: [] for k in ("anam", "anam_true_poses", "hallu", "hallu_no_module", "mosaic_anam", "mosaic_hallu",
-                            "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
-    full = torch.ones_like(vm)
+    rows = {k: [] for k in (*ANAMNESIS_SETS, *HALLUCINATION_SETS, "mosaic_anam", "mosaic_hallu")}
 
     def shown(x):       # example figures: outside the view field (not measured) grey, as the observations
         return list(x.numpy() * mask)
@@ -130,59 +102,39 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
     if progress:
         from data_tools.progress import progress_bar
         bar = progress_bar(total=sequences, desc="evaluating neural memory", unit="sequence")
-    B = 8
+    B, T, k = 8, cfg.steps, cfg.observe
     done = 0
-    with torch.no_grad():
-        while done < sequences:
-            b = min(B, sequences - done)
-            _, obs, _, allo, kinds = make_batch(rng, b, agent, cfg.steps, cfg.image, split="test", with_kinds=True)
-            o, a = torch.from_numpy(obs), torch.from_numpy(allo)
-            out = model(o, vm, None)
-            est = out["estimates"].numpy()
-            tru = model(o, vm, a)
-            one_est = peak_poses(tru["logits"], tru["centres"]).numpy()      # each step against the true-pose memory
-            k = cfg.observe
-            part = model(o[:, :k], vm, a[:, :k])
-            filled = model.hallucinate(part["psi"], part["occ"])
-            T = cfg.steps
-            rec = model.recall(out["psi"], a.flatten(0, 1), vm, memory_index(out["psi"], T)).view(b, T, *obs.shape[2:])
-            rec_t = model.recall(tru["psi"], a.flatten(0, 1), vm, memory_index(tru["psi"], T)).view(b, T, *obs.shape[2:])
-            later = a[:, k:].flatten(0, 1)
-            hal = model.recall(filled, later, vm, memory_index(filled, T - k)).view(b, T - k, *obs.shape[2:])
-            hal0 = model.recall(part["psi"], later, vm, memory_index(part["psi"], T - k)).view(b, T - k, *obs.shape[2:])
-            nol = model(o, vm, a[:, :1].expand_as(a).contiguous())        # ablation: no localisation
-            rec_nl = model.recall(nol["psi"], a.flatten(0, 1), vm, memory_index(nol["psi"], T)).view(b, T, *obs.shape[2:])
-            rec_nc = model.recall(out["psi"], a.flatten(0, 1), full, memory_index(out["psi"], T)).view(b, T, *obs.shape[2:])
-            hal_nc = model.recall(filled, later, full, memory_index(filled, T - k)).view(b, T - k, *obs.shape[2:])
-            for i in range(b):
-                d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
-                ape += d.tolist()
-                one += np.linalg.norm(one_est[i, 1:, :2] - allo[i, 1:, :2], axis=1).tolist()
-                ape_kind += [int(kinds[i])] * len(d)
-                ate.append(rigid_ate(est[i, :, :2].astype(float), allo[i, :, :2].astype(float)))
-                mos_a = _mosaic_views(obs[i], allo[i], mask, U, T, allo[i])
-                mos_h = _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])
-                if examples is not None and done == 0 and i < 2:
-                    examples.setdefault("samples", []).append({"rows": [
-                        (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", shown(rec[i])),
-                        ("hallucinated", [None] * k + shown(hal[i])),
-                        ("mosaic + inpainting", [None] * k + list(mos_h))]})
-                img_kind["anam"] += [int(kinds[i])] * T
-                img_kind["hallu"] += [int(kinds[i])] * (T - k)
-                for t in range(T):
-                    rows["anam"].append(_image_metrics(rec[i, t].numpy(), obs[i, t], mask))
-                    rows["anam_true_poses"].append(_image_metrics(rec_t[i, t].numpy(), obs[i, t], mask))
-                    rows["mosaic_anam"].append(_image_metrics(mos_a[t], obs[i, t], mask))
-                    rows["anam_no_localisation"].append(_image_metrics(rec_nl[i, t].numpy(), obs[i, t], mask))
-                    rows["anam_no_culling"].append(_image_metrics(rec_nc[i, t].numpy(), obs[i, t], mask))
-                for t in range(T - k):
-                    rows["hallu"].append(_image_metrics(hal[i, t].numpy(), obs[i, k + t], mask))
-                    rows["hallu_no_module"].append(_image_metrics(hal0[i, t].numpy(), obs[i, k + t], mask))
-                    rows["mosaic_hallu"].append(_image_metrics(mos_h[t], obs[i, k + t], mask))
-                    rows["hallu_no_culling"].append(_image_metrics(hal_nc[i, t].numpy(), obs[i, k + t], mask))
-            done += b
-            if bar is not None:
-                bar.update(b)
+    while done < sequences:
+        b = min(B, sequences - done)
+        _, obs, _, allo, kinds = make_batch(rng, b, agent, T, cfg.image, split="test", with_kinds=True)
+        a = torch.from_numpy(allo)
+        v = recall_ablations(model, torch.from_numpy(obs), vm, a, a, k)
+        est = v["own"]["estimates"].numpy()
+        one_est = peak_poses(v["true"]["logits"], v["true"]["centres"]).numpy()  # each step against the true memory
+        for i in range(b):
+            d = np.linalg.norm(est[i, 1:, :2] - allo[i, 1:, :2], axis=1)
+            ape += d.tolist()
+            one += np.linalg.norm(one_est[i, 1:, :2] - allo[i, 1:, :2], axis=1).tolist()
+            ape_kind += [int(kinds[i])] * len(d)
+            ate.append(rigid_ate(est[i, :, :2].astype(float), allo[i, :, :2].astype(float)))
+            mos = {"mosaic_anam": _mosaic_views(obs[i], allo[i], mask, U, T, allo[i]),
+                   "mosaic_hallu": _mosaic_views(obs[i], allo[i], mask, U, k, allo[i, k:])}
+            if examples is not None and done == 0 and i < 2:
+                examples.setdefault("samples", []).append({"rows": [
+                    (f"observed ({KINDS[int(kinds[i])]})", list(obs[i])), ("recalled", shown(v["anam"][i])),
+                    ("hallucinated", [None] * k + shown(v["hallu"][i])),
+                    ("mosaic + inpainting", [None] * k + list(mos["mosaic_hallu"]))]})
+            img_kind["anam"] += [int(kinds[i])] * T
+            img_kind["hallu"] += [int(kinds[i])] * (T - k)
+            for name in (*ANAMNESIS_SETS, "mosaic_anam"):
+                views = mos[name] if name in mos else v[name][i].numpy()
+                rows[name] += [_image_metrics(views[t], obs[i, t], mask) for t in range(T)]
+            for name in (*HALLUCINATION_SETS, "mosaic_hallu"):
+                views = mos[name] if name in mos else v[name][i].numpy()
+                rows[name] += [_image_metrics(views[t], obs[i, k + t], mask) for t in range(T - k)]
+        done += b
+        if bar is not None:
+            bar.update(b)
     if bar is not None:
         bar.close()
     ape_a, ate_a, kind_a, one_a = np.asarray(ape), np.asarray(ate), np.asarray(ape_kind), np.asarray(one)
@@ -193,9 +145,7 @@ def evaluate_2d(model, cfg, sequences: int = 64, seed: int = 12345, progress: bo
         return {"median": float(np.median(a)), "mean": float(np.mean(a)), "std": float(np.std(a))}
 
     def images(key, sel=None):
-        v = np.asarray(rows[key])
-        v = v if sel is None else v[sel]
-        return {"l1": float(v[:, 0].mean()), "ssim_thesis": float(v[:, 1].mean()), "ssim_skimage": float(v[:, 2].mean())}
+        return image_summary(rows[key] if sel is None else np.asarray(rows[key])[sel])
 
     def by_kind(key, kinds_of=None):
         kk = np.asarray(img_kind[kinds_of or key])

@@ -19,10 +19,8 @@
   ``skimage.metrics.structural_similarity``, at the decoder's 40 x 30 pixels.
 * **Baselines and ablations** (same samples): the classic memory - the first ``observe`` frames
   fused at their true poses into a TSDF (``slam.tsdf``), ray cast at the later poses, resized to
-  40 x 30, holes filled by OpenCV inpainting (Telea) -; the memory without the hallucination module;
-  recall from a memory registered at the true poses (no localisation error); thesis Table 4.2's
-  *no localisation* and *no culling* at inference, as in :mod:`slam.neural.evaluate` (the trained
-  model with the module switched off, not a model retrained without it).
+  40 x 30, holes filled by OpenCV inpainting (Telea) -; the ablations of :mod:`slam.neural.ablations`
+  (shared with the 2D evaluation).
 * **Top view** (when the model has a trained top-view decoder, :mod:`slam.neural.topview`): on the
   same samples, the decoded colour floor plan of the memory the model registered itself and of the
   memory at the true poses, L1 (RGB in [0, 1]) against the views' pixels binned per cell, on the
@@ -37,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.neural.ablations import ANAMNESIS_SETS, HALLUCINATION_SETS, image_summary, recall_ablations
+
 __all__ = ["evaluate_3d", "worlds_root"]
 
 
@@ -45,7 +45,7 @@ def _metrics(pred: np.ndarray, true: np.ndarray, max_range_m: float) -> tuple[fl
     images in [-1, 1]."""
     from skimage.metrics import structural_similarity
 
-    from slam.neural.evaluate import ssim_thesis
+    from slam.neural.ablations import ssim_thesis
     p, t = np.clip((pred[:3] + 1) / 2, 0, 1), np.clip((true[:3] + 1) / 2, 0, 1)
     l1 = float(np.abs(p - t).mean())
     pg, tg = p.mean(0), t.mean(0)
@@ -156,9 +156,8 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
     k, T = tcfg.observe, tcfg.steps
     bcfg = make_config("neural").backend_config     # the defaults `slam run --backend neural` registers with
     prior = bcfg.motion_prior(w.cell_m, model.cfg.rotations)
-    rows = {key: [] for key in ("anam", "anam_backend", "anam_true_poses", "hallu", "hallu_no_module",
-                                "tsdf_inpainting", "anam_no_localisation", "anam_no_culling", "hallu_no_culling")}
-    full = torch.ones_like(vm)
+    sets = (*ANAMNESIS_SETS, "anam_backend", *HALLUCINATION_SETS)
+    rows = {key: [] for key in (*sets, "tsdf_inpainting")}
     from slam.neural.topview import load_topview, topview_targets
     topdec = load_topview(model_dir, model.cfg.features)
     top_rows = []
@@ -172,31 +171,22 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
         obs = torch.from_numpy(s["images"][idx].astype(np.float32))[None]
         cells = torch.from_numpy(s["cells"][idx].astype(np.int64))[None]
         allo = torch.from_numpy(bank.allocentric(s["poses"][idx]))[None]
-        a = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))      # recall at the exact poses
-        with torch.no_grad():
-            out = model(obs, vm, None, cells=cells)
-            own = model(obs, vm, None, cells=cells, motion_prior=prior, score=bcfg.score)
-            tru = model(obs, vm, allo, cells=cells)
-            part = model(obs[:, :k], vm, allo[:, :k], cells=cells[:, :k])
-            filled = model.hallucinate(part["psi"], part["occ"])
-            rec = model.recall(out["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            rec_b = model.recall(own["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            rec_t = model.recall(tru["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            hal = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], vm).numpy()
-            hal0 = model.recall(part["psi"].expand(T - k, -1, -1, -1), a[k:], vm).numpy()
-            nol = model(obs, vm, allo[:, :1].expand_as(allo).contiguous(), cells=cells)   # no localisation
-            rec_nl = model.recall(nol["psi"].expand(T, -1, -1, -1), a, vm).numpy()
-            rec_nc = model.recall(out["psi"].expand(T, -1, -1, -1), a, full).numpy()             # no culling
-            hal_nc = model.recall(filled.expand(T - k, -1, -1, -1), a[k:], full).numpy()
-            if topdec is not None:      # the colour floor plan: decoded vs the views' pixels binned per cell
+        a = torch.from_numpy(bank.exact(s["poses"][idx]).astype(np.float32))[None]      # recall at the exact poses
+        v = recall_ablations(model, obs, vm, allo, a, k, cells=cells, backend={"motion_prior": prior,
+                                                                               "score": bcfg.score})
+        views = {key: v[key][0].numpy() for key in sets}
+        rec, hal = views["anam"], views["hallu"]
+        out, tru = v["own"], v["true"]
+        if topdec is not None:      # the colour floor plan: decoded vs the views' pixels binned per cell
+            with torch.no_grad():
                 tgt, seen = topview_targets(obs, cells, allo, model.cfg.rotations, model.cfg.view, tru["psi"].shape[-1])
                 m = seen[0, 0].numpy()
                 tv = tgt[0].numpy()[:, m]
                 d_self = topdec(out["psi"], out["occ"])[0].numpy()[:, m]
                 d_true = topdec(tru["psi"], tru["occ"])[0].numpy()[:, m]
-                if m.any():           # L1 in [0, 1] colour units; baseline: the sample's own mean colour everywhere
-                    top_rows.append((float(np.abs(d_self - tv).mean() / 2), float(np.abs(d_true - tv).mean() / 2),
-                                     float(np.abs(tv.mean(1, keepdims=True) - tv).mean() / 2)))
+            if m.any():           # L1 in [0, 1] colour units; baseline: the sample's own mean colour everywhere
+                top_rows.append((float(np.abs(d_self - tv).mean() / 2), float(np.abs(d_true - tv).mean() / 2),
+                                 float(np.abs(tv.mean(1, keepdims=True) - tv).mean() / 2)))
         true = s["images"][idx].astype(np.float32)
         base = _tsdf_baseline(readers[si], idx[:k], idx[k:], w)
         if examples is not None and len(examples.setdefault("samples", [])) < 2:
@@ -207,22 +197,14 @@ def evaluate_3d(model, tcfg, out_dir: str | Path, model_dir: str | Path, extra_s
                 ("TSDF + inpainting", [None] * k + list(base)), ("observed depth", [depth(x) for x in true]),
                 ("hallucinated depth", [None] * k + [depth(x) for x in hal]),
                 ("TSDF depth", [None] * k + [depth(x) for x in base])]})
-        for t in range(T):
-            rows["anam"].append(_metrics(rec[t], true[t], w.max_range_m))
-            rows["anam_backend"].append(_metrics(rec_b[t], true[t], w.max_range_m))
-            rows["anam_true_poses"].append(_metrics(rec_t[t], true[t], w.max_range_m))
-            rows["anam_no_localisation"].append(_metrics(rec_nl[t], true[t], w.max_range_m))
-            rows["anam_no_culling"].append(_metrics(rec_nc[t], true[t], w.max_range_m))
-        for t in range(T - k):
-            rows["hallu"].append(_metrics(hal[t], true[k + t], w.max_range_m))
-            rows["hallu_no_module"].append(_metrics(hal0[t], true[k + t], w.max_range_m))
-            rows["tsdf_inpainting"].append(_metrics(base[t], true[k + t], w.max_range_m))
-            rows["hallu_no_culling"].append(_metrics(hal_nc[t], true[k + t], w.max_range_m))
+        for key in (*ANAMNESIS_SETS, "anam_backend"):
+            rows[key] += [_metrics(views[key][t], true[t], w.max_range_m) for t in range(T)]
+        for key in HALLUCINATION_SETS:
+            rows[key] += [_metrics(views[key][t], true[k + t], w.max_range_m) for t in range(T - k)]
+        rows["tsdf_inpainting"] += [_metrics(base[t], true[k + t], w.max_range_m) for t in range(T - k)]
 
     def images(key):
-        v = np.asarray(rows[key], float)
-        return {"l1": float(np.nanmean(v[:, 0])), "ssim_thesis": float(np.nanmean(v[:, 1])),
-                "ssim_skimage": float(np.nanmean(v[:, 2])), "depth_l1_m": float(np.nanmean(v[:, 3]))}
+        return image_summary(rows[key], ("l1", "ssim_thesis", "ssim_skimage", "depth_l1_m"))
     res.update({"samples": samples, "steps": T, "observe": k, "anamnesis": images("anam"),
                 "anamnesis_backend_registration": images("anam_backend"),
                 "anamnesis_true_poses": images("anam_true_poses"), "hallucination": images("hallu"),

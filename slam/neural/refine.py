@@ -22,7 +22,7 @@ so localisation - and every ATE of the ``neural`` backend - is unchanged; only r
   a window could show, which SSIM (the thesis' image metric) scores low; measured on the test rooms,
   48 rooms with L1 alone give hallucination SSIM 0.62, with the SSIM term 0.65 (L1 0.155 both).
 
-2D (:class:`Walks2D`): the pool holds training walks of the model's agent (``rooms`` unused), the L1 is taken
+2D (:class:`slam.neural.data.Walks2D`): the pool holds training walks of the model's agent (``rooms`` unused), the L1 is taken
 on the view field and the SSIM on the view field with the truth outside it, as :mod:`slam.neural.evaluate`
 measures.
 
@@ -32,66 +32,17 @@ steps); a resumed run rebuilds the same pool (same seed) and continues.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from data_tools.errors import ConfigError
+from slam.neural.config import RefineConfig
 
-__all__ = ["RefineConfig", "Walks2D", "build_pool", "refine_decoder", "POOL_BATCH"]
+__all__ = ["build_pool", "refine_decoder", "POOL_BATCH"]
 
 POOL_BATCH = 8
 """Samples memorised per pool batch (one forward pass of the memory)."""
-
-
-@dataclass
-class RefineConfig:
-    """How the decoder is refined (saved in the model's neural.json ``info``)."""
-
-    rooms: int = 48
-    """3D: training rooms whose views form the pool (seeds 0 .. rooms - 1; the memory trained on the first 12)."""
-    pool_batches: int = 450
-    """Batches of ``batch`` samples memorised once for the pool (3600 samples of 10 views by default)."""
-    steps: int = 1500
-    """Optimiser steps (3D, in an experiment with this pool size: the test rooms' SSIM was flat from 500 to 1500
-    steps)."""
-    batch: int = 32
-    """(memory, pose) pairs per step."""
-    lr: float = 2e-4
-    ssim_weight: float = 1.0
-    """Weight of the (1 - SSIM) / 2 term (kornia's ``ssim_loss``) beside the L1; 0 = the thesis' L1 alone."""
-    seed: int = 0
-    checkpoint_every: int = 250
-
-    def validate(self) -> "RefineConfig":
-        for k in ("rooms", "pool_batches", "steps", "batch", "checkpoint_every"):
-            if int(getattr(self, k)) < 1:
-                raise ConfigError(f"{k} must be >= 1, got {getattr(self, k)}")
-        if self.ssim_weight < 0 or not np.isfinite(self.ssim_weight):
-            raise ConfigError(f"ssim_weight must be >= 0, got {self.ssim_weight}")
-        if not self.lr > 0:
-            raise ConfigError(f"lr must be > 0, got {self.lr}")
-        return self
-
-
-class Walks2D:
-    """2D stand-in for :class:`slam.neural.data3d.WorldBank`: ``sample`` draws training walks of ``agent`` on
-    environments of side ``size`` (:func:`slam.neural.data2d.make_batch`, split ``train``); poses are integers."""
-
-    def __init__(self, agent: str, size: int):
-        from slam.neural.data2d import AGENTS, view_mask
-        self.agent, self.size = AGENTS[agent], int(size)
-        self.wedge = view_mask(self.agent).astype(bool)
-
-    def sample(self, rng: np.random.Generator, batch: int, steps: int):
-        from slam.neural.data2d import make_batch
-        _, obs, _, allo = make_batch(rng, batch, self.agent, steps, self.size)
-        return obs.astype(np.float32), None, allo, allo
-
-    def exact(self, poses: np.ndarray) -> np.ndarray:
-        return np.asarray(poses, np.float64)
 
 
 def build_pool(model, bank, batches: int, batch: int, steps: int, observe: int, seed: int,
@@ -152,7 +103,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
                    log: Callable[[str], None] | None = None,
                    on_checkpoint: Callable[[int], None] | None = None) -> dict:
     """Refine ``model.decoder`` in place on ``bank`` (3D: :class:`slam.neural.data3d.WorldBank` of ``rcfg.rooms``
-    rooms; 2D: :class:`Walks2D`, ``rooms`` unused), every other weight frozen; returns the info saved with the
+    rooms; 2D: :class:`slam.neural.data.Walks2D`, ``rooms`` unused), every other weight frozen; returns the info saved with the
     model (config, losses, seconds). ``on_checkpoint(step)``: called after each checkpoint (and on a resume)."""
     import torch
     from kornia.losses import ssim_loss

@@ -15,9 +15,9 @@ change:
 
 1. **occupancy** (``occ_steps``): the model switched to the ``affine`` mask b = (h + 1) / 2 and its occupancy LSTM
    trained alone to the observed cells ``seen`` (L_occ, BCE - the deviation documented in
-   :mod:`slam.neural.model`), Adam at :data:`slam.neural.train.OCC_LR`, memories registered at the true poses.
+   :mod:`slam.neural.memory`), Adam at :data:`slam.neural.config.OCC_LR`, memories registered at the true poses.
 2. **hallucination** (``steps``): the module and a new patch discriminator, both re-initialised N(0, 0.02), trained
-   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.train.hallucination_step`, the same step
+   with the thesis' L_hallu + L_corrupt + 0.05 L_GAN (:func:`slam.neural.losses.hallucination_step`, the same step
    as the memory training's last phase), Adam (beta1 0.5) at ``lr`` falling linearly to a tenth over the stage -
    as the hallucination phase of the 3D ``cpu-long`` recipe, which lies wholly inside its learning-rate decay.
 
@@ -27,53 +27,31 @@ The top-view decoder (:mod:`slam.neural.topview`) reads the occupancy, so a 3D m
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from data_tools.errors import ConfigError
+from slam.neural.config import OCC_LR, HallucinationConfig
 
-__all__ = ["HallucinationConfig", "refine_hallucination"]
-
-
-@dataclass
-class HallucinationConfig:
-    """How the occupancy mask and the hallucination module are retrained (saved in the model's neural.json)."""
-
-    occ_steps: int = 400
-    """Steps of stage 1 (L_occ; measured on planar_3d, batch 8: L_occ 0.385 after 25 steps, 0.009 after 250)."""
-    steps: int = 600
-    """Steps of stage 2 (the hallucination GAN; the 3D ``cpu-long`` memory training gives it 400)."""
-    lr: float = 2e-4
-    """Stage 2's initial learning rate (thesis: 2e-4), falling linearly to a tenth."""
-    seed: int = 0
-    """Seeds the batches and the re-initialised weights."""
-    checkpoint_every: int = 100
-
-    def validate(self) -> "HallucinationConfig":
-        for k, least in (("occ_steps", 0), ("steps", 1), ("checkpoint_every", 1)):
-            if int(getattr(self, k)) < least:
-                raise ConfigError(f"{k} must be >= {least}, got {getattr(self, k)}")
-        if not (self.lr > 0 and np.isfinite(self.lr)):
-            raise ConfigError(f"lr must be > 0, got {self.lr}")
-        return self
+__all__ = ["refine_hallucination"]
 
 
 def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint: str | Path | None = None,
                          progress: bool = True, log: Callable[[str], None] | None = None,
                          on_checkpoint: Callable[[int], None] | None = None) -> dict:
     """Retrain ``model``'s occupancy LSTM (switching it to the ``affine`` mask) and hallucination module in place on
-    ``bank`` (3D: :class:`slam.neural.data3d.WorldBank`; 2D: :class:`slam.neural.refine.Walks2D`); ``cfg``: the
-    model's :class:`slam.neural.train.NeuralTrainConfig` (batch, steps, observe). Returns the info saved with the
+    ``bank`` (3D: :class:`slam.neural.data3d.WorldBank`; 2D: :class:`slam.neural.data.Walks2D`); ``cfg``: the
+    model's :class:`slam.neural.config.NeuralTrainConfig` (batch, steps, observe). Returns the info saved with the
     model (config, losses, seconds). ``on_checkpoint(step)``: called after each checkpoint (and on a resume)."""
     import torch
     import torch.nn.functional as F
 
-    from slam.neural.model import PatchDiscriminator, init_weights
+    from slam.neural.data import batch_tensors
+    from slam.neural.losses import hallucination_step
+    from slam.neural.networks import PatchDiscriminator, init_weights
     from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
-    from slam.neural.train import OCC_LR, hallucination_step, bank_batch
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -104,7 +82,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             set_lr((opt_h, opt_d), hcfg.lr * linear_ramp(step - hcfg.occ_steps, 1, hcfg.steps, 0.1))
 
     def step_fn(step: int) -> dict:
-        obs, cells, allo, exact = bank_batch(bank, rng, cfg.batch, cfg.steps, dev)
+        obs, cells, allo, exact = batch_tensors(bank, rng, cfg.batch, cfg.steps, dev)
         if step < hcfg.occ_steps:
             model.eval()
             out = model(obs, vm, allo, cells=cells)
@@ -114,7 +92,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
             opt_occ.step()
             return {"occ": float(l_occ.detach())}
         model.train()         # spectral norm's power iteration runs in training mode, as in the memory training
-        losses = hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg, cells, img_mask, exact)
+        losses = hallucination_step(model, disc, opt_h, opt_d, obs, allo, vm, cfg.observe, cells, img_mask, exact)
         model.eval()
         return losses
 

@@ -1,4 +1,6 @@
-"""The runs behind ``realgap neural train|eval``: a model folder, resumable training, evaluation JSON."""
+"""The runs behind the ``realgap neural`` commands: a model folder made or copied, resumable training and
+refinement stages, the evaluation JSON with its result header. The inference the backend, ``slam render`` and
+the viewer call is :mod:`slam.neural.inference`."""
 from __future__ import annotations
 
 import os
@@ -8,7 +10,7 @@ from typing import Callable
 from data_tools.errors import ConfigError
 
 __all__ = ["train_to_folder", "train_topview_into", "add_topview", "refine_into", "refine_folder",
-           "refine_hallucination_folder", "evaluate_folder"]
+           "refine_hallucination_folder", "evaluate_folder", "eval_metrics"]
 
 REFINE_CHECKPOINT = "refine_checkpoint.pt"
 HALLU_CHECKPOINT = "hallucination_checkpoint.pt"
@@ -17,27 +19,29 @@ HALLU_CHECKPOINT = "hallucination_checkpoint.pt"
 def train_to_folder(cfg, out: str | os.PathLike, overwrite: bool = False, progress: bool = True,
                     log: Callable[[str], None] | None = None, simulate=None):
     """Train into ``out`` (MODEL/weights.pt, neural.json; checkpoint.pt while training)."""
+    import dataclasses
+
     from data_tools.outputs import check_output_dir, clear_incomplete, mark_incomplete
-    from slam.neural.train import save_model, train_memory
+    from slam.neural.io import save_model
+    from slam.neural.train import train_memory
     folder = check_output_dir(out, finished="neural.json", overwrite=overwrite)
     if overwrite:
         for name in ("neural.json", "weights.pt", "checkpoint.pt"):
             (folder / name).unlink(missing_ok=True)
     folder.mkdir(parents=True, exist_ok=True)
-    total = cfg.iterations + cfg.refine_steps
-    unit = "steps (memory training, then decoder refinement)" if cfg.refine_steps else "steps"
+    total = cfg.iterations + cfg.refine.steps
+    unit = "steps (memory training, then decoder refinement)" if cfg.refine.steps else "steps"
 
     def mark(done: int) -> None:
         mark_incomplete(folder, "realgap neural train", done, total, unit=unit)
     mark(0)
+    cfg = cfg.validate().resolved()
     model, _disc, tlog = train_memory(cfg, folder / "checkpoint.pt", progress=progress, log=log, simulate=simulate,
                                       on_checkpoint=mark)
     info = {}
-    if cfg.refine_steps > 0:
+    if cfg.refine.steps > 0:
         # the memory's final checkpoint is on disk: an interruption here restarts only this phase
-        from slam.neural.refine import RefineConfig
-        rcfg = RefineConfig(rooms=cfg.refine_rooms, steps=cfg.refine_steps, pool_batches=cfg.refine_pool_batches,
-                            seed=cfg.seed)
+        rcfg = dataclasses.replace(cfg.refine, seed=cfg.seed)
         info["decoder_refinement"] = refine_into(folder, model, cfg, rcfg, progress=progress, log=log,
                                                  simulate=simulate, command=f"realgap neural train --mode {cfg.mode}",
                                                  on_checkpoint=lambda s: mark(cfg.iterations + s))
@@ -57,7 +61,7 @@ def train_topview_into(folder, model, cfg, steps: int, progress: bool = True, lo
     """Train the top-view decoder of a 3D ``model`` (frozen) on ``cfg``'s training rooms for ``steps`` steps and
     write MODEL/topview.pt (:mod:`slam.neural.topview`); returns its info (steps, seed, seconds, losses)."""
     from slam.neural.topview import save_topview, train_topview
-    from slam.neural.train import worlds_3d
+    from slam.neural.data import worlds_3d
     bank = worlds_3d(cfg, simulate, progress, log)
     dec, hist, sec = train_topview(model, bank, steps, batch=cfg.batch, seq_steps=cfg.steps, lr=cfg.lr, seed=cfg.seed,
                                    progress=progress, log=log)
@@ -67,17 +71,17 @@ def train_topview_into(folder, model, cfg, steps: int, progress: bool = True, lo
     return info
 
 
-def add_topview(model_dir, steps: int, overwrite: bool = False, worlds: str | None = None, progress: bool = True,
+def add_topview(model_dir, tvcfg, overwrite: bool = False, worlds: str | None = None, progress: bool = True,
                 log=None, simulate=None) -> dict:
-    """``neural train-topview``: give an existing 3D model folder a trained top-view decoder (the memory's
-    weights are not touched)."""
+    """``neural train-topview``: give an existing 3D model folder a trained top-view decoder for ``tvcfg``
+    (:class:`slam.neural.config.TopviewConfig`) (the memory's weights are not touched)."""
     import dataclasses
 
     from data_tools.errors import RealgapError
+    from slam.neural.io import load_model
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import load_model
-    if steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {steps}")
+    tvcfg.validate()
+    steps = tvcfg.steps
     model, cfg, _ = load_model(model_dir)
     if cfg.mode != "3d":
         raise ConfigError(f"{model_dir} is a {cfg.mode} model; the top-view decoder is for 3d models (a 2d memory "
@@ -98,13 +102,10 @@ def refine_into(folder, model, cfg, rcfg, progress: bool = True, log=None, simul
     (``on_checkpoint(step)`` after each); returns its info."""
     import dataclasses
 
-    from slam.neural.refine import Walks2D, refine_decoder
-    from slam.neural.train import worlds_3d
-    if cfg.mode == "3d":
-        wcfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, rooms=int(rcfg.rooms)))
-        bank = worlds_3d(wcfg, simulate, progress, log)
-    else:
-        bank = Walks2D(cfg.agent, cfg.image)
+    from slam.neural.data import batch_source
+    from slam.neural.refine import refine_decoder
+    wcfg = dataclasses.replace(cfg, world=dataclasses.replace(cfg.world, rooms=int(rcfg.rooms)))
+    bank = batch_source(wcfg, simulate, progress, log)
     info = refine_decoder(model, bank, rcfg, cfg.steps, cfg.observe, Path(folder) / REFINE_CHECKPOINT,
                           progress=progress, log=log, on_checkpoint=on_checkpoint)
     info["command"] = command
@@ -117,8 +118,8 @@ def _model_copy_folder(model_dir, out, overwrite: bool, command: str, total: int
     ``overwrite``) and marked incomplete until the copy is saved; ``mark(done)`` updates that marker to ``done`` of
     ``total`` steps."""
     from data_tools.outputs import check_output_dir, mark_incomplete
+    from slam.neural.io import load_model
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import load_model
     model, cfg, info = load_model(model_dir)
     if Path(out).resolve() == Path(model_dir).resolve():
         raise ConfigError(f"--out {out} is the model folder itself: the new model goes into a new folder")
@@ -143,9 +144,11 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     import shutil
 
     from data_tools.outputs import clear_incomplete
+    from slam.neural.io import save_model
     from slam.neural.topview import TOPVIEW_FILE
-    from slam.neural.train import save_model
     rcfg.validate()
+    if rcfg.steps < 1:
+        raise ConfigError(f"steps must be >= 1, got {rcfg.steps}")
     model, cfg, info, folder, mark = _model_copy_folder(model_dir, out, overwrite, "realgap neural refine-decoder",
                                                         rcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
@@ -165,27 +168,26 @@ def refine_folder(model_dir, out, rcfg, worlds: str | None = None, overwrite: bo
     return rinfo
 
 
-def refine_hallucination_folder(model_dir, out, hcfg, topview_steps: int = 300, worlds: str | None = None,
+def refine_hallucination_folder(model_dir, out, hcfg, worlds: str | None = None,
                                 overwrite: bool = False, progress: bool = True, log=None, simulate=None) -> dict:
     """``neural refine-hallucination``: a copy of the model folder ``model_dir`` in ``out`` with a trained
     occupancy mask and a retrained hallucination module (:mod:`slam.neural.refine_hallucination`; every other
     weight copied unchanged). The top-view decoder of a 3D model reads the occupancy: it is retrained for
-    ``topview_steps`` steps on the same rooms (0 = none is written). Resumable: a re-run with the same ``out``
+    ``hcfg.topview_steps`` steps on the same rooms (0 = none is written). Resumable: a re-run with the same ``out``
     continues from its checkpoint. Returns the stage's info."""
     import dataclasses
 
     from data_tools.outputs import clear_incomplete
-    from slam.neural.refine import Walks2D
+    from slam.neural.data import batch_source
+    from slam.neural.io import save_model
     from slam.neural.refine_hallucination import refine_hallucination
-    from slam.neural.train import save_model, worlds_3d
     hcfg.validate()
-    if topview_steps < 0:
-        raise ConfigError(f"--topview-steps must be >= 0, got {topview_steps}")
+    topview_steps = hcfg.topview_steps
     model, cfg, info, folder, mark = _model_copy_folder(model_dir, out, overwrite,
                                                         "realgap neural refine-hallucination",
                                                         hcfg.occ_steps + hcfg.steps)
     run_cfg = dataclasses.replace(cfg, worlds_dir=str(worlds)) if worlds else cfg    # saved: the model's own config
-    bank = worlds_3d(run_cfg, simulate, progress, log) if cfg.mode == "3d" else Walks2D(cfg.agent, cfg.image)
+    bank = batch_source(run_cfg, simulate, progress, log)
     hinfo = refine_hallucination(model, bank, cfg, hcfg, folder / HALLU_CHECKPOINT, progress=progress, log=log,
                                  on_checkpoint=mark)
     hinfo["command"] = (f"realgap neural refine-hallucination MODEL --out OUT --occ-steps {hcfg.occ_steps} "
@@ -208,7 +210,7 @@ def evaluate_folder(model_dir, out: str | os.PathLike | None, sequences: int | N
     the figures of :mod:`slam.neural.figures` beside it (their names in the result's ``figures``)."""
     from data_tools.outputs import check_output_dir
     from slam.neural.evaluate import evaluate_2d
-    from slam.neural.train import load_model
+    from slam.neural.io import load_model
     if sequences is not None and sequences < 1:
         raise ConfigError(f"--sequences must be >= 1, got {sequences}")
     folder = check_output_dir(out, finished="neural_eval.json", overwrite=overwrite) if out else None
@@ -253,73 +255,3 @@ def eval_metrics(res: dict) -> dict:
     for k in ("anamnesis", "hallucination"):
         m.update({f"{k}_l1": res[k]["l1"], f"{k}_ssim": res[k]["ssim_thesis"]})
     return m
-
-
-def register_sequence(model, images, cells, wedge, memory: int, motion_prior=None, score: str = "sum") -> dict:
-    """Run a 3D model over one sequence of memory steps: images (T, 4, H, W), cells (T, r, H * W), the view
-    wedge (q, q) bool, a memory of side ``memory`` cells, ``motion_prior`` (sigma cells, sigma heading steps) or
-    None, ``score`` sum | overlap (:meth:`slam.neural.model.NeuralMemory.forward`). Returns numpy arrays: fields
-    (T, r, P, P) local pose fields, centres (T, 2) allocentric middle of each field, psi (n, U, U), occ (U, U) and
-    seen (U, U) bool (the cells a registered view field covered)."""
-    import numpy as np
-    import torch
-    vm = torch.from_numpy(np.asarray(wedge, np.float32))
-    with torch.no_grad():
-        out = model(torch.from_numpy(np.asarray(images, np.float32))[None], vm, None,
-                    cells=torch.from_numpy(np.asarray(cells, np.int64))[None], memory=int(memory),
-                    motion_prior=motion_prior, score=score)
-    return {"fields": out["fields"][0].numpy(), "centres": out["centres"][0].numpy(),
-            "psi": out["psi"][0].numpy(), "occ": out["occ"][0, 0].numpy(), "seen": out["seen"][0, 0].numpy() > 0}
-
-
-def recall_view(run_dir: str | os.PathLike, pose_c2w, hallucinate: bool = False, size: tuple[int, int] | None = None):
-    """The view a neural run's memory recalls at camera-to-world ``pose_c2w`` (4, 4): RUN/memory's
-    features at the pose (a window culled at the pose rounded to the memory's cell and heading grid) decoded by the
-    run's model; with ``hallucinate`` the hallucination module fills the memory's unobserved cells
-    first. Returns (rgb (H, W, 3) uint8, depth (H, W) float32 metres, 0 = none): the decoder's
-    image (40 x 30 for the shipped model), resized to ``size`` = (W, H) when given (bilinear)."""
-    import json
-
-    import cv2
-    import numpy as np
-    import torch
-
-    from data_tools.errors import FormatError
-    from slam.neural.geometry3d import planar_relative
-    from slam.neural.train import load_model
-    d = Path(run_dir) / "memory"
-    meta_p = d / "memory.json"
-    if not meta_p.is_file():
-        raise FormatError(run_dir, "not a neural run (memory/memory.json missing; made by 'slam run --backend neural')")
-    meta = json.loads(meta_p.read_text())
-    model, tcfg, _ = load_model(meta["model"])
-    try:
-        psi = torch.from_numpy(np.load(d / "memory.npy"))[None]
-        occ = torch.from_numpy(np.load(d / "occupancy.npy"))[None, None]
-    except (OSError, ValueError) as e:
-        raise FormatError(d, f"unreadable memory snapshot ({e})") from None
-    if psi.shape[1] != model.cfg.features:
-        raise FormatError(d / "memory.npy", f"{psi.shape[1]} features per cell, the model {meta['model']} has "
-                                            f"{model.cfg.features}")
-    cell, T0 = float(meta["cell_m"]), np.asarray(meta["T0"])
-    row, col, yaw = planar_relative(T0, np.asarray(pose_c2w, float), cell)
-    k = yaw / (2 * np.pi / model.cfg.rotations)          # heading in units of the memory's turns (real)
-    U = psi.shape[-1]
-    if max(abs(row), abs(col)) > U // 2:
-        raise FormatError(meta_p, f"the pose is {max(abs(row), abs(col)) * cell:.1f} m from the first frame, "
-                                  f"outside the memory ({U // 2 * cell:.1f} m)")
-    w = tcfg.world
-    from data_tools.camera import read_camera_json
-    from slam.neural.data3d import view_geometry
-    _, wedge = view_geometry(read_camera_json(Path(run_dir) / "camera.json").intrinsics, T0, w)
-    vm = torch.from_numpy(wedge.astype(np.float32))
-    with torch.no_grad():
-        mem = model.hallucinate(psi, occ) if hallucinate else psi
-        img = model.recall(mem, torch.tensor([[row, col, k]], dtype=torch.float32), vm)[0].numpy()
-    rgb = np.clip((np.transpose(img[:3], (1, 2, 0)) + 1) / 2, 0, 1)
-    depth = (img[3] + 1) / 2 * w.max_range_m
-    depth = np.where(img[3] > -0.95, depth, 0.0).astype(np.float32)
-    if size is not None:
-        rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR)
-        depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
-    return (rgb * 255).round().astype(np.uint8), depth

@@ -8,7 +8,7 @@ a second, per-cell read-out:
 * **target** (:func:`topview_targets`): the mean colour of the RGB-D pixels that fall into each memory
   cell, over all views of a training sequence, each view ground-projected into its egocentric grid at
   its true (grid-rounded) allocentric pose - exactly the placement the memory's registration uses
-  (:func:`slam.neural.model.register` with a one-hot field), so target and memory are aligned cell by
+  (:func:`slam.neural.memory.register` with a one-hot field), so target and memory are aligned cell by
   cell. Cells no pixel reached have no target.
 * **model** (:class:`TopViewDecoder`): features + occupancy (n + 1 channels) -> a 3x3 convolution, a
   residual block and a 1x1 convolution to RGB in [-1, 1] (tanh). The 3x3 context lets a cell borrow
@@ -35,7 +35,8 @@ import torch
 from torch import nn
 
 from data_tools.errors import FormatError
-from slam.neural.model import ResBlock, init_weights, register
+from slam.neural.memory import register
+from slam.neural.networks import ResBlock, init_weights
 
 __all__ = ["TopViewDecoder", "project_sum", "topview_targets", "train_topview", "save_topview", "load_topview",
            "decode_topview", "topview_picture", "TOPVIEW_FILE"]
@@ -75,7 +76,7 @@ def topview_targets(imgs, cells, allo, rotations: int, view: int, memory: int):
     RGB in channels 0-2, their pixels' cells (B, T, r, H * W) in the r turned egocentric grids and the
     true allocentric poses (B, T, 3) (row, col, heading index; the first view at 0, 0, 0): every view's
     pixels binned in the grid turned to its heading and pasted at its position (the adjoint of the
-    localisation's correlation, :func:`slam.neural.model.register`), averaged over the views."""
+    localisation's correlation, :func:`slam.neural.memory.register`), averaged over the views."""
     B, T = imgs.shape[:2]
     r, q, U = int(rotations), int(view), int(memory)
     P = U - q + 1
