@@ -260,6 +260,10 @@ CASES = [
      _nothing, ["iterations", ">= 1"]),
     ("neural train: existing model", ["neural", "train", "--out", "{T}/N"],
      lambda t: (t / "N").mkdir() or _write(t / "N" / "neural.json", "{}"), ["--overwrite"]),
+    ("synda map: not a generator", ["synda", "map", "{T}/traj.txt", "{T}/traj.txt", "--out", "{T}/MAP"], _nothing,
+     ["traj.txt", "not a SynDA generator"]),
+    ("synda train: model file missing", ["synda", "train", "--objects", "{T}/none.ply", "--domain", "depth",
+                                         "--out", "{T}/G.pt"], _nothing, ["none.ply", "not found"]),
     # show / demo
     ("show: not a result", ["show", "{S}/camera.json"], _nothing, ["camera.json"]),
     ("show: corrupt JSON", ["show", "{T}/r.json"], lambda t: _write(t / "r.json", "{\"header\": "), ["r.json"]),
