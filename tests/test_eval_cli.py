@@ -195,7 +195,7 @@ def test_ate_bad_input_is_one_line(tmp_path, capsys, case):
     elif case == "bad_align":
         write_tum(e, est)
         extra = ["--align", "none", "--max-dt", "-1"]
-        names = ["max_dt"]
+        names = ["--max-dt"]
     rc = main(["eval", "ate", str(gt), str(e), "--out", str(tmp_path / "o"), *extra])
     assert rc == 1
     _one_line_error(capsys, *names)

@@ -29,8 +29,8 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    ``refine_top`` jointly with the model's parameters (budget ``refine_evaluations``; a local
    search around the fitted values: an effect that the refitted model's noise had partly
    absorbed, e.g. disparity steps seen as extra noise, gets the noise back).
-4. **Rank** by ``gain = (gap - gap_after) / gap``; a learned map must beat the best parametric
-   candidate's gain by more than ``occam_map_margin`` (10 %, relative) to lead, and of candidates
+4. **Rank** by ``gain = (gap - gap_after) / gap``; a learned map must leave less than
+   ``1 - occam_map_margin`` (75 %) of the gap the best parametric candidate leaves to lead, and of candidates
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
    depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias). Each candidate gets an ``evidence``
@@ -109,14 +109,16 @@ class DiagnoseConfig:
     Relative, not absolute: on data where every gain is small (0.010 for the true edge fattening,
     0.001 for a rolling shutter that barely acts) an absolute margin of 0.01 made every candidate
     "equal" and the one-parameter bystander won. 0 = rank by gain alone (both margins)."""
-    occam_map_margin: float = 0.1
+    occam_map_margin: float = 0.25
     """A learned per-pixel map (e.g. ``disparity_distortion``'s, estimated from the very frames it is
-    scored on) ranks first only when its gain exceeds the best parametric candidate's by more than
-    this fraction: the map can imitate any fixed per-pixel error - a depth bias on a slowly moving
+    scored on) ranks first only when the gap it leaves is smaller than the best parametric
+    candidate's by more than this fraction (0.25: it must remove a quarter of what the parametric
+    effect leaves): the map can imitate any fixed per-pixel error - a depth bias on a slowly moving
     camera, a lens bowl - and takes part of the noise as pattern, a parametric effect cannot imitate
-    the map. Within the margin the parametric candidate leads and the map ranks right below it
-    (a judgement, not a test statistic: a map gaining 0.84 against a depth bias's 0.83 is no
-    evidence for a per-pixel pattern)."""
+    the map. Otherwise the parametric candidate leads and the map ranks right below it. Compared on
+    the gaps left, not the gains: a map leaving 0.157 against a hidden depth bias's 0.170 is no
+    evidence for a per-pixel pattern, a map leaving 0.04 against a depth bias's 0.09 on a real
+    pattern is (a judgement, not a test statistic)."""
 
     def validate(self) -> "DiagnoseConfig":
         for k in ("model_evaluations", "candidate_evaluations", "refine_evaluations",
@@ -470,7 +472,7 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
 
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     """Candidates by gain, best first, with two Occam rules (:class:`DiagnoseConfig`): a learned map
-    leading by less than ``occam_map_margin`` (relative) gives way to the best parametric candidate,
+    whose gap left is not ``occam_map_margin`` (relative) below the best parametric candidate's gives way to it,
     and of the candidates within ``occam_margin`` (relative) of the leader the one with the fewest
     free numbers ranks first."""
     g0 = base.gap
@@ -483,7 +485,7 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     lead = out[0]
     if free[id(lead)] >= LEARNED_MAP_NUMBERS:
         alts = [c for c in out if free[id(c)] < LEARNED_MAP_NUMBERS and c.gain > 0
-                and c.gain >= lead.gain * (1.0 - cx.dc.occam_map_margin)]
+                and (1.0 - lead.gain) >= (1.0 - c.gain) * (1.0 - cx.dc.occam_map_margin)]
         if alts:
             lead = alts[0]
     near = [c for c in out if c.gain > 0 and c.gain >= lead.gain * (1.0 - cx.dc.occam_margin)]
