@@ -332,30 +332,36 @@ def generate_training_data(objects: list[RecogObject], config: DataConfig, patch
         return 0
     for j in jobs:
         Path(j.out).parent.mkdir(parents=True, exist_ok=True)
+    args = [(objects[j.object_index], config, patch, j) for j in jobs]
+    run_chunks(_run_chunk, args, workers, progress, total, f"simulating {config.variant} views")
+    return len(jobs)
+
+
+def run_chunks(fn, args: list, workers: int, progress: bool, total: int, desc: str) -> None:
+    """``fn(a)`` for every ``a`` of ``args`` (chunks still to simulate), on ``workers`` spawned
+    processes when there is more than one chunk, with a progress bar counting ``total`` chunks (the
+    ones already on disk count as done). Shared by the recogniser's and SynDA's view simulation."""
     bar = None
     if progress:
         from data_tools.progress import progress_bar
-        bar = progress_bar(total=total, initial=total - len(jobs), desc=f"simulating {config.variant} views",
-                           unit="chunk")
-    args = [(objects[j.object_index], config, patch, j) for j in jobs]
+        bar = progress_bar(total=total, initial=total - len(args), desc=desc, unit="chunk")
     try:
-        if workers > 1 and len(jobs) > 1:
+        if workers > 1 and len(args) > 1:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+            with ProcessPoolExecutor(min(workers, len(args)), mp_context=multiprocessing.get_context("spawn"),
                                      initializer=_init_worker) as ex:
-                for _ in ex.map(_run_chunk, args):
+                for _ in ex.map(fn, args):
                     if bar is not None:
                         bar.update(1)
         else:
             for a in args:
-                _run_chunk(a)
+                fn(a)
                 if bar is not None:
                     bar.update(1)
     finally:
         if bar is not None:
             bar.close()
-    return len(jobs)
 
 
 @dataclass

@@ -112,29 +112,8 @@ def generate_synda_data(objects: list[RecogObject], config: DataConfig, patch: P
     if not jobs:
         return 0
     total = len(objects) * math.ceil(n_views / config.chunk_views)
-    bar = None
-    if progress:
-        from data_tools.progress import progress_bar
-        bar = progress_bar(total=total, initial=total - len(jobs), desc="simulating SynDA views", unit="chunk")
-    try:
-        if workers > 1 and len(jobs) > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            from recog.data import _init_worker
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=_init_worker) as ex:
-                for _ in ex.map(_run, jobs):
-                    if bar is not None:
-                        bar.update(1)
-        else:
-            for j in jobs:
-                _run(j)
-                if bar is not None:
-                    bar.update(1)
-    finally:
-        if bar is not None:
-            bar.close()
+    from recog.data import run_chunks
+    run_chunks(_run, jobs, workers, progress, total, "simulating SynDA views")
     return len(jobs)
 
 
