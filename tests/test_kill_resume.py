@@ -288,6 +288,7 @@ def test_make_reference_killed_says_it_starts_again(room, tmp_path):
 
 # ----------------------------------------------------------------------------- recog
 
+@pytest.mark.slow  # ~40 s; the shared loop's exact resume is also in test_training and test_synda_train
 def test_recog_train_killed_resumes_identically(tmp_path):
     """Killed while training (after a checkpoint): the re-run continues from the checkpoint and
     gives the same database as an uninterrupted run."""

@@ -120,6 +120,7 @@ def test_train_topview_cli_rejects_a_2d_model(tmp_path, capsys):
     assert not (shipped / "topview.pt").exists()
 
 
+@pytest.mark.slow  # ~30 s; the 3D ablation views are fingerprinted in the default run
 def test_evaluate_3d_end_to_end_on_a_tiny_world(tmp_path, tiny_worlds, tiny_3d_model):
     """evaluate_3d on one simulated 40-frame test room with a tiny untrained model (+ its top-view decoder):
     localisation (neural and icp), images, ablations, baseline, top view and speed all come out finite and

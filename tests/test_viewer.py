@@ -155,12 +155,18 @@ def test_lab_mode_effect_toggle_resimulates(seq_and_run, offscreen_ok, tmp_path)
     v.p.close()
 
 
-def test_movie_and_bad_input(seq_and_run, offscreen_ok, tmp_path, capsys):
+@pytest.mark.slow  # ~60 s of off-screen rendering; the screenshot path is in the default run
+def test_movie(seq_and_run, offscreen_ok, tmp_path):
     gif = tmp_path / "fly.gif"
     assert main(["view", str(seq_and_run / "icp"), "--movie", str(gif), "--size", "400x250"]) == 0
     from PIL import Image
     im = Image.open(gif)
     assert im.n_frames >= 10
+
+
+def test_bad_input(seq_and_run, offscreen_ok, tmp_path, capsys):
+    gif = tmp_path / "fly.gif"
+    gif.write_bytes(b"GIF89a")       # an existing output
     # one-line errors, nothing written
     for argv, words in ((["view", str(seq_and_run / "icp"), "--screenshot", str(gif)], ["exists", "--overwrite"]),
                         (["view", str(tmp_path), "--screenshot", str(tmp_path / "x.png")], ["neither a sequence"]),
