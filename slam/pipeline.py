@@ -77,6 +77,11 @@ class SlamConfig:
     """Write a resumable checkpoint every this many frames."""
     save_volume: bool = False
     """Also save the TSDF volume (RUN/volume.npz; large) for rendering from the volume."""
+    overlap: bool = True
+    """Read the next frame and fuse the last one on helper threads while a frame is tracked
+    (online backends). The voxels are updated in the same order and every read of the volume
+    waits for the fusion before it, so the results are the same bits as with ``false``; only
+    the run time differs (the stages overlap on a second core)."""
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     """Loop closure after tracking (:mod:`slam.loop_closure`): keyframes, ORB candidates verified
     by ICP, a pose graph, the TSDF re-integrated with the corrected poses."""
@@ -407,16 +412,19 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
     else:
         bar = _Progress(progress, len(indices), pos, f"slam {cfg.backend}")
         n_new = 0
+        frames = _Frames(reader, indices, cfg.overlap)
         try:
             while pos < len(indices):
                 if stop_after is not None and n_new >= stop_after:
+                    volume.wait()
                     checkpoint(pos)
                     bar.close()
                     return load_run(out)
                 i = indices[pos]
                 try:
-                    res = _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable)
+                    res = _process(frames, pos, backend, volume, cfg, intr, timing, skip_unreadable)
                 except FormatError:
+                    volume.wait()
                     checkpoint(pos)  # the frames before it are kept: a re-run continues here
                     bar.close()
                     raise
@@ -432,9 +440,18 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
                 if pos % cfg.checkpoint_every == 0 and pos < len(indices):
                     checkpoint(pos)
         except KeyboardInterrupt:
+            volume.wait()
             checkpoint(pos)
             bar.close()
             raise
+        finally:
+            frames.close()
+        t0 = time.perf_counter()
+        volume.wait()
+        timing["integrate_s"] += time.perf_counter() - t0
+        if isinstance(getattr(backend, "stage_times", None), dict) and cfg.overlap:
+            # waits for the background fusion inside the tracker (part of its time)
+            backend.stage_times["fusion_wait"] = volume.wait_s
         bar.close()
     # ---- loop closure (slam/loop_closure.py): after tracking, on the finished odometry
     loop_stats = None
@@ -452,10 +469,41 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
     return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend, loop_stats)
 
 
-def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
+class _Frames:
+    """The frames of a run in order; with ``ahead``, the next frame is read on a helper thread while
+    the current one is processed (image decoding releases the GIL). A read error surfaces when the
+    frame is asked for, as without read-ahead."""
+
+    def __init__(self, reader, indices: list[int], ahead: bool):
+        self.reader, self.indices, self._pool, self._next = reader, indices, None, None
+        if ahead:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-read")
+
+    def index(self, pos: int) -> int:
+        return self.indices[pos]
+
+    def get(self, pos: int):
+        """The frame at position ``pos`` of ``indices`` (raises the reader's FormatError)."""
+        if self._pool is None:
+            return self.reader[self.indices[pos]]
+        nxt, self._next = self._next, None
+        fut = nxt[1] if nxt is not None and nxt[0] == pos else self._pool.submit(self.reader.__getitem__,
+                                                                                 self.indices[pos])
+        if pos + 1 < len(self.indices):
+            self._next = (pos + 1, self._pool.submit(self.reader.__getitem__, self.indices[pos + 1]))
+        return fut.result()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _process(frames, pos, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
     t0 = time.perf_counter()
+    i = frames.index(pos)
     try:
-        frame = reader[i]
+        frame = frames.get(pos)
     except FormatError as e:
         if not skip_unreadable:  # bad input is an error; --skip-unreadable makes it a failed frame
             raise FormatError(e.path, f"{e.problem} (frame {i}; pass --skip-unreadable to register the "
@@ -468,7 +516,7 @@ def _process(reader, i, backend, volume, cfg, intr, timing, skip_unreadable: boo
     t2 = time.perf_counter()
     timing["track_s"] += t2 - t1
     if not res.failed and _fused(cfg, i):
-        volume.integrate(frame.depth, frame.rgb, intr, res.pose)
+        volume.integrate(frame.depth, frame.rgb, intr, res.pose, background=cfg.overlap)
         timing["integrate_s"] += time.perf_counter() - t2
     return res
 

@@ -51,13 +51,16 @@ def test_normal_equations_do_not_depend_on_the_thread_count():
 
 @needs_two
 def test_same_frames_on_one_and_two_threads_give_the_same_bytes(tmp_path, seq30):
-    cfg = make_config("icp", "default", {"tsdf.voxel_size_m": 0.01, "tsdf.mesh_weight_threshold": 1.0,
-                                         "backend_config.raycast_scale": 1.0})
+    """1 and 2 compute threads, and fusion overlapped with tracking (``overlap``, a helper thread
+    fusing frame t-1 while frame t is tracked) or not: the same trajectory and mesh bytes."""
+    over = {"tsdf.voxel_size_m": 0.01, "tsdf.mesh_weight_threshold": 1.0, "backend_config.raycast_scale": 1.0}
     out = {}
-    for n in (1, 2):
+    for n, overlap in ((1, True), (2, True), (2, False)):
+        cfg = make_config("icp", "default", dict(over, overlap=overlap))
         with compute_threads(n):
-            res = run_slam(seq30, tmp_path / f"t{n}", cfg, progress=False)
+            res = run_slam(seq30, tmp_path / f"t{n}{overlap}", cfg, progress=False)
         assert res.complete and res.stats["frames_tracked"] == N_FRAMES
-        out[n] = {f: (tmp_path / f"t{n}" / f).read_bytes() for f in ("trajectory.txt", "mesh.ply")}
-    assert out[1]["trajectory.txt"] == out[2]["trajectory.txt"]
-    assert out[1]["mesh.ply"] == out[2]["mesh.ply"]
+        out[n, overlap] = {f: (tmp_path / f"t{n}{overlap}" / f).read_bytes() for f in ("trajectory.txt", "mesh.ply")}
+    for key in ((2, True), (2, False)):
+        assert out[1, True]["trajectory.txt"] == out[key]["trajectory.txt"]
+        assert out[1, True]["mesh.ply"] == out[key]["mesh.ply"]

@@ -87,8 +87,9 @@ class ICPConfig(TrackingCheckConfig):
     raycast_scale: float = 0.5
     """Resolution of the model ray cast relative to the frame (1, 0.5 or 0.25): the model view is
     the target of projective association; half resolution costs a quarter of the ray casting."""
-    convergence_eps: float = 1e-6
-    """A stage stops early when a Gauss-Newton step moves less than this (metres and radians)."""
+    convergence_eps: float = 2e-4
+    """A stage stops early when a Gauss-Newton step moves less than this (metres and radians):
+    0.2 mm and 0.01 degrees, well below the depth noise, end a stage once it has converged."""
     raycaster: str = "kernel"
     """Model ray caster: ``kernel`` (:mod:`slam.raycast_kernel`: marches the trilinear TSDF from
     the last fused depth, sub-voxel hits with the same verification as ``refine_model``) or
