@@ -226,11 +226,24 @@ def march(tsdf, weight, table, lo, shift, vs, trunc_mult, w_min, fx, fy, cx, cy,
 def min_pool(depth: np.ndarray, factor: int) -> np.ndarray:
     """(H, W) depth (0 or NaN = none) -> (H // factor, W // factor): the nearest valid depth of each
     factor x factor block, 0 where none (the start depths of :func:`march` at a lower resolution)."""
-    d = np.where(np.isfinite(depth) & (depth > 0), depth, np.inf).astype(np.float32)
-    h, w = d.shape[0] // factor * factor, d.shape[1] // factor * factor
-    m = d[:h, :w].reshape(h // factor, factor, w // factor, factor).min(axis=(1, 3))
-    m[~np.isfinite(m)] = 0.0
-    return m
+    return _min_pool(np.ascontiguousarray(depth, np.float32), int(factor))
+
+
+@njit(cache=True, nogil=True)
+def _min_pool(depth, factor):
+    h, w = depth.shape[0] // factor, depth.shape[1] // factor
+    out = np.zeros((h, w), np.float32)
+    for v in range(h):
+        for u in range(w):
+            m = np.inf
+            for dv in range(factor):
+                for du in range(factor):
+                    d = depth[v * factor + dv, u * factor + du]
+                    if d > 0 and d < m:         # False for NaN
+                        m = d
+            if m < np.inf:
+                out[v, u] = m
+    return out
 
 
 def cast_model(volume, intr, pose_c2w: np.ndarray, hint: np.ndarray | None = None
