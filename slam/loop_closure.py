@@ -63,6 +63,11 @@ class LoopClosureConfig:
     """Loop candidates are at least this far apart in time, seconds (nearer ones are odometry)."""
     candidates_per_keyframe: int = 3
     """Candidates verified per keyframe (the earlier keyframes with the most ORB matches)."""
+    max_compared: int = 24
+    """ORB matching compares each keyframe with at most this many earlier keyframes: those nearest
+    to it by the odometry (distance plus 0.5 m per radian of viewing direction), so the search grows
+    linearly with the keyframes, not quadratically; 0 = compare with every earlier keyframe. The
+    odometry drifts by centimetres over a loop, far less than the spacing of 24 keyframes."""
     orb_features: int = 800
     """ORB key points per keyframe colour image."""
     min_matches: int = 40
@@ -115,7 +120,7 @@ class LoopClosureConfig:
         check_positive(self, "keyframe_trans_m", "keyframe_rot_deg", "candidates_per_keyframe", "orb_features",
                        "min_matches", "voxel_m", "icp_iterations", "max_rmse_m", "proximity_m", "line_process_m",
                        "false_closure_m", "false_closure_deg")
-        check_positive(self, "min_separation_s", "pnp_min_inliers", "min_correspondences", "min_fitness",
+        check_positive(self, "min_separation_s", "max_compared", "pnp_min_inliers", "min_correspondences", "min_fitness",
                        "min_constraint", "max_drift_m", "max_drift_per_m", "max_drift_deg", "max_drift_deg_per_m",
                        "edge_prune_threshold", "preference_loop_closure", allow_zero=True)
         if not self.max_correspondence_m or any(not (d > 0) for d in self.max_correspondence_m):
@@ -172,16 +177,26 @@ def _orb_match_count(fa, fb, ratio: float = 0.8) -> int:
     return sum(1 for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance)
 
 
+def _view_distance(Pa: np.ndarray, Pb: np.ndarray) -> float:
+    """Distance of two camera poses for the candidate search: metres between the centres plus
+    0.5 m per radian between the viewing directions."""
+    cos = float(np.clip(Pa[:3, 2] @ Pb[:3, 2], -1.0, 1.0))
+    return float(np.linalg.norm(Pa[:3, 3] - Pb[:3, 3])) + 0.5 * math.acos(cos)
+
+
 def find_candidates(kfs: list[Keyframe], c: LoopClosureConfig) -> list[tuple[int, int, int]]:
     """(i, j, score) loop candidates, i < j keyframe numbers, j's best ``candidates_per_keyframe``
-    earlier keyframes by ORB matches (or by odometry proximity without colour: score 0)."""
+    earlier keyframes by ORB matches (or by odometry proximity without colour: score 0), among the
+    ``max_compared`` earlier keyframes nearest to j."""
     out = []
     for j, kj in enumerate(kfs):
         scored = []
-        for i in range(j):
+        pool = [i for i in range(j) if kj.timestamp - kfs[i].timestamp >= c.min_separation_s]
+        if c.max_compared and len(pool) > c.max_compared:
+            pool = sorted(pool, key=lambda i: (_view_distance(kfs[i].pose, kj.pose), i))[: c.max_compared]
+            pool.sort()
+        for i in pool:
             ki = kfs[i]
-            if kj.timestamp - ki.timestamp < c.min_separation_s:
-                continue
             if kj.features is not None and ki.features is not None:
                 n = _orb_match_count(ki.features, kj.features)
                 if n >= c.min_matches:

@@ -161,6 +161,30 @@ def test_keyframes_and_correction_interpolation():
     np.testing.assert_allclose(C[1], half, atol=1e-12)
 
 
+def test_candidate_search_is_bounded_and_keeps_the_loops(monkeypatch):
+    """80 keyframes, 1 s apart, walking twice round a 1 m circle: each keyframe is ORB-matched with
+    at most ``max_compared`` earlier ones (80 x 8 comparisons instead of 80 x 79 / 2), and the
+    loop pairs (the same place on both rounds, the only ones with matches here) are all still found."""
+    import slam.loop_closure as lc
+    kfs = []
+    for k in range(80):
+        t = 2 * np.pi * k / 40
+        P = look_at(np.array([np.cos(t), np.sin(t), 1.0]), np.array([0.0, 0.0, 0.5]))
+        kfs.append(lc.Keyframe(k, k, float(k), P, 0.157 * k, features=("kp", k)))
+    calls = []
+
+    def fake_matches(fa, fb):
+        calls.append((fa[1], fb[1]))
+        return 100 if abs(fa[1] - fb[1]) == 40 else 0
+    monkeypatch.setattr(lc, "_orb_match_count", fake_matches)
+    full = lc.find_candidates(kfs, LoopClosureConfig(max_compared=0))
+    n_full = len(calls)
+    calls.clear()
+    bounded = lc.find_candidates(kfs, LoopClosureConfig(max_compared=8))
+    assert n_full == sum(max(0, j - 5 + 1) for j in range(80)) and len(calls) <= 80 * 8
+    assert sorted((i, j) for i, j, _ in full) == sorted((i, j) for i, j, _ in bounded) == [(j - 40, j) for j in range(40, 80)]
+
+
 def test_config_is_checked_and_exposed():
     with pytest.raises(Exception, match="keyframe_trans_m"):
         LoopClosureConfig(keyframe_trans_m=0.0).validate()
