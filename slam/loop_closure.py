@@ -111,12 +111,25 @@ class LoopClosureConfig:
     """Line-process weight under which the pose graph drops a loop edge (Open3D's option)."""
     preference_loop_closure: float = 2.0
     """Weight of the loop edges against the odometry in the pose graph (Open3D's option)."""
+    refine: bool = True
+    """Refine each loop that passed verification with the tracker's projective point-to-plane ICP
+    on the two keyframes' depth images (:func:`slam.loop_verify.refine_loop`, 1.5 cm finest
+    distance) and keep it only when the refinement agrees with the verification within
+    ``refine_agree_m`` / ``refine_agree_deg`` and fits (fitness >= ``min_fitness``, RMS residual
+    <= ``refine_max_rmse_m``)."""
+    refine_agree_m: float = 0.03
+    """Largest translation between the verified and the refined loop transform, metres."""
+    refine_agree_deg: float = 2.0
+    """Largest rotation between the verified and the refined loop transform, degrees."""
+    refine_max_rmse_m: float = 0.006
+    """Largest RMS point-to-plane residual of the refined loop, metres."""
     false_closure_m: float = 0.05
     """With ground truth: a kept loop off the true relative pose by more than this is counted false, metres."""
     false_closure_deg: float = 3.0
     """... or by more than this, degrees."""
 
     def validate(self) -> "LoopClosureConfig":
+        check_positive(self, "refine_agree_m", "refine_agree_deg", "refine_max_rmse_m")
         check_positive(self, "keyframe_trans_m", "keyframe_rot_deg", "candidates_per_keyframe", "orb_features",
                        "min_matches", "voxel_m", "icp_iterations", "max_rmse_m", "proximity_m", "line_process_m",
                        "false_closure_m", "false_closure_deg")
@@ -212,7 +225,7 @@ def find_candidates(kfs: list[Keyframe], c: LoopClosureConfig) -> list[tuple[int
 
 
 REJECTION_CATEGORIES = ("too few correspondences", "low fitness", "residual", "degenerate geometry",
-                        "inconsistent with odometry")
+                        "inconsistent with odometry", "refinement disagrees", "refinement residual")
 """Keys of ``stats.json['loop_closure']['rejected_by']`` (the check that rejected a candidate)."""
 
 
@@ -295,7 +308,7 @@ def _close(reader, records, P, times, c: LoopClosureConfig, tsdf, intr, stats: d
     """Steps 1-4 of the module docstring; fills ``stats``, returns the corrected poses (``P`` itself
     when no loop survives)."""
     from slam.backends._features import orb_features, pnp_guess
-    from slam.loop_verify import information_matrix, keyframe_cloud, odometry_consistency, verify_loop
+    from slam.loop_verify import information_matrix, keyframe_cloud, odometry_consistency, refine_loop, verify_loop
     from slam.pose_graph import GraphEdge, interpolate_corrections, optimise_pose_graph
     new_P = P
     sel = select_keyframes(times, P, c.keyframe_trans_m, c.keyframe_rot_deg)
@@ -328,6 +341,16 @@ def _close(reader, records, P, times, c: LoopClosureConfig, tsdf, intr, stats: d
                         c.min_correspondences, c.min_fitness, c.max_rmse_m, c.min_constraint)
         reason = v.reason or odometry_consistency(v.transformation, T_odo, kj.path_m - ki.path_m, c.max_drift_m,
                                                   c.max_drift_per_m, c.max_drift_deg, c.max_drift_deg_per_m)
+        if not reason and c.refine:
+            T_ref, fit, rmse = refine_loop(kj.depth, ki.depth, intr, v.transformation, tsdf.depth_min_m,
+                                           tsdf.depth_max_m)
+            dt, da = _relative_error(T_ref, v.transformation)
+            if not (dt <= c.refine_agree_m and da <= c.refine_agree_deg):
+                reason = f"refinement disagrees ({dt * 100:.1f} cm, {da:.1f} deg)"
+            elif not (fit >= c.min_fitness and rmse <= c.refine_max_rmse_m):
+                reason = f"refinement residual (fitness {fit:.2f}, {rmse * 1000:.1f} mm)"
+            else:
+                v.transformation = T_ref
         if reason:
             rejected[_category(reason)] += 1
             continue
