@@ -24,6 +24,11 @@ continues with the next frame. A finished run is not recomputed.
 Offline backends (``colmap``) compute every pose in one go; an interruption during that step
 starts it again, an interruption while fusing their poses resumes like an online run.
 
+Overlap (``overlap``, on by default): while frame t is tracked, frame t+1 is read and frame t-1
+fused on helper threads (image decoding and Open3D's integration release the GIL). The volume
+waits for a pending fusion before anything reads it (the tracker's next ray cast, the mesh), so the
+voxels see the same updates in the same order and the run gives the same bits as without overlap.
+
 ``frames_per_second`` counts the frames processed divided by the time spent reading,
 registering and fusing them (not the re-integration after a resume, nor the final mesh
 extraction).
