@@ -296,6 +296,10 @@ def main(argv=None) -> int:
                 s += f" [registration alone {1000 / reg:.1f} f/s]"
             if "e2e_fps" in r:
                 s += f", end to end {r['e2e_fps']:.2f} f/s"
+            peer = by.get("rgbd_odometry")
+            if peer and m != "rgbd_odometry" and "e2e_fps" in r:
+                s += (f"; x{r['fps'] / peer['fps']:.2f} the frames/s and x{r['e2e_fps'] / peer['e2e_fps']:.2f} the "
+                      f"end-to-end speed of rgbd_odometry")
             if before and m == "icp":
                 s += (f"; x{r['e2e_fps'] / before['e2e_fps']:.2f} the end-to-end speed and "
                       f"x{before['cpu_ms'] / r['cpu_ms']:.2f} less CPU a frame than icp_before")
