@@ -24,10 +24,9 @@ continues with the next frame. A finished run is not recomputed.
 Offline backends (``colmap``) compute every pose in one go; an interruption during that step
 starts it again, an interruption while fusing their poses resumes like an online run.
 
-Overlap (``overlap``, on by default): while frame t is tracked, frame t+1 is read and frame t-1
-fused on helper threads (image decoding and Open3D's integration release the GIL). The volume
-waits for a pending fusion before anything reads it (the tracker's next ray cast, the mesh), so the
-voxels see the same updates in the same order and the run gives the same bits as without overlap.
+Overlap (``overlap``, on by default; :mod:`slam.overlap`): while frame t is tracked, frame t+1 is
+read and frame t-1 fused on helper threads. Every read of the volume waits for a pending fusion
+first, so the run gives the same bits as without overlap.
 
 ``frames_per_second`` counts the frames processed divided by the time spent reading,
 registering and fusing them (not the re-integration after a resume, nor the final mesh
@@ -53,6 +52,7 @@ from data_tools.trajectory import Trajectory, read_tum, write_tum
 from slam.registration import (TrackResult, check_positive, config_from_dict, config_to_dict,
                                get_backend)
 from slam.loop_closure import LoopClosureConfig
+from slam.overlap import BackgroundFusion, FrameReadAhead
 from slam.tsdf import TSDFConfig, TSDFVolume
 
 RUN_FILES = ("config.json", "camera.json", "checkpoint.json", "trajectory.txt", "trajectory_odometry.txt", "stats.json",
@@ -417,19 +417,24 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
     else:
         bar = _Progress(progress, len(indices), pos, f"slam {cfg.backend}")
         n_new = 0
-        frames = _Frames(reader, indices, cfg.overlap)
+        frames = FrameReadAhead(reader, indices, cfg.overlap)
+        fusing = BackgroundFusion(volume) if cfg.overlap else volume
+
+        def settle() -> None:           # the pending background fusion finished
+            if cfg.overlap:
+                fusing.wait()
         try:
             while pos < len(indices):
                 if stop_after is not None and n_new >= stop_after:
-                    volume.wait()
+                    settle()
                     checkpoint(pos)
                     bar.close()
                     return load_run(out)
                 i = indices[pos]
                 try:
-                    res = _process(frames, pos, backend, volume, cfg, intr, timing, skip_unreadable)
+                    res = _process(frames, pos, backend, fusing, cfg, intr, timing, skip_unreadable)
                 except FormatError:
-                    volume.wait()
+                    settle()
                     checkpoint(pos)  # the frames before it are kept: a re-run continues here
                     bar.close()
                     raise
@@ -445,18 +450,18 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
                 if pos % cfg.checkpoint_every == 0 and pos < len(indices):
                     checkpoint(pos)
         except KeyboardInterrupt:
-            volume.wait()
+            settle()
             checkpoint(pos)
             bar.close()
             raise
         finally:
             frames.close()
         t0 = time.perf_counter()
-        volume.wait()
+        settle()
         timing["integrate_s"] += time.perf_counter() - t0
         if isinstance(getattr(backend, "stage_times", None), dict) and cfg.overlap:
             # waits for the background fusion inside the tracker (part of its time)
-            backend.stage_times["fusion_wait"] = volume.wait_s
+            backend.stage_times["fusion_wait"] = fusing.wait_s
         bar.close()
     # ---- loop closure (slam/loop_closure.py): after tracking, on the finished odometry
     loop_stats = None
@@ -474,39 +479,11 @@ def _run_slam(sequence, out, cfg, camera, resume, overwrite, progress, stop_afte
     return _finish(out, reader, cfg, cam, volume, records, poses, timing, meta, backend, loop_stats)
 
 
-class _Frames:
-    """The frames of a run in order; with ``ahead``, the next frame is read on a helper thread while
-    the current one is processed (image decoding releases the GIL). A read error surfaces when the
-    frame is asked for, as without read-ahead."""
-
-    def __init__(self, reader, indices: list[int], ahead: bool):
-        self.reader, self.indices, self._pool, self._next = reader, indices, None, None
-        if ahead:
-            from concurrent.futures import ThreadPoolExecutor
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="slam-read")
-
-    def index(self, pos: int) -> int:
-        return self.indices[pos]
-
-    def get(self, pos: int):
-        """The frame at position ``pos`` of ``indices`` (raises the reader's FormatError)."""
-        if self._pool is None:
-            return self.reader[self.indices[pos]]
-        nxt, self._next = self._next, None
-        fut = nxt[1] if nxt is not None and nxt[0] == pos else self._pool.submit(self.reader.__getitem__,
-                                                                                 self.indices[pos])
-        if pos + 1 < len(self.indices):
-            self._next = (pos + 1, self._pool.submit(self.reader.__getitem__, self.indices[pos + 1]))
-        return fut.result()
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-
-
 def _process(frames, pos, backend, volume, cfg, intr, timing, skip_unreadable: bool = False) -> TrackResult:
+    """Read, track and (every ``fuse_every``-th frame) fuse the frame at position ``pos``;
+    ``volume`` is a TSDFVolume or its :class:`slam.overlap.BackgroundFusion`."""
     t0 = time.perf_counter()
-    i = frames.index(pos)
+    i = frames.indices[pos]
     try:
         frame = frames.get(pos)
     except FormatError as e:
@@ -521,7 +498,7 @@ def _process(frames, pos, backend, volume, cfg, intr, timing, skip_unreadable: b
     t2 = time.perf_counter()
     timing["track_s"] += t2 - t1
     if not res.failed and _fused(cfg, i):
-        volume.integrate(frame.depth, frame.rgb, intr, res.pose, background=cfg.overlap)
+        volume.integrate(frame.depth, frame.rgb, intr, res.pose)
         timing["integrate_s"] += time.perf_counter() - t2
     return res
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -178,18 +177,6 @@ def intrinsic_tensor(intr: Intrinsics):
     return o3d.core.Tensor(intr.K, dtype=o3d.core.float64)
 
 
-_FUSION_THREAD = None
-
-
-def _fusion_thread():
-    """The one helper thread of background integrations (created on first use)."""
-    global _FUSION_THREAD
-    if _FUSION_THREAD is None:
-        from concurrent.futures import ThreadPoolExecutor
-        _FUSION_THREAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tsdf-fusion")
-    return _FUSION_THREAD
-
-
 class TSDFVolume:
     """A growing TSDF volume: integrate RGB-D frames, ray cast, extract a mesh or points."""
 
@@ -199,18 +186,14 @@ class TSDFVolume:
         c = o3d.core
         self.device = c.Device(self.config.device)
         names = ("tsdf", "weight", "color") if self.config.integrate_color else ("tsdf", "weight")
-        self._pending = None            # Future of a background integration (integrate(background=True))
-        self.wait_s = 0.0
-        """Seconds spent waiting for background integrations to finish (the part of the fusion
-        that did not overlap other work)."""
-        self._vbg = o3d.t.geometry.VoxelBlockGrid(
+        self.vbg = o3d.t.geometry.VoxelBlockGrid(
             names, (c.float32,) * len(names), ((1,), (1,), (3,))[:len(names)],
             self.config.voxel_size_m, self.config.block_resolution,
             self.config.initial_block_count, self.device)
         self._fragment_capacity = 0
-        self._last_block_coords = None
+        self.last_block_coords = None
+        """(M, 3) int32 tensor of the blocks touched by the latest integration (its frustum)."""
         self.frames_integrated = 0
-        """Frames fused so far, counting one still being fused in the background."""
         self._lookup = None
         self._lookup_key = None
 
@@ -240,43 +223,10 @@ class TSDFVolume:
         return o3d.core.Tensor(np.linalg.inv(T), dtype=o3d.core.float64)
 
     # ---------------------------------------------------------------- fusion
-    @property
-    def vbg(self):
-        """The Open3D ``VoxelBlockGrid`` (after any background integration has finished)."""
-        self.wait()
-        return self._vbg
-
-    @vbg.setter
-    def vbg(self, grid) -> None:
-        self.wait()
-        self._vbg = grid
-
-    @property
-    def last_block_coords(self):
-        """(M, 3) int32 tensor of the blocks touched by the latest integration (its frustum)."""
-        self.wait()
-        return self._last_block_coords
-
-    def wait(self) -> None:
-        """Finish a background integration (re-raising its error, if any)."""
-        pending, self._pending = self._pending, None
-        if pending is not None:
-            t0 = time.perf_counter()
-            try:
-                pending.result()
-            finally:
-                self.wait_s += time.perf_counter() - t0
-
     def integrate(self, depth_m: np.ndarray, rgb: np.ndarray | None, intr: Intrinsics,
-                  pose_c2w: np.ndarray, background: bool = False) -> None:
+                  pose_c2w: np.ndarray) -> None:
         """Fuse one frame: depth (H, W) metres (0 = none), rgb (H, W, 3) uint8 or None,
-        camera-to-world pose (4, 4).
-
-        ``background``: fuse on a helper thread and return at once (the caller may track the
-        next frame meanwhile). Every read of the volume (:attr:`vbg` and everything built on it)
-        and the next integration wait for it first, so the voxels are updated in the same order
-        and the results are the same bits as without it (the images are copied before it starts)."""
-        self.wait()
+        camera-to-world pose (4, 4)."""
         cfg = self.config
         depth = np.asarray(depth_m, dtype=np.float32)
         if depth.shape != intr.shape:
@@ -292,29 +242,19 @@ class TSDFVolume:
         K_int = intrinsic_tensor(Intrinsics(intr.width, intr.height, intr.fx, intr.fy,
                                             intr.cx + 0.5, intr.cy + 0.5))
         ext = self._extrinsic(pose_c2w)
-        cimg = None
+        blocks = self.vbg.compute_unique_block_coordinates(
+            dimg, K, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
         if cfg.integrate_color:
             if rgb is None:
                 rgb = np.full(depth.shape + (3,), 128, np.uint8)
             if rgb.shape[:2] != depth.shape:
                 raise RealgapError(f"colour shape {rgb.shape[:2]} does not match depth {depth.shape}")
-            cimg = self._color_image(rgb)
+            self.vbg.integrate(blocks, dimg, self._color_image(rgb), K_int, K_int, ext, 1.0,
+                               cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+        else:
+            self.vbg.integrate(blocks, dimg, K_int, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
+        self.last_block_coords = blocks
         self.frames_integrated += 1
-        if background:
-            self._pending = _fusion_thread().submit(self._integrate_images, dimg, cimg, K, K_int, ext)
-        else:
-            self._integrate_images(dimg, cimg, K, K_int, ext)
-
-    def _integrate_images(self, dimg, cimg, K, K_int, ext) -> None:
-        cfg = self.config
-        blocks = self._vbg.compute_unique_block_coordinates(
-            dimg, K, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
-        if cimg is not None:
-            self._vbg.integrate(blocks, dimg, cimg, K_int, K_int, ext, 1.0, cfg.depth_max_m,
-                                cfg.trunc_voxel_multiplier)
-        else:
-            self._vbg.integrate(blocks, dimg, K_int, ext, 1.0, cfg.depth_max_m, cfg.trunc_voxel_multiplier)
-        self._last_block_coords = blocks
 
     @property
     def num_blocks(self) -> int:

@@ -167,3 +167,20 @@ def test_empty_volume_raycast_is_an_error():
     with pytest.raises(RealgapError, match="empty"):
         vol.raycast(Intrinsics(64, 48, 50, 50, 31.5, 23.5), np.eye(4))
     assert len(vol.extract_mesh().triangles) == 0
+
+
+def test_background_integration_gives_the_same_volume():
+    """Fusing on the helper thread (slam.overlap.BackgroundFusion) with ray casts in between: each
+    read waits for the pending fusion, so the casts and the voxels are the bytes of plain fusion."""
+    from slam.overlap import BackgroundFusion
+    frames = render_frames(room_scene(), camera_path(4, 0.05, 0.8))
+    out = []
+    for background in (False, True):
+        vol = TSDFVolume(TSDFConfig(voxel_size_m=0.02))
+        vol = BackgroundFusion(vol) if background else vol
+        casts = []
+        for f in frames:
+            vol.integrate(f.depth, f.rgb, INTR, f.pose)
+            casts.append(vol.raycast(INTR, f.pose, with_color=False, with_normal=False).depth)
+        out.append((vol.frames_integrated, [c.tobytes() for c in casts], vol.extract_mesh().vertices.tobytes()))
+    assert out[0] == out[1] and out[0][0] == 4
