@@ -6,8 +6,8 @@ function -> save the result.
 
 One dialect: the same idea has the same flag in every command, added by :func:`add_shared`
 with the help text of :data:`SHARED_FLAGS` (``tests/test_cli_dialect.py`` walks the parser and
-checks it): ``--out``, ``--overwrite``, ``--max-frames``, ``--seed``, ``--workers``,
-``--no-progress``, ``--json``. A configuration dataclass's options are not written here but generated from
+checks it): ``--out``, ``--overwrite``, ``--max-frames``, ``--spread-frames``, ``--seed``,
+``--workers``, ``--no-progress``, ``--json``. A configuration dataclass's options are not written here but generated from
 its fields by :func:`app.commands.flags.add_config_flags`.
 """
 from __future__ import annotations
@@ -17,7 +17,8 @@ import argparse
 SHARED_FLAGS: dict[str, str] = {
     "--out": "output",
     "--overwrite": "replace a finished result already at --out (without it such an output is an error)",
-    "--max-frames": "use at most N frames of the sequence",
+    "--max-frames": "the first N frames (of those any other frame option selects)",
+    "--spread-frames": "N frames evenly spread over the frames used (after --max-frames)",
     "--seed": "random seed: the same seed gives the same output",
     "--workers": "parallel worker processes",
     "--no-progress": "no progress display on stderr (also: REALGAP_NO_PROGRESS=1)",
@@ -34,7 +35,7 @@ RESUMES = "re-run the same command to continue: finished steps are kept and skip
 """``on_interrupt`` note of a command that continues an interrupted run (see :mod:`app.cli`)."""
 
 FORBIDDEN_SYNONYMS = ("--out-dir", "--output", "--force", "--jobs", "--num-workers", "--quiet", "--random-seed",
-                      "--n-frames", "--num-frames", "--limit-frames")
+                      "--n-frames", "--num-frames", "--limit-frames", "--first-frames", "--even-frames")
 """Other names for the shared ideas, which no command may use."""
 
 
@@ -50,8 +51,8 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     help_text = f"{base}: {detail}" if detail else base
     if flag in ("--overwrite", "--no-progress", "--json"):
         kwargs.setdefault("action", "store_true")
-    if flag == "--max-frames":
-        kwargs.setdefault("type", positive_int("--max-frames"))
+    if flag in ("--max-frames", "--spread-frames"):
+        kwargs.setdefault("type", positive_int(flag))
         kwargs.setdefault("metavar", "N")
     if flag == "--workers":
         kwargs.setdefault("type", positive_int("--workers"))
