@@ -85,7 +85,7 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
         except ConfigError as e:
             raise ConfigError(f"--{dotted.replace('_', '-')}: {e}") from None
         if dotted == "max_frames" and (str(raw).strip() in ("0", "-0") or str(raw).strip().startswith("-")):
-            raise ConfigError(f"--max-frames must be at least 1 (leave it out for every frame), got {raw}")
+            raise ConfigError(f"--max-frames: must be >= 1, got {raw} (leave it out for every frame)")
     try:
         return make_config(backend, args.preset, overrides, base)
     except ConfigError as e:
