@@ -51,7 +51,7 @@ def test_every_command_with_max_frames_is_covered_and_says_first_n():
 
 
 @pytest.mark.parametrize("text, first", [(None, 3), ("0::2", 2), ("1:4", 5), ("1::3", 1), ("-3:", 2), (":-1:2", 4),
-                                         ("-5:-1", 9), ("2:", None), ("4:2", 2)])
+                                         ("-5:-1", 9), ("2:", None), ("6:", 3)])
 def test_first_frames_slice_is_the_slice_then_its_first_n(text, first):
     """Cross-check against numpy: the composed slice selects exactly the slice's first N frames."""
     from synth.lab.measured import parse_frame_slice
@@ -60,6 +60,13 @@ def test_first_frames_slice_is_the_slice_then_its_first_n(text, first):
     frames = np.arange(n)
     want = frames[parse_frame_slice(text)] if text else frames
     assert list(frames[parse_frame_slice(got)] if got else frames) == list(want[:first])
+
+
+@pytest.mark.parametrize("text", ["4:2", "10:20", "-20:-9"])
+def test_a_slice_that_selects_nothing_is_named_as_written(text):
+    from data_tools.errors import ConfigError
+    with pytest.raises(ConfigError, match=f"^--frame-slice {text}: selects none of the 7 frames with a pose$"):
+        first_frames_slice(text, 2, lambda: 7)
 
 
 def test_slam_run_and_batch_use_the_first_n(seq, tmp_path, monkeypatch):

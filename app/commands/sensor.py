@@ -168,14 +168,19 @@ def first_frames_slice(frame_slice: str | None, first: int | None, count) -> str
     """The ``--frame-slice`` text selecting the first ``first`` frames of ``frame_slice`` (``--max-frames``
     after ``--frame-slice``), for :class:`synth.lab.runs.LabRequest`, whose own ``max_frames`` is the
     evenly spread sample (``--spread-frames``). ``0::2`` and 5 -> ``0:10:2``. ``count()``: the number of
-    frames with a pose, called only to resolve a negative START or STOP."""
+    frames with a pose, called when a slice is given (to resolve a negative START or STOP, and to refuse
+    a slice that selects nothing in the user's words; 0 when unknown: the lab's own check follows)."""
     if first is None:
         return frame_slice
+    from data_tools.errors import ConfigError
     from synth.lab.measured import parse_frame_slice
     sl = parse_frame_slice(frame_slice) if frame_slice else slice(None)
     start, stop, step = sl.start, sl.stop, sl.step or 1
-    if (start is not None and start < 0) or (stop is not None and stop < 0):
-        start, stop, step = sl.indices(int(count()))
+    if frame_slice:          # the error of a slice that selects nothing names the slice as the user wrote it
+        n = int(count())
+        if n and not len(range(*sl.indices(n))):
+            raise ConfigError(f"--frame-slice {frame_slice}: selects none of the {n} frames with a pose")
+        start, stop, step = sl.indices(n) if (start or 0) < 0 or (stop or 0) < 0 else (start, stop, step)
     start = start or 0
     end = start + first * step
     return f"{start}:{end if stop is None else min(stop, end)}:{step}"
@@ -186,10 +191,14 @@ def _frames_with_pose(seq: str) -> int:
     import math
 
     from data_tools.sequence import SequenceReader
-    reader = SequenceReader(seq)
-    if not reader.has_groundtruth:
-        return len(reader)
-    return sum(all(math.isfinite(float(x)) for x in pose.flat) for pose in reader.poses)
+    from data_tools.errors import RealgapError
+    try:
+        reader = SequenceReader(seq)
+        if not reader.has_groundtruth:
+            return 0
+        return sum(all(math.isfinite(float(x)) for x in pose.flat) for pose in reader.poses)
+    except RealgapError:       # a bad sequence: the lab names the problem when it opens it
+        return 0
 
 
 def _request(args) -> LabRequest:
