@@ -116,31 +116,31 @@ def fingerprint(work: Path) -> dict:
     # 2. the sensor lab on the simulated kinect_v1 sequence
     seq = work / "seq_kinect_v1"
     lab = work / "lab"
-    _realgap("sensor", "compare", str(seq), "--effects", "axial_noise", "--max-frames", "3", "--out", str(lab))
+    _realgap("sensor", "compare", str(seq), "--effects", "axial_noise", "--spread-frames", "3", "--out", str(lab))
     fp["sensor compare gap+breakdowns"] = _json(lab / "metrics.json")
     model = work / "model.json"
-    _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,range_limits,edge_fattening", "--max-frames", "3",
+    _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,range_limits,edge_fattening", "--spread-frames", "3",
              "--fit-option", "max_evaluations=24", "--out", str(model))
     fp["sensor fit model"] = _json(model, lambda d: {k: v for k, v in d.items() if k != "fit"})
     fp["sensor fit record"] = _json(model, lambda d: {k: v for k, v in d.get("fit", {}).items()
                                                       if k in ("gap", "gap_before", "params", "evaluations")})
     model2 = work / "model_lens_quant.json"
     _realgap("sensor", "fit", str(seq), "--effects", "axial_noise,lens_distortion,disparity_quantization",
-             "--max-frames", "2", "--fit-option", "max_evaluations=30", "--out", str(model2))
+             "--spread-frames", "2", "--fit-option", "max_evaluations=30", "--out", str(model2))
     fp["sensor fit lens+quantization record"] = _json(model2, lambda d: {k: v for k, v in d.get("fit", {}).items()
                                                                          if k in ("gap", "gap_before", "params",
                                                                                   "evaluations")})
     simseq2 = work / "sim_lens_quant"
-    _realgap("sensor", "simulate", str(seq), "--model", str(model2), "--max-frames", "2", "--out", str(simseq2))
+    _realgap("sensor", "simulate", str(seq), "--model", str(model2), "--spread-frames", "2", "--out", str(simseq2))
     fp["sensor simulate lens+quantization"] = _hash_pngs(simseq2 / "depth")
     diag = work / "diag"
-    _realgap("sensor", "diagnose", str(seq), "--effects", "axial_noise", "--max-frames", "2",
+    _realgap("sensor", "diagnose", str(seq), "--effects", "axial_noise", "--spread-frames", "2",
              "--candidates", "edge_fattening,projector_shadow,lens_distortion",
              "--fit-option", "max_evaluations=10", "--diagnose-option", "candidate_evaluations=8",
              "--top", "1", "--report-frames", "1", "--out", str(diag))
     fp["sensor diagnose"] = _json(diag / "diagnosis.json")
     simseq = work / "sim"
-    _realgap("sensor", "simulate", str(seq), "--model", str(model), "--max-frames", "3", "--out", str(simseq))
+    _realgap("sensor", "simulate", str(seq), "--model", str(model), "--spread-frames", "3", "--out", str(simseq))
     fp["sensor simulate"] = _hash_pngs(simseq / "depth")
 
     # 3. slam on the simulated sequence, and the metrics

@@ -215,9 +215,12 @@ def config_replace(cfg: Any, dotted: dict[str, Any], where: str = "config") -> A
 
 def config_from_options(cls: type, items, flag: str, base: dict | None = None) -> Any:
     """Dataclass ``cls`` (defaults) with ``KEY=VALUE`` overrides from a command line option such
-    as ``--fit-option`` (values parsed as JSON when they are JSON, else kept as strings), then
-    ``validate()``d. ``base`` holds overrides applied first. Errors name ``flag``."""
+    as ``--fit-option`` (values parsed as JSON when they are JSON, else kept as strings, then
+    converted to the field's type as a typed command-line value is: ``max_evaluations=abc`` or
+    ``=1e400`` is an error naming ``--fit-option max_evaluations``), then ``validate()``d. ``base``
+    holds overrides applied first. Errors name ``flag``."""
     known = {f.name for f in dataclasses.fields(cls) if f.init}
+    hints = typing.get_type_hints(cls)
     over = dict(base or {})
     for item in items or []:
         if "=" not in item:
@@ -227,15 +230,16 @@ def config_from_options(cls: type, items, flag: str, base: dict | None = None) -
         if k not in known:
             raise ConfigError(f"{flag}: unknown option {k!r}; known: {', '.join(sorted(known))}")
         try:
-            over[k] = json.loads(v)
+            value = json.loads(v)
         except json.JSONDecodeError:
-            over[k] = v
+            value = v
+        over[k] = _coerce(value, hints[k], f"{flag} {k}")
     try:
         obj = dataclasses.replace(cls(), **{k: v for k, v in over.items() if k in known})
         validate = getattr(obj, "validate", None)
         if callable(validate):
             validate()
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise ConfigError(f"{flag}: bad value ({e})") from None
     return obj
 

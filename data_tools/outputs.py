@@ -212,6 +212,10 @@ def _inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
+REPLACEABLE_INSIDE = (".png", ".jpg", ".gif", ".mp4")
+"""Files an output may replace inside an input it may live in (a picture of the input, directly in its folder)."""
+
+
 def check_output_not_input(outputs, inputs, *, allow_inside: tuple = (), may_hold: tuple = ()) -> None:
     """Refuse, before any work, an output that would land in an input (or contain one).
 
@@ -221,7 +225,9 @@ def check_output_not_input(outputs, inputs, *, allow_inside: tuple = (), may_hol
     Errors (one line naming both): the output is the input; the output lies inside an input
     folder; an input lies inside the output folder (replacing or resuming the output could touch
     it). ``allow_inside`` names inputs below which an output is expected (``eval run``'s RUN/eval,
-    ``slam render``'s RUN/view.png): only equality is refused for those. ``may_hold`` names inputs
+    ``slam render``'s RUN/view.png): for those, equality is refused, and so is replacing an existing
+    file of the input other than a picture directly in it (:data:`REPLACEABLE_INSIDE`: an earlier
+    screenshot may be re-made, ``depth/0.png`` or ``stats.json`` never). ``may_hold`` names inputs
     an output folder may hold (a model file the lab wrote into its own folder: ``sensor compare
     --model LAB/diagnosis/best_model.json --out LAB``); the command's data never.
     """
@@ -234,6 +240,10 @@ def check_output_not_input(outputs, inputs, *, allow_inside: tuple = (), may_hol
             if o == i:
                 raise RealgapError(f"{opath}: the output ({olab}) is the input {ilab} ({ipath}); writing there "
                                    f"would replace the input: choose another {olab}")
+            if _inside(o, i) and ilab in allow_inside and o.is_file() and \
+                    (o.parent != i or o.suffix.lower() not in REPLACEABLE_INSIDE):
+                raise RealgapError(f"{opath}: the output ({olab}) would replace {o.relative_to(i)}, a file of the "
+                                   f"input {ilab} ({ipath}); choose a new file name so the input is never changed")
             if _inside(o, i) and ilab not in allow_inside:
                 raise RealgapError(f"{opath}: the output ({olab}) lies inside the input {ilab} ({ipath}); choose "
                                    f"an {olab} outside it so the input is never changed")

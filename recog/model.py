@@ -14,6 +14,7 @@ the object -> the nearest view's pose moved to the window (:func:`recog.patches.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -63,6 +64,35 @@ class Prediction:
                 "distance": self.distance, "votes": self.votes, "descriptor_object": self.descriptor_object,
                 "verification": self.verification, "icp_fitness": self.icp_fitness,
                 "icp_accepted": self.icp_accepted}
+
+
+def check_object_records(objects, path: Path) -> None:
+    """The ``objects`` of recogniser.json (a list of ``{name, source, scale, symmetry, diameter_m}``,
+    :meth:`Recogniser.object_records`) checked with their JSON types: a wrong one is a FormatError naming
+    ``path``, the entry and the key (never a TypeError later, never a symmetry silently ignored)."""
+    def number(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    if not isinstance(objects, list) or not objects:
+        raise FormatError(path, "'objects' must be a non-empty list of {name, source, scale, symmetry}")
+    for k, rec in enumerate(objects):
+        where = f"objects[{k}]"
+        if not isinstance(rec, dict):
+            raise FormatError(path, f"{where} must be an object, got {rec!r}")
+        for key in ("name", "source"):
+            if not isinstance(rec.get(key), str) or not rec.get(key):
+                raise FormatError(path, f"{where}.{key} must be a non-empty string, got {rec.get(key)!r}")
+        for key in ("scale", "diameter_m"):
+            if key in rec and not (number(rec[key]) and rec[key] > 0):
+                raise FormatError(path, f"{where}.{key} must be a number > 0, got {rec[key]!r}")
+        sym = rec.get("symmetry", {})
+        if not isinstance(sym, dict):
+            raise FormatError(path, f"{where}.symmetry must be an object {{axis, order}}, got {sym!r}")
+        axis, order = sym.get("axis"), sym.get("order", 1)
+        if axis is not None and not (isinstance(axis, list) and len(axis) == 3 and all(map(number, axis))):
+            raise FormatError(path, f"{where}.symmetry.axis must be null or 3 numbers, got {axis!r}")
+        if isinstance(order, bool) or not isinstance(order, int) or order < 0:
+            raise FormatError(path, f"{where}.symmetry.order must be a whole number >= 0 (a JSON number), "
+                                    f"got {order!r}")
 
 
 class Recogniser:
@@ -224,9 +254,10 @@ class Recogniser:
         if meta.get("version") != MODEL_VERSION:
             raise FormatError(meta_path, f"recogniser format version {meta.get('version')!r}, this realgap reads "
                                          f"version {MODEL_VERSION}: retrain it with 'realgap recog train'")
-        patch = config_from_dict(PatchConfig, meta.get("patch", {}), str(meta_path))
-        data = config_from_dict(DataConfig, meta.get("data", {}), str(meta_path))
-        train = config_from_dict(TrainConfig, meta.get("train", {}), str(meta_path))
+        patch = config_from_dict(PatchConfig, meta.get("patch", {}), f"{meta_path}: patch", strict=True)
+        data = config_from_dict(DataConfig, meta.get("data", {}), f"{meta_path}: data", strict=True)
+        train = config_from_dict(TrainConfig, meta.get("train", {}), f"{meta_path}: train", strict=True)
+        check_object_records(meta.get("objects"), meta_path)
         net = make_network(train.network, patch.size, train.descriptor)
         try:
             net.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))

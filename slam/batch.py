@@ -157,8 +157,12 @@ def _set_threads(n: int) -> None:
 
 
 def _worker_init(threads: int) -> None:
+    import warnings
     from data_tools.workers import exit_with_parent
     exit_with_parent()
+    # numba's note that this machine's TBB is too old for its TBB layer (it uses another one; results are the
+    # same) would be a raw two-line Python warning with colour codes in the middle of the report
+    warnings.filterwarnings("ignore", message=r".*TBB threading layer")
     _set_threads(threads)
 
 

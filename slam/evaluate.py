@@ -211,6 +211,11 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool 
         raise FormatError(run, "run folder has no trajectory.txt (written by 'realgap slam run')")
     out = Path(out_dir) if out_dir else run / "eval"
     check_output_dir(out, finished="ate.json", overwrite=overwrite)
+    from data_tools.outputs import incomplete_text, read_incomplete
+    marker = read_incomplete(run)
+    if marker is not None:          # a killed run: its numbers are of the part it registered (said, not hidden)
+        from data_tools.errors import warn
+        warn(f"{run}: an unfinished run ({incomplete_text(marker)}); the numbers are of the frames it registered")
     failed = read_failed_timestamps(run / "stats.json")
     gt_path = ground_truth_path(gt)
     gt_traj = read_for_eval(gt_path, cfg, fmt)
@@ -222,7 +227,8 @@ def evaluate_run(run_dir, gt, cfg: EvalConfig, out_dir=None, *, overwrite: bool 
     rpe_t, rpe_r = rpe_pair(gt_traj, est, cfg, **names)
 
     out.mkdir(parents=True, exist_ok=True)
-    run_info = {"failed_frames": int(len(failed)), "estimate_poses": len(est), "reference_poses": len(gt_traj)}
+    run_info = {"failed_frames": int(len(failed)), "estimate_poses": len(est), "reference_poses": len(gt_traj),
+                "run_complete": marker is None}
     inputs = {"run": run, "trajectory": traj_path, "ground_truth": gt_path}
     metrics = {**_metrics(res_t, "ate_"), **_metrics(res_r, "ape_rotation_"), **_metrics(rpe_t, "rpe_"),
                **_metrics(rpe_r, "rpe_rotation_"), "failed_frames": int(len(failed))}

@@ -147,7 +147,7 @@ class PlaneReferenceResult:
 
 
 def make_plane_reference(seq_dir, out_dir, config: PlaneReferenceConfig | None = None, *, camera=None,
-                         max_frames: int | None = None, overwrite: bool = False,
+                         max_frames: int | None = None, spread_frames: int | None = None, overwrite: bool = False,
                          progress: bool = True) -> PlaneReferenceResult:
     """Write the planar reference of ``seq_dir`` into ``out_dir`` (see the module docstring)."""
     from data_tools.geometry import pose_to_tum, unproject
@@ -169,9 +169,9 @@ def make_plane_reference(seq_dir, out_dir, config: PlaneReferenceConfig | None =
     intr = cam.intrinsics
     if cfg.roi is not None and (cfg.roi[0] >= intr.width or cfg.roi[1] >= intr.height):
         raise ConfigError(f"--roi {cfg.roi} lies outside the {intr.width}x{intr.height} image")
-    idx = list(range(len(reader)))
-    if max_frames is not None and max_frames < len(idx):
-        idx = sorted(set(np.linspace(0, len(idx) - 1, max_frames).round().astype(int).tolist()))
+    idx = list(range(len(reader)))[:max_frames]       # the first max_frames, then spread_frames of them
+    if spread_frames is not None and spread_frames < len(idx):
+        idx = sorted(set(np.linspace(0, len(idx) - 1, spread_frames).round().astype(int).tolist()))
     _copy_sequence(reader, out, cam)
     for name in ("groundtruth.txt", "mask.txt"):
         (out / name).unlink(missing_ok=True)

@@ -84,7 +84,9 @@ class ReferenceConfig:
                                                                 depth_max_m=4.0))
     """TSDF options (1 cm voxels, 4 cm truncation, depth up to 4 m; colour is not needed)."""
     max_frames: int | None = None
-    """Fuse at most this many frames, evenly spread over the sequence; None = every frame with a pose."""
+    """Fuse only the first this many frames with a pose (``--max-frames``); None = every one."""
+    spread_frames: int | None = None
+    """Of those, fuse this many, evenly spread (``--spread-frames``); None = all of them."""
     mesh_weight_threshold: float = 0.0
     """Minimum number of fused observations of a voxel kept in the mesh; 0 = automatic:
     min(3, frames fused) (short sequences keep single-view surfaces)."""
@@ -101,8 +103,9 @@ class ReferenceConfig:
 
     def validate(self) -> "ReferenceConfig":
         self.tsdf.validate()
-        if self.max_frames is not None and int(self.max_frames) < 1:
-            raise ConfigError(f"max_frames must be >= 1 (None: every frame), got {self.max_frames}")
+        for k in ("max_frames", "spread_frames"):
+            if getattr(self, k) is not None and int(getattr(self, k)) < 1:
+                raise ConfigError(f"{k} must be >= 1 (None: every frame), got {getattr(self, k)}")
         if self.mesh_weight_threshold < 0:
             raise ConfigError(f"mesh_weight_threshold must be >= 0, got {self.mesh_weight_threshold}")
         if int(self.min_component_triangles) < 0:
@@ -139,13 +142,15 @@ class ReferenceResult:
     """Wall time of reading + fusing + meshing."""
     out_dir: Path | None = None
     """Where scene.json was written (make_reference only)."""
+    timestamps: list = field(default_factory=list)
+    """Depth timestamps (s) of the frames fused, in order (which frames ``max_frames``/``spread_frames`` kept)."""
 
     def to_json(self) -> dict:
         lo, hi = self.mesh.bounds if len(self.mesh.vertices) else (np.zeros(3), np.zeros(3))
         return {"frames_fused": self.frames_fused, "frames_without_pose": self.frames_without_pose,
                 "vertices": int(len(self.mesh.vertices)), "triangles": int(len(self.mesh.triangles)),
                 "triangles_dropped": self.triangles_dropped, "bounds_m": [list(map(float, lo)), list(map(float, hi))],
-                "seconds": round(self.seconds, 3)}
+                "seconds": round(self.seconds, 3), "timestamps_s": [float(t) for t in self.timestamps]}
 
 
 def clean_mesh(mesh: TriMesh, min_component_triangles: int = 0) -> tuple[TriMesh, int]:
@@ -207,7 +212,8 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
     idx = np.flatnonzero(has_pose).tolist()
     if not idx:
         raise FormatError(reader.path / "groundtruth.txt", "no ground-truth pose within 0.02 s of any depth frame")
-    idx = [idx[i] for i in spread_indices(len(idx), None if cfg.max_frames is None else int(cfg.max_frames))]
+    idx = idx[:None if cfg.max_frames is None else int(cfg.max_frames)]
+    idx = [idx[i] for i in spread_indices(len(idx), None if cfg.spread_frames is None else int(cfg.spread_frames))]
     t0 = time.perf_counter()
     vol = TSDFVolume(cfg.tsdf)
     intr = reader.intrinsics
@@ -230,7 +236,8 @@ def fuse_reference(sequence: SequenceReader | str | os.PathLike, config: Referen
         raise FormatError(reader.path, f"the fused reference is empty ({len(idx)} frames fused; check the "
                                        f"depth scale, the poses and tsdf.depth_max_m)")
     check_mesh(mesh)
-    return ReferenceResult(mesh, len(idx), int((~has_pose).sum()), dropped, time.perf_counter() - t0)
+    return ReferenceResult(mesh, len(idx), int((~has_pose).sum()), dropped, time.perf_counter() - t0,
+                           timestamps=[float(reader.timestamps[i]) for i in idx])
 
 
 

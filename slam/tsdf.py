@@ -681,7 +681,7 @@ class TSDFVolume:
             meta = json.loads(meta_path.read_text())
         except json.JSONDecodeError as e:
             raise FormatError(meta_path, f"not valid JSON ({e.msg})") from None
-        vol = cls(config_from_dict(TSDFConfig, meta.get("tsdf", {}), str(meta_path)))
+        vol = cls(config_from_dict(TSDFConfig, meta.get("tsdf", {}), str(meta_path), strict=True))
         o3d = o3d_quiet()
         try:
             vol.vbg = o3d.t.geometry.VoxelBlockGrid.load(str(path)).to(vol.device)

@@ -63,32 +63,33 @@ CASES = [
      ["c.json", "voxel_size_m", "number"]),
     ("slam run: --config boolean frame count", ["slam", "run", "{S}", "--config", "{T}/c.json", "--out", "{T}/R"],
      lambda t: _write(t / "c.json", '{"config": {"max_frames": true}}'), ["c.json", "max_frames"]),
-    # zero / negative / out-of-range numbers: one line naming the flag
+    # zero / negative / out-of-range numbers: one line naming the flag, in the one wording of Range.problem
+    # (app.commands.ranged and the generated configuration flags share app.commands.flags.number_parser)
     ("ate: --max-dt negative", ["eval", "ate", "{S}/groundtruth.txt", "{T}/traj.txt", "--max-dt", "-1"], None,
-     ["--max-dt", ">= 0"]),
-    ("rpe: --delta 0", ["eval", "rpe", "{S}/groundtruth.txt", "{T}/traj.txt", "--delta", "0"], None, ["--delta"]),
+     ["--max-dt", "must be >= 0, got -1"]),
+    ("rpe: --delta 0", ["eval", "rpe", "{S}/groundtruth.txt", "{T}/traj.txt", "--delta", "0"], None, ["--delta", "must be > 0, got 0"]),
     ("slam render: --scale 0", ["slam", "render", "{T}/R", "--frame", "0", "--scale", "0", "--out", "{T}/v.png"],
-     _run_folder, ["--scale"]),
+     _run_folder, ["--scale", "must be in (0, 8], got 0"]),
     ("compare: --report-frames -1", ["sensor", "compare", "{S}", "--effects", "none", "--out", "{T}/L",
-                                     "--report-frames", "-1"], None, ["--report-frames", ">= 0"]),
+                                     "--report-frames", "-1"], None, ["--report-frames", "must be >= 0, got -1"]),
     ("diagnose: --top -1", ["sensor", "diagnose", "{S}", "--effects", "none", "--out", "{T}/D", "--top", "-1"],
-     None, ["--top"]),
+     None, ["--top", "must be >= 0, got -1"]),
     ("recog train: --scale -1", ["recog", "train", "--objects", "chairs", "--out", "{T}/M", "--scale", "-1"], None,
-     ["--scale", "> 0"]),
-    ("recog eval: --k 0", ["recog", "eval", "{T}/M", "{T}/TS", "--k", "0"], None, ["--k"]),
+     ["--scale", "must be > 0, got -1"]),
+    ("recog eval: --k 0", ["recog", "eval", "{T}/M", "{T}/TS", "--k", "0"], None, ["--k", "must be >= 1, got 0"]),
     ("make-reference: --albedo 2", ["data", "make-reference", "{S}", "--out", "{T}/O", "--albedo", "2"], None,
-     ["--albedo", "<= 1"]),
+     ["--albedo", "must be in [0, 1], got 2"]),
     ("make-reference: --min-component -5", ["data", "make-reference", "{S}", "--out", "{T}/O", "--min-component",
-                                            "-5"], None, ["--min-component"]),
+                                            "-5"], None, ["--min-component", "must be >= 0, got -5"]),
     ("synth views: --subdivisions 9", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--subdivisions",
-                                       "9"], None, ["--subdivisions", "<= 5"]),
+                                       "9"], None, ["--subdivisions", "must be in [0, 5], got 9"]),
     ("synth views: --clutter -2", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--clutter", "-2"],
-     None, ["--clutter"]),
+     None, ["--clutter", "must be >= 0, got -2"]),
     ("synth views: --distance -1", ["synth", "views", "--model", "{T}/m.ply", "--out", "{T}/V", "--distance", "-1"],
-     None, ["--distance"]),
-    ("synth sequence: --width 0", ["synth", "sequence", "--out", "{T}/O", "--width", "0"], None, ["--width"]),
+     None, ["--distance", "must be > 0, got -1"]),
+    ("synth sequence: --width 0", ["synth", "sequence", "--out", "{T}/O", "--width", "0"], None, ["--width", "must be >= 1, got 0"]),
     ("batch: --threads-per-job -1", ["batch", "{S}", "--out", "{T}/B", "--threads-per-job", "-1"], None,
-     ["--threads-per-job"]),
+     ["--threads-per-job", "must be >= 0, got -1"]),
     # one dialect: --json is a switch (recog eval's file comes from --out DIR)
     ("recog eval: --json FILE", ["recog", "eval", "{T}/M", "{T}/TS", "--json", "{T}/x.json"], None, ["x.json"]),
     # partial folders, bad JSON, wrong image sizes
@@ -141,3 +142,25 @@ def test_more_bad_input_is_one_line_exit_1_and_changes_nothing(name, argv, break
     for w in words:
         assert w in lines[0], (w, lines[0])
     assert _paths(tmp_path) == before, "files changed, removed or left behind"
+
+
+@pytest.mark.parametrize("kind, low, high, low_open, text", [(int, 1, None, False, "0"), (float, 0, None, True, "-2"),
+                                                             (float, 0, 1, False, "1.5"), (int, 0, 5, False, "9"),
+                                                             (float, 0, None, True, "nan"), (int, 0, None, False, "x")])
+def test_one_wording_for_range_errors(kind, low, high, low_open, text):
+    """``ranged`` (hand-written flags) and a generated configuration flag with the same Range fail with
+    the same words: one parser, one wording (Range.problem)."""
+    import argparse
+
+    from app.commands import ranged
+    from app.commands.flags import number_parser
+    from data_tools.config import Range
+    rng = Range(low, high, open_lo=low_open)
+    msgs = []
+    for parse in (ranged("--x", kind, low, high, low_open), number_parser(kind, rng)):
+        with pytest.raises(argparse.ArgumentTypeError) as e:
+            parse(text)
+        msgs.append(str(e.value))
+    assert msgs[0] == msgs[1] and msgs[0].endswith(f"got {text!r}" if text == "x" else f"got {text}")
+    if text not in ("x", "nan"):
+        assert msgs[0] == f"{rng.problem(kind(text))}, got {text}"

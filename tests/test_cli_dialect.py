@@ -98,7 +98,7 @@ def test_usage_errors_are_one_line_exit_1_naming_the_flag(argv, flag, capsys):
 
 
 @pytest.mark.parametrize("argv, words", [
-    (["slam", "run", "S", "--out", "R", "--max-frames", "0"], ["--max-frames", "at least 1"]),
+    (["slam", "run", "S", "--out", "R", "--max-frames", "0"], ["--max-frames", "must be >= 1, got 0"]),
     (["slam", "run", "S", "--out", "R", "--tsdf.voxel-size-m", "-1"], ["--tsdf.voxel-size-m", "> 0"]),
     (["slam", "run", "S", "--out", "R", "--icp.iterations", "x"], ["--icp.iterations", "integer"]),
     (["slam", "run", "S", "--out", "R", "--frame-step", "0"], ["--frame-step"]),

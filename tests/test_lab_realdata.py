@@ -47,13 +47,13 @@ def test_tum_fr1_ideal_worse_than_axial_noise_fast(tmp_path):
 def _lab_run(seq: Path, lab: Path, frames: int, diag_frames: int) -> dict:
     """ideal -> axial_noise -> diagnose -> best fitted model (diagnose's best_model.json), all through
     the CLI; the history in ``lab`` must fall at every step. Returns the numbers."""
-    common = ["--max-frames", str(frames), "--report-frames", "2"]
+    common = ["--spread-frames", str(frames), "--report-frames", "2"]
     assert main(["sensor", "compare", str(seq), "--effects", "none", "--out", str(lab), *common]) == 0
     assert main(["sensor", "compare", str(seq), "--effects", "axial_noise", "--out", str(lab), "--overwrite",
                  *common]) == 0      # a finished lab folder: --overwrite (the re-run rule); the history keeps its steps
     diag_dir = lab / "diagnosis"
     assert main(["sensor", "diagnose", str(seq), "--effects", "axial_noise", "--out", str(diag_dir),
-                 "--max-frames", str(diag_frames)]) == 0
+                 "--spread-frames", str(diag_frames)]) == 0
     diag = json.loads((diag_dir / "diagnosis.json").read_text())
     assert diag["ranking"] and diag["ranking"][0]["gain"] > 0, diag["ranking"]
     # the best fitted model = the diagnosis's best candidate (axial noise refitted + that effect)

@@ -281,6 +281,18 @@ def test_eval_and_predict_cli(trained, capsys):
     assert pred["object"] in ("box", "bracket") and np.asarray(pred["pose"]).shape == (4, 4)
 
 
+def test_eval_max_frames_is_the_first_n_scans(trained):
+    """``--max-frames N`` (the first N, as in every command: tests/test_max_frames.py): the first N scans of
+    labels.json, in order."""
+    out = trained / "e_first"
+    assert main(["recog", "eval", str(trained / "m"), str(trained / "t"), "--out", str(out), "--no-icp",
+                 "--max-frames", "3", "--no-progress"]) == 0
+    rows = [json.loads(ln) for ln in (out / "predictions.jsonl").read_text().splitlines() if ln.strip()]
+    labels = json.loads((trained / "t" / "labels.json").read_text())
+    assert [r["file"] for r in rows] == [lab["file"] for lab in labels[:3]]
+    assert json.loads((out / "eval.json").read_text())["n_scans"] == 3
+
+
 def test_eval_json_prints_and_out_writes_the_file(trained, capsys):
     """One dialect: ``--json`` prints eval.json's content on stdout (a switch, as everywhere); the file is
     written by ``--out DIR`` (DIR/eval.json), and a finished DIR is a one-line error without --overwrite.

@@ -140,7 +140,7 @@ def test_a_second_sequence_is_shown_as_the_simulation(seq_and_run, offscreen_ok,
 def test_lab_mode_effect_toggle_resimulates(seq_and_run, offscreen_ok, tmp_path):
     lab = tmp_path / "lab"
     assert main(["sensor", "compare", str(seq_and_run / "seq"), "--effects", "axial_noise,projector_shadow",
-                 "--out", str(lab), "--compare-preset", "fast", "--max-frames", "3", "--report-frames", "1",
+                 "--out", str(lab), "--compare-preset", "fast", "--spread-frames", "3", "--report-frames", "1",
                  "--no-progress"]) == 0
     from app.viewer.data import load_session
     from app.viewer.window import Viewer

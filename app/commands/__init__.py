@@ -6,8 +6,8 @@ function -> save the result.
 
 One dialect: the same idea has the same flag in every command, added by :func:`add_shared`
 with the help text of :data:`SHARED_FLAGS` (``tests/test_cli_dialect.py`` walks the parser and
-checks it): ``--out``, ``--overwrite``, ``--max-frames``, ``--seed``, ``--workers``,
-``--no-progress``, ``--json``. A configuration dataclass's options are not written here but generated from
+checks it): ``--out``, ``--overwrite``, ``--max-frames``, ``--spread-frames``, ``--seed``,
+``--workers``, ``--no-progress``, ``--json``. A configuration dataclass's options are not written here but generated from
 its fields by :func:`app.commands.flags.add_config_flags`.
 """
 from __future__ import annotations
@@ -17,7 +17,8 @@ import argparse
 SHARED_FLAGS: dict[str, str] = {
     "--out": "output",
     "--overwrite": "replace a finished result already at --out (without it such an output is an error)",
-    "--max-frames": "use at most N frames of the sequence",
+    "--max-frames": "the first N frames (of those any other frame option selects)",
+    "--spread-frames": "N frames evenly spread over the frames used (after --max-frames)",
     "--seed": "random seed: the same seed gives the same output",
     "--workers": "parallel worker processes",
     "--no-progress": "no progress display on stderr (also: REALGAP_NO_PROGRESS=1)",
@@ -34,7 +35,7 @@ RESUMES = "re-run the same command to continue: finished steps are kept and skip
 """``on_interrupt`` note of a command that continues an interrupted run (see :mod:`app.cli`)."""
 
 FORBIDDEN_SYNONYMS = ("--out-dir", "--output", "--force", "--jobs", "--num-workers", "--quiet", "--random-seed",
-                      "--n-frames", "--num-frames", "--limit-frames")
+                      "--n-frames", "--num-frames", "--limit-frames", "--first-frames", "--even-frames")
 """Other names for the shared ideas, which no command may use."""
 
 
@@ -50,8 +51,8 @@ def add_shared(p: argparse.ArgumentParser, flag: str, detail: str = "", **kwargs
     help_text = f"{base}: {detail}" if detail else base
     if flag in ("--overwrite", "--no-progress", "--json"):
         kwargs.setdefault("action", "store_true")
-    if flag == "--max-frames":
-        kwargs.setdefault("type", positive_int("--max-frames"))
+    if flag in ("--max-frames", "--spread-frames"):
+        kwargs.setdefault("type", positive_int(flag))
         kwargs.setdefault("metavar", "N")
     if flag == "--workers":
         kwargs.setdefault("type", positive_int("--workers"))
@@ -70,57 +71,28 @@ def add_align(p: argparse.ArgumentParser, default: str | None = "auto", note: st
                           help=(ALIGN_HELP + tail).replace("%", "%%"))
 
 
-def positive_float(flag: str):
-    """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
-    import math
-
-    def parse(text: str) -> float:
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not (math.isfinite(v) and v > 0):
-            raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-        return v
-    parse.__name__ = flag
-    return parse
-
-
 def ranged(flag: str, kind: type = int, low: float | None = None, high: float | None = None,
            low_open: bool = False):
-    """argparse ``type`` of a finite ``kind`` (int or float) in [low, high] (``low_open``: (low, high]);
-    a value outside is one line naming ``flag`` (exit 1), before any work."""
-    import math
-
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"expected {'a whole number' if kind is int else 'a number'}, got {text!r}") from None
-        if not math.isfinite(v) or (low is not None and (v <= low if low_open else v < low)) \
-                or (high is not None and v > high):
-            lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
-            hi = "" if high is None else f"<= {high:g}"
-            raise argparse.ArgumentTypeError(f"must be {' and '.join(x for x in (lo, hi) if x) or 'finite'}, "
-                                             f"got {text}")
-        return v
+    """argparse ``type`` of a finite ``kind`` (int or float) in [low, high] (``low_open``: (low, high]):
+    the bounds as a :class:`data_tools.config.Range`, parsed and checked by the one number parser of the
+    command line (:func:`app.commands.flags.number_parser`, also the generated configuration flags'), so a
+    bad value reads the same everywhere: one line naming ``flag`` (``must be >= 1, got 0``), exit 1."""
+    from app.commands.flags import number_parser
+    from data_tools.config import Range
+    rng = None if low is None and high is None else Range(low, high, open_lo=low_open)
+    parse = number_parser(kind, rng)
     parse.__name__ = flag
     return parse
+
+
+def positive_float(flag: str):
+    """argparse ``type`` of a finite number > 0 (``--fps 0`` or ``-30`` is one line naming ``flag``)."""
+    return ranged(flag, float, 0, low_open=True)
 
 
 def positive_int(flag: str):
     """argparse ``type`` of a whole number >= 1 (a bad value is one line naming ``flag``, exit 1)."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"must be at least 1, got {v}")
-        return v
-    parse.__name__ = flag
-    return parse
+    return ranged(flag, int, 1)
 
 
 RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {

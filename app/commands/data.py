@@ -67,7 +67,8 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel", type=positive_float("--voxel"), default=0.01, metavar="M", help="TSDF voxel size in metres (default 0.01)")
     p.add_argument("--depth-max", type=positive_float("--depth-max"), default=4.0, metavar="M",
                    help="ignore depth beyond this many metres (default 4)")
-    add_shared(p, "--max-frames", "fuse N frames evenly spread (default: every frame with a pose)")
+    add_shared(p, "--max-frames", "fuse only the first N frames (default: every frame with a pose)")
+    add_shared(p, "--spread-frames", "fuse N of them (default: all)")
     p.add_argument("--material", default="reference", help="material name of the mesh (default reference)")
     p.add_argument("--albedo", type=ranged("--albedo", float, 0, 1), default=0.5,
                    help="albedo of that material, in [0, 1] (default 0.5)")
@@ -143,7 +144,8 @@ def _make_plane_reference(args) -> int:
     cfg = PlaneReferenceConfig(roi=roi, material=args.material if args.material != "reference" else "target",
                                albedo=args.albedo)
     r = make_plane_reference(args.seq, args.out, cfg, camera=named_camera(args.camera) if args.camera else None,
-                             max_frames=args.max_frames, overwrite=args.overwrite, progress=not args.no_progress)
+                             max_frames=args.max_frames, spread_frames=args.spread_frames, overwrite=args.overwrite,
+                             progress=not args.no_progress)
     d = sorted(r.distances_m)
     print(f"{r.out_dir}: target plane fitted in {r.frames_posed} of {r.frames} frames (distance "
           f"{d[0]:.2f}-{d[-1]:.2f} m, target {100 * sum(r.mask_fraction) / len(r.mask_fraction):.0f} % of the "
@@ -158,7 +160,8 @@ def _make_reference(args) -> int:
     from slam.tsdf import TSDFConfig
     cfg = ReferenceConfig(tsdf=TSDFConfig(voxel_size_m=args.voxel, depth_max_m=args.depth_max,
                                           integrate_color=False),
-                          max_frames=args.max_frames, min_component_triangles=args.min_component,
+                          max_frames=args.max_frames, spread_frames=args.spread_frames,
+                          min_component_triangles=args.min_component,
                           material=args.material, albedo=args.albedo).validate()
     cam = named_camera(args.camera) if args.camera else None
     r = make_reference(args.seq, args.out, cfg, camera=cam, overwrite=args.overwrite, progress=True)

@@ -17,7 +17,7 @@ import math
 import typing
 from typing import Any
 
-__all__ = ["add_config_flags", "config_overrides", "type_name"]
+__all__ = ["add_config_flags", "config_overrides", "number_parser", "type_name"]
 
 
 def type_name(tp) -> str:
@@ -27,9 +27,11 @@ def type_name(tp) -> str:
     return {int: "INT", float: "FLOAT", bool: "BOOL", str: "STR"}.get(tp, "VALUE")
 
 
-def _parser(tp, rng, choices):
-    """argparse ``type`` of a field: the text converted to ``tp`` (int, float, str) and checked against the
-    ``Range`` ``rng`` and the ``choices``; a bad value raises ArgumentTypeError (one usage line)."""
+def number_parser(tp, rng, choices=None):
+    """argparse ``type`` of a field or a flag: the text converted to ``tp`` (int, float, str) and checked
+    against the ``Range`` ``rng`` (its wording: ``must be >= 1, got 0``) and the ``choices``; a bad value
+    raises ArgumentTypeError, which ``app.cli`` turns into one line naming the flag. The one number parser
+    of the command line (``app.commands.ranged`` builds on it)."""
     def parse(text: str):
         try:
             v = tp(text)
@@ -90,7 +92,7 @@ def add_config_flags(p, cls, prefix: str = "", *, exclude: tuple = (), aliases: 
         elif choices is not None:
             kw["choices"] = choices
         elif tp in (int, float, str):
-            kw.update(type=_parser(tp, field_range(cls, f.name), None), metavar=type_name(tp))
+            kw.update(type=number_parser(tp, field_range(cls, f.name)), metavar=type_name(tp))
         else:
             kw["metavar"] = type_name(tp)
         p.add_argument(*names, **kw)

@@ -37,8 +37,9 @@ HELP = "sensor lab on a measured sequence: simulate it, compare, diagnose the ga
 DESCRIPTION = ("Simulate a measured RGB-D sequence (camera.json + groundtruth.txt + scene.json) with a "
                "depth-sensor model, measure the realism gap, rank missing effects and fit parameters.")
 
-DEFAULT_FRAMES = {"simulate": None, "compare": 24, "diagnose": 12, "fit": 12}
-"""Default ``--max-frames`` per subcommand (None = every frame with a pose)."""
+DEFAULT_SPREAD = {"simulate": None, "compare": 24, "diagnose": 12, "fit": 12}
+"""Default ``--spread-frames`` per subcommand (None = every frame used): the lab measures on a sample
+spread over the sequence, which represents it better than its first frames."""
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -62,8 +63,9 @@ def _common(p: argparse.ArgumentParser, cmd: str, fit_flag: bool = True) -> None
                    "sensor_config.json); --effects adds effects it lacks")
     if fit_flag:
         p.add_argument("--fit", action="store_true", help="fit the model's parameters to SEQ first")
-    n = DEFAULT_FRAMES[cmd]
-    add_shared(p, "--max-frames", f"evenly spread (default {'all' if n is None else n})", default=n)
+    n = DEFAULT_SPREAD[cmd]
+    add_shared(p, "--max-frames", "of the frames with a pose in --frame-slice (default: all)")
+    add_shared(p, "--spread-frames", f"(default {'all' if n is None else n})", default=n)
     p.add_argument("--frame-slice", metavar="START:STOP:STEP",
                    help="only these frames (Python slice over the frames with a pose, before --max-frames), "
                         "e.g. fit on 0::2 and compare on 1::2 to test on frames held out from the fit")
@@ -162,10 +164,48 @@ def _add_catalog(sub) -> None:
 
 # --------------------------------------------------------------------------- commands
 
+def first_frames_slice(frame_slice: str | None, first: int | None, count) -> str | None:
+    """The ``--frame-slice`` text selecting the first ``first`` frames of ``frame_slice`` (``--max-frames``
+    after ``--frame-slice``), for :class:`synth.lab.runs.LabRequest`, whose own ``max_frames`` is the
+    evenly spread sample (``--spread-frames``). ``0::2`` and 5 -> ``0:10:2``. ``count()``: the number of
+    frames with a pose, called when a slice is given (to resolve a negative START or STOP, and to refuse
+    a slice that selects nothing in the user's words; 0 when unknown: the lab's own check follows)."""
+    if first is None:
+        return frame_slice
+    from data_tools.errors import ConfigError
+    from synth.lab.measured import parse_frame_slice
+    sl = parse_frame_slice(frame_slice) if frame_slice else slice(None)
+    start, stop, step = sl.start, sl.stop, sl.step or 1
+    if frame_slice:          # the error of a slice that selects nothing names the slice as the user wrote it
+        n = int(count())
+        if n and not len(range(*sl.indices(n))):
+            raise ConfigError(f"--frame-slice {frame_slice}: selects none of the {n} frames with a pose")
+        start, stop, step = sl.indices(n) if (start or 0) < 0 or (stop or 0) < 0 else (start, stop, step)
+    start = start or 0
+    end = start + first * step
+    return f"{start}:{end if stop is None else min(stop, end)}:{step}"
+
+
+def _frames_with_pose(seq: str) -> int:
+    """Frames of ``seq`` with a ground-truth pose (as :meth:`synth.lab.measured.MeasuredSequence.load` counts)."""
+    import math
+
+    from data_tools.sequence import SequenceReader
+    from data_tools.errors import RealgapError
+    try:
+        reader = SequenceReader(seq)
+        if not reader.has_groundtruth:
+            return 0
+        return sum(all(math.isfinite(float(x)) for x in pose.flat) for pose in reader.poses)
+    except RealgapError:       # a bad sequence: the lab names the problem when it opens it
+        return 0
+
+
 def _request(args) -> LabRequest:
     return LabRequest(seq=args.seq, effects=args.effects, model=args.model, fit=bool(getattr(args, "fit", False)),
-                      max_frames=args.max_frames, preset=args.preset, seed=args.seed,
-                      frame_slice=getattr(args, "frame_slice", None),
+                      max_frames=args.spread_frames, preset=args.preset, seed=args.seed,
+                      frame_slice=first_frames_slice(getattr(args, "frame_slice", None), args.max_frames,
+                                                      lambda: _frames_with_pose(args.seq)),
                       fit_options=list(getattr(args, "fit_option", []) or []))
 
 

@@ -85,7 +85,7 @@ def config_from_args(args, backend: str, siblings: tuple[str, ...] = ()):
         except ConfigError as e:
             raise ConfigError(f"--{dotted.replace('_', '-')}: {e}") from None
         if dotted == "max_frames" and (str(raw).strip() in ("0", "-0") or str(raw).strip().startswith("-")):
-            raise ConfigError(f"--max-frames must be at least 1 (leave it out for every frame), got {raw}")
+            raise ConfigError(f"--max-frames: must be >= 1, got {raw} (leave it out for every frame)")
     try:
         return make_config(backend, args.preset, overrides, base)
     except ConfigError as e:
@@ -190,7 +190,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("run", metavar="RUN", help="run folder written by 'realgap slam run'")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--pose", metavar='"tx ty tz qx qy qz qw"', help="camera-to-world pose (TUM order)")
-    g.add_argument("--frame", type=int, metavar="K", help="use the K-th pose of RUN/trajectory.txt")
+    g.add_argument("--frame", type=int, metavar="K", help="use the K-th pose of RUN/trajectory.txt (from 0; -1 is the last)")
     add_shared(p, "--out", "colour image (.png); the depth image and the view's JSON are written next to it",
                required=True, metavar="PNG")
     add_shared(p, "--overwrite", "existing images of that name")

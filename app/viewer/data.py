@@ -290,7 +290,8 @@ class LabSession:
             raise FormatError(cfg_path, "names no measured sequence")
         self.config = SensorConfig.load(self.path / "sensor_config.json")
         self.enabled = {e.name: bool(e.enabled) for e in self.config.effects}
-        self.measured = MeasuredSequence.load(seq, max_frames=self.lab_config.get("frames"))
+        self.measured = MeasuredSequence.load(seq, max_frames=self.lab_config.get("frames"),      # the lab's frames
+                                              frame_slice=self.lab_config.get("frame_slice"))
         self.metrics = json.loads((self.path / "metrics.json").read_text()) if (self.path / "metrics.json").is_file() \
             else {}
         hist = self.path / "history.json"

@@ -96,7 +96,7 @@ def read_config(folder: str | Path):
     if meta.get("version") != CKPT_VERSION:
         raise FormatError(meta_p, f"model format version {meta.get('version')!r}, this realgap reads 1 and "
                                   f"{CKPT_VERSION}")
-    cfg = config_from_dict(NeuralTrainConfig, meta.get("train"), str(meta_p))
+    cfg = config_from_dict(NeuralTrainConfig, meta.get("train"), f"{meta_p}: train", strict=True)   # a file: JSON types
     return cfg, meta.get("info", {})
 
 
