@@ -59,6 +59,12 @@ class TrainConfig:
     """Write checkpoint.pt every this many steps."""
     log_every: Annotated[int, Range(1)] = 50
     """Record the losses every this many steps."""
+    synda_augment: bool = False
+    """Put every training patch through SynDA's online augmentation A of the depth domain (thesis ch. 5's
+    "A(synthetic)" baseline: procedural depth backgrounds, nearer polygon occluders, blur; the ranges of
+    ``synda_preset('cpu', 'depth').augment``), drawn anew for every patch of every step, on top of the
+    variant's sensor model; the database stays built from the unaugmented patches. Needs the object masks
+    of this version's training chunks."""
     seed: int = 0
     """Seed of the initial weights and of the mining."""
     device: str = "cpu"
@@ -187,9 +193,13 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
         if log is not None:
             log(f"resuming training at step {tlog.resumed_from} of {config.iterations} from {checkpoint}")
 
+    augment = _synda_augmenter(data, size) if config.synda_augment else None
+
     def step_fn(step: int) -> dict:
         a, ad, p, pd, n, nd, qd, same, ang = miner.sample(rng, config.batch, config.same_object_negatives)
         x = torch.cat([patches[a, ad], patches[p, pd], patches[n, nd], patches[a, qd]]).float().unsqueeze(1)
+        if augment is not None:
+            x = augment(x, np.concatenate([a, p, n, a]), int(rng.integers(0, 2 ** 62)))
         f = net(x.to(device))
         B = config.batch
         fb, fp, fn, fq = f[:B], f[B:2 * B], f[2 * B:3 * B], f[3 * B:]
@@ -214,3 +224,23 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
                              f"(every input maps to nearly one point)")
     net.eval()
     return net, tlog
+
+
+def _synda_augmenter(data: TrainingData, size: int):
+    """``(x (4B, 1, S, S) patches, view rows (4B,), seed) -> A(x)``: SynDA's depth augmentation A with the
+    views' object masks (``TrainConfig.synda_augment``); ConfigError when the chunks hold no masks."""
+    import torch
+
+    from recog.synda.augment import Augmenter
+    from recog.synda.config import synda_preset
+    if data.mask is None:
+        raise ConfigError("--synda-augment needs the object masks of the training chunks, which chunks made by an "
+                          "older version lack (delete the model's data folder to simulate them again)")
+    aug = Augmenter(synda_preset("cpu", "depth").augment, "depth", size)
+    masks = torch.from_numpy(data.mask)
+
+    def run(x, rows, seed: int):
+        m = masks[torch.from_numpy(rows)].to(device=x.device, dtype=torch.float32)[:, None]
+        return aug.apply({"depth": x, "mask": m}, aug.draw(len(rows), seed))["input"]
+
+    return run
