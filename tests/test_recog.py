@@ -437,11 +437,15 @@ def test_synda_augmented_training_data(trained, model_files):
     y1, y2, y3 = aug(x, rows, 7), aug(x, rows, 7), aug(x, rows, 8)
     assert y1.shape == x.shape and torch.equal(y1, y2) and not torch.equal(y1, y3)
     assert float(y1.min()) >= -1 and float(y1.max()) <= 1 and float((y1 - x).abs().mean()) > 0.01
-    cfg = dataclasses.replace(TrainConfig(), iterations=3, batch=8, synda_augment=True)
+    half = aug(x, rows, 7, 0.5)                  # a fraction: those patches A'd exactly as before, the rest kept
+    same_as_a = [torch.equal(half[i], y1[i]) for i in range(8)]
+    kept = [torch.equal(half[i], x[i]) for i in range(8)]
+    assert all(s or k for s, k in zip(same_as_a, kept)) and any(kept) and not all(kept)
+    cfg = dataclasses.replace(TrainConfig(), iterations=3, batch=8, synda_augment=1.0)
     syms = [o.get("symmetry") for o in m.objects]
     w1 = train_network(td, syms, cfg, 64, progress=False)[0].state_dict()
     w2 = train_network(td, syms, cfg, 64, progress=False)[0].state_dict()
-    w0 = train_network(td, syms, dataclasses.replace(cfg, synda_augment=False), 64, progress=False)[0].state_dict()
+    w0 = train_network(td, syms, dataclasses.replace(cfg, synda_augment=0.0), 64, progress=False)[0].state_dict()
     assert all(torch.equal(w1[k], w2[k]) for k in w1) and not all(torch.equal(w1[k], w0[k]) for k in w1)
     with pytest.raises(ConfigError, match="object masks"):
         _synda_augmenter(dataclasses.replace(td, mask=None), 64)
