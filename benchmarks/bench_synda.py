@@ -93,7 +93,12 @@ def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dic
     from recog.synda.train import pick_threads
     pick_threads(1)
     res = {}
-    for name, over in ABLATIONS.items():
+    names = list(ABLATIONS) if args.variants is None else args.variants.split(",")
+    unknown = [n for n in names if n not in ABLATIONS]
+    if unknown:
+        raise SystemExit(f"--variants: unknown {unknown[0]!r}; choose from {', '.join(ABLATIONS)}")
+    for name in names:
+        over = ABLATIONS[name]
         cfg = synda_preset("cpu", "depth")
         gen_cfg = dataclasses.replace(cfg.generator, **over)
         cfg = dataclasses.replace(cfg, generator=gen_cfg,
@@ -129,6 +134,8 @@ def main(argv=None) -> int:
     ap.add_argument("--ablation", action="store_true", help="thesis Table 5.4 (trains 6 generators)")
     ap.add_argument("--objects", default="chairs", help="objects of the ablation's generators")
     ap.add_argument("--iterations", type=int, default=300, help="steps of each ablation generator")
+    ap.add_argument("--variants", default=None, help="NAME,... the ablation variants to run (default all; two runs "
+                    "with disjoint variants and their own --out can share the machine)")
     ap.add_argument("--subdivisions", type=int, default=1, help="viewpoint subdivisions of the ablation's views")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out/synda")
