@@ -6,6 +6,10 @@ same test scans for every row.
         --testset structure=TESTSET_A,changed=TESTSET_B [--icp] [--max-scans N] [--out bench_out/synda]
     .venv/bin/python benchmarks/bench_synda.py ... --ablation --objects chairs --iterations 300
 
+Thesis Tables 5.2/5.3's three rows: ``--recog clean=CLEAN,atrained=ATRAINED --synda-recog clean`` (a recogniser
+trained on clean synthetic views, one trained on A(synthetic) - ``recog train --synda-augment`` -, and SynDA +
+the clean one).
+
 Rows per test set: each recogniser alone, and each recogniser reading the generator's mapping of the
 measured patch (``recog eval --synda``). Columns: the descriptor's own k-NN vote accuracy and the
 symmetry-aware rotation error of its nearest database pose (median, before ICP, on the scans the
@@ -18,7 +22,8 @@ outside the training randomisation (a sensor_config.json).
 
 ``--ablation``: thesis Table 5.4 - generators without the decoders other than depth, without
 distillation, without self-attention, without skip connections, and with the bottleneck triplet
-loss, each trained ``--iterations`` steps on the same views (``--objects``, kept in ``OUT/work``),
+loss, each trained ``--iterations`` steps on the same views (``--objects``, kept in ``OUT/work/data``; a
+generator file already in OUT is kept, so a killed run continues with the next variant),
 then the first recogniser's vote accuracy / rotation error before ICP with each. Writes
 ``OUT/bench_synda.json``.
 """
@@ -88,7 +93,12 @@ def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dic
     from recog.synda.train import pick_threads
     pick_threads(1)
     res = {}
-    for name, over in ABLATIONS.items():
+    names = list(ABLATIONS) if args.variants is None else args.variants.split(",")
+    unknown = [n for n in names if n not in ABLATIONS]
+    if unknown:
+        raise SystemExit(f"--variants: unknown {unknown[0]!r}; choose from {', '.join(ABLATIONS)}")
+    for name in names:
+        over = ABLATIONS[name]
         cfg = synda_preset("cpu", "depth")
         gen_cfg = dataclasses.replace(cfg.generator, **over)
         cfg = dataclasses.replace(cfg, generator=gen_cfg,
@@ -103,6 +113,8 @@ def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dic
             except RealgapError as e:
                 res[name] = {"error": str(e)}
                 continue
+            finally:     # the views are shared, the checkpoint is this variant's (the next would resume it)
+                (out / "work" / "checkpoint.pt").unlink(missing_ok=True)
         res[name] = {"train_s": round(time.perf_counter() - t0, 1),
                      **{ts: evaluate_row(first_model, path, str(gen), False, args.max_scans)
                         for ts, path in testsets.items()}}
@@ -117,9 +129,13 @@ def main(argv=None) -> int:
     ap.add_argument("--testset", required=True, help="NAME=TESTSET,...")
     ap.add_argument("--icp", action="store_true", help="also the full pipeline (verification + ICP): slow")
     ap.add_argument("--max-scans", type=int, default=None)
+    ap.add_argument("--synda-recog", default=None, help="NAME,... the recognisers that also get a row with the "
+                    "generator in front (default: all)")
     ap.add_argument("--ablation", action="store_true", help="thesis Table 5.4 (trains 6 generators)")
     ap.add_argument("--objects", default="chairs", help="objects of the ablation's generators")
     ap.add_argument("--iterations", type=int, default=300, help="steps of each ablation generator")
+    ap.add_argument("--variants", default=None, help="NAME,... the ablation variants to run (default all; two runs "
+                    "with disjoint variants and their own --out can share the machine)")
     ap.add_argument("--subdivisions", type=int, default=1, help="viewpoint subdivisions of the ablation's views")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out/synda")
@@ -130,9 +146,12 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
+    with_synda = set(recogs) if args.synda_recog is None else set(filter(None, args.synda_recog.split(",")))
+    if not with_synda <= set(recogs):
+        raise SystemExit(f"--synda-recog: no recogniser named {sorted(with_synda - set(recogs))[0]!r}")
     for ts, path in testsets.items():
         for name, model in recogs.items():
-            for gen in (None, args.generator):
+            for gen in ((None, args.generator) if name in with_synda else (None,)):
                 row = {"testset": ts, "recogniser": name, "synda": bool(gen),
                        **evaluate_row(model, path, gen, args.icp, args.max_scans)}
                 rows.append(row)

@@ -39,10 +39,11 @@ import numpy as np
 
 from data_tools.errors import ConfigError
 from recog.objects import RecogObject
-from recog.patches import PatchConfig, bbox_from_mask, extract_patch, to_ray_frame
+from recog.patches import PatchConfig, bbox_from_mask, extract_patch, resample_nearest, to_ray_frame
 
 __all__ = ["DataConfig", "VARIANTS", "PHYSICAL_RANDOMISATION", "NGUYEN_AXIAL", "sensor_config", "view_grid",
-           "generate_training_data", "load_training_data", "TrainingData", "object_scene", "distance_range"]
+           "generate_training_data", "load_training_data", "TrainingData", "object_scene", "distance_range",
+           "chunk_scene", "ChunkScene"]
 
 VARIANTS = ("clean", "gaussian", "physical")
 
@@ -235,15 +236,51 @@ def _chunk_seed(config: DataConfig, obj_name: str, chunk: int, salt: str) -> int
     return zlib.crc32(f"{config.seed}/{obj_name}/{chunk}/{salt}".encode()) & 0x7FFFFFFF
 
 
-def simulate_chunk(obj: RecogObject, config: DataConfig, patch: PatchConfig, chunk: int, views: list[int]) -> dict:
-    """Simulate the views ``views`` of the grid for one object (one chunk): patches and labels."""
-    from synth.sensor.simulator import SensorSimulator
+@dataclass
+class ChunkScene:
+    """The scene set-up of one chunk of views (:func:`chunk_scene`)."""
+
+    dirs: np.ndarray
+    """(V, 3) viewpoint directions of the grid (:func:`view_grid`)."""
+    rolls: np.ndarray
+    """(V,) in-plane angles, degrees."""
+    dist: tuple[float, float]
+    """Camera distance range, metres (:func:`distance_range`)."""
+    width: int
+    """Sensor crop width, pixels (:func:`crop_size`)."""
+    height: int
+    """Sensor crop height, pixels."""
+    scene: object
+    """The :class:`~data_tools.scene_spec.SceneSpec`: object, ground, clutter."""
+    T_place: np.ndarray
+    """(4, 4) object-to-world pose."""
+    obj_ids: list[int]
+    """Mesh indices of the object (instance ids - 1)."""
+    centre: np.ndarray
+    """(3,) the object's centre above the ground, world frame."""
+
+
+def chunk_scene(obj: RecogObject, config: DataConfig, chunk: int, seed_fn) -> ChunkScene:
+    """The scene set-up of one chunk of views, shared by the recogniser's (:func:`simulate_chunk`) and SynDA's
+    (:func:`recog.synda.data.simulate_views`) view simulation: the view grid, the object's distance range, the
+    sensor crop, one clutter layout and albedo. ``seed_fn(key, salt) -> int`` seeds it (called with ``chunk``,
+    ``"scene"``); the two callers prefix their seeds differently on purpose (SynDA's scenes are not the
+    recogniser's training scenes)."""
     dirs, rolls = view_grid(config)
     dist = distance_range(obj, config)
     w, h = crop_size(obj, config.preset, dist)
-    rng_scene = np.random.default_rng(_chunk_seed(config, obj.name, chunk, "scene"))
+    rng_scene = np.random.default_rng(seed_fn(chunk, "scene"))
     albedo = float(rng_scene.uniform(*config.albedo))
     scene, T_place, obj_ids, centre = object_scene(obj, config.clutter, rng_scene, albedo)
+    return ChunkScene(dirs, rolls, dist, w, h, scene, T_place, obj_ids, centre)
+
+
+def simulate_chunk(obj: RecogObject, config: DataConfig, patch: PatchConfig, chunk: int, views: list[int]) -> dict:
+    """Simulate the views ``views`` of the grid for one object (one chunk): patches and labels."""
+    from synth.sensor.simulator import SensorSimulator
+    cs = chunk_scene(obj, config, chunk, lambda key, salt: _chunk_seed(config, obj.name, key, salt))
+    dirs, rolls, dist, w, h = cs.dirs, cs.rolls, cs.dist, cs.width, cs.height
+    scene, T_place, obj_ids, centre = cs.scene, cs.T_place, cs.obj_ids, cs.centre
     sims = []
     for d in range(config.draws):
         if config.variant == "clean" and d > 0:
@@ -256,7 +293,7 @@ def simulate_chunk(obj: RecogObject, config: DataConfig, patch: PatchConfig, chu
     out = {"patches": np.zeros((n, D, S, S), np.float16), "view": np.asarray(views, np.int32),
            "R_local": np.zeros((n, 3, 3), np.float32), "offset": np.zeros((n, D, 3), np.float32),
            "R": np.zeros((n, 3, 3), np.float32), "t": np.zeros((n, 3), np.float32),
-           "ok": np.zeros(n, bool), "visible_px": np.zeros(n, np.int32)}
+           "ok": np.zeros(n, bool), "visible_px": np.zeros(n, np.int32), "mask": np.zeros((n, S, S), bool)}
     from data_tools.geometry import invert_pose
     for k, v in enumerate(views):
         rng_v = np.random.default_rng(_chunk_seed(config, obj.name, v, "pose"))
@@ -288,6 +325,7 @@ def simulate_chunk(obj: RecogObject, config: DataConfig, patch: PatchConfig, chu
             out["offset"][k, d] = off
             if d == 0:
                 out["R_local"][k] = R_local
+                out["mask"][k] = resample_nearest(mask, intr, p.R_ray, p.z_ref_m, patch) > 0.5
         else:
             out["ok"][k] = res0 is not None
     return out
@@ -380,6 +418,9 @@ class TrainingData:
     """(N, D, 3) object centre minus reference point, virtual camera frame, metres."""
     names: list[str] = field(default_factory=list)
     """Object names by index."""
+    mask: np.ndarray | None = None
+    """(N, S, S) bool object pixels in the first draw's patch (SynDA's augmentation A composes backgrounds and
+    occluders around them: ``recog train --synda-augment``); None when a chunk predates them."""
 
     def __len__(self) -> int:
         return len(self.obj)
@@ -389,7 +430,7 @@ def load_training_data(objects: list[RecogObject], config: DataConfig, out_dir: 
     """Read the chunks of every object (views whose object was not visible are left out)."""
     from data_tools.errors import FormatError
     base = Path(out_dir) / config.variant
-    parts = {k: [] for k in ("patches", "obj", "view", "R_local", "offset")}
+    parts = {k: [] for k in ("patches", "obj", "view", "R_local", "offset", "mask")}
     for i, obj in enumerate(objects):
         files = sorted((base / obj.name).glob("chunk_*.npz"))
         if not files:
@@ -403,11 +444,14 @@ def load_training_data(objects: list[RecogObject], config: DataConfig, out_dir: 
                 parts["R_local"].append(z["R_local"][ok])
                 parts["offset"].append(z["offset"][ok])
                 parts["obj"].append(np.full(int(ok.sum()), i, np.int32))
+                parts["mask"].append(z["mask"][ok] if "mask" in z.files else None)
             except (OSError, ValueError, KeyError) as e:
                 raise FormatError(f, f"unreadable training chunk ({type(e).__name__}); delete it to make it again") \
                     from None
+    masks = parts.pop("mask")
     return TrainingData(*(np.concatenate(parts[k]) for k in ("patches", "obj", "view", "R_local", "offset")),
-                        names=[o.name for o in objects])
+                        names=[o.name for o in objects],
+                        mask=None if any(m is None for m in masks) else np.concatenate(masks))
 
 
 def describe(config: DataConfig) -> dict:

@@ -59,6 +59,13 @@ class TrainConfig:
     """Write checkpoint.pt every this many steps."""
     log_every: Annotated[int, Range(1)] = 50
     """Record the losses every this many steps."""
+    synda_augment: Annotated[float, Range(0, 1)] = 0.0
+    """Fraction of the training patches put through SynDA's online augmentation A of the depth domain (thesis
+    ch. 5's "A(synthetic)" baseline: procedural depth backgrounds, nearer polygon occluders, blur; the ranges
+    of ``synda_preset('cpu', 'depth').augment``), each patch of each step drawn anew, on top of the variant's
+    sensor model; 0 = off. Every patch augmented (1) made the LeNet descriptor collapse to one point within 50
+    steps (chairs, physical variant: spread 0.012, loss 1.0), hence a fraction; the database stays built from
+    the unaugmented patches. Needs the object masks of this version's training chunks."""
     seed: int = 0
     """Seed of the initial weights and of the mining."""
     device: str = "cpu"
@@ -187,9 +194,13 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
         if log is not None:
             log(f"resuming training at step {tlog.resumed_from} of {config.iterations} from {checkpoint}")
 
+    augment = _synda_augmenter(data, size) if config.synda_augment > 0 else None
+
     def step_fn(step: int) -> dict:
         a, ad, p, pd, n, nd, qd, same, ang = miner.sample(rng, config.batch, config.same_object_negatives)
         x = torch.cat([patches[a, ad], patches[p, pd], patches[n, nd], patches[a, qd]]).float().unsqueeze(1)
+        if augment is not None:
+            x = augment(x, np.concatenate([a, p, n, a]), int(rng.integers(0, 2 ** 62)), config.synda_augment)
         f = net(x.to(device))
         B = config.batch
         fb, fp, fn, fq = f[:B], f[B:2 * B], f[2 * B:3 * B], f[3 * B:]
@@ -214,3 +225,31 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
                              f"(every input maps to nearly one point)")
     net.eval()
     return net, tlog
+
+
+def _synda_augmenter(data: TrainingData, size: int):
+    """``(x (4B, 1, S, S) patches, view rows (4B,), seed, fraction) -> x`` with a random ``fraction`` of its
+    patches replaced by A(patch): SynDA's depth augmentation A with the views' object masks
+    (``TrainConfig.synda_augment``); ConfigError when the chunks hold no masks."""
+    import torch
+
+    from recog.synda.augment import Augmenter, select_params
+    from recog.synda.config import synda_preset
+    if data.mask is None:
+        raise ConfigError("--synda-augment needs the object masks of the training chunks, which chunks made by an "
+                          "older version lack (delete the model's data folder to simulate them again)")
+    aug = Augmenter(synda_preset("cpu", "depth").augment, "depth", size)
+    masks = torch.from_numpy(data.mask)
+
+    def run(x, rows, seed: int, fraction: float = 1.0):
+        params = aug.draw(len(rows), seed)
+        pick = torch.nonzero(torch.rand(len(rows), generator=torch.Generator().manual_seed(seed + 1)) < fraction)
+        pick = pick.flatten()
+        if len(pick) == 0:
+            return x
+        m = masks[torch.from_numpy(rows)[pick]].to(device=x.device, dtype=torch.float32)[:, None]
+        y = x.clone()      # A acts on each sample alone: the picked ones come out as in a full-batch apply
+        y[pick.to(x.device)] = aug.apply({"depth": x[pick.to(x.device)], "mask": m}, select_params(params, pick))["input"]
+        return y
+
+    return run

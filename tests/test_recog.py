@@ -421,3 +421,43 @@ def test_eval_reads_the_synda_mapping(trained, capsys):
                  "--json", "--no-progress"]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "trained on 64 px patches of 9.0 m" in err
+
+
+def test_synda_augmented_training_data(trained, model_files):
+    """``TrainConfig.synda_augment`` (the A-trained baseline of thesis ch. 5): the chunks carry object masks that
+    lie on the object's (nearer) pixels; A is deterministic for a seed, keeps shapes and the [-1, 1] range,
+    changes the patches and draws anew for another seed; a few training steps with it are deterministic; data
+    without masks is a one-line error."""
+    import dataclasses
+
+    from data_tools.errors import ConfigError
+    from recog.data import load_training_data
+    from recog.model import Recogniser
+    from recog.objects import load_objects
+    from recog.train import TrainConfig, _synda_augmenter, train_network
+    m = Recogniser.load(trained / "m")
+    objs = load_objects(f"{model_files / 'box.ply'},{model_files / 'bracket.ply'}")
+    td = load_training_data(objs, m.data, trained / "m" / "data")
+    assert td.mask is not None and td.mask.shape == (len(td), 64, 64) and td.mask.any((1, 2)).all()
+    p0 = td.patches[:, 0].astype(np.float32)
+    inside = np.array([p0[i][td.mask[i]].mean() for i in range(len(td))])
+    outside = np.array([p0[i][~td.mask[i]].mean() for i in range(len(td))])
+    assert np.mean(inside < outside) > 0.95
+    aug = _synda_augmenter(td, 64)
+    rows = np.arange(8)
+    x = torch.from_numpy(p0[rows])[:, None]
+    y1, y2, y3 = aug(x, rows, 7), aug(x, rows, 7), aug(x, rows, 8)
+    assert y1.shape == x.shape and torch.equal(y1, y2) and not torch.equal(y1, y3)
+    assert float(y1.min()) >= -1 and float(y1.max()) <= 1 and float((y1 - x).abs().mean()) > 0.01
+    half = aug(x, rows, 7, 0.5)                  # a fraction: those patches A'd exactly as before, the rest kept
+    same_as_a = [torch.equal(half[i], y1[i]) for i in range(8)]
+    kept = [torch.equal(half[i], x[i]) for i in range(8)]
+    assert all(s or k for s, k in zip(same_as_a, kept)) and any(kept) and not all(kept)
+    cfg = dataclasses.replace(TrainConfig(), iterations=3, batch=8, synda_augment=1.0)
+    syms = [o.get("symmetry") for o in m.objects]
+    w1 = train_network(td, syms, cfg, 64, progress=False)[0].state_dict()
+    w2 = train_network(td, syms, cfg, 64, progress=False)[0].state_dict()
+    w0 = train_network(td, syms, dataclasses.replace(cfg, synda_augment=0.0), 64, progress=False)[0].state_dict()
+    assert all(torch.equal(w1[k], w2[k]) for k in w1) and not all(torch.equal(w1[k], w0[k]) for k in w1)
+    with pytest.raises(ConfigError, match="object masks"):
+        _synda_augmenter(dataclasses.replace(td, mask=None), 64)

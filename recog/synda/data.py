@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import FormatError
-from recog.data import DataConfig, crop_size, distance_range, jittered_pose, object_scene, sensor_config, view_grid
+from recog.data import DataConfig, chunk_scene, jittered_pose, sensor_config, view_grid
 from recog.objects import RecogObject
 from recog.patches import PatchConfig, bbox_from_mask, depth_patch, extract_patch, resample_nearest
 
@@ -53,12 +53,9 @@ def simulate_views(obj: RecogObject, config: DataConfig, patch: PatchConfig, chu
     """Clean patch, object mask and (``noisy``) ``config.draws`` physical-pipeline patches of the grid views
     ``views`` of one object (one chunk: one clutter layout and albedo; one randomised sensor per draw)."""
     from synth.sensor.simulator import SensorSimulator
-    dirs, rolls = view_grid(config)
-    dist = distance_range(obj, config)
-    w, h = crop_size(obj, config.preset, dist)
-    rng_scene = np.random.default_rng(_seed(config, obj.name, chunk, "scene"))
-    albedo = float(rng_scene.uniform(*config.albedo))
-    scene, _, obj_ids, centre = object_scene(obj, config.clutter, rng_scene, albedo)
+    cs = chunk_scene(obj, config, chunk, lambda key, salt: _seed(config, obj.name, key, salt))
+    dirs, rolls, dist, w, h = cs.dirs, cs.rolls, cs.dist, cs.width, cs.height
+    scene, obj_ids, centre = cs.scene, cs.obj_ids, cs.centre
     clean_sim = SensorSimulator(sensor_config("clean", config.preset, w, h), None, scene)
     sims = [SensorSimulator(sensor_config("physical", config.preset, w, h,
                                           np.random.default_rng(_seed(config, obj.name, chunk, f"sensor{d}"))),
