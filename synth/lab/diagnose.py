@@ -69,7 +69,8 @@ from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search
                            start_values)
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
-           "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "evaluate_held_out"]
+           "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",
+           "evaluate_held_out"]
 
 DIAGNOSIS_FILE = "diagnosis.json"
 LEARNED_MAP_NUMBERS = 10_000
@@ -119,13 +120,19 @@ class DiagnoseConfig:
     the gaps left, not the gains: a map leaving 0.157 against a hidden depth bias's 0.170 is no
     evidence for a per-pixel pattern, a map leaving 0.04 against a depth bias's 0.09 on a real
     pattern is (a judgement, not a test statistic)."""
+    decisive_gain_ratio: float = 0.1
+    """A candidate whose signature decides by itself, measured without a fit (a disparity lattice the
+    model lacks; holes that follow the returned signal rather than the incidence angle or the
+    reverse: :mod:`synth.lab.decisive`), ranks ahead of its rivals whose gain is at most 1 / this
+    times its own (0.1: a lattice at 2 % gain passes a rolling shutter at 5 %, not a depth bias at
+    90 %). 0 = off: rank by gain and the Occam rules alone."""
 
     def validate(self) -> "DiagnoseConfig":
         for k in ("model_evaluations", "candidate_evaluations", "refine_evaluations",
                   "candidate_evaluations_per_param", "candidate_grid_points"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"diagnose: {k} must be >= 1")
-        for k in ("occam_margin", "occam_map_margin"):
+        for k in ("occam_margin", "occam_map_margin", "decisive_gain_ratio"):
             if not 0 <= getattr(self, k) < 1:
                 raise ConfigError(f"diagnose: {k} must be in [0, 1), got {getattr(self, k)}")
         if int(self.refine_top) < 0:
@@ -165,12 +172,15 @@ class Candidate:
     None for the others."""
     config: object = None
     """The fitted :class:`SensorConfig` (model + effect); not in ``to_json``."""
+    decided_by: str = ""
+    """Why the measured data alone decide for this effect (:mod:`synth.lab.decisive`; it then ranks
+    ahead of its rivals, :attr:`DiagnoseConfig.decisive_gain_ratio`); empty when they do not."""
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "gap_after": self.gap_after, "gain": self.gain,
                 "params": dict(self.params), "evidence": self.evidence, "gap_default": self.gap_default,
                 "evaluations": self.evaluations, "seconds": self.seconds, "refined": self.refined,
-                "eval_gap_after": self.eval_gap_after}
+                "eval_gap_after": self.eval_gap_after, "decided_by": self.decided_by}
 
 
 @dataclass
@@ -213,6 +223,10 @@ class Diagnosis:
     refit_rejected: str = ""
     """Why the model's refit was not taken although it lowered the gap (it threw measured pixels
     away, :func:`refit_base`); empty when it was taken or did not help."""
+    ties: list[str] = field(default_factory=list)
+    """Candidates the measured data cannot tell apart although they are different physics (e.g. a
+    dropout by returned signal and one by incidence angle on a scene where the two go together),
+    one sentence each; their order in ``ranking`` is then the gain's alone."""
 
     @property
     def best(self) -> Candidate | None:
@@ -225,7 +239,7 @@ class Diagnosis:
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
                        "eval_gain": self.eval_gain, "time_capped": self.time_capped,
-                       "refit_rejected": self.refit_rejected})
+                       "refit_rejected": self.refit_rejected, "ties": list(self.ties)})
 
     @property
     def eval_gain(self) -> float | None:
@@ -495,6 +509,20 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     return out
 
 
+def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx) -> tuple[list[Candidate], list]:
+    """Stage 4b: :func:`rank`, then the candidates the measured data decide for by themselves moved
+    ahead of their rivals (:func:`synth.lab.decisive.promote`); returns (ranking, ties), a tie
+    (effect a, effect b, sentence) named when two rival candidates both gain and the data cannot
+    tell them apart."""
+    from synth.lab.decisive import decisive_signatures, promote
+    ranking = rank(cx, base, tried)
+    if not cx.dc.decisive_gain_ratio > 0 or not ranking:
+        return ranking, []
+    gaining = [c.effect for c in ranking if c.gain > 0]
+    decided, pairs = decisive_signatures(ctx, gaining)
+    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio)), pairs
+
+
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
     """Stage 5: the base model and the ``top`` candidates scored on the evaluation frames."""
     fc = cx.fc
@@ -563,12 +591,12 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             bar.close()
     top = sorted(tried, key=lambda c: c.gap_after)[:max(int(dc.refine_top), 1)]   # scored held out
     refine_best(cx, base, model_names, tried)
-    ranking = rank(cx, base, tried)
-    held = evaluate_held_out(cx, base, top)
     base_obs = measured.observations(base_sims, cx.frames)
-    base_result = compare(base_obs, cx.obj.compare_config, cache=cx.obj.cache)
     albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
     ctx = EvidenceContext(base_obs, measured.preset, albedo)
+    ranking, ties = rank_with_signatures(cx, base, tried, ctx)
+    held = evaluate_held_out(cx, base, top)
+    base_result = compare(base_obs, cx.obj.compare_config, cache=cx.obj.cache)
     for c in ranking:
         # the candidate's fitted parameters, plus the model's where they moved away from the refit
         vals = get_params(c.config, param_specs(c.config, [*model_names, c.effect]))
@@ -579,10 +607,14 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             after = compare(measured.observations(measured.simulate(c.config, fc.seed, cx.frames), cx.frames),
                             cx.obj.compare_config, cache=cx.obj.cache)
         c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after, gain=c.gain)
+        for a, b, why in ties:
+            if c.effect in (a, b):
+                c.evidence = c.evidence.rstrip(".") + f"; a tie with {b if c.effect == a else a}: {why}."
     idx = measured.frame_indices
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
                      seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations,
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
-                     time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected)
+                     time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,
+                     ties=[f"{a} / {b}: {why}" for a, b, why in ties])
