@@ -16,8 +16,8 @@ effect of the catalog leaves, and that is checked without simulating anything:
   step function of theta with the same number of quantile bins (:data:`BINS`), and the two
   Bernoulli log-likelihoods are compared: the variable the holes follow explains them better
   (the other is only a noisy proxy of it). A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
-  decides; otherwise the data cannot separate the two (in a scene where every surface has the
-  same albedo and lies at one distance, signal and angle are the same variable) and
+  decides; otherwise the data cannot separate the two (holes that follow neither clearly, or a
+  scene where signal and angle go together: one albedo, a narrow range of distances) and
   :func:`~synth.lab.diagnose.diagnose` names the two as a tie.
 
 Approximations: the signal uses the camera ray for both incidence and range (the projector sits
