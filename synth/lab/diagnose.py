@@ -34,14 +34,19 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
    depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias). Each candidate gets an ``evidence``
-   sentence computed from the measured data (:mod:`synth.lab.evidence`).
+   sentence computed from the measured data (:mod:`synth.lab.evidence`). Then signatures that
+   decide without a fit (:mod:`synth.lab.decisive`: a disparity lattice the model lacks; holes
+   that follow the returned signal rather than the incidence angle, or the reverse) move their
+   effect ahead of its rivals (``decisive_gain_ratio``), and two rivals the data cannot tell apart
+   are named as a tie (``Diagnosis.ties``).
 
 Every budget is a number of gap evaluations, so the diagnosis is deterministic: the same input,
 settings and seed give the same ranking, parameters and gaps on any machine under any load
 (only the ``seconds`` fields differ); ``FitConfig.max_seconds`` is an optional safety guard
 (off by default; ``Diagnosis.time_capped`` says when it cut a search short).
 
-Nothing is special-cased by effect name: what the lab knows about an effect (sensor types,
+Nothing is special-cased by effect name (except the few signatures of :mod:`synth.lab.decisive`, which
+compare named rival effects): what the lab knows about an effect (sensor types,
 fittable parameters, evidence sentence, starting values, signature figure) is declared in the
 effect's own file.
 
