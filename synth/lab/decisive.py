@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["HoleDrivers", "hole_drivers", "decisive_signatures", "missing_lattice", "MIN_LOG_RATIO", "promote"]
+__all__ = ["HoleDrivers", "hole_drivers", "decisive_signatures", "missing_lattice", "MIN_LOG_RATIO", "promote", "EXACT"]
 
 BINS = 32
 """Quantile bins of each variable's step function (the same number for both: equal complexity)."""
@@ -166,23 +166,35 @@ def decisive_signatures(ctx, candidates) -> tuple[dict[str, str], list[tuple[str
     return out, ties
 
 
-def promote(ranking: list, decided: dict[str, str], gain_ratio: float) -> list:
+EXACT = frozenset({"disparity_quantization"})
+"""Effects whose deciding signature is exact (every measured disparity on the lattice): they lead
+their rivals even where the gap cannot see them (a step of 1.5-3 x the noise changes the depth
+distribution by less than the gap's sampling noise: gains <= 0 on the mystery's 1-raw-unit steps)."""
+
+
+def promote(ranking: list, decided: dict[str, str], gain_ratio: float, gap_margin: float = 0.1) -> list:
     """``ranking`` (candidates best first) with every candidate the data decide for (``decided``:
     effect -> reason) moved ahead of its rivals: for ``disparity_quantization`` every candidate,
-    for low_reflectance / incidence_dropout the other one; only past rivals whose gain is at most
-    1 / ``gain_ratio`` x its own, and only when its own is positive (a signature in the data does
-    not make a small effect outrank one that explains far more of the gap). Sets ``decided_by``."""
+    for low_reflectance / incidence_dropout the other one. It passes a rival whose gain is at most
+    1 / ``gain_ratio`` x its own, or who leaves at most ``gap_margin`` (relative) less of the gap (a
+    signature in the data does not make a small effect outrank one that explains far more of the
+    gap); it must lower the gap itself unless its signature is exact (:data:`EXACT`). Sets
+    ``decided_by``."""
     out = list(ranking)
     rivals = {"disparity_quantization": None, "low_reflectance": {"incidence_dropout"},
               "incidence_dropout": {"low_reflectance"}}
     for name, why in decided.items():
         pos = next((i for i, c in enumerate(out) if c.effect == name), None)
-        if pos is None or not out[pos].gain > 0:
+        if pos is None or not (out[pos].gain > 0 or name in EXACT):
             continue
         c = out[pos]
         c.decided_by = why
         riv = rivals.get(name, set())
-        ahead = [i for i in range(pos) if (riv is None or out[i].effect in riv) and c.gain >= gain_ratio * out[i].gain]
+
+        def passes(r) -> bool:
+            return ((c.gain > 0 and c.gain >= gain_ratio * r.gain)
+                    or (1.0 - c.gain) <= (1.0 - r.gain) * (1.0 + gap_margin))
+        ahead = [i for i in range(pos) if (riv is None or out[i].effect in riv) and passes(out[i])]
         if ahead:
             out.pop(pos)
             out.insert(ahead[0], c)

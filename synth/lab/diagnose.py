@@ -131,13 +131,16 @@ class DiagnoseConfig:
     reverse: :mod:`synth.lab.decisive`), ranks ahead of its rivals whose gain is at most 1 / this
     times its own (0.1: a lattice at 2 % gain passes a rolling shutter at 5 %, not a depth bias at
     90 %). 0 = off: rank by gain and the Occam rules alone."""
+    decisive_gap_margin: float = 0.1
+    """...or ahead of rivals that leave at most this fraction less of the gap (0.1: a lattice whose
+    gain the gap cannot see passes an incidence dropout at gain 0.08, not an edge fattening at 0.18)."""
 
     def validate(self) -> "DiagnoseConfig":
         for k in ("model_evaluations", "candidate_evaluations", "refine_evaluations",
                   "candidate_evaluations_per_param", "candidate_grid_points"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"diagnose: {k} must be >= 1")
-        for k in ("occam_margin", "occam_map_margin", "decisive_gain_ratio"):
+        for k in ("occam_margin", "occam_map_margin", "decisive_gain_ratio", "decisive_gap_margin"):
             if not 0 <= getattr(self, k) < 1:
                 raise ConfigError(f"diagnose: {k} must be in [0, 1), got {getattr(self, k)}")
         if int(self.refine_top) < 0:
@@ -532,9 +535,10 @@ def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx)
     ranking = rank(cx, base, tried)
     if not cx.dc.decisive_gain_ratio > 0 or not ranking:
         return ranking, []
-    gaining = [c.effect for c in ranking if c.gain > 0]
+    from synth.lab.decisive import EXACT
+    gaining = [c.effect for c in ranking if c.gain > 0 or c.effect in EXACT]
     decided, pairs = decisive_signatures(ctx, gaining)
-    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio)), pairs
+    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)), pairs
 
 
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
