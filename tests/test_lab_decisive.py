@@ -101,9 +101,9 @@ def test_promote_moves_a_decided_effect_past_its_rivals_only():
     r = [_c("depth_bias", 0.9), _c("rolling_shutter", 0.05), _c("disparity_quantization", 0.02)]
     out = promote(r, {"disparity_quantization": "lattice"}, 0.1)
     assert [c.effect for c in out] == ["depth_bias", "disparity_quantization", "rolling_shutter"]
-    # an exact lattice leads where the gap cannot see it (gain 0) past a rival leaving <= 10 % less of
+    # an exact lattice leads where the gap cannot see it (gain <= 0) past a rival leaving <= 10 % less of
     # the gap, not past one leaving 18 % less; a hole driver must lower the gap itself
-    r = [_c("incidence_dropout", 0.08), _c("disparity_quantization", 0.0)]
+    r = [_c("incidence_dropout", 0.08), _c("disparity_quantization", -0.04)]
     assert [c.effect for c in promote(r, {"disparity_quantization": "lattice"}, 0.1)][0] == "disparity_quantization"
     r = [_c("edge_fattening", 0.18), _c("disparity_quantization", 0.0)]
     assert [c.effect for c in promote(r, {"disparity_quantization": "lattice"}, 0.1)][0] == "edge_fattening"

@@ -178,7 +178,8 @@ def promote(ranking: list, decided: dict[str, str], gain_ratio: float, gap_margi
     for low_reflectance / incidence_dropout the other one. It passes a rival whose gain is at most
     1 / ``gain_ratio`` x its own, or who leaves at most ``gap_margin`` (relative) less of the gap (a
     signature in the data does not make a small effect outrank one that explains far more of the
-    gap); it must lower the gap itself unless its signature is exact (:data:`EXACT`). Sets
+    gap); it must lower the gap itself unless its signature is exact (:data:`EXACT`: then a negative
+    gain, a search that did not place the steps where the lattice is, counts as 0). Sets
     ``decided_by``."""
     out = list(ranking)
     rivals = {"disparity_quantization": None, "low_reflectance": {"incidence_dropout"},
@@ -191,9 +192,11 @@ def promote(ranking: list, decided: dict[str, str], gain_ratio: float, gap_margi
         c.decided_by = why
         riv = rivals.get(name, set())
 
+        g = max(c.gain, 0.0) if name in EXACT else c.gain    # a search that missed the step, not no lattice
+
         def passes(r) -> bool:
-            return ((c.gain > 0 and c.gain >= gain_ratio * r.gain)
-                    or (1.0 - c.gain) <= (1.0 - r.gain) * (1.0 + gap_margin))
+            return ((g > 0 and g >= gain_ratio * r.gain)
+                    or (1.0 - g) <= (1.0 - r.gain) * (1.0 + gap_margin))
         ahead = [i for i in range(pos) if (riv is None or out[i].effect in riv) and passes(out[i])]
         if ahead:
             out.pop(pos)
