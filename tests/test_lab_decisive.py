@@ -109,3 +109,13 @@ def test_promote_moves_a_decided_effect_past_its_rivals_only():
     assert [c.effect for c in promote(r, {"disparity_quantization": "lattice"}, 0.1)][0] == "edge_fattening"
     r = [_c("incidence_dropout", 0.08), _c("low_reflectance", 0.0)]
     assert [c.effect for c in promote(r, {"low_reflectance": "signal"}, 0.1)][0] == "incidence_dropout"
+
+
+def test_a_tie_is_named_only_where_there_are_holes_to_explain():
+    from synth.lab.decisive import decisive_signatures
+    _, ties = decisive_signatures(_ctx("none"), ["low_reflectance", "incidence_dropout"])
+    assert len(ties) == 1 and ties[0][:2] == ("low_reflectance", "incidence_dropout")
+    decided, ties = decisive_signatures(_ctx("rare"), ["low_reflectance", "incidence_dropout"])
+    assert ties == [] and decided == {}
+    decided, _ = decisive_signatures(_ctx("signal"), ["low_reflectance", "incidence_dropout"])
+    assert list(decided) == ["low_reflectance"]

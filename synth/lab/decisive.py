@@ -160,7 +160,7 @@ def decisive_signatures(ctx, candidates) -> tuple[dict[str, str], list[tuple[str
         if hd is not None:
             if hd.driver is not None:
                 out[hd.driver] = f"the holes follow {'the returned signal' if hd.driver == 'low_reflectance' else 'the incidence angle'}: {hd.sentence()}"
-            else:
+            elif hd.hole_rate >= MIN_HOLE_RATE:
                 ties.append(("low_reflectance", "incidence_dropout",
                              f"the data cannot tell a signal dropout from an incidence dropout: {hd.sentence()}"))
     return out, ties
