@@ -10,7 +10,18 @@ This is how Khoshelham & Elberink 2012, Nguyen et al. 2012, Smisek et al. 2011 a
 2. the frame's *mask* is the set of pixels within ``max(mask_threshold_m, 3 sigma(z))`` of the
    plane (sigma = Nguyen et al.'s axial noise), inside the ROI, reduced to the largest connected
    component and closed (3x3) - the target, without the room behind it;
-3. the frame's *pose* puts that plane on the world plane z = 0 (the camera on the +z side at its
+3. a *flatness check* keeps only the clean part of that plane (:func:`flat_support`): the mask is
+   cut into tiles of ``tile_px`` (scaled to a 640 px wide image); the plane is refitted by least
+   squares on the mask, and a tile is rejected when the median of its residuals is off the plane
+   by more than ``tile_offset_sigma`` x the sensor's noise at its depth (over sqrt of the tile's
+   pixels, floored at ``tile_offset_floor_m`` and ``tile_offset_floor_sigma`` sigma(z): an object lying in the +-3 sigma band, a bent or
+   second surface) or when more than ``tail_fraction`` of its residuals lie beyond 3 x its own robust
+   spread (a small object or a step inside the tile). The plane is refitted on the kept tiles
+   (twice); a frame keeping fewer than ``min_flat_share`` of its tiles is not a clean plane and
+   gets no pose. plane_reference.json records per frame the tiles kept and the plane's own
+   flatness: the RMS of the kept tiles' median residuals (``flatness_mm``), which holds the
+   sensor's low-frequency depth distortion and whatever curvature the target has;
+4. the frame's *pose* puts that plane on the world plane z = 0 (the camera on the +z side at its
    distance from the plane; the rotation is the smallest that takes the plane normal to +z, so
    the in-plane position and yaw, which a plane cannot determine, are fixed by convention).
 
@@ -33,7 +44,7 @@ import numpy as np
 from data_tools.errors import ConfigError, FormatError
 
 __all__ = ["PlaneReferenceConfig", "fit_plane", "plane_pose", "plane_mask", "make_plane_reference",
-           "PlaneReferenceResult"]
+           "PlaneReferenceResult", "flat_support", "FlatSupport"]
 
 
 @dataclass
@@ -54,6 +65,23 @@ class PlaneReferenceConfig:
     """Its albedo."""
     seed: int = 0
     """RANSAC seed."""
+    flatness_check: bool = True
+    """Keep only the tiles of the mask that lie flat on the plane (module docstring, step 3)."""
+    tile_px: int = 32
+    """Tile size of the flatness check, pixels at a 640 px wide image (scaled with the width)."""
+    tile_offset_sigma: float = 4.0
+    """A tile whose median residual exceeds this many standard errors of the sensor noise
+    (sigma(z) / sqrt(pixels)) is off the plane."""
+    tile_offset_floor_m: float = 0.002
+    """...but never for less than this offset, metres, ..."""
+    tile_offset_floor_sigma: float = 0.5
+    """...nor for less than this many sigma(z) (a real Kinect's low-frequency depth distortion is a
+    few mm and grows with z^2 like the noise: it is the sensor's, not the target's)."""
+    tail_fraction: float = 0.05
+    """A tile with more than this share of residuals beyond 3 x its robust std holds a step or an object."""
+    min_flat_share: float = 0.25
+    """A frame keeping fewer than this share of its tiles is not a clean plane (no pose); a cluttered
+    desk (TUM fr1/xyz) keeps 30-45 % of its tiles, a clean wall or floor > 90 %."""
 
     def validate(self) -> "PlaneReferenceConfig":
         if self.roi is not None:
@@ -136,6 +164,85 @@ def plane_mask(depth: np.ndarray, intr, n: np.ndarray, d: float, roi, threshold_
 
 
 @dataclass
+class FlatSupport:
+    """Result of :func:`flat_support` on one frame."""
+
+    mask: np.ndarray
+    """(H, W) bool: the kept (flat) part of the mask."""
+    n: np.ndarray
+    """Unit normal of the plane refitted on it (towards the camera)."""
+    d: float
+    """Its offset (n.X + d = 0), metres."""
+    tiles: int
+    """Tiles of the mask with enough pixels to judge."""
+    kept: int
+    """Of those, the tiles kept."""
+    flatness_mm: float
+    """RMS of the kept tiles' median residuals, mm (the reference's own non-flatness)."""
+    residual_mm: float
+    """Robust std (1.4826 MAD) of all kept residuals, mm."""
+
+
+def _refit(P: np.ndarray):
+    c = P.mean(0)
+    _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+    n = vt[2]
+    d = -float(n @ c)
+    return (-n, -d) if d < 0 else (n, d)
+
+
+def flat_support(depth: np.ndarray, intr, mask: np.ndarray, n: np.ndarray, d: float,
+                 cfg: "PlaneReferenceConfig") -> FlatSupport:
+    """The flat part of ``mask`` and the plane refitted on it (module docstring, step 3)."""
+    from data_tools.geometry import unproject
+    H, W = depth.shape
+    pts = unproject(depth, intr)
+    t = max(4, int(round(cfg.tile_px * W / 640)))
+    ty, tx = np.divmod(np.arange(H * W).reshape(H, W), W)
+    tile_id = (ty // t) * ((W + t - 1) // t) + tx // t
+    on = mask & (depth > 0)
+    flat = on.ravel()
+    P = pts.reshape(-1, 3)
+    tid = tile_id.ravel()
+    z = depth.ravel().astype(np.float64)
+    min_px = max(20, t * t // 4)
+    kept_tiles, judged = set(), []
+    meds = {}
+    sel = np.flatnonzero(flat)
+    for _ in range(3):                                    # judge every tile, refit on the kept ones; twice
+        if sel.size < 3:
+            break
+        res = P[sel] @ n + d
+        order = np.argsort(tid[sel], kind="stable")
+        ids, starts = np.unique(tid[sel][order], return_index=True)
+        judged, kept_tiles, meds = [], set(), {}
+        for k, (tile, a) in enumerate(zip(ids, starts)):
+            b = starts[k + 1] if k + 1 < len(starts) else order.size
+            if b - a < min_px:
+                continue
+            judged.append(tile)
+            r = res[order[a:b]]
+            med = float(np.median(r))
+            spread = 1.4826 * float(np.median(np.abs(r - med)))
+            sig = float(_nguyen_sigma(np.median(z[sel][order[a:b]])))
+            tol = max(cfg.tile_offset_floor_m, cfg.tile_offset_floor_sigma * sig,
+                      cfg.tile_offset_sigma * sig / math.sqrt(b - a))
+            tails = float(np.mean(np.abs(r - med) > 3.0 * max(spread, 1e-6)))
+            if abs(med) <= tol and tails <= cfg.tail_fraction:
+                kept_tiles.add(tile)
+                meds[tile] = med
+        flat = on.ravel() & np.isin(tid, list(kept_tiles))
+        if flat.sum() >= 3:
+            n, d = _refit(P[flat])
+    sel = np.flatnonzero(flat)
+    res = P[sel] @ n + d if sel.size else np.zeros(0)
+    mad = 1.4826 * float(np.median(np.abs(res - np.median(res)))) if res.size else float("nan")
+    fl = float(np.sqrt(np.mean(np.square(list(meds.values()))))) if meds else float("nan")
+    return FlatSupport(flat.reshape(H, W), np.asarray(n, float), float(d), len(judged), len(kept_tiles),
+                       1000 * fl, 1000 * mad)
+
+
+@dataclass
 class PlaneReferenceResult:
     out_dir: Path
     frames: int
@@ -203,13 +310,24 @@ def make_plane_reference(seq_dir, out_dir, config: PlaneReferenceConfig | None =
         else:
             n, d, _ = fit
             mask = plane_mask(depth, intr, n, d, cfg.roi, cfg.mask_threshold_m)
+            extra, why = {}, "too few pixels on the plane"
+            if cfg.flatness_check and mask.sum() >= cfg.min_inliers:
+                fs = flat_support(depth, intr, mask, n, d, cfg)
+                extra = {"tiles": fs.tiles, "tiles_kept": fs.kept, "flatness_mm": fs.flatness_mm,
+                         "residual_mm": fs.residual_mm}
+                if fs.kept < cfg.min_flat_share * max(fs.tiles, 1):
+                    why = f"not flat: {fs.kept} of {fs.tiles} tiles lie flat on the plane"
+                    mask = np.zeros(depth.shape, bool)
+                else:
+                    mask, n, d = fs.mask, fs.n, fs.d
             if mask.sum() < cfg.min_inliers:
-                planes.append({"timestamp": float(ts), "posed": False})
+                planes.append({"timestamp": float(ts), "posed": False, "reason": why, **extra})
+                mask = np.zeros(depth.shape, bool)
             else:
                 T = plane_pose(n, d)
                 gt.append(f"{ts} " + " ".join(f"{x:.9g}" for x in pose_to_tum(T)))
                 planes.append({"timestamp": float(ts), "posed": True, "normal": [float(x) for x in n],
-                               "distance_m": float(d), "mask_pixels": int(mask.sum())})
+                               "distance_m": float(d), "mask_pixels": int(mask.sum()), **extra})
                 dists.append(float(d))
                 fracs.append(float(mask.mean()))
         atomic_write_image(out / rel, mask.astype(np.uint8) * 255)

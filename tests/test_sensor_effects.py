@@ -234,26 +234,50 @@ def test_hole_filling_small_holes_only():
     assert not st.valid[25:35, 105:125].any()
 
 
-def test_lens_distortion_direct_matches_opencv():
+def test_lens_distortion_direct_casts_distorted_rays():
+    """Direct model: pixel (u, v) of the distorted image casts the pinhole ray of its undistorted
+    (sub-pixel) position, so on a wall tilted 30 deg about y its depth is the analytic
+    z = 2 / (1 - x tan 30) of that ray to 1e-4 m, where nearest-pixel resampling is off by up to
+    half a pixel of the depth gradient; projecting the ray through OpenCV lands back on (u, v)."""
     import cv2
     from synth.sensor.effects.lens_distortion import undistort_pixels
     coeffs = (-0.25, 0.08, 0.001, -0.002, 0.0)
-    ramp = lambda st: setattr(st, "depth", (1.0 + np.arange(160, dtype=np.float32)[None, :] * 0.01
-                                            + np.arange(120, dtype=np.float32)[:, None] * 1e-4).repeat(1, 0))
+    st = apply_one("lens_distortion", wall_scene(2.0, tilt_deg=30.0), {"coefficients": coeffs})
+    K = SMALL.intrinsics.K
+    tan = np.tan(np.radians(30.0))
+    worst_nearest = 0.0
+    for (u, v) in [(10, 10), (150, 100), (80, 60), (30, 110), (3, 57), (121, 7)]:
+        und = undistort_pixels(np.array([[[u, v]]], np.float64), K, coeffs)[0, 0]
+        x = (und[0] - K[0, 2]) / K[0, 0]
+        assert st.depth[v, u] == pytest.approx(2.0 / (1.0 - x * tan), abs=1e-4)
+        assert st.valid[v, u] and st.view.hit[v, u]
+        xn = (np.rint(und[0]) - K[0, 2]) / K[0, 0]           # what the nearest ideal pixel would give
+        worst_nearest = max(worst_nearest, abs(2.0 / (1.0 - xn * tan) - 2.0 / (1.0 - x * tan)))
+        ray = np.array([[x, (und[1] - K[1, 2]) / K[1, 1], 1.0]])
+        back = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, np.array(coeffs))[0][0, 0]
+        assert np.allclose(back, (u, v), atol=1e-3)
+    assert worst_nearest > 5e-4          # the test would catch nearest-pixel resampling
+    zero = apply_one("lens_distortion", wall_scene(2.0), {"coefficients": (0, 0, 0, 0, 0)})
+    assert zero.log["lens_distortion"]["active"] is False
+
+
+def test_lens_distortion_without_renderer_resamples_nearest():
+    """Without a scene renderer the direct model falls back to resampling the ideal depth at the
+    nearest undistorted pixel (OpenCV's model)."""
+    from synth.sensor.effects.lens_distortion import undistort_pixels
+    coeffs = (-0.25, 0.08, 0.001, -0.002, 0.0)
+
+    def ramp(st):
+        st.renderer = None
+        st.depth = (1.0 + np.arange(160, dtype=np.float32)[None, :] * 0.01
+                    + np.arange(120, dtype=np.float32)[:, None] * 1e-4)
     st = apply_one("lens_distortion", wall_scene(2.0), {"coefficients": coeffs}, prepare=ramp)
     K = SMALL.intrinsics.K
-    # a pixel of the distorted output shows the ideal image where the distortion model says
     for (u, v) in [(10, 10), (150, 100), (80, 60), (30, 110)]:
         und = undistort_pixels(np.array([[[u, v]]], np.float64), K, coeffs)[0, 0]
         if 0 <= und[0] < 159.5 and 0 <= und[1] < 119.5:
             uu, vv = int(np.rint(und[0])), int(np.rint(und[1]))
             assert st.depth[v, u] == pytest.approx(1.0 + uu * 0.01 + vv * 1e-4, abs=1e-5)
-            # and projecting that ideal pixel through the distortion model lands back on (u, v)
-            ray = np.array([[(und[0] - K[0, 2]) / K[0, 0], (und[1] - K[1, 2]) / K[1, 1], 1.0]])
-            back = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, np.array(coeffs))[0][0, 0]
-            assert np.allclose(back, (u, v), atol=1e-3)
-    zero = apply_one("lens_distortion", wall_scene(2.0), {"coefficients": (0, 0, 0, 0, 0)}, prepare=ramp)
-    assert zero.log["lens_distortion"]["active"] is False
 
 
 def test_rolling_shutter_shears_moving_edges(box_scene):

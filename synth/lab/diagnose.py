@@ -34,14 +34,19 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
    depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias). Each candidate gets an ``evidence``
-   sentence computed from the measured data (:mod:`synth.lab.evidence`).
+   sentence computed from the measured data (:mod:`synth.lab.evidence`). Then signatures that
+   decide without a fit (:mod:`synth.lab.decisive`: a disparity lattice the model lacks; holes
+   that follow the returned signal rather than the incidence angle, or the reverse) move their
+   effect ahead of its rivals (``decisive_gain_ratio``), and two rivals the data cannot tell apart
+   are named as a tie (``Diagnosis.ties``).
 
 Every budget is a number of gap evaluations, so the diagnosis is deterministic: the same input,
 settings and seed give the same ranking, parameters and gaps on any machine under any load
 (only the ``seconds`` fields differ); ``FitConfig.max_seconds`` is an optional safety guard
 (off by default; ``Diagnosis.time_capped`` says when it cut a search short).
 
-Nothing is special-cased by effect name: what the lab knows about an effect (sensor types,
+Nothing is special-cased by effect name (except the few signatures of :mod:`synth.lab.decisive`, which
+compare named rival effects): what the lab knows about an effect (sensor types,
 fittable parameters, evidence sentence, starting values, signature figure) is declared in the
 effect's own file.
 
@@ -69,7 +74,8 @@ from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search
                            start_values)
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
-           "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "evaluate_held_out"]
+           "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",
+           "evaluate_held_out"]
 
 DIAGNOSIS_FILE = "diagnosis.json"
 LEARNED_MAP_NUMBERS = 10_000
@@ -119,13 +125,22 @@ class DiagnoseConfig:
     the gaps left, not the gains: a map leaving 0.157 against a hidden depth bias's 0.170 is no
     evidence for a per-pixel pattern, a map leaving 0.04 against a depth bias's 0.09 on a real
     pattern is (a judgement, not a test statistic)."""
+    decisive_gain_ratio: float = 0.1
+    """A candidate whose signature decides by itself, measured without a fit (a disparity lattice the
+    model lacks; holes that follow the returned signal rather than the incidence angle or the
+    reverse: :mod:`synth.lab.decisive`), ranks ahead of its rivals whose gain is at most 1 / this
+    times its own (0.1: a lattice at 2 % gain passes a rolling shutter at 5 %, not a depth bias at
+    90 %). 0 = off: rank by gain and the Occam rules alone."""
+    decisive_gap_margin: float = 0.1
+    """...or ahead of rivals that leave at most this fraction less of the gap (0.1: a lattice whose
+    gain the gap cannot see passes an incidence dropout at gain 0.08, not an edge fattening at 0.18)."""
 
     def validate(self) -> "DiagnoseConfig":
         for k in ("model_evaluations", "candidate_evaluations", "refine_evaluations",
                   "candidate_evaluations_per_param", "candidate_grid_points"):
             if int(getattr(self, k)) < 1:
                 raise ConfigError(f"diagnose: {k} must be >= 1")
-        for k in ("occam_margin", "occam_map_margin"):
+        for k in ("occam_margin", "occam_map_margin", "decisive_gain_ratio", "decisive_gap_margin"):
             if not 0 <= getattr(self, k) < 1:
                 raise ConfigError(f"diagnose: {k} must be in [0, 1), got {getattr(self, k)}")
         if int(self.refine_top) < 0:
@@ -165,12 +180,15 @@ class Candidate:
     None for the others."""
     config: object = None
     """The fitted :class:`SensorConfig` (model + effect); not in ``to_json``."""
+    decided_by: str = ""
+    """Why the measured data alone decide for this effect (:mod:`synth.lab.decisive`; it then ranks
+    ahead of its rivals, :attr:`DiagnoseConfig.decisive_gain_ratio`); empty when they do not."""
 
     def to_json(self) -> dict:
         return {"effect": self.effect, "gap_after": self.gap_after, "gain": self.gain,
                 "params": dict(self.params), "evidence": self.evidence, "gap_default": self.gap_default,
                 "evaluations": self.evaluations, "seconds": self.seconds, "refined": self.refined,
-                "eval_gap_after": self.eval_gap_after}
+                "eval_gap_after": self.eval_gap_after, "decided_by": self.decided_by}
 
 
 @dataclass
@@ -213,6 +231,10 @@ class Diagnosis:
     refit_rejected: str = ""
     """Why the model's refit was not taken although it lowered the gap (it threw measured pixels
     away, :func:`refit_base`); empty when it was taken or did not help."""
+    ties: list[str] = field(default_factory=list)
+    """Candidates the measured data cannot tell apart although they are different physics (e.g. a
+    dropout by returned signal and one by incidence angle on a scene where the two go together),
+    one sentence each; their order in ``ranking`` is then the gain's alone."""
 
     @property
     def best(self) -> Candidate | None:
@@ -225,7 +247,7 @@ class Diagnosis:
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
                        "eval_gain": self.eval_gain, "time_capped": self.time_capped,
-                       "refit_rejected": self.refit_rejected})
+                       "refit_rejected": self.refit_rejected, "ties": list(self.ties)})
 
     @property
     def eval_gain(self) -> float | None:
@@ -456,8 +478,17 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
 
 def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: list[Candidate]) -> None:
     """Stage 4: the ``refine_top`` best candidates (by gap) that beat the base model, refined
-    jointly with the model's parameters by a local search (in place)."""
-    for c in sorted(tried, key=lambda c: c.gap_after)[:int(cx.dc.refine_top)]:
+    jointly with the model's parameters by a local search (in place). When a learned map is among
+    them, the best parametric candidate is refined too: a map fitted from the very frames it is
+    scored on is otherwise compared with a parametric effect that had only its candidate budget
+    (a lens at gain 0.88 after 16 evaluations lost to a map at 0.95; refined, the lens closes more)."""
+    order = sorted(tried, key=lambda c: c.gap_after)
+    picked = order[:int(cx.dc.refine_top)]
+    if any(_free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS for c in picked):
+        para = next((c for c in order if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS), None)
+        if para is not None and para not in picked:
+            picked.append(para)
+    for c in picked:
         if not c.gap_after < base.gap:
             continue
         tc, n0 = time.perf_counter(), cx.obj.evaluations
@@ -493,6 +524,21 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     out.remove(first)
     out.insert(0, first)
     return out
+
+
+def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx) -> tuple[list[Candidate], list]:
+    """Stage 4b: :func:`rank`, then the candidates the measured data decide for by themselves moved
+    ahead of their rivals (:func:`synth.lab.decisive.promote`); returns (ranking, ties), a tie
+    (effect a, effect b, sentence) named when two rival candidates both gain and the data cannot
+    tell them apart."""
+    from synth.lab.decisive import decisive_signatures, promote
+    ranking = rank(cx, base, tried)
+    if not cx.dc.decisive_gain_ratio > 0 or not ranking:
+        return ranking, []
+    from synth.lab.decisive import EXACT
+    gaining = [c.effect for c in ranking if c.gain > 0 or c.effect in EXACT]
+    decided, pairs = decisive_signatures(ctx, gaining)
+    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)), pairs
 
 
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
@@ -563,12 +609,12 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             bar.close()
     top = sorted(tried, key=lambda c: c.gap_after)[:max(int(dc.refine_top), 1)]   # scored held out
     refine_best(cx, base, model_names, tried)
-    ranking = rank(cx, base, tried)
-    held = evaluate_held_out(cx, base, top)
     base_obs = measured.observations(base_sims, cx.frames)
-    base_result = compare(base_obs, cx.obj.compare_config, cache=cx.obj.cache)
     albedo = {k + 1: float(measured.scene.material_of(m).albedo) for k, m in enumerate(measured.scene.meshes)}
     ctx = EvidenceContext(base_obs, measured.preset, albedo)
+    ranking, ties = rank_with_signatures(cx, base, tried, ctx)
+    held = evaluate_held_out(cx, base, top)
+    base_result = compare(base_obs, cx.obj.compare_config, cache=cx.obj.cache)
     for c in ranking:
         # the candidate's fitted parameters, plus the model's where they moved away from the refit
         vals = get_params(c.config, param_specs(c.config, [*model_names, c.effect]))
@@ -579,10 +625,14 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
             after = compare(measured.observations(measured.simulate(c.config, fc.seed, cx.frames), cx.frames),
                             cx.obj.compare_config, cache=cx.obj.cache)
         c.evidence = evidence_for(c.effect, ctx, c.params, base_result, after, gain=c.gain)
+        for a, b, why in ties:
+            if c.effect in (a, b):
+                c.evidence = c.evidence.rstrip(".") + f"; a tie with {b if c.effect == a else a}: {why}."
     idx = measured.frame_indices
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
                      seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations,
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
-                     time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected)
+                     time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,
+                     ties=[f"{a} / {b}: {why}" for a, b, why in ties])

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from synth.sensor.registry import STAGE_OPTICS, STAGE_WARP, Effect, Signature, param, register_effect
+from synth.sensor.registry import STAGE_GEOMETRY, STAGE_OPTICS, Effect, Signature, param, register_effect
 
 
 @dataclass
@@ -77,9 +77,13 @@ class LensDistortion(Effect):
     lens, so the disparity is computed between two distorted images; converting it with one
     constant f b then gives a depth bias growing with the image radius (the physical origin of
     the radial 'depth distortion' that Kinect calibration papers correct). Physical pipeline:
-    the radiance image (and the reference) is warped before capture. Direct model: the depth
-    image is warped (nearest neighbour, so edges are not blended). Either way the output is in
-    distorted pixel coordinates and ``SensorSimulator.camera()`` lists the coefficients.
+    the radiance image (and the reference) is warped before capture. Direct model: every pixel
+    casts its own distorted ray (the pinhole direction of its undistorted position, sub-pixel)
+    before any other effect, so depth, normals and materials are exact at every distorted pixel
+    and the later effects act in the device's pixel grid; without a scene renderer the ideal
+    depth is resampled instead (nearest neighbour, so edges are not blended - a staircase of up
+    to half a pixel that a noise fit would absorb). Either way the output is in distorted pixel
+    coordinates and ``SensorSimulator.camera()`` lists the coefficients.
     """
 
     name = "lens_distortion"
@@ -246,7 +250,26 @@ class LensDistortion(Effect):
         return tuple(c)
 
     def stage_for(self, physical_model: bool) -> int:
-        return STAGE_OPTICS + 5 if physical_model else STAGE_WARP
+        # direct model: before rolling shutter (STAGE_GEOMETRY), which re-casts state.ray_dirs_cam
+        return STAGE_OPTICS + 5 if physical_model else STAGE_GEOMETRY - 1
+
+    def distorted_rays(self, intr, coeffs) -> np.ndarray:
+        """(H, W, 3) float32 unit camera-frame directions of the distorted pixels: pixel (u, v) of the
+        device looks along the pinhole ray of its undistorted position (sub-pixel, OpenCV's
+        inversion) - cached per (intrinsics, coefficients)."""
+        key = ("rays", intr, coeffs)
+        d = self._maps.get(key)
+        if d is None:
+            mx, my = self.maps(intr, coeffs)
+            x = (mx.astype(np.float64) - intr.cx) / intr.fx
+            y = (my.astype(np.float64) - intr.cy) / intr.fy
+            d = np.stack([x, y, np.ones_like(x)], -1)
+            d = (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(np.float32)
+            d.setflags(write=False)
+            if len(self._maps) > 8:
+                self._maps.clear()
+            self._maps[key] = d
+        return d
 
     def maps(self, intr, coeffs):
         key = (intr, coeffs)
@@ -271,6 +294,12 @@ class LensDistortion(Effect):
                 state.radiance_second = warp(state.radiance_second)
             if state.product("ambient") is not None:
                 state.publish("ambient", warp(state.product("ambient")))
+        elif state.renderer is not None and not state.is_reference:
+            from synth.sensor.state import cast_view
+            state.ray_dirs_cam = self.distorted_rays(state.intr, coeffs)
+            state.view = cast_view(state.renderer, state.ray_dirs_cam, state.view.row_c2w)
+            state.depth = state.view.depth.copy()
+            state.valid = state.view.hit.copy()
         else:
             z = np.where(state.valid, state.depth, 0).astype(np.float32)
             z = cv2.remap(z, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

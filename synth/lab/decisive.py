@@ -1,0 +1,204 @@
+"""Signatures that decide a diagnosis by themselves, measured from the data without a fit.
+
+A fitted gain says how much an effect lowers the gap; two effects that both make holes (or
+both blur the disparity) can gain about the same, and at a small gain any effect that adds a
+little noise can beat the right one. Some effects leave a trace in the measurement that no other
+effect of the catalog leaves, and that is checked without simulating anything:
+
+* ``disparity_quantization``: the measured disparities f b / z lie on a lattice (step, phase)
+  that the current model's simulated disparities do not lie on
+  (:func:`synth.sensor.lattice.detect_lattice`);
+* ``low_reflectance`` against ``incidence_dropout``: which variable the extra holes follow.
+  A dropout by returned signal depends on albedo cos(theta) / r^2, a dropout by incidence on
+  theta alone. Among the pixels the current model keeps (away from depth edges, at ideal depths
+  within the 0.5-99.5th percentiles of the measured ones: range limits are not the question),
+  the measured holes are explained by the best step function of log10(signal) and by the best
+  step function of theta with the same number of quantile bins (:data:`BINS`), and the two
+  Bernoulli log-likelihoods are compared: the variable the holes follow explains them better
+  (the other is only a noisy proxy of it). A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
+  decides; otherwise the data cannot separate the two (holes that follow neither clearly, or a
+  scene where signal and angle go together: one albedo, a narrow range of distances) and
+  :func:`~synth.lab.diagnose.diagnose` names the two as a tie.
+
+Approximations: the signal uses the camera ray for both incidence and range (the projector sits
+a baseline away, a few cm: a < 1 deg difference at 1 m); materials without a known albedo are left
+out; pixels are treated as independent draws (a real sensor's holes are spatially correlated, which
+inflates both likelihoods alike but overstates the ratio's significance).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["HoleDrivers", "hole_drivers", "decisive_signatures", "missing_lattice", "MIN_LOG_RATIO", "promote", "EXACT"]
+
+BINS = 32
+"""Quantile bins of each variable's step function (the same number for both: equal complexity)."""
+MIN_LOG_RATIO = 10.0
+"""The better variable must explain the holes by a likelihood ratio of at least e^10 (~22000)."""
+MIN_HOLE_RATE = 0.01
+"""Below this hole rate there is nothing to explain."""
+EDGE_MARGIN_PX = 3.0
+"""Pixels nearer than this to a depth edge are left out (shadows, fattening, flying pixels)."""
+
+
+@dataclass(frozen=True)
+class HoleDrivers:
+    """Which variable the holes follow: the returned signal or the incidence angle."""
+
+    ll_signal: float
+    """Log-likelihood (nats) of the holes under the best :data:`BINS`-step function of log10 signal."""
+    ll_angle: float
+    """The same under the best step function of the incidence angle."""
+    pixels: int
+    """Pixels the statistics use."""
+    hole_rate: float
+    """Their measured hole rate."""
+
+    @property
+    def log_ratio(self) -> float:
+        """ll_signal - ll_angle: > 0 when the signal explains the holes better."""
+        return self.ll_signal - self.ll_angle
+
+    @property
+    def driver(self) -> str | None:
+        """'low_reflectance', 'incidence_dropout' or None (the data cannot tell)."""
+        if self.hole_rate < MIN_HOLE_RATE:
+            return None
+        if self.log_ratio >= MIN_LOG_RATIO:
+            return "low_reflectance"
+        if self.log_ratio <= -MIN_LOG_RATIO:
+            return "incidence_dropout"
+        return None
+
+    def sentence(self) -> str:
+        if self.log_ratio >= 0:
+            a, b = "the returned signal (albedo·cos/r²)", "the incidence angle"
+        else:
+            a, b = "the incidence angle", "the returned signal (albedo·cos/r²)"
+        return (f"the holes ({100 * self.hole_rate:.0f} % of {self.pixels} pixels the current model keeps) are "
+                f"explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.0f}")
+
+
+def _binned_ll(hole: np.ndarray, x: np.ndarray, bins: int = BINS) -> float:
+    """Bernoulli log-likelihood (nats) of ``hole`` under a hole rate that is constant on each of
+    ``bins`` quantile bins of ``x`` (the best step function of x with that many steps)."""
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)[1:-1]))
+    b = np.searchsorted(edges, x)
+    n = np.bincount(b)
+    k = np.bincount(b, weights=hole.astype(np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = k / n
+        ll = np.where(k > 0, k * np.log(np.where(k > 0, p, 1)), 0) + np.where(n > k, (n - k) * np.log(np.where(n > k, 1 - p, 1)), 0)
+    return float(np.nansum(ll))
+
+
+def hole_drivers(ctx) -> HoleDrivers | None:
+    """The :class:`HoleDrivers` of an :class:`~synth.lab.evidence.EvidenceContext` (None with fewer
+    than 500 usable pixels or no known albedo)."""
+    from data_tools.geometry import pixel_rays
+    ids = ctx.material_ids()
+    if not ctx.albedo:
+        return None
+    lut = np.full(int(max(ids.max(), max(ctx.albedo))) + 1, np.nan)
+    for k, a in ctx.albedo.items():
+        lut[int(k)] = a
+    alb = lut[ids]
+    ang = ctx.incidence_deg()
+    norm = ctx.pooled("ray_norm", lambda o: np.linalg.norm(pixel_rays(o.intrinsics, unit=False), axis=-1))
+    r = ctx.ideal * norm
+    edge = np.abs(ctx.edge_distance())
+    mv = ctx.measured[ctx.measured > 0]
+    if mv.size < 500:
+        return None
+    zlo, zhi = np.quantile(mv, [0.005, 0.995])     # where the sensor measures at all (range limits)
+    use = ((ctx.ideal >= zlo) & (ctx.ideal <= zhi) & (ctx.simulated > 0) & np.isfinite(ang) & (ang < 89.5) & np.isfinite(alb) & (alb > 0) & (r > 0)
+           & (edge > EDGE_MARGIN_PX))
+    if int(use.sum()) < 500:
+        return None
+    hole = (ctx.measured <= 0)[use]
+    a = ang[use]
+    sig = np.log10(alb[use] * np.cos(np.radians(a)) / r[use] ** 2)
+    return HoleDrivers(_binned_ll(hole, sig), _binned_ll(hole, a), int(use.sum()), float(hole.mean()))
+
+
+def missing_lattice(ctx, fb: float):
+    """The :class:`~synth.sensor.lattice.Lattice` of the measured disparities when the current
+    model's simulated ones do not show it (no lattice there, or one whose step differs by > 3 %);
+    None otherwise."""
+    from synth.sensor.lattice import detect_lattice
+    ideal, m, s = ctx.ideal, ctx.measured, ctx.simulated
+    ok = (m > 0) & (ideal > 0)
+    if int(ok.sum()) < 500 or not fb > 0:
+        return None
+    lat = detect_lattice(fb / m[ok], fb / ideal[ok], fb=fb, max_samples=20000)
+    if lat is None:
+        return None
+    oks = (s > 0) & (ideal > 0)
+    if int(oks.sum()) >= 500:
+        sim = detect_lattice(fb / s[oks], fb / ideal[oks], fb=fb, max_samples=20000)
+        if sim is not None and abs(sim.step_px / lat.step_px - 1.0) <= 0.03:
+            return None
+    return lat
+
+
+def decisive_signatures(ctx, candidates) -> tuple[dict[str, str], list[tuple[str, str, str]]]:
+    """({effect: why the data decide for it}, [(effect a, effect b, why they are tied)]) for the
+    candidate names ``candidates``, from the measured data of ``ctx`` alone."""
+    out: dict[str, str] = {}
+    ties: list[tuple[str, str, str]] = []
+    names = set(candidates)
+    if "disparity_quantization" in names:
+        lat = missing_lattice(ctx, float(getattr(ctx.preset, "fb", 0.0) or 0.0))
+        if lat is not None:
+            out["disparity_quantization"] = (f"the measured disparities lie on a lattice of {lat.step_px:.4f} px "
+                                             f"(concentration {lat.concentration:.2f} against {lat.expected:.2f} "
+                                             f"for continuous ones) that the current model does not make")
+    if {"low_reflectance", "incidence_dropout"} <= names:
+        hd = hole_drivers(ctx)
+        if hd is not None:
+            if hd.driver is not None:
+                out[hd.driver] = f"the holes follow {'the returned signal' if hd.driver == 'low_reflectance' else 'the incidence angle'}: {hd.sentence()}"
+            elif hd.hole_rate >= MIN_HOLE_RATE:
+                ties.append(("low_reflectance", "incidence_dropout",
+                             f"the data cannot tell a signal dropout from an incidence dropout: {hd.sentence()}"))
+    return out, ties
+
+
+EXACT = frozenset({"disparity_quantization"})
+"""Effects whose deciding signature is exact (every measured disparity on the lattice): they lead
+their rivals even where the gap cannot see them (a step of 1.5-3 x the noise changes the depth
+distribution by less than the gap's sampling noise: gains <= 0 on the mystery's 1-raw-unit steps)."""
+
+
+def promote(ranking: list, decided: dict[str, str], gain_ratio: float, gap_margin: float = 0.1) -> list:
+    """``ranking`` (candidates best first) with every candidate the data decide for (``decided``:
+    effect -> reason) moved ahead of its rivals: for ``disparity_quantization`` every candidate,
+    for low_reflectance / incidence_dropout the other one. It passes a rival whose gain is at most
+    1 / ``gain_ratio`` x its own, or who leaves at most ``gap_margin`` (relative) less of the gap (a
+    signature in the data does not make a small effect outrank one that explains far more of the
+    gap); it must lower the gap itself unless its signature is exact (:data:`EXACT`: then a negative
+    gain, a search that did not place the steps where the lattice is, counts as 0). Sets
+    ``decided_by``."""
+    out = list(ranking)
+    rivals = {"disparity_quantization": None, "low_reflectance": {"incidence_dropout"},
+              "incidence_dropout": {"low_reflectance"}}
+    for name, why in decided.items():
+        pos = next((i for i, c in enumerate(out) if c.effect == name), None)
+        if pos is None or not (out[pos].gain > 0 or name in EXACT):
+            continue
+        c = out[pos]
+        c.decided_by = why
+        riv = rivals.get(name, set())
+
+        g = max(c.gain, 0.0) if name in EXACT else c.gain    # a search that missed the step, not no lattice
+
+        def passes(r) -> bool:
+            return ((g > 0 and g >= gain_ratio * r.gain)
+                    or (1.0 - g) <= (1.0 - r.gain) * (1.0 + gap_margin))
+        ahead = [i for i in range(pos) if (riv is None or out[i].effect in riv) and passes(out[i])]
+        if ahead:
+            out.pop(pos)
+            out.insert(ahead[0], c)
+    return out

@@ -1,0 +1,121 @@
+"""Signatures that decide a diagnosis without a fit (synth/lab/decisive.py, issue #43 item 2 and the
+generalisation item): a disparity lattice the model lacks, and holes that follow the returned
+signal (albedo cos / r^2) rather than the incidence angle, or the reverse - on hand-made frames
+whose holes are drawn from a known law."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from data_tools.camera import Intrinsics
+from synth.lab.decisive import hole_drivers, missing_lattice, promote
+from synth.lab.diagnose import Candidate
+from synth.lab.evidence import EvidenceContext
+from synth.lab.feature_maps import incidence_angle_deg
+from synth.lab.features import FrameObservation
+
+INTR = Intrinsics(160, 120, 140.0, 140.0, 79.5, 59.5)
+FB = 140.0 * 0.075
+
+
+def _frame(rng, law: str, albedos=(0.15, 0.8)) -> tuple[FrameObservation, dict]:
+    """A plane-free hand-made frame: constant ideal depth 2 m, the normal tilted 0-80 deg about y
+    across the columns, two materials in alternating 8-row bands (``albedos``); holes drawn with a
+    logistic probability in log10(albedo cos / r^2) (law 'signal') or in the angle (law 'angle'), at a 30 % rate everywhere ('none'), or 1 % above
+    60 deg only ('rare')."""
+    H, W = INTR.height, INTR.width
+    a = np.radians(np.linspace(0, 80, W))[None, :].repeat(H, 0)
+    normals = np.stack([np.sin(a), np.zeros_like(a), -np.cos(a)], -1).astype(np.float32)
+    ideal = np.full((H, W), 2.0, np.float32)
+    ids = np.where((np.arange(H) // 8) % 2 == 0, 1, 2)[:, None].repeat(W, 1).astype(np.int32)
+    alb = np.where(ids == 1, albedos[0], albedos[1])
+    ang = incidence_angle_deg(normals, INTR).reshape(H, W)
+    r = ideal * np.sqrt(((np.arange(W) - INTR.cx) / INTR.fx) ** 2 + 1)[None, :]
+    if law == "signal":
+        x = (np.log10(alb * np.cos(np.radians(ang)) / r ** 2) - math.log10(0.06)) / -0.1
+    elif law == "angle":
+        x = (ang - 55.0) / 3.0
+    elif law == "rare":
+        x = np.where(ang > 60, math.log(0.01 / 0.99), -30.0)     # 1 % above 60 deg: ~0.3 % overall
+    else:
+        x = np.full((H, W), math.log(0.3 / 0.7))
+    hole = rng.random((H, W)) < 1 / (1 + np.exp(-x))
+    measured = np.where(hole, 0, ideal + 0.002 * rng.standard_normal((H, W))).astype(np.float32)
+    obs = FrameObservation(measured, ideal.copy(), ideal, normals, ids, {1: "dark", 2: "bright"}, INTR)
+    return obs, {1: albedos[0], 2: albedos[1]}
+
+
+def _ctx(law: str, albedos=(0.15, 0.8), frames=3):
+    rng = np.random.default_rng(5)
+    obs, alb = zip(*[_frame(rng, law, albedos) for _ in range(frames)])
+    return EvidenceContext(list(obs), None, alb[0])
+
+
+def test_holes_that_follow_the_signal_are_told_from_holes_that_follow_the_angle():
+    sig, ang = hole_drivers(_ctx("signal")), hole_drivers(_ctx("angle"))
+    assert sig.driver == "low_reflectance" and sig.log_ratio > 50
+    assert ang.driver == "incidence_dropout" and ang.log_ratio < -50
+    assert "explained better by the returned signal" in sig.sentence()
+
+
+def test_holes_that_follow_neither_are_a_tie():
+    # holes at a 30 % rate everywhere: neither variable explains them better (a tie), and a hole
+    # rate under 1 % decides nothing however the likelihoods compare
+    hd = hole_drivers(_ctx("none"))
+    assert hd.driver is None and abs(hd.log_ratio) < 10 and 0.25 < hd.hole_rate < 0.35
+    assert hole_drivers(_ctx("rare")).driver is None
+
+
+def test_a_lattice_the_model_lacks():
+    rng = np.random.default_rng(3)
+    H, W = INTR.height, INTR.width
+    ideal = np.linspace(0.8, 3.0, H * W).reshape(H, W).astype(np.float32)
+    step = 1 / 8
+    d = FB / ideal + 0.06 * rng.standard_normal((H, W))         # step / noise ~2, a Kinect v1's
+    quant = (FB / (step * np.round(d / step))).astype(np.float32)
+    cont = (FB / d).astype(np.float32)
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[..., 2] = -1
+    ids = np.ones((H, W), np.int32)
+    preset = type("P", (), {"fb": FB})()
+
+    def ctx(measured, simulated):
+        return EvidenceContext([FrameObservation(measured, simulated, ideal, normals, ids, {1: "m"}, INTR)], preset)
+    lat = missing_lattice(ctx(quant, cont), FB)
+    assert lat is not None and abs(lat.step_px / step - 1) < 0.03
+    assert missing_lattice(ctx(quant, quant), FB) is None        # the model quantises already
+    assert missing_lattice(ctx(cont, cont), FB) is None          # nothing on a lattice
+
+
+def _c(effect, gain):
+    return Candidate(effect, 1 - gain, gain, {}, "")
+
+
+def test_promote_moves_a_decided_effect_past_its_rivals_only():
+    r = [_c("incidence_dropout", 0.75), _c("projector_shadow", 0.72), _c("low_reflectance", 0.70)]
+    out = promote(r, {"low_reflectance": "holes follow the signal"}, 0.1)
+    assert [c.effect for c in out] == ["low_reflectance", "incidence_dropout", "projector_shadow"]
+    assert out[0].decided_by == "holes follow the signal"
+    # a lattice passes any candidate, but not one that explains ten times more of the gap
+    r = [_c("depth_bias", 0.9), _c("rolling_shutter", 0.05), _c("disparity_quantization", 0.02)]
+    out = promote(r, {"disparity_quantization": "lattice"}, 0.1)
+    assert [c.effect for c in out] == ["depth_bias", "disparity_quantization", "rolling_shutter"]
+    # an exact lattice leads where the gap cannot see it (gain <= 0) past a rival leaving <= 10 % less of
+    # the gap, not past one leaving 18 % less; a hole driver must lower the gap itself
+    r = [_c("incidence_dropout", 0.08), _c("disparity_quantization", -0.04)]
+    assert [c.effect for c in promote(r, {"disparity_quantization": "lattice"}, 0.1)][0] == "disparity_quantization"
+    r = [_c("edge_fattening", 0.18), _c("disparity_quantization", 0.0)]
+    assert [c.effect for c in promote(r, {"disparity_quantization": "lattice"}, 0.1)][0] == "edge_fattening"
+    r = [_c("incidence_dropout", 0.08), _c("low_reflectance", 0.0)]
+    assert [c.effect for c in promote(r, {"low_reflectance": "signal"}, 0.1)][0] == "incidence_dropout"
+
+
+def test_a_tie_is_named_only_where_there_are_holes_to_explain():
+    from synth.lab.decisive import decisive_signatures
+    _, ties = decisive_signatures(_ctx("none"), ["low_reflectance", "incidence_dropout"])
+    assert len(ties) == 1 and ties[0][:2] == ("low_reflectance", "incidence_dropout")
+    decided, ties = decisive_signatures(_ctx("rare"), ["low_reflectance", "incidence_dropout"])
+    assert ties == [] and decided == {}
+    decided, _ = decisive_signatures(_ctx("signal"), ["low_reflectance", "incidence_dropout"])
+    assert list(decided) == ["low_reflectance"]
