@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["run_steps", "LossMeans", "TrainingState", "linear_ramp", "set_lr"]
+__all__ = ["run_steps", "LossMeans", "TrainingState", "linear_ramp", "set_lr", "settings_of"]
 
 
 def linear_ramp(step: int, decay_from: int, total: int, final: float) -> float:
@@ -59,12 +59,15 @@ class TrainingState:
     optimiser), the numpy Generator ``rng`` that draws the batches, torch's global random state, the next step and
     the loss log; written atomically (a kill while writing leaves the previous file), so a re-run continues with
     the same batches and random draws as an uninterrupted run. ``path`` None: nothing is saved or loaded.
-    ``on_save(step)`` is called after each write and on a resume (a command's progress marker)."""
+    ``on_save(step)`` is called after each write and on a resume (a command's progress marker). ``settings``
+    (see :func:`settings_of`) are stored with the state; a resume under other settings is refused, because it
+    would silently continue a run made with the old ones."""
 
     def __init__(self, path: str | Path | None, parts: dict[str, Any], rng, what: str = "training checkpoint",
-                 map_location="cpu", on_save: Callable[[int], None] | None = None):
+                 map_location="cpu", on_save: Callable[[int], None] | None = None, settings: dict | None = None):
         self.path = Path(path) if path else None
         self.parts, self.rng, self.what, self.map_location, self.on_save = parts, rng, what, map_location, on_save
+        self.settings = settings
 
     def resume(self) -> tuple[int, list] | None:
         """(next step, log) from the file, restored into ``parts`` and the random states, or None when there is no
@@ -76,6 +79,14 @@ class TrainingState:
         from data_tools.errors import FormatError
         try:
             st = torch.load(self.path, map_location=self.map_location, weights_only=False)
+        except Exception as e:
+            raise FormatError(self.path, f"unreadable {self.what} ({type(e).__name__}); delete it to start again") \
+                from None
+        changed = _changed_setting(st.get("settings") if isinstance(st, dict) else None, self.settings)
+        if changed:
+            raise FormatError(self.path, f"{self.what} was written with other settings ({changed}); run with the "
+                                         "same settings to continue it, or delete it to start again")
+        try:
             for name, p in self.parts.items():
                 p.load_state_dict(st[name])
             self.rng.bit_generator.state = st["rng"]
@@ -98,10 +109,49 @@ class TrainingState:
         buf = io.BytesIO()
         state = {name: p.state_dict() for name, p in self.parts.items()}
         state.update(rng=self.rng.bit_generator.state, torch_rng=torch.get_rng_state(), step=int(step), log=list(log))
+        if self.settings is not None:
+            state["settings"] = self.settings
         torch.save(state, buf)
         atomic_write_bytes(self.path, buf.getvalue())
         if self.on_save is not None:
             self.on_save(step)
+
+
+RESUMABLE_CHANGES = ("iterations", "checkpoint_every", "log_every", "workers", "device")
+"""Settings a resumed run may change: how long it runs and how it reports, not what it learns (``device``: the same
+run may continue on another machine). A trainer whose length field has another name adds it (refinements: ``steps``)."""
+
+
+def settings_of(config, ignore: tuple = RESUMABLE_CHANGES) -> dict:
+    """The fields of a (nested) dataclass ``config`` as plain JSON values, flattened to dotted names, without the
+    ``ignore`` names at any depth: what a checkpoint must have been trained with to be continued."""
+    import dataclasses
+    import json
+
+    out: dict = {}
+
+    def walk(obj, prefix):
+        for f in dataclasses.fields(obj):
+            if f.name in ignore:
+                continue
+            v = getattr(obj, f.name)
+            if dataclasses.is_dataclass(v):
+                walk(v, prefix + f.name + ".")
+            else:
+                out[prefix + f.name] = json.loads(json.dumps(v, default=str))
+    walk(config, "")
+    return out
+
+
+def _changed_setting(stored: dict | None, now: dict | None) -> str:
+    """'name: old -> new' for the first setting that differs ('' when none does, or either side has none: a
+    checkpoint written before settings were stored is continued as before)."""
+    if not stored or not now:
+        return ""
+    for k in sorted(set(stored) | set(now)):
+        if k in stored and k in now and stored[k] != now[k]:
+            return f"{k}: {stored[k]!r} -> {now[k]!r}"
+    return ""
 
 
 def run_steps(step_fn: Callable[[int], dict], total: int, *, start: int = 0, history: list | None = None,

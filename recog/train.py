@@ -25,7 +25,7 @@ import numpy as np
 
 from data_tools.config import Range, check_fields
 from data_tools.errors import ConfigError
-from data_tools.training import TrainingState, run_steps
+from data_tools.training import TrainingState, run_steps, settings_of
 from recog.data import TrainingData
 
 __all__ = ["TrainConfig", "TRAIN_PRESETS", "TripletMiner", "train_network", "TrainLog"]
@@ -187,7 +187,8 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
     miner = TripletMiner(data, symmetries, config.hard_negatives)
     patches = torch.from_numpy(np.ascontiguousarray(data.patches))       # (N, D, S, S) float16
     tlog = TrainLog()
-    state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "training checkpoint", map_location=device)
+    state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "training checkpoint", map_location=device,
+                          settings=settings_of(config))
     resumed = state.resume()
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed

@@ -440,7 +440,8 @@ def test_corrupt_training_checkpoint_is_a_one_line_error_naming_it(tmp_path):
         train_memory(cfg, ck, progress=False)
     assert str(ck) in str(e.value) and "\n" not in str(e.value) and len(ck.read_bytes()) == len(whole) // 2
     ck.write_bytes(whole)                                   # another model's: features 4 -> 6
-    with pytest.raises(FormatError, match="unreadable training checkpoint"):
+    with pytest.raises(FormatError, match=r"checkpoint.pt: training checkpoint was written with other settings "
+                                          r"\(model.features: 4 -> 6\)"):
         train_memory(dataclasses.replace(cfg, model=MemoryConfig(features=6, width=4)), ck, progress=False)
 
 

@@ -73,3 +73,37 @@ def test_training_state_resumes_exactly(tmp_path):
     from data_tools.errors import FormatError
     with pytest.raises(FormatError, match="bad.pt.*unreadable training checkpoint"):
         TrainingState(tmp_path / "bad.pt", {}, np.random.default_rng()).resume()
+
+
+def test_resume_refuses_other_settings(tmp_path):
+    """A checkpoint continues only under the settings it was trained with (a changed learning setting is a
+    one-line error naming it); how long a run goes and how it reports may change (RESUMABLE_CHANGES)."""
+    torch = pytest.importorskip("torch")
+    import dataclasses
+
+    from data_tools.errors import FormatError
+    from data_tools.training import settings_of
+
+    @dataclasses.dataclass
+    class Inner:
+        lr: float = 0.1
+        sizes: tuple = (1, 2)
+
+    @dataclasses.dataclass
+    class Cfg:
+        inner: Inner = dataclasses.field(default_factory=Inner)
+        iterations: int = 10
+        seed: int = 0
+
+    assert settings_of(Cfg()) == {"inner.lr": 0.1, "inner.sizes": [1, 2], "seed": 0}
+
+    def state(cfg):
+        net = torch.nn.Linear(2, 1)
+        return TrainingState(tmp_path / "ck.pt", {"net": net}, np.random.default_rng(0), settings=settings_of(cfg))
+    state(Cfg()).save(3, [])
+    assert state(Cfg(iterations=20)).resume()[0] == 3          # a longer run continues
+    with pytest.raises(FormatError, match=r"ck.pt.*other settings \(inner.lr: 0.1 -> 0.2\)"):
+        state(Cfg(inner=Inner(lr=0.2))).resume()
+    legacy = TrainingState(tmp_path / "ck.pt", {"net": torch.nn.Linear(2, 1)}, np.random.default_rng(0))
+    legacy.save(4, [])                                           # written without settings: continued as before
+    assert state(Cfg(inner=Inner(lr=0.2))).resume()[0] == 4

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from data_tools.errors import ConfigError
-from data_tools.training import TrainingState, run_steps
+from data_tools.training import TrainingState, run_steps, settings_of
 from recog.synda.augment import Augmenter
 from recog.synda.config import SyndaConfig
 from recog.synda.data import SyndaData, normals_from_depth
@@ -110,7 +110,8 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
     aug = augmenter or Augmenter(cfg.augment, cfg.domain, cfg.generator.size)
     K = max(data.noisy.shape[1], 1)
     tlog = SyndaTrainLog()
-    state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "SynDA training checkpoint", map_location=device)
+    state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "SynDA training checkpoint", map_location=device,
+                          settings=settings_of(cfg))
     resumed = state.resume()
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed

@@ -108,7 +108,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     import torch
     from kornia.losses import ssim_loss
 
-    from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
+    from data_tools.training import RESUMABLE_CHANGES, TrainingState, linear_ramp, run_steps, set_lr, settings_of
     rcfg.validate()
     torch.manual_seed(rcfg.seed)
     for p in model.parameters():
@@ -119,7 +119,7 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
     opt = torch.optim.Adam(dec.parameters(), lr=rcfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(rcfg.seed + 1)
     state = TrainingState(checkpoint, {"decoder": dec, "opt": opt}, rng, "refinement checkpoint",
-                          on_save=on_checkpoint)
+                          on_save=on_checkpoint, settings=settings_of(rcfg, RESUMABLE_CHANGES + ("steps",)))
     start, hist = state.resume() or (0, [])
     if start and log is not None:
         log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {checkpoint}")

@@ -51,7 +51,7 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     from slam.neural.data import batch_tensors
     from slam.neural.losses import hallucination_step
     from slam.neural.networks import PatchDiscriminator, init_weights
-    from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
+    from data_tools.training import RESUMABLE_CHANGES, TrainingState, linear_ramp, run_steps, set_lr, settings_of
     hcfg.validate()
     torch.manual_seed(hcfg.seed)
     dev = next(model.parameters()).device
@@ -72,7 +72,8 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     parts = {"occ_lstm": model.occ_lstm, "hallucinator": model.hallucinator, "disc": disc, "opt_occ": opt_occ,
              "opt_h": opt_h, "opt_d": opt_d}
     total = hcfg.occ_steps + hcfg.steps
-    state = TrainingState(checkpoint, parts, rng, "hallucination checkpoint", map_location=dev, on_save=on_checkpoint)
+    state = TrainingState(checkpoint, parts, rng, "hallucination checkpoint", map_location=dev, on_save=on_checkpoint,
+                          settings=settings_of(hcfg, RESUMABLE_CHANGES + ("steps",)))
     start, hist = state.resume() or (0, [])
     if start and log is not None:
         log(f"resuming the hallucination training at step {start} of {total} from {checkpoint}")

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Callable
 
 from data_tools.errors import ConfigError
-from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr
+from data_tools.training import TrainingState, linear_ramp, run_steps, set_lr, settings_of
 from slam.neural.config import OCC_LR, NeuralTrainConfig
 
 __all__ = ["train_memory", "TrainLog", "lr_factor"]
@@ -90,7 +90,8 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
     parts = {"model": model, "disc": disc, "opt": opt, "opt_h": opt_h, "opt_d": opt_d}
     if occ_own:
         parts["opt_occ"] = opt_occ
-    state = TrainingState(checkpoint, parts, rng, "training checkpoint", map_location=dev, on_save=on_checkpoint)
+    state = TrainingState(checkpoint, parts, rng, "training checkpoint", map_location=dev, on_save=on_checkpoint,
+                          settings=settings_of(cfg))
     resumed = state.resume()
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed
