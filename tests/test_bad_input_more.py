@@ -106,6 +106,8 @@ CASES = [
     ("compare: --out inside the sequence through a link", ["sensor", "compare", "{S}", "--effects", "none",
                                                            "--out", "{T}/lnk/lab"], _link_to_sequence,
      ["--out", "input"]),
+    ("batch: an empty backend name", ["batch", "{S}", "--backends", ",icp", "--out", "{T}/B"], None,
+     ["--backends", "empty name"]),
     ("batch: a sequence twice through a link", ["batch", "{S}", "{T}/lnk", "--backends", "icp", "--out", "{T}/B"],
      _link_to_sequence, ["given twice"]),
     # a finished output re-run without --overwrite (the one re-run rule)

@@ -38,9 +38,11 @@ def _table(results, align: str = "auto") -> tuple[list[str], list[list[str]]]:
 def _run(args) -> int:
     from app.commands.slam import _camera, config_from_args
     from slam.batch import run_batch
-    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-    if not backends:
+    backends = [b.strip() for b in args.backends.split(",")]
+    if not any(backends):
         raise ConfigError("--backends: give at least one backend, e.g. icp,rgbd_odometry")
+    if not all(backends):     # ",icp" or "icp,,o3d": a name left out by mistake, not silently dropped
+        raise ConfigError(f"--backends {args.backends!r}: an empty name in the list; separate names by one comma")
     twice = sorted({b for b in backends if backends.count(b) > 1})
     if twice:     # the same job twice would write into one run folder
         raise ConfigError(f"--backends: {', '.join(twice)} given twice; name each backend once")
