@@ -26,9 +26,10 @@ def base(good, tmp_path_factory):  # noqa: F811
     """``good`` plus RM: a finished run of S with a mesh."""
     root = tmp_path_factory.mktemp("round3")
     shutil.copytree(good, root, dirs_exist_ok=True)
-    os.environ["REALGAP_NO_PROGRESS"] = "1"
-    assert main(["slam", "run", str(root / "S"), "--out", str(root / "RM"), "--tsdf.voxel-size-m", "0.05",
-                 "--tsdf.mesh-weight-threshold", "1"]) == 0
+    with pytest.MonkeyPatch.context() as mp:      # not os.environ: later test files read progress settings
+        mp.setenv("REALGAP_NO_PROGRESS", "1")
+        assert main(["slam", "run", str(root / "S"), "--out", str(root / "RM"), "--tsdf.voxel-size-m", "0.05",
+                     "--tsdf.mesh-weight-threshold", "1"]) == 0
     assert (root / "RM" / "mesh.ply").is_file()
     return root
 
