@@ -119,3 +119,42 @@ def test_a_tie_is_named_only_where_there_are_holes_to_explain():
     assert ties == [] and decided == {}
     decided, _ = decisive_signatures(_ctx("signal"), ["low_reflectance", "incidence_dropout"])
     assert list(decided) == ["low_reflectance"]
+
+
+def _edge_ctx(law: str):
+    """A 1.2 m square in front of a 2.5 m wall (vertical depth edges); measured depths: the wall's
+    pixels within 3 px of the square carry its depth ('fatten'), or grazing-free random holes at
+    the same rate there ('holes'); the current model (``simulated``) is plain noise."""
+    rng = np.random.default_rng(7)
+    H, W = INTR.height, INTR.width
+    ideal = np.full((H, W), 2.5, np.float32)
+    ideal[30:90, 50:110] = 1.2
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[..., 2] = -1
+    ids = np.ones((H, W), np.int32)
+    noisy = (ideal * (1 + 0.003 * rng.standard_normal((H, W)))).astype(np.float32)
+    ring = np.zeros((H, W), bool)
+    ring[27:93, 47:113] = True
+    ring[30:90, 50:110] = False
+    measured = noisy.copy()
+    if law == "fatten":
+        measured[ring] = 1.2
+    else:
+        measured[ring & (rng.random((H, W)) < 0.5)] = 0
+    return EvidenceContext([FrameObservation(measured, noisy, ideal, normals, ids, {1: "m"}, INTR)], None)
+
+
+def test_foreground_depth_beside_edges_decides_fattening_over_hole_effects_only():
+    from synth.lab.decisive import decisive_signatures, foreground_spill
+    cands = ["edge_fattening", "incidence_dropout", "depth_bias"]
+    near, far, model, n = foreground_spill(_edge_ctx("fatten"))
+    assert near > 0.3 and far < 0.02 and model < 0.02 and n > 500      # 3 of the 6 px band carry 1.2 m
+    decided, _ = decisive_signatures(_edge_ctx("fatten"), cands)
+    assert "edge_fattening" in decided and "holes cannot make them" in decided["edge_fattening"]
+    assert decisive_signatures(_edge_ctx("holes"), cands)[0] == {}       # holes beside edges: no spill
+    assert decisive_signatures(_edge_ctx("fatten"), ["edge_fattening", "depth_bias"])[0] == {}  # no hole rival
+    r = [_c("incidence_dropout", 0.90), _c("depth_bias", 0.85), _c("edge_fattening", 0.81)]
+    out = promote(r, {"edge_fattening": "spill"}, 0.1)
+    assert [c.effect for c in out] == ["edge_fattening", "incidence_dropout", "depth_bias"]
+    r = [_c("depth_bias", 0.90), _c("edge_fattening", 0.81)]           # not a hole effect: stays ahead
+    assert [c.effect for c in promote(r, {"edge_fattening": "spill"}, 0.1)][0] == "depth_bias"

@@ -315,3 +315,27 @@ def test_joint_intervals_leave_integers_and_bound_values_uncoupled():
     assert len(calls) - n0 == 2 * 3                      # only x and y are modelled
     assert infl["e.r"] == infl["e.m"] == 1.0 and joint["e.r"] == single["e.r"] and joint["e.m"] == single["e.m"]
     assert set(corr) == {"e.x|e.y"}
+
+
+def test_the_evaluation_count_says_what_it_counts(gen):
+    """``max_evaluations`` caps the search alone: the reported total is the sum of the stages, the
+    search stays within its budget, and a screened search's raised budget is named (it was a bare
+    "42 evaluations" for ``max_evaluations=3``, read as an ignored cap)."""
+    from synth.lab.report import evaluations_text
+    ms, _ = gen(None)
+    cfg = ms.default_config(["axial_noise", "range_limits"])
+    small = dict(FAST, intervals=False, max_pixels_per_frame=500, eval_pixels_per_frame=500)
+    res = fit_model(ms, cfg, names=["axial_noise"], fit_config=FitConfig(**small, max_evaluations=3))
+    st = res.stages
+    assert res.evaluations == sum(s["evaluations"] for s in st.values())
+    assert st["search"]["evaluations"] <= st["search"]["budget"]
+    n_searched = len(res.params) - len(res.frozen)      # screened: every unfrozen parameter scanned once + 2 refinements
+    assert st["search"]["budget"] == max(3, n_searched * (FitConfig().grid_points + 1) + 2 * FitConfig().refine_iterations)
+    text = evaluations_text(st, res.evaluations, 3)
+    assert text.startswith(f"{res.evaluations} evaluations (search {st['search']['evaluations']} of a budget of "
+                           f"{st['search']['budget']}, raised from max_evaluations 3 by the screen; start ")
+    unscreened = fit_model(ms, cfg, names=["axial_noise"],
+                           fit_config=FitConfig(**small, max_evaluations=3, screen=False))
+    assert unscreened.stages["search"] == {**unscreened.stages["search"], "budget": 3}
+    assert unscreened.stages["search"]["evaluations"] <= 3 and "screen" not in unscreened.stages
+    assert "raised" not in evaluations_text(unscreened.stages, unscreened.evaluations, 3)

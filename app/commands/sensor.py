@@ -258,7 +258,9 @@ def _cmd_fit(args) -> int:
     bound = "".join(f"; AT BOUND {k}={res.params[k]:.4g} ({note.split(': ', 1)[1]})"
                     for k, note in res.at_bound.items())
     corr = "".join(f"; trade-off {k.replace('|', ' vs ')} r={r:+.2f}" for k, r in res.correlations.items() if r <= -0.7)
-    print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {res.evaluations} evaluations "
+    from synth.lab.report import evaluations_text
+    counted = evaluations_text(res.stages, res.evaluations, int(req.fit_config().max_evaluations))
+    print(f"{path}: gap {res.gap_before:.4f} -> {res.gap:.4f} after {counted} "
           f"({res.seconds:.1f} s); {params}{bound}{corr}")
     return 0
 

@@ -118,8 +118,9 @@ class FitConfig:
     eval_pixels_per_frame: int | None = 20000
     """Compare samples per frame of the final gaps (None = every pixel)."""
     max_evaluations: int = 80
-    """Most objective evaluations of one fit (the budget: the search is deterministic, the same
-    data, model and seed give the same result on any machine)."""
+    """Most objective evaluations of the search (deterministic: the same data, model and seed give the
+    same result on any machine). A screened search raises it to scan every parameter once (``screen``);
+    the start, screen, revert check, intervals and final scores come on top (``FitResult.stages``)."""
     max_seconds: float | None = None
     """Optional wall-clock SAFETY GUARD per search, seconds (checked between evaluations);
     None = off (default). Not a budget: it exists only to bound a pathological run (e.g. an
@@ -231,7 +232,7 @@ class FitResult:
     start_params: dict[str, float] = field(default_factory=dict)
     """Their starting values."""
     evaluations: int = 0
-    """Objective evaluations used (search + the two final scores)."""
+    """Objective evaluations used by every stage (``stages``: start, screen, search, revert, intervals, final)."""
     seconds: float = 0.0
     """Wall-clock time of the fit."""
     search_gap_before: float = float("nan")
@@ -644,6 +645,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         if bar is not None:
             bar.close()
     stage("search")
+    stages["search"]["budget"] = int(sfc.max_evaluations) if specs else 0
     ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
                    fc.noise_curve_weight)
     ev.memo = {}

@@ -344,3 +344,16 @@ def run_lab(observations: Sequence[FrameObservation], out_dir: str | os.PathLike
     picks = spread_indices(len(obs), k)
     write_report(result, [obs[i] for i in picks], out_dir, entries, calibration=obs if planar else None, fit=fit)
     return result
+
+
+def evaluations_text(stages: dict, total: int, max_evaluations: int) -> str:
+    """What a fit's evaluation count counts, for the CLI line: ``"42 evaluations (search 22 of a
+    budget of 24, raised from max_evaluations 3 by the screen; start 2, screen 8, ...)"``.
+    ``stages``: ``FitResult.stages``; ``max_evaluations``: the requested search budget. The
+    search alone honours the budget; the other stages come on top of it."""
+    search = stages.get("search", {})
+    used, budget = int(search.get("evaluations", 0)), int(search.get("budget", max_evaluations))
+    raised = f", raised from max_evaluations {max_evaluations} by the screen" if budget > max_evaluations else ""
+    rest = ", ".join(f"{name} {int(s.get('evaluations', 0))}" for name, s in stages.items()
+                     if name != "search" and int(s.get("evaluations", 0)))
+    return f"{total} evaluations (search {used} of a budget of {budget}{raised}" + (f"; {rest})" if rest else ")")
