@@ -9,7 +9,6 @@ script.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -271,11 +270,6 @@ CASES = [
 ]
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file()}
-
-
 def test_at_least_forty_cases_over_every_command():
     from tests.test_cli_dialect import leaf_parsers
     assert len(CASES) >= 40
@@ -284,22 +278,44 @@ def test_at_least_forty_cases_over_every_command():
     assert groups <= {c.split()[0] for c in covered}, groups - {c.split()[0] for c in covered}
 
 
+def files_of(root: Path) -> dict[str, bytes | None]:
+    """Every path under ``root`` -> its bytes (None for a folder): equal before and after = nothing changed,
+    removed or left behind."""
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
+
+
+def check_one_line_error(root: Path, argv: list[str], words, capsys, subst: dict | None = None,
+                         exact: bool = False) -> None:
+    """Run the CLI on ``argv`` ({S} = root/S, {T} = root, plus ``subst``): exit 1, one line starting
+    'realgap: error: ' holding every one of ``words``, no traceback or usage dump, and no file under ``root``
+    changed or removed (``exact``: nor anything left behind). The one check of every bad-input table."""
+    subst = {"{S}": str(root / "S"), "{T}": str(root), **(subst or {})}
+    before = files_of(root)
+    args = []
+    for a in argv:
+        for k, v in subst.items():
+            a = a.replace(k, v)
+        args.append(a)
+    rc = main(args)
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("realgap: warning:")]
+    assert rc == 1, (rc, err)
+    assert len(lines) == 1 and lines[0].startswith("realgap: error: "), err
+    assert "Traceback" not in err and "unexpected" not in err and "usage:" not in err, err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    after = files_of(root)
+    if exact:
+        assert after == before, "files changed, removed or left behind"
+    else:
+        changed = [f for f, b in before.items() if after.get(f, b"") != b]
+        assert not changed, f"files changed or removed: {changed}"
+
+
 @pytest.mark.parametrize("name, argv, breaks, words", CASES, ids=[c[0] for c in CASES])
 def test_bad_input_is_one_line_exit_1_and_loses_nothing(name, argv, breaks, words, good, tmp_path, capsys,
                                                          monkeypatch):
     monkeypatch.setenv("REALGAP_NO_PROGRESS", "1")
     shutil.copytree(good, tmp_path, dirs_exist_ok=True)
     breaks(tmp_path)
-    before = _snapshot(tmp_path)
-    args = [a.replace("{S}", str(tmp_path / "S")).replace("{T}", str(tmp_path)) for a in argv]
-    rc = main(args)
-    err = capsys.readouterr().err
-    lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("realgap: warning:")]
-    assert rc == 1, (rc, err)
-    assert len(lines) == 1 and lines[0].startswith("realgap: error: "), err
-    assert "Traceback" not in err and "unexpected" not in err, err
-    for w in words:
-        assert w in lines[0], (w, lines[0])
-    after = _snapshot(tmp_path)
-    changed = [f for f, h in before.items() if after.get(f) != h]
-    assert not changed, f"files changed or removed: {changed}"
+    check_one_line_error(tmp_path, argv, words, capsys)

@@ -9,7 +9,6 @@ one; ``{IN}`` in a template is replaced by the input path of the case.
 """
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import pytest
 from app.cli import main
 from data_tools.errors import RealgapError
 from data_tools.outputs import check_output_not_input
+from tests.test_bad_input import files_of as _snapshot
 
 ALL = ("same", "inside", "contains", "symlink")
 CMDS = [
@@ -56,9 +56,6 @@ CMDS = [
 CASES = [(name, argv, rel) for name, argv, rels in CMDS for rel in rels]
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir")
-            for p in sorted(root.rglob("*"))}
 
 
 def _layout(t: Path, rel: str) -> tuple[str, str]:

@@ -10,7 +10,6 @@ every file is byte-identical afterwards. The same outputs marked unfinished, or 
 """
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import pytest
@@ -19,6 +18,7 @@ from app.cli import build_parser, main
 from app.commands import RERUN, check_rerun_args, io_arguments
 from data_tools.errors import RealgapError
 from data_tools.outputs import INCOMPLETE_FILE, check_rerun
+from tests.test_bad_input import files_of as _snapshot
 
 CASES = [
     # (name, argv with {OUT} the output, the file that makes {OUT} a finished output; None: {OUT} is that file)
@@ -60,9 +60,6 @@ NOT_IN_THE_TABLE: set[str] = set()
 """Commands with an output outside the rule (none)."""
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir")
-            for p in sorted(root.rglob("*"))}
 
 
 def _finished(t: Path, marker: str | None) -> Path:

@@ -9,7 +9,6 @@ tests/test_demo.py runs the real parts (slow).
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,11 +16,9 @@ import pytest
 
 from app.cli import main
 from data_tools.outputs import INCOMPLETE_FILE
+from tests.test_bad_input import files_of as _snapshot
 
 
-def _snapshot(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir")
-            for p in sorted(root.rglob("*"))}
 
 
 def _one_error_line(capsys) -> str:
