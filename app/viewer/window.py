@@ -168,21 +168,37 @@ class Viewer:
                 self._actors[pane] = self.p.add_mesh(g, scalars="rgb", rgb=True, show_scalar_bar=False)
             else:
                 g.point_data["value"] = flat.astype(np.float32)
+                # a horizontal bar in the margin below the image, labelled at its ends (the title between
+                # them): labels never cover the image or the title
                 self._actors[pane] = self.p.add_mesh(
                     g, scalars="value", cmap=cmap or "turbo", clim=clim, nan_color="black",
-                    scalar_bar_args={"title": bar or "", "vertical": True, "position_x": 0.86, "position_y": 0.08,
-                                     "height": 0.74, "width": 0.08, "title_font_size": 12, "label_font_size": 10,
-                                     "color": "white", "n_labels": 4, "fmt": "%.2f"})
+                    scalar_bar_args={"title": bar or "", "vertical": False, "position_x": 0.2, "position_y": 0.0,
+                                     "height": 0.17, "width": 0.6, "title_font_size": 12, "label_font_size": 10,
+                                     "color": "white", "n_labels": 2, "fmt": "%.2f"})
                 _separate_bar_title(self.p, bar or "")
             self._grids[pane] = g
-            self.p.view_xy()
-            self.p.enable_parallel_projection()
-            self.p.camera.zoom(1.25)
+            self._frame_image(W, H)
         else:
             g.point_data["rgb" if img.ndim == 3 else "value"] = flat.astype(np.uint8 if img.ndim == 3 else np.float32)
             if img.ndim != 3 and clim is not None:
                 self._actors[pane].mapper.scalar_range = clim
         self._title(pane, title)
+
+    def _frame_image(self, W: int, H: int) -> None:
+        """Frame a W x H image in the current pane: whole, its bottom at 20 % of the pane's height (the colour
+        bar's margin below it) and its top under the title (parallel projection, image-y up)."""
+        self.p.view_xy()
+        self.p.enable_parallel_projection()
+        vx0, vy0, vx1, vy1 = self.p.renderer.GetViewport()
+        ww, wh = self.p.window_size
+        aspect = max((vx1 - vx0) * ww, 1.0) / max((vy1 - vy0) * wh, 1.0)
+        ps = max(H / (2 * 0.7), W / (2 * aspect * 0.98))   # half the pane's height in image pixels
+        cy = H / 2 - (H / 2 - 0.6 * ps)                    # image bottom at 20 % of the pane
+        cam = self.p.camera
+        cam.focal_point = (W / 2, cy, 0.0)
+        cam.position = (W / 2, cy, max(W, H) * 2.0)
+        cam.up = (0.0, 1.0, 0.0)
+        cam.parallel_scale = ps
 
     def _title(self, pane: str, text: str) -> None:
         self.p.subplot(*self.panes[pane])
