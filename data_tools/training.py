@@ -69,9 +69,10 @@ class TrainingState:
         self.parts, self.rng, self.what, self.map_location, self.on_save = parts, rng, what, map_location, on_save
         self.settings = settings
 
-    def resume(self) -> tuple[int, list] | None:
+    def resume(self, log: Callable[[str], None] | None = None, total: int | None = None) -> tuple[int, list] | None:
         """(next step, log) from the file, restored into ``parts`` and the random states, or None when there is no
-        file. Any unreadable or mismatching file is a one-line :class:`FormatError` naming it."""
+        file. Any unreadable or mismatching file is a one-line :class:`FormatError` naming it. ``log``: told
+        "resuming <what> at step S of ``total`` from PATH" when a file was continued."""
         if self.path is None or not self.path.is_file():
             return None
         import torch
@@ -91,13 +92,16 @@ class TrainingState:
                 p.load_state_dict(st[name])
             self.rng.bit_generator.state = st["rng"]
             torch.set_rng_state(st["torch_rng"])
-            step, log = int(st["step"]), list(st.get("log", []))
+            step, history = int(st["step"]), list(st.get("log", []))
         except Exception as e:
             raise FormatError(self.path, f"unreadable {self.what} ({type(e).__name__}); delete it to start again") \
                 from None
         if self.on_save is not None:
             self.on_save(step)
-        return step, log
+        if log is not None:
+            what = self.what.removesuffix(" checkpoint")
+            log(f"resuming {what} at step {step}{'' if total is None else f' of {total}'} from {self.path}")
+        return step, history
 
     def save(self, step: int, log: list) -> None:
         """Write the state with ``step`` the next step to run (nothing without a path)."""
@@ -123,23 +127,24 @@ run may continue on another machine). A trainer whose length field has another n
 
 
 def settings_of(config, ignore: tuple = RESUMABLE_CHANGES) -> dict:
-    """The fields of a (nested) dataclass ``config`` as plain JSON values, flattened to dotted names, without the
-    ``ignore`` names at any depth: what a checkpoint must have been trained with to be continued."""
-    import dataclasses
+    """The fields of a (nested) dataclass ``config`` as plain JSON values (:func:`data_tools.config.config_to_dict`),
+    flattened to dotted names, without the ``ignore`` names at any depth: what a checkpoint must have been trained
+    with to be continued."""
     import json
+
+    from data_tools.config import config_to_dict
 
     out: dict = {}
 
-    def walk(obj, prefix):
-        for f in dataclasses.fields(obj):
-            if f.name in ignore:
+    def walk(d: dict, prefix: str) -> None:
+        for k, v in d.items():
+            if k in ignore:
                 continue
-            v = getattr(obj, f.name)
-            if dataclasses.is_dataclass(v):
-                walk(v, prefix + f.name + ".")
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
             else:
-                out[prefix + f.name] = json.loads(json.dumps(v, default=str))
-    walk(config, "")
+                out[prefix + k] = json.loads(json.dumps(v, default=str))
+    walk(config_to_dict(config), "")
     return out
 
 

@@ -189,11 +189,9 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
     tlog = TrainLog()
     state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "training checkpoint", map_location=device,
                           settings=settings_of(config))
-    resumed = state.resume()
+    resumed = state.resume(log, config.iterations)
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed
-        if log is not None:
-            log(f"resuming training at step {tlog.resumed_from} of {config.iterations} from {checkpoint}")
 
     augment = _synda_augmenter(data, size) if config.synda_augment > 0 else None
 

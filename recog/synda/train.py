@@ -112,11 +112,9 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
     tlog = SyndaTrainLog()
     state = TrainingState(checkpoint, {"net": net, "opt": opt}, rng, "SynDA training checkpoint", map_location=device,
                           settings=settings_of(cfg))
-    resumed = state.resume()
+    resumed = state.resume(log, tc.iterations)
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed
-        if log is not None:
-            log(f"resuming SynDA training at step {tlog.resumed_from} of {tc.iterations} from {checkpoint}")
     triplet = cfg.generator.triplet
 
     def step_fn(step: int) -> dict:

@@ -118,11 +118,9 @@ def refine_decoder(model, bank, rcfg: RefineConfig, steps_per_sample: int, obser
         p.requires_grad_(True)
     opt = torch.optim.Adam(dec.parameters(), lr=rcfg.lr, betas=(0.5, 0.999))
     rng = np.random.default_rng(rcfg.seed + 1)
-    state = TrainingState(checkpoint, {"decoder": dec, "opt": opt}, rng, "refinement checkpoint",
+    state = TrainingState(checkpoint, {"decoder": dec, "opt": opt}, rng, "decoder refinement checkpoint",
                           on_save=on_checkpoint, settings=settings_of(rcfg, RESUMABLE_CHANGES + ("steps",)))
-    start, hist = state.resume() or (0, [])
-    if start and log is not None:
-        log(f"resuming the decoder refinement at step {start} of {rcfg.steps} from {checkpoint}")
+    start, hist = state.resume(log, rcfg.steps) or (0, [])
     t0 = time.perf_counter()
     model.eval()
     pool = build_pool(model, bank, rcfg.pool_batches, POOL_BATCH, steps_per_sample, observe, rcfg.seed,

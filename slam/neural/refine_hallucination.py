@@ -72,11 +72,9 @@ def refine_hallucination(model, bank, cfg, hcfg: HallucinationConfig, checkpoint
     parts = {"occ_lstm": model.occ_lstm, "hallucinator": model.hallucinator, "disc": disc, "opt_occ": opt_occ,
              "opt_h": opt_h, "opt_d": opt_d}
     total = hcfg.occ_steps + hcfg.steps
-    state = TrainingState(checkpoint, parts, rng, "hallucination checkpoint", map_location=dev, on_save=on_checkpoint,
+    state = TrainingState(checkpoint, parts, rng, "hallucination training checkpoint", map_location=dev, on_save=on_checkpoint,
                           settings=settings_of(hcfg, RESUMABLE_CHANGES + ("steps",)))
-    start, hist = state.resume() or (0, [])
-    if start and log is not None:
-        log(f"resuming the hallucination training at step {start} of {total} from {checkpoint}")
+    start, hist = state.resume(log, total) or (0, [])
 
     def lr(step: int) -> None:                  # stage 2: linear to a tenth from its start
         if step >= hcfg.occ_steps:

@@ -92,11 +92,9 @@ def train_memory(cfg: NeuralTrainConfig, checkpoint: str | Path | None = None, p
         parts["opt_occ"] = opt_occ
     state = TrainingState(checkpoint, parts, rng, "training checkpoint", map_location=dev, on_save=on_checkpoint,
                           settings=settings_of(cfg))
-    resumed = state.resume()
+    resumed = state.resume(log, cfg.iterations)
     if resumed is not None:
         tlog.resumed_from, tlog.steps = resumed
-        if log is not None:
-            log(f"resuming training at step {tlog.resumed_from} of {cfg.iterations} from {checkpoint}")
     img_mask = 1.0 if cfg.mode == "3d" else vm         # 3D recalls whole images, 2D the view field
 
     def step_fn(step: int) -> dict:
