@@ -112,12 +112,7 @@ def fit_plane(points: np.ndarray, threshold_m: float, seed: int = 0, iterations:
     P = np.asarray(points, np.float64)[np.asarray(inl, int)]
     if len(P) < 3:
         return None
-    c = P.mean(0)
-    _, _, vt = np.linalg.svd(P - c, full_matrices=False)
-    n = vt[2]
-    d = -float(n @ c)
-    if d < 0:
-        n, d = -n, -d
+    n, d = _refit(P)
     res = np.abs(np.asarray(points) @ n + d)
     return n, d, int((res < threshold_m).sum())
 
@@ -184,6 +179,7 @@ class FlatSupport:
 
 
 def _refit(P: np.ndarray):
+    """(n, d) of the least-squares plane n.X + d = 0 through (N, 3) points, n towards the camera (d > 0)."""
     c = P.mean(0)
     _, _, vt = np.linalg.svd(P - c, full_matrices=False)
     n = vt[2]
