@@ -193,3 +193,37 @@ def test_config_is_checked_and_exposed():
     assert not cfg.loop_closure.applies_to("icp")                      # off by default
     cfg = make_config("icp", overrides={"loop_closure.enabled": True})
     assert cfg.loop_closure.applies_to("icp") and not cfg.loop_closure.applies_to("rgbd_odometry")
+
+
+def test_a_loop_off_a_jumping_reference_but_on_the_depth_is_not_false(loop_sequence):
+    """The false-closure count judges a loop against the depth's own alignment at the reference's
+    relative pose: a loop at the true relative pose of two frames, scored against a reference that
+    jumps 3 cm at the later frame, is off the reference (counted in ``closures_off_reference``) but
+    not false; a loop 3 cm off the truth, scored against the exact reference, is false."""
+    from types import SimpleNamespace
+    from slam.loop_closure import Keyframe, _ground_truth_stats
+    from slam.loop_verify import Verification
+    reader = loop_sequence
+    gt = np.asarray(reader.poses)
+    i, j = 0, 2
+    kfs = [Keyframe(r, r, float(reader.timestamps[r]), gt[r], 0.0, depth=reader[r].depth) for r in (i, j)]
+    shift = np.eye(4)
+    shift[:3, 3] = [0.03, 0.0, 0.0]
+    c = LoopClosureConfig(false_closure_m=0.02, false_closure_deg=3.0)
+
+    def score(ref_poses, T_loop):
+        ref = SimpleNamespace(has_groundtruth=True, poses=ref_poses, groundtruth=Trajectory(reader.timestamps, list(ref_poses)))
+        v = Verification(T_loop, 1.0, 0.0, 1000, np.eye(6), 0.3)
+        rows = list(range(len(gt)))
+        records = [{"timestamp": float(t), "index": k} for k, t in enumerate(reader.timestamps)]
+        stats = {}
+        _ground_truth_stats(ref, records, [gt[r] for r in rows], [gt[r] for r in rows], kfs, [(0, 1, v)], c, stats,
+                            INTR, (0.1, 4.0))
+        return stats["closures_off_reference"], stats["false_closures"]
+
+    true_rel = np.linalg.inv(gt[i]) @ gt[j]
+    jumped = gt.copy()
+    jumped[j] = gt[j] @ shift                      # the reference is 3 cm off at frame j
+    assert score(jumped, true_rel) == (1, 0)
+    assert score(gt, true_rel @ shift) == (1, 1)   # the loop itself is 3 cm off
+    assert score(gt, true_rel) == (0, 0)
