@@ -358,7 +358,7 @@ def main_loop_closure(argv=None) -> int:
         print(f"{name:8s} frames {res.stats['frames']:5d}  ATE without closure {before * 100:6.2f} cm, with "
               f"{after * 100:6.2f} cm  keyframes {lc['keyframes']}, candidates {lc['candidates']}, rejected "
               f"{lc['candidates_rejected']} {lc['rejected_by']}, closures kept {lc['closures']}, false "
-              f"{lc.get('false_closures', '-')}  loop closure {ms.get('loop', 0):.0f} ms/frame of "
+              f"{lc.get('false_closures', '-')} (off the reference {lc.get('closures_off_reference', '-')})  loop closure {ms.get('loop', 0):.0f} ms/frame of "
               f"{sum(v for v in ms.values() if v):.0f} ({res.frames_per_second:.2f} frames/s end to end; "
               f"load {os.getloadavg()[0]:.2f})", flush=True)
     return 0
