@@ -44,7 +44,8 @@ def main(argv=None) -> int:
     ap.add_argument("--glitch-cm", type=float, default=1.0, help="with --short: list disagreements above this, cm")
     args = ap.parse_args(argv)
     if args.short > 0:
-        return short_baseline_audit(args.sequence, args.short, args.step, args.estimate, args.glitch_cm)
+        short_baseline_audit(args.sequence, args.short, args.step, args.estimate, args.glitch_cm)
+        return 0
     from data_tools.geometry import rotation_angle_rad
     from data_tools.sequence import SequenceReader
     from slam.backends._p2p_kernel import normal_equations
@@ -84,8 +85,10 @@ def main(argv=None) -> int:
     return 0
 
 
-def short_baseline_audit(sequence: str, k: int, step: int, estimate: str, glitch_cm: float) -> int:
-    """The ``--short`` mode of the module docstring; prints one line per disagreement and a summary."""
+def short_baseline_audit(sequence: str, k: int, step: int, estimate: str, glitch_cm: float) -> dict:
+    """The ``--short`` mode of the module docstring; prints one line per disagreement and a summary.
+    Returns {"reference" (and "estimate"): [(i, j, cm off the depth's alignment)], "unique": pairs
+    whose alignment the depth pins}."""
     from data_tools.geometry import rotation_angle_rad
     from data_tools.sequence import SequenceReader
     from data_tools.trajectory import read_tum
@@ -100,6 +103,7 @@ def short_baseline_audit(sequence: str, k: int, step: int, estimate: str, glitch
         E = [at.get(round(float(t), 6)) for t in ts[:n]]
     names = ["reference"] + (["estimate"] if E is not None else [])
     off = {name: [] for name in names}
+    pairs = {name: [] for name in names}
     unique = 0
     step = max(1, step)
     for i in range(0, n - k, step):
@@ -119,6 +123,7 @@ def short_baseline_audit(sequence: str, k: int, step: int, estimate: str, glitch
             D = np.linalg.inv(T0) @ T_depth
             dt = 100 * float(np.linalg.norm(D[:3, 3]))
             off[name].append(dt)
+            pairs[name].append((i, j, dt))
             if dt > glitch_cm:
                 print(f"frames {i:5d} -> {j:5d}: the depth moves the {name}'s relative pose by {dt:5.2f} cm "
                       f"{math.degrees(rotation_angle_rad(D[:3, :3])):4.2f} deg")
@@ -129,7 +134,7 @@ def short_baseline_audit(sequence: str, k: int, step: int, estimate: str, glitch
             print(f"{name}: disagrees with the depth by median {np.median(a) * 10:.1f} mm, p95 "
                   f"{np.percentile(a, 95) * 10:.1f} mm, max {a.max():.2f} cm; {int((a > glitch_cm).sum())} pairs "
                   f"over {glitch_cm:g} cm")
-    return 0
+    return dict(pairs, unique=unique)
 
 
 if __name__ == "__main__":

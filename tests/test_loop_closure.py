@@ -227,3 +227,25 @@ def test_a_loop_off_a_jumping_reference_but_on_the_depth_is_not_false(loop_seque
     assert score(jumped, true_rel) == (1, 0)
     assert score(gt, true_rel @ shift) == (1, 1)   # the loop itself is 3 cm off
     assert score(gt, true_rel) == (0, 0)
+
+
+def test_short_baseline_audit_finds_a_jump_in_the_reference(tmp_path):
+    """``bench_reference_consistency.py --short 2``: eight rendered frames whose written reference
+    jumps 3 cm sideways from frame 4 on (the depth does not): exactly the two pairs across the jump
+    (2 -> 4, 3 -> 5) are off the depth's alignment, by 3 cm; an exact estimate is off nowhere."""
+    from benchmarks.bench_reference_consistency import short_baseline_audit
+    from data_tools.sequence import Frame
+    from data_tools.trajectory import write_tum
+    poses = [look_at(np.array([0.6 + 0.01 * k, -0.6, 1.3]), np.array([-0.5, 0.6, 0.4])) for k in range(8)]
+    frames = render_frames(room_scene(0), poses, fps=10.0)
+    jump = np.eye(4)
+    jump[0, 3] = 0.03
+    shifted = [Frame(f.timestamp, f.depth, f.rgb, f.pose @ jump if f.index >= 4 else f.pose, f.index) for f in frames]
+    write_sequence(tmp_path / "seq", shifted)
+    write_tum(tmp_path / "est.txt", Trajectory([f.timestamp for f in frames], poses))
+    out = short_baseline_audit(str(tmp_path / "seq"), 2, 1, str(tmp_path / "est.txt"), 1.0)
+    assert out["unique"] == 6
+    off = [(i, j) for i, j, cm in out["reference"] if cm > 1.0]
+    assert off == [(2, 4), (3, 5)]
+    assert all(abs(cm - 3.0) < 0.3 for i, j, cm in out["reference"] if (i, j) in off)
+    assert max(cm for _, _, cm in out["estimate"]) < 0.3
