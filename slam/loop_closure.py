@@ -57,8 +57,9 @@ class LoopClosureConfig:
     """Close loops after tracking (for the backends in ``backends``); false leaves the odometry
     poses and the map exactly as tracked. Off by default: on 7-Scenes chess (the KinectFusion
     reference) the closures it finds move the trajectory by about as much as the odometry is off,
-    ATE 2.86 -> 3.05 cm on 1000 frames with refined loops, at the cost of a second fusion pass; its
-    reference is itself off by about 3 cm where it revisits a place (docs/slam.md)."""
+    ATE 2.90 -> 3.06 cm on 1000 frames with refined loops (none of them false), at the cost of a
+    second fusion pass; its reference is itself off by about 3 cm where it revisits a place and
+    jumps by up to 4 cm against the depth within two frames (docs/slam.md)."""
     backends: tuple[str, ...] = ("icp",)
     """Backends whose runs get loop closure when ``enabled``."""
     keyframe_trans_m: float = 0.15
