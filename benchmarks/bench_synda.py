@@ -18,7 +18,8 @@ verification + ICP) accuracy and rotation error after ICP.
 
 Test sets (``realgap recog testset``) should come from a sensor the recogniser and the generator did
 not see: the ``structure`` preset's physical pipeline, and the training sensor with effect parameters
-outside the training randomisation (a sensor_config.json).
+outside the training randomisation (``recog testset --sensor kinect_v1 --effect-override EFFECT.PARAM=VALUE``
+or ``--effect-preset beyond_training``).
 
 ``--ablation``: thesis Table 5.4 - generators without the decoders other than depth, without
 distillation, without self-attention, without skip connections, and with the bottleneck triplet

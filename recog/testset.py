@@ -18,21 +18,82 @@ in-plane rotation within +-40 deg) instead of the training grid, the object anyw
 central part of the full 640 x 480 image instead of centred, distances drawn from the same
 per-object range as training (0.5-0.9 m for T-LESS-size objects), other clutter layouts and
 albedos. The window is the bounding box of the object's visible pixels in the ideal render.
+
+Changed effects: ``effect_overrides`` sets effect parameters of the sensor model by name
+(``realgap recog testset --effect-override ir_capture.read_noise_e=20``, checked by
+:meth:`synth.sensor.config.SensorConfig.with_params`: an unknown effect or parameter, or a value outside
+the parameter's bounds, is a one-line error); :data:`EFFECT_PRESETS` names sets of them
+(``--effect-preset beyond_training``: every parameter of the physical training randomisation
+:data:`recog.data.PHYSICAL_RANDOMISATION` half its range's width beyond the upper end, generated from
+that table so that it stays outside training when the table changes).
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 from recog.objects import RecogObject
 
-__all__ = ["TestsetConfig", "make_testset", "read_testset", "TestScan"]
+__all__ = ["TestsetConfig", "make_testset", "read_testset", "TestScan", "EFFECT_PRESETS", "beyond_training",
+           "parse_effect_overrides", "testset_sensor"]
+
+
+def beyond_training(beyond: float = 0.5) -> dict[str, float]:
+    """{'effect.param': value}: every parameter of :data:`recog.data.PHYSICAL_RANDOMISATION` ``beyond`` widths
+    of its range above the upper end (lin: hi + beyond (hi - lo); log: hi (hi / lo) ** beyond), 4 decimals."""
+    from recog.data import PHYSICAL_RANDOMISATION
+    out = {}
+    for key, (lo, hi, kind) in PHYSICAL_RANDOMISATION.items():
+        v = hi * (hi / lo) ** beyond if kind == "log" else hi + beyond * (hi - lo)
+        out[key] = round(float(v), 4)
+    return out
+
+
+EFFECT_PRESETS: dict[str, Callable[[], dict[str, float]]] = {"beyond_training": beyond_training}
+"""Named sets of effect overrides (``--effect-preset``): name -> a function returning {'effect.param': value}."""
+
+
+def parse_effect_overrides(items) -> dict[str, float]:
+    """{'effect.param': value} of ``EFFECT.PARAM=VALUE`` strings (each may be a comma list); one-line
+    :class:`ConfigError` on a malformed item. Names are checked against the sensor by :func:`testset_sensor`."""
+    out: dict[str, float] = {}
+    for item in items or ():
+        for part in str(item).split(","):
+            part = part.strip()
+            if not part:
+                continue
+            key, eq, raw = part.partition("=")
+            key = key.strip()
+            if not eq or key.count(".") != 1 or not all(key.split(".")):
+                raise ConfigError(f"--effect-override {part!r}: expected EFFECT.PARAM=VALUE, "
+                                  f"e.g. ir_capture.read_noise_e=20")
+            try:
+                out[key] = float(raw)
+            except ValueError:
+                raise ConfigError(f"--effect-override {part!r}: {raw.strip()!r} is not a number") from None
+    return out
+
+
+def testset_sensor(cfg: "TestsetConfig"):
+    """The :class:`~synth.sensor.config.SensorConfig` of the scans: the sensor with its effects, then the named
+    preset's overrides, then ``effect_overrides`` (which win)."""
+    from synth.sensor.config import SensorConfig
+    sensor = SensorConfig.from_spec(cfg.sensor, cfg.effects)
+    values: dict[str, float] = {}
+    if cfg.effect_preset:
+        if cfg.effect_preset not in EFFECT_PRESETS:
+            raise ConfigError(f"unknown effect preset {cfg.effect_preset!r}; known: {', '.join(EFFECT_PRESETS)}")
+        have = sensor.fittable()
+        values.update({k: v for k, v in EFFECT_PRESETS[cfg.effect_preset]().items() if k in have})
+    values.update(cfg.effect_overrides or {})
+    return sensor.with_params(values) if values else sensor
 
 
 @dataclass
@@ -57,6 +118,10 @@ class TestsetConfig:
     """Clutter boxes per scan."""
     seed: int = 1000
     """Seed (training uses 0-based seeds of its own)."""
+    effect_preset: str = ""
+    """A name of :data:`EFFECT_PRESETS` (its parameters the sensor has are set), or "" for none."""
+    effect_overrides: dict[str, float] = field(default_factory=dict)
+    """{'effect.param': value} set on the sensor model after the preset (parameters never seen in training)."""
 
 
 @dataclass
@@ -76,14 +141,13 @@ def make_testset(objects: list[RecogObject], out_dir: str | os.PathLike, config:
     from data_tools.sequence import write_depth_png
     from recog.data import DataConfig, distance_range, object_scene
     from recog.patches import bbox_from_mask
-    from synth.sensor.config import SensorConfig
     from synth.sensor.simulator import SensorSimulator
     cfg = config or TestsetConfig()
     if cfg.per_object < 1:
         raise ConfigError(f"--per-object must be >= 1, got {cfg.per_object}")
+    sensor = testset_sensor(cfg)            # bad effect names / values fail before any file is written
     out = check_output_dir(out_dir, finished="labels.json", overwrite=overwrite)
     (out / "depth").mkdir(parents=True, exist_ok=True)
-    sensor = SensorConfig.from_spec(cfg.sensor, cfg.effects)
     labels = []
     total = cfg.per_object * len(objects)
     mark_incomplete(out, "realgap recog testset", 0, total, unit="scans")

@@ -249,3 +249,45 @@ def test_augment_contact_sheet_of_the_chairs(tmp_path):
     z = np.load(tmp_path / "a" / "samples.npz")
     assert z["input"].shape == (3, 1, 64, 64) and z["measured"].shape == (3, 1, 64, 64)
     assert (tmp_path / "a" / "contact_sheet.png").stat().st_size > 1000
+
+
+def test_mask_head_starts_at_the_prior_and_learns_the_foreground():
+    """The mask head's bias starts at logit(mask_prior), so a fresh generator says ~prior everywhere; 30 steps on
+    one fixed batch then lift the mean foreground probability above 0.5 (and above the background's). From a 0
+    bias (prior 0.5, the old initialisation) the same 30 steps leave the foreground below 0.5: the trap that kept
+    the shipped generator's mask under p = 0.52 (docs/synda.md)."""
+    from recog.synda.loss import generator_loss
+    from recog.synda.model import Generator
+    data = boxes()
+
+    def fg_bg(prior, steps):
+        cfg = config("depth", mask_prior=prior)
+        aug = Augmenter(cfg.augment, "depth", S)
+        x, tgt = make_batch(data, np.arange(8), np.zeros(8, int), aug, aug.draw(8, 7))
+        torch.manual_seed(0)
+        net = Generator(cfg.generator, "depth").train()
+        opt = torch.optim.Adam(net.parameters(), lr=2e-3, betas=(0.5, 0.999))
+        for _ in range(steps):
+            loss, _ = generator_loss(net(x), tgt, "depth")
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            p = torch.sigmoid(net(x)["mask"])
+        fg = tgt["mask"] > 0.5
+        return float(p[fg].mean()), float(p[~fg].mean())
+
+    assert fg_bg(0.1, 0) == pytest.approx((0.1, 0.1), abs=0.01)
+    fg, bg = fg_bg(0.1, 30)
+    assert fg > 0.5 > bg, (fg, bg)
+    assert fg_bg(0.5, 30)[0] < 0.5
+
+
+def test_mask_prior_of_class_masks_and_bad_priors():
+    from recog.synda.model import Generator
+    g = dataclasses.replace(TINY, mask_classes=3, mask_prior=0.2)
+    bias = Generator(g, "depth").decoders["mask"].head[1].bias.detach()
+    assert torch.softmax(bias, 0).tolist() == pytest.approx([0.8, 0.1, 0.1], abs=1e-6)
+    for bad in (0.0, 1.0, -0.1):
+        with pytest.raises(RealgapError, match="mask_prior"):
+            dataclasses.replace(TINY, mask_prior=bad).validate()

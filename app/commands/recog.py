@@ -81,6 +81,12 @@ def register(parser: argparse.ArgumentParser) -> None:
     add_shared(p, "--out", "the test set folder", required=True, metavar="TESTSET")
     p.add_argument("--sensor", default="structure", help="sensor preset (default structure: not a training sensor)")
     p.add_argument("--effects", default="physical", help="physical, direct or a comma list (default physical)")
+    p.add_argument("--effect-override", action="append", default=[], metavar="EFFECT.PARAM=VALUE",
+                   help="set an effect parameter of the sensor model (repeatable or a comma list), e.g. "
+                        "ir_capture.read_noise_e=20: scans with effects never seen in training")
+    p.add_argument("--effect-preset", default="", metavar="NAME",
+                   help="a named set of effect overrides: beyond_training = every parameter of the physical "
+                        "training randomisation half its range's width above the upper end (--effect-override wins)")
     p.add_argument("--per-object", type=int, default=40, help="scans per object (default 40)")
     p.add_argument("--scale", type=positive_float("--scale"), help="file units -> metres (default: guessed)")
     add_shared(p, "--seed", "(default 1000)", default=1000)
@@ -158,10 +164,11 @@ def _predict(args) -> int:
 
 def _testset(args) -> int:
     from recog.objects import load_objects
-    from recog.testset import TestsetConfig, make_testset
+    from recog.testset import TestsetConfig, make_testset, parse_effect_overrides
     if args.per_object < 1:
         raise ConfigError(f"--per-object must be >= 1, got {args.per_object}")
-    cfg = TestsetConfig(sensor=args.sensor, effects=args.effects, per_object=args.per_object, seed=args.seed)
+    cfg = TestsetConfig(sensor=args.sensor, effects=args.effects, per_object=args.per_object, seed=args.seed,
+                        effect_preset=args.effect_preset, effect_overrides=parse_effect_overrides(args.effect_override))
     n = make_testset(load_objects(args.objects, args.scale), args.out, cfg, overwrite=args.overwrite,
                      progress=not args.no_progress)
     print(f"{args.out}: {n} scans by {args.sensor} ({args.effects}); labels in {args.out}/labels.json")

@@ -27,6 +27,8 @@ Deviations from Fig. 5.4, on purpose:
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -155,6 +157,8 @@ class Generator(nn.Module):
         self.decoders = nn.ModuleDict({m: _Decoder(cfg, cfg.channels(m)) for m in cfg.decoders})
         self.distiller = _Distiller(cfg, cfg.channels(cfg.target)) if cfg.distillation else None
         self._init_weights(cfg.init_std)
+        if "mask" in self.decoders:
+            self._init_mask_prior(cfg.mask_prior)
 
     def _init_weights(self, std: float) -> None:
         for mod in self.modules():
@@ -165,6 +169,17 @@ class Generator(nn.Module):
             elif isinstance(mod, nn.BatchNorm2d):
                 nn.init.normal_(mod.weight, 1.0, std)
                 nn.init.zeros_(mod.bias)
+
+    def _init_mask_prior(self, prior: float) -> None:
+        """Mask head bias = the prior's logit(s) (:attr:`GeneratorConfig.mask_prior`)."""
+        bias = self.decoders["mask"].head[1].bias
+        c = bias.numel()
+        with torch.no_grad():
+            if c == 1:
+                bias.fill_(math.log(prior / (1.0 - prior)))
+            else:
+                bias.fill_(math.log(prior / (c - 1)))
+                bias[0] = math.log(1.0 - prior)
 
     def encode(self, x: torch.Tensor) -> list[torch.Tensor]:
         """Encoder features, side S/2 first, the (B, widths[-1], 1, 1) code last."""
