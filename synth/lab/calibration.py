@@ -12,7 +12,7 @@
   simulation beside it.
 
 The noise-vs-distance curve as a term of the fit's objective (:func:`noise_curve`,
-:func:`curve_term`; :class:`synth.lab.fit.Objective` with ``FitConfig.noise_curve_weight``):
+:func:`curve_term`; :class:`synth.lab.objective.Objective` with ``FitConfig.noise_curve_weight``):
 The noise-vs-distance curve of planar-target captures, as a term of the fit's objective.
 
 Sensor people calibrate noise against distance first (Khoshelham & Elberink 2012; Nguyen et al.
@@ -21,7 +21,7 @@ Sensor people calibrate noise against distance first (Khoshelham & Elberink 2012
 the gap while its noise is 1.3-1.7 x too high far away. Where a sequence has a planar reference
 (``plane_reference.json``, written by ``realgap data make-reference --plane``), :func:`noise_curve`
 measures the curve of the measured and of the simulated depth the same way, and
-:func:`curve_term` scores their mismatch; :class:`synth.lab.fit.Objective` adds it to the gap
+:func:`curve_term` scores their mismatch; :class:`synth.lab.objective.Objective` adds it to the gap
 (``FitConfig.noise_curve_weight``).
 
 The curve. Target pixels (ideal depth > 0: inside the frame's mask) are binned by their ideal
@@ -260,7 +260,7 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     2012's form sigma0 + sigma2 (z - z_offset)^2) fitted to the measured curve, less what the
     model's other effects already contribute.
 
-    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) gives the
+    ``objective`` (a :class:`synth.lab.objective.Objective` with the noise-curve term on) gives the
     curves of ``config`` (its last evaluation's, or one more simulation); per distance bin
     (centre z) the measured std m and the simulated s give the axial part wanted,
     a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources add in variance (an
