@@ -158,3 +158,25 @@ def test_foreground_depth_beside_edges_decides_fattening_over_hole_effects_only(
     assert [c.effect for c in out] == ["edge_fattening", "incidence_dropout", "depth_bias"]
     r = [_c("depth_bias", 0.90), _c("edge_fattening", 0.81)]           # not a hole effect: stays ahead
     assert [c.effect for c in promote(r, {"edge_fattening": "spill"}, 0.1)][0] == "depth_bias"
+
+
+def test_edge_fattening_sentence_and_decision_share_one_spill_definition():
+    """The evidence sentence and the decisive signature read the same shares
+    (EvidenceContext.foreground_spill): the model's share is over the model's own depths, so the
+    measured holes of the outer band (a selection both used to differ in) do not change it."""
+    from synth.lab.decisive import foreground_spill
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    ctx = _edge_ctx("fatten")
+    o = ctx.observations[0]
+    outer = np.zeros(o.ideal.shape, bool)
+    outer[24:96, 44:116] = True
+    outer[27:93, 47:113] = False            # the wall 4-6 px from the square: measured holes,
+    o.measured[outer] = 0                   # the model fattened there (nearer) and valid
+    o.simulated[outer] = 1.2
+    ctx = EvidenceContext([o], None)
+    near, far, model, n = foreground_spill(ctx)
+    sp = ctx.foreground_spill()
+    assert (near, far, model, n) == (sp.near, sp.far, sp.model_near, sp.pixels)
+    assert near > 0.9 and 0.3 < model < 0.7             # measured: only the fattened 3 px remain
+    text = EdgeFattening.evidence(ctx, {})
+    assert f"{ctx.pct(near)} of the measured depths" in text and f"against {ctx.pct(model)} in the current model" in text   # the old selection: 0 %

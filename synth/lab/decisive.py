@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from synth.lab.evidence import SPILL_BAND_PX   # one band for edge fattening's sentence and decision
+
 __all__ = ["HoleDrivers", "hole_drivers", "foreground_spill", "decisive_signatures", "missing_lattice", "MIN_LOG_RATIO",
            "promote", "EXACT", "HOLE_ONLY"]
 
@@ -48,8 +50,6 @@ MIN_LOG_RATIO = 10.0
 """The better variable must explain the holes by a likelihood ratio of at least e^10 (~22000)."""
 MIN_HOLE_RATE = 0.01
 """Below this hole rate there is nothing to explain."""
-SPILL_BAND_PX = 6.0
-"""Background-side band of depth edges where fattened depths are counted, pixels."""
 MIN_SPILL_EXCESS = 0.05
 """The measured share of foreground-valued depths in that band must exceed the current model's by
 this much (5 points, the evidence sentence's threshold; a rate's sampling noise over a few thousand
@@ -142,17 +142,14 @@ def hole_drivers(ctx) -> HoleDrivers | None:
 
 def foreground_spill(ctx) -> tuple[float, float, float, int] | None:
     """(measured share > 5 % nearer, measured share > 5 % farther, the current model's share nearer,
-    measured pixels) in the band within :data:`SPILL_BAND_PX` on the background side of depth edges;
-    None with fewer than :data:`MIN_SPILL_PIXELS` measured pixels there."""
-    ed = ctx.edge_distance()
-    z, m, s = ctx.ideal, ctx.measured, ctx.simulated
-    band = (ed > 0) & (ed <= SPILL_BAND_PX) & (z > 0)
-    mb, sb = band & (m > 0), band & (s > 0)
-    if int(mb.sum()) < MIN_SPILL_PIXELS or int(sb.sum()) < MIN_SPILL_PIXELS:
+    measured pixels) in the band within :data:`SPILL_BAND_PX` on the background side of depth edges
+    (:meth:`synth.lab.evidence.EvidenceContext.foreground_spill`, the definition edge fattening's
+    evidence sentence uses too); None with fewer than :data:`MIN_SPILL_PIXELS` measured or
+    simulated pixels there."""
+    sp = ctx.foreground_spill(SPILL_BAND_PX)
+    if sp.pixels < MIN_SPILL_PIXELS or sp.model_pixels < MIN_SPILL_PIXELS:
         return None
-    near = float(np.mean(m[mb] < 0.95 * z[mb]))
-    far = float(np.mean(m[mb] > 1.05 * z[mb]))
-    return near, far, float(np.mean(s[sb] < 0.95 * z[sb])), int(mb.sum())
+    return sp.near, sp.far, sp.model_near, sp.pixels
 
 
 def missing_lattice(ctx, fb: float):
