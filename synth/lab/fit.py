@@ -129,8 +129,10 @@ class FitConfig:
     noise_curve_weight: float = 1.0
     """On a sequence with a planar reference (``data make-reference --plane``): weight of the
     noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
-    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m), so the fit honours the
-    curve sensor people calibrate first; 0 = the gap alone. Ignored on other sequences."""
+    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m, each split into incidence
+    classes), so the fit honours the curve sensor people calibrate first; there the effects'
+    ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too; 0 = the gap alone. Ignored
+    on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -302,7 +304,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         n, now = obj.evaluations + (ev.evaluations if ev is not None else 0), time.perf_counter()
         stages[name] = {"seconds": round(now - mark[0], 3), "evaluations": n - mark[1]}
         mark[:] = [now, n]
-    specs = param_specs(config, names)
+    plane = bool(fc.noise_curve_weight > 0 and getattr(measured, "has_plane_reference", False))
+    specs = param_specs(config, names, plane)      # a planar reference also fits the PLANE_ONLY terms
     n = len(measured)
     if n == 0:
         raise RealgapError(f"{measured.seq_dir}: no frames to fit")
@@ -324,12 +327,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             g = obj(cand)
             if g < g_start:
                 start_cfg, g_start = cand, g
-                specs = param_specs(start_cfg, names)
+                specs = param_specs(start_cfg, names, plane)
         if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
             from synth.lab.calibration import curve_start
             cs = curve_start(start_cfg, obj, specs)
             if cs and (g := obj(cand := set_params(start_cfg, cs))) < g_start:
-                start_cfg, g_start, specs = cand, g, param_specs(cand, names)
+                start_cfg, g_start, specs = cand, g, param_specs(cand, names, plane)
         stats: dict = {}
         stage("start")
         all_specs, scr = specs, None
