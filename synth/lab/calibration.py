@@ -31,12 +31,13 @@ a bias, not noise: the plane fit of a calibration removes it too), then per bin 
 residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do not dominate it).
 A bin counts only when both sides have at least ``MIN_PIXELS`` valid residuals.
 
-The fit's term splits each distance bin further into incidence classes (``INCIDENCE_EDGES_DEG``,
-the angle between the camera ray and the target's normal): a few planes seen at grazing incidence
-fill the far bins of a room capture (7-Scenes chess), and their noise grows with the angle (Nguyen
-et al. 2012), which a curve in distance alone averages away. The term: the mean over counted
-cells of |ln(s_simulated / s_measured)| (0.095 for a 10 % error in every cell; symmetric in too
-high / too low). The reported table stays per distance bin.
+The term: the mean over counted bins of |ln(s_simulated / s_measured)| (0.095 for a 10 % error
+in every bin; symmetric in too high / too low), plus the same over the grazing cells: each
+distance bin's pixels seen at 60-75 and 75-90 degrees between the camera ray and the target's
+normal (``GRAZING_EDGES_DEG``). A few planes seen at grazing incidence fill the far bins of a room
+capture (7-Scenes chess), and their noise grows with the angle (Nguyen et al. 2012), which a
+curve in distance alone averages away; the cells let the fit separate axial noise's incidence
+term from its distance terms. The reported table stays per distance bin.
 
 Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
 0.25 m bin of a plane the tilt left is far below the noise of these sensors.
@@ -50,7 +51,7 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section",
-           "BIN_EDGES_M", "INCIDENCE_EDGES_DEG", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report",
+           "BIN_EDGES_M", "INCIDENCE_EDGES_DEG", "GRAZING_EDGES_DEG", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report",
            "incidence_cells"]
 
 
@@ -153,6 +154,9 @@ BIN_EDGES_M = tuple(round(0.5 + 0.25 * k, 2) for k in range(11))
 INCIDENCE_EDGES_DEG = (0.0, 60.0, 75.0, 90.5)
 """Incidence classes of the fit's noise curve, degrees (ray vs target normal): Nguyen et al. 2012's
 incidence term theta^2 / (pi/2 - theta)^2 is under 4 below 60 deg, 4-25 at 60-75, above 25 beyond."""
+GRAZING_EDGES_DEG = INCIDENCE_EDGES_DEG[1:]
+"""The grazing classes alone (60-75, 75-90 deg): the fit's term adds their cells to the distance
+curve, so a capture without grazing views is fitted as by the distance curve alone."""
 MIN_PIXELS = 200
 """Fewest valid residuals a bin needs on each side to count."""
 
@@ -307,7 +311,7 @@ def incidence_cells(observations: Sequence, max_pixels: int | None = 20000, seed
         return np.where(cnt > 0, sz / cnt, np.nan), np.where(cnt > 0, sg / cnt, np.nan)
 
 
-def curve_start(config, objective, specs) -> dict[str, float]:
+def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float]:
     """A starting point that puts the model's noise curve on the measured one, when the model
     has ``axial_noise`` (of its fitted ``specs``): the classic planar calibration (Nguyen et al.
     2012's form sigma0 + sigma2 (z - z_offset)^2 + incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z))
@@ -323,7 +327,11 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     error (the term's log ratio to first order) by non-negative least squares for each z_offset on
     a 0.025 m grid over its bounds, each clipped to its search bounds (a mean factor per cell stands
     for the mixture of the cell's angles: an approximation the search refines). {} when
-    axial_noise is not fitted, the term is off, or fewer than 3 cells have data."""
+    axial_noise is not fitted, the term is off, or fewer than 3 cells have data.
+
+    ``cells`` False: the same on the distance bins alone, with the incidence term at 0 (a capture
+    whose few grazing pixels would pull the per-cell start; :func:`synth.lab.fit.fit_model` keeps
+    the better of the two by the objective)."""
     from scipy.optimize import nnls
     keys = {s.key: s for s in specs}
     k0, k2, ko, ki = ("axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m",
@@ -332,10 +340,14 @@ def curve_start(config, objective, specs) -> dict[str, float]:
         return {}
     obs = objective.curve(config)[1]
     px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
-    ie = INCIDENCE_EDGES_DEG
+    ie = INCIDENCE_EDGES_DEG if cells else None
     m, _ = noise_curve(obs, "measured", px, seed, incidence_edges=ie)
     s, _ = noise_curve(obs, "simulated", px, seed, incidence_edges=ie)
-    zc, gc = incidence_cells(obs, px, seed)
+    if cells:
+        zc, gc = incidence_cells(obs, px, seed)
+    else:
+        e = np.asarray(BIN_EDGES_M)
+        zc, gc = 0.5 * (e[:-1] + e[1:]), np.zeros(len(e) - 1)
     p = next(x for x in config.effects if x.name == "axial_noise").params
     zz, gg = np.nan_to_num(zc, nan=1.0), np.nan_to_num(gc)
     now = p.sigma0_m + p.sigma1 * zz + p.sigma2_per_m * (zz - p.z_offset_m) ** 2 + p.incidence_m * gg
@@ -348,7 +360,7 @@ def curve_start(config, objective, specs) -> dict[str, float]:
     lo, hi = (keys[ko].low, keys[ko].high) if ko in keys else (p.z_offset_m, p.z_offset_m)
     best = None
     for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
-        cols = ([np.ones_like(z)] if k0 in keys else []) + [(z - off) ** 2] + ([g] if ki in keys else [])
+        cols = ([np.ones_like(z)] if k0 in keys else []) + [(z - off) ** 2] + ([g] if ki in keys and cells else [])
         A = np.stack(cols, 1) / t[:, None]
         x, r = nnls(A, np.ones_like(t))
         if best is None or r < best[0]:
@@ -360,7 +372,7 @@ def curve_start(config, objective, specs) -> dict[str, float]:
         out[k0] = float(x.pop(0))
     out[k2] = float(x.pop(0))
     if ki in keys:
-        out[ki] = float(x.pop(0))
+        out[ki] = float(x.pop(0)) if cells else 0.0
     if ko in keys:
         out[ko] = float(off)
     return {k: float(min(max(v, keys[k].low), keys[k].high)) for k, v in out.items()}

@@ -129,10 +129,10 @@ class FitConfig:
     noise_curve_weight: float = 1.0
     """On a sequence with a planar reference (``data make-reference --plane``): weight of the
     noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
-    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m, each split into incidence
-    classes), so the fit honours the curve sensor people calibrate first; there the effects'
-    ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too; 0 = the gap alone. Ignored
-    on other sequences."""
+    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m and over those bins split
+    into incidence classes), so the fit honours the curve sensor people calibrate first; there the
+    effects' ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too, their search
+    budget on top of ``max_evaluations``; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -306,6 +306,10 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         mark[:] = [now, n]
     plane = bool(fc.noise_curve_weight > 0 and getattr(measured, "has_plane_reference", False))
     specs = param_specs(config, names, plane)      # a planar reference also fits the PLANE_ONLY terms
+    extra = len(specs) - len(param_specs(config, names)) if plane else 0
+    if extra:       # on top of the budget: a plane-only term does not cut the search of the others
+        fc = dataclasses.replace(fc, max_evaluations=int(fc.max_evaluations)
+                                 + extra * (int(fc.grid_points) + int(fc.refine_iterations)) * int(fc.sweeps))
     n = len(measured)
     if n == 0:
         raise RealgapError(f"{measured.seq_dir}: no frames to fit")
@@ -330,9 +334,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
                 specs = param_specs(start_cfg, names, plane)
         if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
             from synth.lab.calibration import curve_start
-            cs = curve_start(start_cfg, obj, specs)
-            if cs and (g := obj(cand := set_params(start_cfg, cs))) < g_start:
-                start_cfg, g_start, specs = cand, g, param_specs(cand, names, plane)
+            base_cfg = start_cfg
+            for cells in (True, False):     # per incidence cell, and per distance bin alone: the better
+                cs = curve_start(base_cfg, obj, specs, cells)
+                if cs and (g := obj(cand := set_params(base_cfg, cs))) < g_start:
+                    start_cfg, g_start = cand, g
+            specs = param_specs(start_cfg, names, plane)
         stats: dict = {}
         stage("start")
         all_specs, scr = specs, None

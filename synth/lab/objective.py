@@ -37,9 +37,10 @@ class Objective:
     """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values).
 
     ``noise_weight`` > 0 on a sequence with a planar reference (``MeasuredSequence.has_plane_reference``)
-    adds ``noise_weight`` x the noise-vs-distance term of :mod:`synth.lab.calibration` (mean
-    |ln(simulated / measured std)| over the (distance bin, incidence class) cells) to the gap;
-    elsewhere it is ignored."""
+    adds ``noise_weight`` x the noise-vs-distance term of :mod:`synth.lab.calibration` to the gap:
+    the mean |ln(simulated / measured std)| over the distance bins plus the same over the grazing
+    (distance bin, incidence class) cells (``GRAZING_EDGES_DEG``: 0 where no cell has enough
+    pixels); elsewhere it is ignored."""
 
     def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0,
                  noise_weight: float = 0.0):
@@ -89,12 +90,17 @@ class Objective:
         self.last_result = compare(obs, self.compare_config, cache=self.cache)
         g = float(self.last_result.gap)
         if self.noise_weight > 0:
-            from synth.lab.calibration import INCIDENCE_EDGES_DEG as ie
+            from synth.lab.calibration import GRAZING_EDGES_DEG as ge
             from synth.lab.calibration import curve_term, noise_curve
             px = self.compare_config.max_pixels_per_frame
             if self._curve_measured is None:
-                self._curve_measured = noise_curve(obs, "measured", px, self.seed, incidence_edges=ie)[0]
-            term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed, incidence_edges=ie)[0])
+                self._curve_measured = (noise_curve(obs, "measured", px, self.seed)[0],
+                                        noise_curve(obs, "measured", px, self.seed, incidence_edges=ge)[0])
+            # the distance curve (what a calibration reports) plus its grazing cells (what separates an
+            # incidence term from the distance terms; 0 on a capture without grazing views)
+            term = (curve_term(self._curve_measured[0], noise_curve(obs, "simulated", px, self.seed)[0])
+                    + curve_term(self._curve_measured[1],
+                                 noise_curve(obs, "simulated", px, self.seed, incidence_edges=ge)[0]))
             self.last_curve = (term, obs, _config_key(config))
             g += self.noise_weight * term
         return g if math.isfinite(g) else float("inf")
