@@ -327,7 +327,8 @@ def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float
     error (the term's log ratio to first order) by non-negative least squares for each z_offset on
     a 0.025 m grid over its bounds, each clipped to its search bounds (a mean factor per cell stands
     for the mixture of the cell's angles: an approximation the search refines). {} when
-    axial_noise is not fitted, the term is off, or fewer than 3 cells have data.
+    axial_noise is not fitted, the term is off, or fewer than 3 cells have data; with ``cells``
+    also when the incidence term is not fitted or no grazing cell (``GRAZING_EDGES_DEG``) has data.
 
     ``cells`` False: the same on the distance bins alone, with the incidence term at 0 (a capture
     whose few grazing pixels would pull the per-cell start; :func:`synth.lab.fit.fit_model` keeps
@@ -340,6 +341,9 @@ def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float
         return {}
     obs = objective.curve(config)[1]
     px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
+    if cells and (ki not in keys or not np.isfinite(noise_curve(obs, "measured", px, seed,
+                                                                 incidence_edges=GRAZING_EDGES_DEG)[0]).any()):
+        return {}       # no incidence term to start, or no grazing views to start it from
     ie = INCIDENCE_EDGES_DEG if cells else None
     m, _ = noise_curve(obs, "measured", px, seed, incidence_edges=ie)
     s, _ = noise_curve(obs, "simulated", px, seed, incidence_edges=ie)
