@@ -13,9 +13,10 @@ through the lab as a user would:
 * closure: (gap without - gap with) / (gap without - floor) by the lab's gap, ``without`` the base
   model fitted, ``with`` the base + the true effect fitted, ``floor`` the measurement against the
   generator re-run with another noise seed (mean of ``draws`` simulation seeds / re-runs);
-* unobservable: the true effect's gain (gap without - gap with) is within 2 standard deviations of
-  the gap's own noise (from :data:`FLOOR_RERUNS` re-runs of the generator): even the truth cannot be
-  told apart on these frames, so the case is reported apart, not as a miss (:func:`observable`);
+* unobservable: the true effect's gain (gap without - gap with, and its gain in the diagnosis) is
+  within 2 standard deviations of the gap's own noise (from :data:`FLOOR_RERUNS` re-runs of the
+  generator): even the truth cannot be told apart on these frames, so the case is reported apart,
+  not as a miss (:func:`observable`);
 * implausible: every fitted parameter (diagnose's refit base model and best candidate, the base-only
   fit, the fit with the true effect) outside what a Kinect-class sensor can have
   (:data:`SENSOR_LIMITS`), and range limits that discard measured pixels (a fitted minimum above the
@@ -170,7 +171,8 @@ def run_case(gen: str, effect: str, seed: int, tmp: Path, frames: int, w: int, h
     den = rec["without_gap"] - rec["floor_gap"]
     rec["closure"] = (rec["without_gap"] - rec["with_gap"]) / den if den > 0 else float("nan")
     rec["gap_noise"] = gap_noise(floors)
-    rec["observable"] = observable(rec["without_gap"], rec["with_gap"], floors)
+    rec["observable"] = observable(rec["without_gap"], rec["with_gap"], floors,
+                                   diagnosed_gain(rec.get("ranking"), effect))
     rec["seconds"] = time.perf_counter() - t0
     return rec
 
@@ -189,14 +191,28 @@ def gap_noise(floors) -> float:
     return float(math.sqrt(2.0) * f.std(ddof=1)) if f.size >= 2 else float("nan")
 
 
-def observable(without_gap: float, with_gap: float, floors) -> bool:
+def observable(without_gap: float, with_gap: float, floors, diagnosed_gain: float | None = None) -> bool:
     """False when the hidden effect is shown to be unobservable on these frames: the base model plus
     the TRUE effect, fitted, lowers the gap of the base model alone by no more than
     :data:`NOISE_SIGMAS` x :func:`gap_noise` (the data cannot tell the model with the effect from
     the one without, even knowing which effect it is; e.g. an edge fattening whose jump threshold no
-    edge of the drawn scene reaches). Such a case is reported apart, not as a miss."""
+    edge of the drawn scene reaches), and so does the diagnosis (``diagnosed_gain``: the true
+    effect's relative gain there, x ``without_gap``; a fit that missed what the diagnosis found
+    does not make an effect unobservable). Such a case is reported apart, not as a miss."""
     noise = gap_noise(floors)
-    return not (math.isfinite(noise) and without_gap - with_gap <= NOISE_SIGMAS * noise)
+    if not math.isfinite(noise):
+        return True
+    gains = [without_gap - with_gap] + ([diagnosed_gain * without_gap] if diagnosed_gain is not None else [])
+    return max(gains) > NOISE_SIGMAS * noise
+
+
+def diagnosed_gain(ranking, effect: str) -> float | None:
+    """The true effect's relative gain in a case's ``ranking`` (the top few, (effect, gain)); when
+    it is not among them, the smallest listed gain (an upper bound); None without a ranking."""
+    if not isinstance(ranking, list) or not ranking:
+        return None
+    g = dict((e, float(x)) for e, x in ranking)
+    return g.get(effect, max(min(g.values()), 0.0))
 
 
 def summary(records: list[dict]) -> str:
