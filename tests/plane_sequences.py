@@ -29,11 +29,23 @@ def plane_depth(T_c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, w
     return np.where(np.isfinite(t) & (t > 0), t, 0.0).astype(np.float32)
 
 
-def hand_made_plane_capture(out: Path, distances: Sequence[float], sigma_m: Callable[[np.ndarray], np.ndarray],
-                            seed: int = 0, width: int = 160, height: int = 120) -> dict:
+def incidence_rad(T_c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, w: int, h: int) -> np.ndarray:
+    """(h, w) angle between each pixel's camera ray and the world plane z = 0's normal, radians."""
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.arccos(np.clip(np.abs(d @ T_c2w[:3, :3][2]), 0.0, 1.0))
+
+
+def hand_made_plane_capture(out: Path, distances: Sequence[float], sigma_m: Callable[..., np.ndarray],
+                            seed: int = 0, width: int = 160, height: int = 120,
+                            tilts_deg: Sequence[float] | None = None) -> dict:
     """Write a flat-target capture (no groundtruth.txt): frame k sees the plane from
     ``distances[k]`` metres, tilted up to 6 degrees, with depth noise N(0, sigma_m(z)^2) per pixel.
-    Kinect v1 geometry cropped to ``width`` x ``height``. Returns {"poses": [...], "sigma": fn}."""
+    Kinect v1 geometry cropped to ``width`` x ``height``. Returns {"poses": [...], "sigma": fn}.
+    ``tilts_deg``: frame k's plane is turned by exactly ``tilts_deg[k]`` about the camera's x axis
+    (a known incidence), and the noise is N(0, sigma_m(z, theta)^2) with theta (radians) the angle
+    between the pixel's ray and the plane's normal."""
     from data_tools.camera import Camera, Intrinsics, SensorSpec
     from data_tools.scene_spec import Material, SceneSpec
     from data_tools.sequence import Frame, SequenceWriter
@@ -48,10 +60,14 @@ def hand_made_plane_capture(out: Path, distances: Sequence[float], sigma_m: Call
     with SequenceWriter(out, cam, scene) as w:
         for k, z in enumerate(distances):
             T = np.eye(4)
-            T[:3, :3] = _rot(rng.normal(size=3), np.radians(rng.uniform(0, 6))) @ np.diag([1.0, -1.0, -1.0])
+            axis = rng.normal(size=3) if tilts_deg is None else np.array([1.0, 0.0, 0.0])   # draws in the old order
+            tilt = np.radians(rng.uniform(0, 6)) if tilts_deg is None else np.radians(float(tilts_deg[k]))
+            T[:3, :3] = _rot(axis, tilt) @ np.diag([1.0, -1.0, -1.0])
             T[:3, 3] = [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), float(z)]
             ideal = plane_depth(T, f, f, cx, cy, width, height)
-            noisy = ideal + rng.normal(size=ideal.shape) * sigma_m(ideal)
+            sig = (sigma_m(ideal) if tilts_deg is None
+                   else sigma_m(ideal, incidence_rad(T, f, f, cx, cy, width, height)))
+            noisy = ideal + rng.normal(size=ideal.shape) * sig
             depth = np.where(ideal > 0, np.round(noisy * 5000.0) / 5000.0, 0.0).astype(np.float32)
             w.write(Frame(float(k), depth, None, None, k))
             poses.append(T)
@@ -60,10 +76,10 @@ def hand_made_plane_capture(out: Path, distances: Sequence[float], sigma_m: Call
 
 
 def plane_reference(root: Path, distances: Sequence[float], sigma_m, seed: int = 0, width: int = 160,
-                    height: int = 120) -> Path:
+                    height: int = 120, tilts_deg: Sequence[float] | None = None) -> Path:
     """:func:`hand_made_plane_capture` + ``make_plane_reference``: the lab-ready sequence folder."""
     from slam.plane_reference import PlaneReferenceConfig, make_plane_reference
     cap = root / "capture"
-    hand_made_plane_capture(cap, distances, sigma_m, seed, width, height)
+    hand_made_plane_capture(cap, distances, sigma_m, seed, width, height, tilts_deg)
     make_plane_reference(cap, root / "ref", PlaneReferenceConfig(), progress=False)
     return root / "ref"

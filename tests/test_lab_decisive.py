@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from data_tools.camera import Intrinsics
 from synth.lab.decisive import hole_drivers, missing_lattice, promote
@@ -158,3 +159,64 @@ def test_foreground_depth_beside_edges_decides_fattening_over_hole_effects_only(
     assert [c.effect for c in out] == ["edge_fattening", "incidence_dropout", "depth_bias"]
     r = [_c("depth_bias", 0.90), _c("edge_fattening", 0.81)]           # not a hole effect: stays ahead
     assert [c.effect for c in promote(r, {"edge_fattening": "spill"}, 0.1)][0] == "depth_bias"
+
+
+def test_edge_fattening_sentence_and_decision_share_one_spill_definition():
+    """The evidence sentence and the decisive signature read the same shares
+    (EvidenceContext.foreground_spill): the model's share is over the model's own depths, so the
+    measured holes of the outer band (a selection both used to differ in) do not change it."""
+    from synth.lab.decisive import foreground_spill
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    ctx = _edge_ctx("fatten")
+    o = ctx.observations[0]
+    outer = np.zeros(o.ideal.shape, bool)
+    outer[24:96, 44:116] = True
+    outer[27:93, 47:113] = False            # the wall 4-6 px from the square: measured holes,
+    o.measured[outer] = 0                   # the model fattened there (nearer) and valid
+    o.simulated[outer] = 1.2
+    ctx = EvidenceContext([o], None)
+    near, far, model, n = foreground_spill(ctx)
+    sp = ctx.foreground_spill()
+    assert (near, far, model, n) == (sp.near, sp.far, sp.model_near, sp.pixels)
+    assert near > 0.9 and 0.3 < model < 0.7             # measured: only the fattened 3 px remain
+    text = EdgeFattening.evidence(ctx, {})
+    assert f"{ctx.pct(near)} of the measured depths" in text and f"against {ctx.pct(model)} in the current model" in text   # the old selection: 0 %
+
+
+def _sloped_ctx(shift_k: float):
+    """A floor-like plane whose depth grows down the image (2 m at the top row to 3 m at the
+    bottom), seen through a radial shift k r^2 (the measured depth read at the shifted pixel),
+    plus 2 mm noise; the current model: the plane with noise and no shift."""
+    rng = np.random.default_rng(3)
+    H, W = INTR.height, INTR.width
+    v = np.arange(H, dtype=np.float64)[:, None] * np.ones((1, W))
+    u = np.ones((H, 1)) * np.arange(W, dtype=np.float64)[None, :]
+    x, y = (u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy
+    r2 = x * x + y * y
+
+    def plane(vv):
+        return 2.0 + vv / (H - 1)
+    ideal = plane(v).astype(np.float32)
+    measured = (plane(v + shift_k * r2 * y * INTR.fy) + 0.002 * rng.standard_normal((H, W))).astype(np.float32)
+    sim = (ideal + 0.002 * rng.standard_normal((H, W))).astype(np.float32)
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[..., 2] = -1
+    return EvidenceContext([FrameObservation(measured, sim, ideal, normals, np.ones((H, W), np.int32), {1: "m"},
+                                             INTR)], None)
+
+
+def test_a_radial_shift_decides_the_lens_over_a_learned_map_only():
+    """The depth residual of a sloped plane seen through a radial shift k r^2 gives back k (first
+    order: dz = k r^2 y fy dz/dv) and decides lens_distortion over disparity_distortion; without a
+    shift nothing is decided, and with no map among the candidates neither."""
+    from synth.lab.decisive import decisive_signatures, promote, radial_shift
+    rad = radial_shift(_sloped_ctx(0.5))
+    assert rad.k_measured == pytest.approx(0.5, rel=0.1) and abs(rad.k_model) < 0.05 and rad.share > 0.08
+    cands = ["lens_distortion", "disparity_distortion", "depth_bias"]
+    assert "lens_distortion" in decisive_signatures(_sloped_ctx(0.5), cands)[0]
+    assert "lens_distortion" not in decisive_signatures(_sloped_ctx(0.0), cands)[0]
+    assert "lens_distortion" not in decisive_signatures(_sloped_ctx(0.5), ["lens_distortion", "depth_bias"])[0]
+    r = [_c("disparity_distortion", 0.954), _c("lens_distortion", 0.922)]       # mystery seed 22's gains
+    assert [c.effect for c in promote(r, {"lens_distortion": "radial"}, 0.1)][0] == "lens_distortion"
+    r = [_c("depth_bias", 0.95), _c("lens_distortion", 0.90)]                   # not a map: stays ahead
+    assert [c.effect for c in promote(r, {"lens_distortion": "radial"}, 0.1)][0] == "depth_bias"

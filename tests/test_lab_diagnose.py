@@ -22,6 +22,7 @@ from synth.sensor.config import MotionLimits, SensorConfig
 from tests import hidden_effects as he
 
 fit_mod = importlib.import_module("synth.lab.fit")
+descent_mod = importlib.import_module("synth.lab.descent")
 diagnose_mod = importlib.import_module("synth.lab.diagnose")   # (synth.lab.diagnose is also the function)
 
 CHEAP_FIT = FitConfig(max_frames=2, max_pixels_per_frame=2000, eval_pixels_per_frame=3000)
@@ -223,6 +224,7 @@ def test_diagnose_is_deterministic_and_ignores_the_wall_clock(seqs, monkeypatch)
     a = diagnose(ms, cfg, candidates=DET_CANDS, fit_config=DET_FIT, diagnose_config=DET)
     assert a.ranking[0].refined and not a.time_capped
     monkeypatch.setattr(fit_mod, "time", _JumpingClock())
+    monkeypatch.setattr(descent_mod, "time", _JumpingClock())
     monkeypatch.setattr(diagnose_mod, "time", _JumpingClock())
     # a fresh sequence (cold caches) under a clock that runs wild: the same diagnosis
     b = diagnose(MeasuredSequence.load(path), cfg, candidates=DET_CANDS, fit_config=DET_FIT, diagnose_config=DET)

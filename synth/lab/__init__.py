@@ -20,7 +20,8 @@ Modules: :mod:`~synth.lab.features` (per-pixel features, registry), :mod:`~synth
 :mod:`~synth.lab.gap_stats`), :mod:`~synth.lab.regions` (error maps, worst regions),
 :mod:`~synth.lab.report` (report.html + PNGs), :mod:`~synth.lab.signatures` (diagnosis.html: effect
 signature figures), :mod:`~synth.lab.history` (gap per step), :mod:`~synth.lab.measured` (measured sequence + cached
-ideal renders), :mod:`~synth.lab.model` (model JSON), :mod:`~synth.lab.fit` (parameter fit),
+ideal renders), :mod:`~synth.lab.model` (model JSON), :mod:`~synth.lab.fit` (parameter fit; its objective in
+:mod:`~synth.lab.objective`, its search in :mod:`~synth.lab.descent`),
 :mod:`~synth.lab.diagnose` (rank missing effects), :mod:`~synth.lab.evidence` (the context
 effects write their evidence sentences with), :mod:`~synth.lab.runs` (the simulate / compare /
 diagnose / fit runs of the ``realgap sensor`` commands). What the lab knows about each effect

@@ -12,7 +12,7 @@
   simulation beside it.
 
 The noise-vs-distance curve as a term of the fit's objective (:func:`noise_curve`,
-:func:`curve_term`; :class:`synth.lab.fit.Objective` with ``FitConfig.noise_curve_weight``):
+:func:`curve_term`; :class:`synth.lab.objective.Objective` with ``FitConfig.noise_curve_weight``):
 The noise-vs-distance curve of planar-target captures, as a term of the fit's objective.
 
 Sensor people calibrate noise against distance first (Khoshelham & Elberink 2012; Nguyen et al.
@@ -21,7 +21,7 @@ Sensor people calibrate noise against distance first (Khoshelham & Elberink 2012
 the gap while its noise is 1.3-1.7 x too high far away. Where a sequence has a planar reference
 (``plane_reference.json``, written by ``realgap data make-reference --plane``), :func:`noise_curve`
 measures the curve of the measured and of the simulated depth the same way, and
-:func:`curve_term` scores their mismatch; :class:`synth.lab.fit.Objective` adds it to the gap
+:func:`curve_term` scores their mismatch; :class:`synth.lab.objective.Objective` adds it to the gap
 (``FitConfig.noise_curve_weight``).
 
 The curve. Target pixels (ideal depth > 0: inside the frame's mask) are binned by their ideal
@@ -32,7 +32,12 @@ residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do no
 A bin counts only when both sides have at least ``MIN_PIXELS`` valid residuals.
 
 The term: the mean over counted bins of |ln(s_simulated / s_measured)| (0.095 for a 10 % error
-in every bin; symmetric in too high / too low).
+in every bin; symmetric in too high / too low), plus the same over the grazing cells: each
+distance bin's pixels seen at 60-75 and 75-90 degrees between the camera ray and the target's
+normal (``GRAZING_EDGES_DEG``). A few planes seen at grazing incidence fill the far bins of a room
+capture (7-Scenes chess), and their noise grows with the angle (Nguyen et al. 2012), which a
+curve in distance alone averages away; the cells let the fit separate axial noise's incidence
+term from its distance terms. The reported table stays per distance bin.
 
 Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
 0.25 m bin of a plane the tilt left is far below the noise of these sensors.
@@ -46,7 +51,8 @@ from typing import Sequence
 import numpy as np
 
 __all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section",
-           "BIN_EDGES_M", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report"]
+           "BIN_EDGES_M", "INCIDENCE_EDGES_DEG", "GRAZING_EDGES_DEG", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report",
+           "incidence_cells"]
 
 
 def khoshelham_sigma_m(z: np.ndarray) -> np.ndarray:
@@ -145,6 +151,12 @@ def calibration_section(observations: Sequence, figs: str | os.PathLike) -> str:
 
 BIN_EDGES_M = tuple(round(0.5 + 0.25 * k, 2) for k in range(11))
 """Distance bin edges, metres: 0.5, 0.75, ..., 3.0."""
+INCIDENCE_EDGES_DEG = (0.0, 60.0, 75.0, 90.5)
+"""Incidence classes of the fit's noise curve, degrees (ray vs target normal): Nguyen et al. 2012's
+incidence term theta^2 / (pi/2 - theta)^2 is under 4 below 60 deg, 4-25 at 60-75, above 25 beyond."""
+GRAZING_EDGES_DEG = INCIDENCE_EDGES_DEG[1:]
+"""The grazing classes alone (60-75, 75-90 deg): the fit's term adds their cells to the distance
+curve, so a capture without grazing views is fitted as by the distance curve alone."""
 MIN_PIXELS = 200
 """Fewest valid residuals a bin needs on each side to count."""
 
@@ -179,16 +191,26 @@ def storage_quantum_m(depth: np.ndarray, share: float = 0.99) -> float:
 
 
 def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
-                edges: Sequence[float] = BIN_EDGES_M) -> tuple[np.ndarray, np.ndarray]:
+                edges: Sequence[float] = BIN_EDGES_M,
+                incidence_edges: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(robust std per bin (m, NaN where a bin has too few pixels), valid pixels per bin) of the
     ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring).
+
+    ``incidence_edges`` (degrees, e.g. :data:`INCIDENCE_EDGES_DEG`): each distance bin is split
+    further by the angle between the camera ray and the target's normal, and the result is per
+    (distance bin, incidence class), flattened distance-major (len(edges) - 1) x
+    (len(incidence_edges) - 1): the curve the fit's objective compares, so a noise that grows at
+    grazing incidence (Nguyen et al. 2012) is not averaged into the distance curve.
 
     The simulated depth is rounded to the measured depth's storage quantum
     (:func:`storage_quantum_m`) first, as the device's driver and file did to the measurement: a
     1 mm quantum adds 0.29 mm of spread, +28 % on the 0.36 mm of Kinect v1 noise at 0.5 m, which a
     float simulation lacks (its near bins then read low against the measurement)."""
     e = np.asarray(edges, float)
-    pooled: list[list[np.ndarray]] = [[] for _ in range(len(e) - 1)]
+    ie = None if incidence_edges is None else np.asarray(incidence_edges, float)
+    nj = 1 if ie is None else len(ie) - 1
+    ncell = (len(e) - 1) * nj
+    pooled: list[list[np.ndarray]] = [[] for _ in range(ncell)]
     for o in observations:
         flat = _pixels(o, max_pixels, seed)
         z = o.ideal.reshape(-1)[flat].astype(np.float64)
@@ -199,14 +221,20 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
                 d = np.where(d > 0, np.maximum(np.round(d / q), 1.0) * q, d)
         ok = d > 0
         b = np.searchsorted(e, z, side="right") - 1
-        for k in range(len(e) - 1):
+        if ie is not None:
+            from synth.lab.feature_maps import incidence_angle_deg
+            a = incidence_angle_deg(o.normals, o.intrinsics, idx=flat)
+            j = np.clip(np.searchsorted(ie, np.nan_to_num(a, nan=-1.0), side="right") - 1, -1, nj)
+            ok &= (j >= 0) & (j < nj)
+            b = np.where((b >= 0) & (b < len(e) - 1), b * nj + j, -1)
+        for k in range(ncell):
             sel = ok & (b == k)
             if sel.sum() < 10:
                 continue
             r = d[sel] - z[sel]
             pooled[k].append(r - np.median(r))
-    std = np.full(len(e) - 1, np.nan)
-    count = np.zeros(len(e) - 1, int)
+    std = np.full(ncell, np.nan)
+    count = np.zeros(ncell, int)
     for k, parts in enumerate(pooled):
         if parts:
             r = np.concatenate(parts)
@@ -254,52 +282,101 @@ def noise_curve_report(weight: float, before, after, max_pixels, seed: int) -> d
     return {"weight": float(weight), "term_before": float(before[0]), "term": float(after[0]), "bins": ta}
 
 
-def curve_start(config, objective, specs) -> dict[str, float]:
+def incidence_cells(observations: Sequence, max_pixels: int | None = 20000, seed: int = 0,
+                    edges: Sequence[float] = BIN_EDGES_M,
+                    incidence_edges: Sequence[float] = INCIDENCE_EDGES_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(mean ideal depth m, mean incidence factor theta^2 / (pi/2 - theta)^2 / sqrt(z)) per (distance
+    bin, incidence class) cell of :func:`noise_curve` (same pixels, flattened the same way; NaN where
+    a cell has no measured pixel): where in a cell the axial noise's terms are evaluated."""
+    from synth.lab.feature_maps import incidence_angle_deg
+    from synth.sensor.effects.axial_noise import incidence_factor
+    e, ie = np.asarray(edges, float), np.asarray(incidence_edges, float)
+    nj = len(ie) - 1
+    n = (len(e) - 1) * nj
+    sz, sg, cnt = np.zeros(n), np.zeros(n), np.zeros(n)
+    for o in observations:
+        flat = _pixels(o, max_pixels, seed)
+        z = o.ideal.reshape(-1)[flat].astype(np.float64)
+        a = incidence_angle_deg(o.normals, o.intrinsics, idx=flat)
+        ok = (o.measured.reshape(-1)[flat] > 0) & np.isfinite(a)
+        b = np.searchsorted(e, z, side="right") - 1
+        j = np.searchsorted(ie, np.nan_to_num(a, nan=-1.0), side="right") - 1
+        ok &= (b >= 0) & (b < len(e) - 1) & (j >= 0) & (j < nj)
+        c = (b * nj + j)[ok]
+        g = incidence_factor(np.radians(a[ok])) / np.sqrt(np.maximum(z[ok], 0.05))
+        np.add.at(sz, c, z[ok])
+        np.add.at(sg, c, g)
+        np.add.at(cnt, c, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(cnt > 0, sz / cnt, np.nan), np.where(cnt > 0, sg / cnt, np.nan)
+
+
+def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float]:
     """A starting point that puts the model's noise curve on the measured one, when the model
     has ``axial_noise`` (of its fitted ``specs``): the classic planar calibration (Nguyen et al.
-    2012's form sigma0 + sigma2 (z - z_offset)^2) fitted to the measured curve, less what the
-    model's other effects already contribute.
+    2012's form sigma0 + sigma2 (z - z_offset)^2 + incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z))
+    fitted to the measured curve per (distance bin, incidence class) cell, less what the model's
+    other effects already contribute.
 
-    ``objective`` (a :class:`synth.lab.fit.Objective` with the noise-curve term on) gives the
-    curves of ``config`` (its last evaluation's, or one more simulation); per distance bin
-    (centre z) the measured std m and the simulated s give the axial part wanted,
-    a(z) = sqrt(max(m^2 - (s^2 - a_now(z)^2), 0)) - independent noise sources add in variance (an
-    approximation for the robust std) - less the model's own sigma1 z.
-    sigma0, sigma2 >= 0 then minimise the relative squared error (the term's log ratio to first
-    order) by non-negative least squares for each z_offset on a 0.025 m grid over its bounds,
-    each clipped to its search bounds. {} when axial_noise is not fitted, the term is off, or
-    fewer than 3 bins have data."""
+    ``objective`` (a :class:`synth.lab.objective.Objective` with the noise-curve term on) gives the
+    curves of ``config`` (its last evaluation's, or one more simulation); per cell (its pixels' mean
+    depth z and mean incidence factor G, :func:`incidence_cells`) the measured std m and the
+    simulated s give the axial part wanted, a = sqrt(max(m^2 - (s^2 - a_now^2), 0)) - independent
+    noise sources add in variance (an approximation for the robust std) - less the model's own
+    sigma1 z. sigma0, sigma2, incidence_m >= 0 (those fitted) then minimise the relative squared
+    error (the term's log ratio to first order) by non-negative least squares for each z_offset on
+    a 0.025 m grid over its bounds, each clipped to its search bounds (a mean factor per cell stands
+    for the mixture of the cell's angles: an approximation the search refines). {} when
+    axial_noise is not fitted, the term is off, or fewer than 3 cells have data; with ``cells``
+    also when the incidence term is not fitted or no grazing cell (``GRAZING_EDGES_DEG``) has data.
+
+    ``cells`` False: the same on the distance bins alone, with the incidence term at 0 (a capture
+    whose few grazing pixels would pull the per-cell start; :func:`synth.lab.fit.fit_model` keeps
+    the better of the two by the objective)."""
     from scipy.optimize import nnls
     keys = {s.key: s for s in specs}
-    k0, k2, ko = "axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m"
+    k0, k2, ko, ki = ("axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m",
+                      "axial_noise.incidence_m")
     if k2 not in keys or getattr(objective, "noise_weight", 0) <= 0:
         return {}
     obs = objective.curve(config)[1]
     px, seed = objective.compare_config.max_pixels_per_frame, objective.seed
-    m, _ = noise_curve(obs, "measured", px, seed)
-    s, _ = noise_curve(obs, "simulated", px, seed)
-    e = np.asarray(BIN_EDGES_M)
-    zc = 0.5 * (e[:-1] + e[1:])
+    if cells and (ki not in keys or not np.isfinite(noise_curve(obs, "measured", px, seed,
+                                                                 incidence_edges=GRAZING_EDGES_DEG)[0]).any()):
+        return {}       # no incidence term to start, or no grazing views to start it from
+    ie = INCIDENCE_EDGES_DEG if cells else None
+    m, _ = noise_curve(obs, "measured", px, seed, incidence_edges=ie)
+    s, _ = noise_curve(obs, "simulated", px, seed, incidence_edges=ie)
+    if cells:
+        zc, gc = incidence_cells(obs, px, seed)
+    else:
+        e = np.asarray(BIN_EDGES_M)
+        zc, gc = 0.5 * (e[:-1] + e[1:]), np.zeros(len(e) - 1)
     p = next(x for x in config.effects if x.name == "axial_noise").params
-    now = p.sigma0_m + p.sigma1 * zc + p.sigma2_per_m * (zc - p.z_offset_m) ** 2
+    zz, gg = np.nan_to_num(zc, nan=1.0), np.nan_to_num(gc)
+    now = p.sigma0_m + p.sigma1 * zz + p.sigma2_per_m * (zz - p.z_offset_m) ** 2 + p.incidence_m * gg
     other2 = np.where(np.isfinite(s), np.maximum(np.nan_to_num(s) ** 2 - now ** 2, 0.0), 0.0)
-    want = np.sqrt(np.maximum(m ** 2 - other2, 0.0)) - p.sigma1 * zc
-    ok = np.isfinite(m) & (want > 0)
+    want = np.sqrt(np.maximum(m ** 2 - other2, 0.0)) - p.sigma1 * zz
+    ok = np.isfinite(m) & np.isfinite(zc) & (want > 0)
     if ok.sum() < 3:
         return {}
-    z, t = zc[ok], want[ok]
+    z, g, t = zc[ok], gc[ok], want[ok]
     lo, hi = (keys[ko].low, keys[ko].high) if ko in keys else (p.z_offset_m, p.z_offset_m)
     best = None
     for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
-        cols = [(z - off) ** 2] if k0 not in keys else [np.ones_like(z), (z - off) ** 2]
+        cols = ([np.ones_like(z)] if k0 in keys else []) + [(z - off) ** 2] + ([g] if ki in keys and cells else [])
         A = np.stack(cols, 1) / t[:, None]
         x, r = nnls(A, np.ones_like(t))
         if best is None or r < best[0]:
             best = (r, off, x)
     _, off, x = best
-    out = {k2: float(x[-1])}
+    x = list(x)
+    out = {}
     if k0 in keys:
-        out[k0] = float(x[0])
+        out[k0] = float(x.pop(0))
+    out[k2] = float(x.pop(0))
+    if ki in keys:
+        out[ki] = float(x.pop(0)) if cells else 0.0
     if ko in keys:
         out[ko] = float(off)
     return {k: float(min(max(v, keys[k].low), keys[k].high)) for k, v in out.items()}

@@ -8,7 +8,7 @@
 Method (all gaps on the same search frames, seeds and compare pixels, so they are comparable):
 
 1. **Refit the model** (``DiagnoseConfig.refit_model``): the current model's own fittable
-   parameters are fitted first (:func:`synth.lab.fit.search`), so a candidate is not credited
+   parameters are fitted first (:func:`synth.lab.descent.search`), so a candidate is not credited
    for what a better noise level of the existing model would explain. ``Diagnosis.gap`` is the
    gap of this refitted model (``gap_given``: of the model as passed in). The refit never throws
    the measurement away (:mod:`synth.lab.guards`): range limits keep the measured valid depths'

@@ -32,7 +32,29 @@ import numpy as np
 from synth.lab.feature_maps import incidence_angle_deg, radial_distance, shadow_edge_distance, signed_edge_distance
 from synth.lab.features import FrameObservation
 
-__all__ = ["EvidenceContext", "evidence_for", "generic_evidence", "has_evidence"]
+__all__ = ["EvidenceContext", "Spill", "evidence_for", "generic_evidence", "has_evidence"]
+
+SPILL_BAND_PX = 6.0
+"""Background-side band of depth edges where foreground-valued (fattened) depths are counted, pixels."""
+
+
+@dataclass(frozen=True)
+class Spill:
+    """Foreground depth spilled onto the background side of depth edges (:meth:`EvidenceContext.foreground_spill`).
+
+    Each share is taken over the depths that side has in the band (measured: its valid pixels;
+    model: the current model's valid pixels), so holes on either side do not dilute it."""
+
+    near: float
+    """Share of the measured depths in the band that are > 5 % nearer than the ideal (background) depth."""
+    far: float
+    """Share of the measured depths in the band that are > 5 % farther (plain noise makes it like ``near``)."""
+    model_near: float
+    """Share of the current model's depths in the band that are > 5 % nearer."""
+    pixels: int
+    """Measured valid pixels in the band."""
+    model_pixels: int
+    """The current model's valid pixels in the band."""
 
 
 WEAK = "is weak in the measured data"
@@ -94,6 +116,17 @@ class EvidenceContext:
     def edge_distance(self) -> np.ndarray:
         """Signed distance to the nearest depth edge, pixels (> 0 on the background side)."""
         return self.pooled("edge_distance", lambda o: signed_edge_distance(o.ideal))
+
+    def foreground_spill(self, band_px: float = SPILL_BAND_PX) -> Spill:
+        """The one definition of edge fattening's signature, used by its evidence sentence and by
+        :func:`synth.lab.decisive.foreground_spill`: within ``band_px`` pixels on the background side
+        of depth edges (geometry pixels only), the shares of measured and of simulated depths
+        carrying a nearer (foreground) depth."""
+        ed, z, m, s = self.edge_distance(), self.ideal, self.measured, self.simulated
+        band = (ed > 0) & (ed <= band_px) & (z > 0)
+        mb, sb = band & (m > 0), band & (s > 0)
+        return Spill(self.rate(m < 0.95 * z, mb), self.rate(m > 1.05 * z, mb), self.rate(s < 0.95 * z, sb),
+                     int(mb.sum()), int(sb.sum()))
 
     def incidence_deg(self) -> np.ndarray:
         """Incidence angle of the camera ray on the surface, degrees."""

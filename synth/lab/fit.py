@@ -5,43 +5,15 @@
     res = fit_model(ms, cfg)                       # FitResult
     res.gap_before, res.gap, res.params            # e.g. 0.41 -> 0.12, {"axial_noise.sigma2_per_m": ...}
 
-Objective
----------
-The documented gap of :mod:`synth.lab.compare` between the measured frames and the model's
-simulation of the same frames, with three savings that keep it cheap and smooth:
+The objective (:mod:`synth.lab.objective`)
+-------------------------------------------
+The documented gap of :mod:`synth.lab.compare` between the measured frames and the model's simulation of the
+same frames, on fixed frames, seeds and compare pixels (common random numbers), cached by parameter values.
 
-* the ideal geometry is ray-cast once per frame (:class:`~synth.lab.measured.MeasuredSequence`
-  caches the renders; effects that re-cast rays themselves, e.g. rolling shutter, still do);
-* the search uses a subset of ``FitConfig.max_frames`` frames (evenly spread) and
-  ``max_pixels_per_frame`` compare samples per frame (the same seeded pixels every time);
-* **common random numbers**: every evaluation simulates frame k with the same seed
-  (``seed + frame index``); effects draw their random fields independently of their
-  parameters, so two parameter values are compared on the same noise/dropout draws and the
-  objective changes smoothly (piecewise constant on a fine scale) instead of jumping by the
-  sampling noise of a fresh draw.
-
-Search
-------
-Bounded coordinate descent over the fittable parameters (each effect's ``FITTABLE`` bounds, plus
-the ``CONFIG_PARAMETERS`` it declares for numbers that live outside its ``Params``, e.g. the
-phase of the disparity levels, which is the preset's reference depth):
-
-1. scan: per parameter, from the current point, a coarse grid of ``grid_points`` values over
-   its bounds on the parameter's search scale (:class:`ParamSpec`: logarithmic for positive
-   bounds spanning >= 2 decades, asinh for bounds that include 0 - noise levels, offsets and
-   distortion coefficients are searched over decades of magnitude, not in equal steps of a
-   wide range; integers linear and rounded), plus the current value;
-2. every parameter whose scan improved the gap is refined alone from the same point by
-   golden-section search (``refine_iterations`` steps) in the bracket between the grid
-   neighbours of its best grid value (the objective is not assumed unimodal over the whole
-   range, only inside that bracket); in the first sweep so is a parameter whose best grid value
-   is its starting value (a closed-form start is close, not exact: no grid value beats it, but a
-   bracket around it may); the other parameters that did not help cost only their scan;
-3. the 1-D optima are combined in order of their gap (Gauss-Southwell rule: of strongly
-   coupled parameters, e.g. a constant and a quadratic noise term, the one that explains most
-   is settled first), each re-scored at the moving point and kept only while it helps;
-4. further sweeps (``sweeps``) scan every parameter in a bracket of one grid spacing around
-   its current value, until a sweep improves the gap by less than ``tolerance`` (relative).
+The search (:mod:`synth.lab.descent`)
+-------------------------------------
+Bounded coordinate descent over the fittable parameters: a coarse grid scan per parameter, golden-section
+refinement of the ones that helped, combined in order of their gap, then local sweeps.
 
 Many parameters (``FitConfig.screen``): a sensitivity screen first
 (:func:`synth.lab.intervals.screen_parameters`) freezes what the data does not constrain
@@ -60,42 +32,26 @@ says so.
 Starting point: the given parameter values, or the data-driven estimates of the effects'
 ``fit_start`` (e.g. the disparity step from a periodogram of the measured disparities) when
 those score better.
-
-Cost: one evaluation = simulate the search frames + :func:`compare`. The comparison reuses the
-measured sequence's :class:`~synth.lab.compare.CompareCache` (sampled pixels, the 4 edge distance
-transforms and the other feature values, measured errors: computed once per frame), so it pays
-only for the simulated side: 4 VGA frames with ``axial_noise, range_limits`` and the defaults
-take ~80 ms (~150-190 ms without the cache; measured by ``benchmarks/bench_lab.py
---diagnose``), the preset's direct model ~0.28 s (its simulation dominates); effects that
-ray-cast again, rolling shutter and motion blur, cost ~0.1 s per frame more.
-
-Approximations: coordinate descent finds a local optimum of a non-convex objective (strongly
-coupled parameters, e.g. a constant and a quadratic noise term, are refined alternately, not
-jointly); the grid makes it robust to the flat regions that dropout parameters produce far from
-the data.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-
-import numpy as np
 
 from data_tools.config import config_from_dict, config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.sequence import spread_indices as spread
-from synth.lab.compare import CompareConfig, compare
+from synth.lab.compare import CompareConfig
+from synth.lab.descent import search
+from synth.lab.objective import Objective
 from synth.lab.params import (ParamSpec, _effect, config_parameters, get_params, param_specs, set_params,  # noqa: F401
                               start_values)
 
 __all__ = ["FitConfig", "FitResult", "ParamSpec", "fit_model", "param_specs", "set_params", "get_params",
            "Objective", "search", "config_parameters", "start_values"]
-
-GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 SEARCH_METHODS = ("coordinate", "powell", "differential_evolution")
 """The searches :class:`FitConfig` ``method`` may name."""
@@ -173,8 +129,10 @@ class FitConfig:
     noise_curve_weight: float = 1.0
     """On a sequence with a planar reference (``data make-reference --plane``): weight of the
     noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
-    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m), so the fit honours the
-    curve sensor people calibrate first; 0 = the gap alone. Ignored on other sequences."""
+    measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m and over those bins split
+    into incidence classes), so the fit honours the curve sensor people calibrate first; there the
+    effects' ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too, their search
+    budget on top of ``max_evaluations``; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
     """Comparison settings (its pixel count is replaced by the two counts above)."""
 
@@ -326,252 +284,6 @@ class FitResult:
 # Objective and search
 # ------------------------------------------------------------------------------------------
 
-class Objective:
-    """gap(config) on fixed frames, seeds and compare pixels (cached by parameter values).
-
-    ``noise_weight`` > 0 on a sequence with a planar reference (``MeasuredSequence.has_plane_reference``)
-    adds ``noise_weight`` x the noise-vs-distance term of :mod:`synth.lab.calibration` (mean
-    |ln(simulated / measured std)| over the distance bins) to the gap; elsewhere it is ignored."""
-
-    def __init__(self, measured, frames: Sequence[int], compare_config: CompareConfig, seed: int = 0,
-                 noise_weight: float = 0.0):
-        self.measured = measured
-        self.frames = list(frames)
-        self.compare_config = compare_config
-        self.seed = int(seed)
-        self.evaluations = 0
-        self.last_result = None
-        self.noise_weight = float(noise_weight) if getattr(measured, "has_plane_reference", False) else 0.0
-        """Weight of the noise-curve term (0: off, also on sequences without a planar reference)."""
-        self.last_curve = None
-        """(term, observations, config) of the last evaluation simulated when the noise-curve term is on."""
-        self._curve_measured = None
-        self.memo: dict | None = None
-        """{config key: gap} when a dict: a config scored again is not simulated again (the
-        evaluation set of ``fit_model``)."""
-        self.cache = getattr(measured, "compare_cache", None)
-        """The measured sequence's :class:`~synth.lab.compare.CompareCache` (None: no caching)."""
-        self.journal = getattr(measured, "eval_journal", None)
-        """An :class:`~synth.lab.journal.EvalJournal` set on the measured sequence by a resumable
-        command (None: no journal). Replayed evaluations leave ``last_result`` unchanged."""
-
-    def __call__(self, config) -> float:
-        mk = _config_key(config) if self.memo is not None else None
-        if mk in (self.memo or {}):
-            return self.memo[mk]
-        self.evaluations += 1
-        key = None
-        if self.journal is not None:
-            key = self.journal.key(config, [self.measured.frame_indices[k] for k in self.frames],
-                                   self.compare_config, self.seed, self.measured.seq_dir,
-                                   {"noise_weight": self.noise_weight} if self.noise_weight > 0 else None)
-            g = self.journal.get(key)
-            if g is not None:
-                return g
-        g = self._gap(config)
-        if key is not None:
-            self.journal.put(key, g)
-        if mk is not None:
-            self.memo[mk] = g
-        return g
-
-    def _gap(self, config) -> float:
-        sims = self.measured.simulate(config, self.seed, self.frames)
-        obs = self.measured.observations(sims, self.frames)
-        self.last_result = compare(obs, self.compare_config, cache=self.cache)
-        g = float(self.last_result.gap)
-        if self.noise_weight > 0:
-            from synth.lab.calibration import curve_term, noise_curve
-            px = self.compare_config.max_pixels_per_frame
-            if self._curve_measured is None:
-                self._curve_measured = noise_curve(obs, "measured", px, self.seed)[0]
-            term = curve_term(self._curve_measured, noise_curve(obs, "simulated", px, self.seed)[0])
-            self.last_curve = (term, obs, _config_key(config))
-            g += self.noise_weight * term
-        return g if math.isfinite(g) else float("inf")
-
-    def curve(self, config) -> tuple[float, list]:
-        """(noise-curve term, observations) of ``config`` (simulated again when its last evaluation
-        was replayed from a journal or was of another config)."""
-        if self.last_curve is None or self.last_curve[2] != _config_key(config):
-            self._gap(config)
-        return self.last_curve[:2]
-
-
-def _config_key(config) -> str:
-    return json.dumps(config.to_json(), sort_keys=True, default=str)     # a model's identity
-
-
-class _Budget:
-    """Evaluation budget of one search, plus the optional wall-clock guard (``FitConfig.max_seconds``)."""
-
-    def __init__(self, max_evals: int, max_seconds: float | None = None):
-        self.max_evals = int(max_evals)
-        self.deadline = None if max_seconds is None else time.perf_counter() + float(max_seconds)
-        self.used = 0
-        self.time_capped = False
-
-    @property
-    def left(self) -> bool:
-        if self.used >= self.max_evals:
-            return False
-        if self.deadline is not None and time.perf_counter() >= self.deadline:
-            self.time_capped = True
-            return False
-        return True
-
-
-def search(objective: Callable, config, specs: Sequence[ParamSpec], fit_config: FitConfig,
-           progress=None, start_gap: float | None = None, refine_below: float | None = None,
-           local: bool | frozenset = False, stats: dict | None = None) -> tuple[dict[str, float], float, int]:
-    """Bounded coordinate descent (module docstring). Returns (best values, best gap, evaluations).
-
-    ``start_gap``: the already known gap of the starting values. ``refine_below``: only
-    parameters whose scan reached a gap below this value are refined (a candidate effect that
-    cannot beat the model without it costs only its scans). ``local``: skip the coarse grid,
-    every sweep scans one grid spacing around the current values (polishing a good start); a set
-    of keys: only for those parameters.
-    ``stats``: a dict that receives ``time_capped`` (True when the wall-clock guard
-    ``FitConfig.max_seconds`` stopped the search) and ``evaluations``. Depth-limit parameters
-    are searched only where they keep the objective's measured valid depths
-    (:func:`synth.lab.guards.bound_for_objective`).
-    """
-    fc = fit_config
-    budget = _Budget(fc.max_evaluations, fc.max_seconds)
-    from synth.lab.guards import bound_for_objective
-    specs, moved = bound_for_objective(objective, config, specs)   # depth limits keep the measured depths
-    if moved:
-        start_gap = None
-    try:
-        if getattr(fc, "method", "coordinate") != "coordinate" and specs:
-            from synth.lab.scipy_search import scipy_search
-            return scipy_search(lambda vals: objective(set_params(config, vals)), specs, fc, budget, progress,
-                                start_gap)
-        return _search(objective, config, specs, fc, budget, progress, start_gap, refine_below, local)
-    finally:
-        if stats is not None:
-            stats["time_capped"] = bool(stats.get("time_capped", False) or budget.time_capped)
-            stats["evaluations"] = int(stats.get("evaluations", 0)) + budget.used
-
-
-def _search(objective, config, specs, fc: FitConfig, budget: _Budget, progress, start_gap, refine_below,
-            local) -> tuple[dict[str, float], float, int]:
-    cache: dict[tuple, float] = {}
-    x = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
-
-    def f(vals: dict[str, float]) -> float:
-        key = tuple(round(vals[s.key], 12) for s in specs)
-        if key in cache:
-            return cache[key]
-        if not budget.left:
-            return float("inf")
-        budget.used += 1
-        g = objective(set_params(config, vals))
-        cache[key] = g
-        if progress is not None:
-            progress(1)
-        return g
-
-    if start_gap is not None:
-        cache[tuple(round(x[s.key], 12) for s in specs)] = float(start_gap)
-        best = float(start_gap)
-    else:
-        best = f(x)
-    for sweep in range(int(fc.sweeps)):
-        sweep_start = best
-        # 1. a 1-D scan of every parameter from the current point
-        scans = []
-        for s in specs:
-            if not budget.left:
-                break
-            a, b = s.t_bounds
-            if b <= a:
-                continue
-            cur_t = s.to_t(x[s.key])
-            ga, gb = s.grid_t_bounds
-            if sweep == 0 and not (local is True or (local and s.key in local)):
-                grid = [min(max(t, a), b) for t in np.linspace(ga, gb, int(fc.grid_points))]
-            else:
-                h = (gb - ga) / max(int(fc.grid_points) - 1, 1) / 2
-                grid = [max(a, cur_t - h), min(b, cur_t + h)]
-            grid = sorted(set(grid) | {cur_t})
-            vals = []
-            for t in grid:
-                trial = dict(x)
-                trial[s.key] = s.from_t(t)
-                vals.append(f(trial))
-            i = int(np.argmin(vals))
-            scans.append((vals[i], s, grid, i, sweep == 0 and grid[i] == cur_t))
-        # 2. every parameter whose scan helped is refined alone from the sweep's start point
-        #    (golden section in the bracket of its best grid value), then the 1-D optima are
-        #    combined, the best first (Gauss-Southwell order), each re-scored at the moving point
-        #    and kept only if it still helps
-        x0, best0 = dict(x), best
-        singles = []
-        for val, s, grid, i, at_start in scans:
-            if val >= best0 and not at_start:
-                continue
-            xs = dict(x0)
-            xs[s.key] = s.from_t(grid[i])
-            vs = val
-            if refine_below is None or val < refine_below:
-                vs, xs = _golden(f, xs, s, grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)], val,
-                                 int(fc.refine_iterations), budget)
-            if vs < best0:
-                singles.append((vs, s.key, xs[s.key]))
-        singles.sort(key=lambda r: r[0])
-        moved = False
-        for vs, key, v in singles:
-            trial = dict(x)
-            trial[key] = v
-            if moved:
-                if not budget.left:
-                    break
-                vs = f(trial)
-            if vs < best:
-                best, x, moved = vs, trial, True
-        if not budget.left or best >= sweep_start * (1.0 - fc.tolerance):
-            break
-    return x, best, budget.used
-
-
-def _golden(f, x, s: ParamSpec, a: float, b: float, best: float, iters: int, budget: _Budget):
-    """Golden-section search of parameter ``s`` in [a, b] (transformed units); keeps the best."""
-    if iters <= 0 or b <= a:
-        return best, x
-
-    def g(t):
-        trial = dict(x)
-        trial[s.key] = s.from_t(t)
-        return f(trial), trial
-
-    c = b - GOLDEN * (b - a)
-    d = a + GOLDEN * (b - a)
-    fc_, xc = g(c)
-    fd, xd = g(d)
-    for cand_f, cand_x in ((fc_, xc), (fd, xd)):
-        if cand_f < best:
-            best, x = cand_f, cand_x
-    for _ in range(iters - 1):
-        if not budget.left:
-            break
-        if s.integer and abs(s.from_t(c) - s.from_t(d)) < 1:
-            break
-        if fc_ <= fd:
-            b, d, fd = d, c, fc_
-            c = b - GOLDEN * (b - a)
-            fc_, xc = g(c)
-            if fc_ < best:
-                best, x = fc_, xc
-        else:
-            a, c, fc_ = c, d, fd
-            d = a + GOLDEN * (b - a)
-            fd, xd = g(d)
-            if fd < best:
-                best, x = fd, xd
-    return best, x
-
-
 # ------------------------------------------------------------------------------------------
 # The fit
 # ------------------------------------------------------------------------------------------
@@ -592,7 +304,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
         n, now = obj.evaluations + (ev.evaluations if ev is not None else 0), time.perf_counter()
         stages[name] = {"seconds": round(now - mark[0], 3), "evaluations": n - mark[1]}
         mark[:] = [now, n]
-    specs = param_specs(config, names)
+    plane = bool(fc.noise_curve_weight > 0 and getattr(measured, "has_plane_reference", False))
+    specs = param_specs(config, names, plane)      # a planar reference also fits the PLANE_ONLY terms
+    extra = len(specs) - len(param_specs(config, names)) if plane else 0
+    if extra:       # on top of the budget: a plane-only term does not cut the search of the others
+        fc = dataclasses.replace(fc, max_evaluations=int(fc.max_evaluations)
+                                 + extra * (int(fc.grid_points) + int(fc.refine_iterations)) * int(fc.sweeps))
     n = len(measured)
     if n == 0:
         raise RealgapError(f"{measured.seq_dir}: no frames to fit")
@@ -614,12 +331,15 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             g = obj(cand)
             if g < g_start:
                 start_cfg, g_start = cand, g
-                specs = param_specs(start_cfg, names)
+                specs = param_specs(start_cfg, names, plane)
         if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
             from synth.lab.calibration import curve_start
-            cs = curve_start(start_cfg, obj, specs)
-            if cs and (g := obj(cand := set_params(start_cfg, cs))) < g_start:
-                start_cfg, g_start, specs = cand, g, param_specs(cand, names)
+            base_cfg = start_cfg
+            for cells in (True, False):     # per incidence cell, and per distance bin alone: the better
+                cs = curve_start(base_cfg, obj, specs, cells)
+                if cs and (g := obj(cand := set_params(base_cfg, cs))) < g_start:
+                    start_cfg, g_start = cand, g
+            specs = param_specs(start_cfg, names, plane)
         stats: dict = {}
         stage("start")
         all_specs, scr = specs, None

@@ -316,7 +316,7 @@ def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict) -> tuple[dict, li
 
 def seeded_gap_of(obj, base_cfg) -> Callable:
     """The ``gap_of(values, seed_offset=0)`` of the screen and the intervals: ``obj`` (a
-    :class:`synth.lab.fit.Objective`) scoring ``base_cfg`` with ``values`` set; with a
+    :class:`synth.lab.objective.Objective`) scoring ``base_cfg`` with ``values`` set; with a
     ``seed_offset``, an objective of the same frames, pixels and noise-curve weight whose
     simulation seeds are shifted by it (counted in ``obj.evaluations``)."""
     from synth.lab.params import set_params

@@ -1,6 +1,6 @@
 """A journal of objective evaluations, so an interrupted fit or diagnosis continues where it stopped.
 
-The lab's searches (:func:`synth.lab.fit.search`) are deterministic: the same data, model, seed
+The lab's searches (:func:`synth.lab.descent.search`) are deterministic: the same data, model, seed
 and gaps give the same sequence of evaluated parameter values. A journal records each
 evaluation's gap under a key that identifies *everything* it depends on (the full sensor
 configuration, the frames of the measured sequence, the comparison settings and the seed). A

@@ -96,9 +96,11 @@ def _narrowed(lo: float, hi: float, plausible) -> tuple[float, float]:
     return (a, b) if a < b else (float(lo), float(hi))
 
 
-def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
+def param_specs(config, names: Sequence[str] | None = None, plane: bool = False) -> list[ParamSpec]:
     """Fittable parameters of the enabled effects ``names`` (default all enabled) of ``config``:
-    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``)."""
+    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``).
+    ``plane``: the objective has the noise-curve term of a planar reference, so the effects'
+    ``PLANE_ONLY`` parameters are fitted too (e.g. axial noise's incidence term)."""
     enabled = config.names(enabled_only=True)
     names = list(enabled) if names is None else list(names)
     out = []
@@ -109,7 +111,8 @@ def param_specs(config, names: Sequence[str] | None = None) -> list[ParamSpec]:
         types = getattr(e, "FITTABLE_FOR", {})
         plausible = e.plausible_bounds(config.preset)
         items = [(k, *_narrowed(lo, hi, plausible.get(k)), getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
-                 if k not in types or config.preset.type in types[k]]
+                 if (k not in types or config.preset.type in types[k])
+                 and (plane or k not in getattr(e, "PLANE_ONLY", ()))]
         items += [(k, x.low, x.high, x.get(config, e)) for k, x in config_parameters(config, e).items()]
         for k, lo, hi, v in items:
             integer = isinstance(v, (int, np.integer)) and not isinstance(v, bool)

@@ -184,6 +184,10 @@ class Effect(ABC):
     """FITTABLE parameters that the lab fits only for some sensor types (``SensorPreset.type``):
     a parameter whose physics another sensor does not have stays at its value there, so a fit
     cannot use it to explain what another effect should."""
+    PLANE_ONLY: ClassVar[tuple[str, ...]] = ()
+    """FITTABLE parameters that the lab fits only on a planar reference (where the objective's
+    noise-vs-distance term sees them, ``synth.lab.calibration``): elsewhere the gap's pooled
+    distributions cannot tell them from the other noise terms, so they stay at their value."""
     START_PRIORITY: ClassVar[int] = 0
     """Order of the closed-form starts (lower first). The starts of an effect with a negative priority
     are applied to the ``config`` that the later effects' ``fit_start`` see: a pixel re-mapping such
@@ -359,6 +363,9 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k in cls.FITTABLE_FOR:
         if k not in cls.FITTABLE:
             raise TypeError(f"{cls.__name__}.FITTABLE_FOR names {k!r}, which is not FITTABLE")
+    for k in cls.PLANE_ONLY:
+        if k not in cls.FITTABLE:
+            raise TypeError(f"{cls.__name__}.PLANE_ONLY names {k!r}, which is not FITTABLE")
     for k in (cls.IDENTITY_PARAMS or {}):
         if k not in fields:
             raise TypeError(f"{cls.__name__}.IDENTITY_PARAMS names unknown parameter {k!r}")

@@ -23,6 +23,21 @@ class AxialNoiseParams:
     reflectance_exponent: float = param(0.0, "1")
     """std is multiplied by (albedo cos(incidence))^-exponent (ToF: 0.5, shot-noise-limited
     phase noise grows as the amplitude falls; structured light: 0)."""
+    incidence_m: float = param(0.0, "m")
+    """Incidence term of the std (Nguyen, Izadi & Lovell 2012's Kinect v1 axial model):
+    + incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z / 1 m), theta the angle between the camera ray
+    and the surface normal (capped at :data:`MAX_INCIDENCE_DEG`); their fit is 1e-4 m. Metres."""
+
+
+MAX_INCIDENCE_DEG = 85.0
+"""The incidence term's angle is capped here (its factor is then 289: it grows without bound at 90)."""
+
+
+def incidence_factor(theta_rad: np.ndarray) -> np.ndarray:
+    """theta^2 / (pi/2 - theta)^2 (Nguyen et al. 2012), theta capped at :data:`MAX_INCIDENCE_DEG`:
+    0 at normal incidence, 1 at 45 deg, 4 at 60, 64 at 80."""
+    t = np.minimum(np.asarray(theta_rad, np.float64), np.radians(MAX_INCIDENCE_DEG))
+    return t ** 2 / (np.pi / 2 - t) ** 2
 
 
 def _native_fb_ratio(preset) -> float:
@@ -39,7 +54,8 @@ def _native_fb_ratio(preset) -> float:
 
 @register_effect
 class AxialNoise(Effect):
-    """z += sigma(z) n, n ~ N(0, 1), sigma(z) = sigma0 + sigma1 z + sigma2 (z - z_offset)^2.
+    """z += sigma(z) n, n ~ N(0, 1), sigma(z) = sigma0 + sigma1 z + sigma2 (z - z_offset)^2
+    (+ the incidence term incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z), Nguyen et al. 2012).
 
     Physics: a triangulating sensor measures disparity d = f b / z with a roughly constant
     error sigma_d, so sigma_z = z^2 sigma_d / (f b) (Khoshelham & Elberink 2012: 1.425e-5 Z^2
@@ -59,7 +75,11 @@ class AxialNoise(Effect):
     DRAW_FROM_SHAPE = True
     Params = AxialNoiseParams
     FITTABLE = {"sigma0_m": (0.0, 0.1), "sigma1": (0.0, 0.1), "sigma2_per_m": (0.0, 0.05),
-                "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0)}
+                "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0), "incidence_m": (0.0, 0.005)}
+    PLANE_ONLY = ("incidence_m",)
+    """The incidence term is fitted on planar references only: the noise-curve term there compares
+    the spread per distance and incidence (:func:`synth.lab.calibration.noise_curve`); the gap's
+    pooled error distributions elsewhere cannot separate it from the distance terms."""
     FITTABLE_FOR = {"reflectance_exponent": ("tof",), "sigma1": ("tof",)}
     """Triangulation noise neither scales with the amplitude nor grows linearly with depth (it is
     constant in disparity: sigma0 + sigma2 z^2, Nguyen et al. 2012); fitting sigma1 there only
@@ -174,6 +194,11 @@ class AxialNoise(Effect):
     def sigma(self, z: np.ndarray, state=None) -> np.ndarray:
         p = self.params
         s = p.sigma0_m + p.sigma1 * z + p.sigma2_per_m * (z - p.z_offset_m) ** 2
+        if p.incidence_m and state is not None:
+            v = state.view
+            cos_t, _ = cos_incidence(v, np.zeros(3, np.float32))
+            theta = np.arccos(np.clip(cos_t, 0.0, 1.0))
+            s = s + p.incidence_m * incidence_factor(theta) / np.sqrt(np.maximum(z, 0.05))
         if p.reflectance_exponent and state is not None:
             v = state.view
             cos_i, _ = cos_incidence(v, state.preset.projector_offset_m)

@@ -213,18 +213,15 @@ class EdgeFattening(Effect):
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
         """Share of measured depths within 6 px on the background side of depth edges that are > 5 %
-        nearer than the background.
+        nearer than the background (``ctx.foreground_spill``: each share over that side's valid depths).
 
         Signature present: that share exceeds the current model's by :data:`ctx.MIN_RATE_EXCESS` and is
         at least twice the share that is > 5 % farther (plain noise makes both alike)."""
-        ed = ctx.edge_distance()
-        z, m, sm = ctx.ideal, ctx.measured, ctx.simulated
-        band = (ed > 0) & (ed <= 6) & (m > 0)
-        if int(band.sum()) < 50:
+        sp = ctx.foreground_spill(6.0)     # the lab's one definition (decisive.foreground_spill uses it too)
+        if sp.pixels < 50:
             return ctx.weak("edge-fattening signature", gain,
-                         f"only {int(band.sum())} measured pixels lie within 6 px on the background side of depth edges")
-        r_n, r_f = ctx.rate(m < 0.95 * z, band), ctx.rate(m > 1.05 * z, band)
-        r_s = ctx.rate(sm < 0.95 * z, band & (sm > 0))
+                         f"only {sp.pixels} measured pixels lie within 6 px on the background side of depth edges")
+        r_n, r_f, r_s = sp.near, sp.far, sp.model_near
         numbers = (f"within 6 px on the background side of depth edges {ctx.pct(r_n)} of the measured depths are more "
                    f"than 5 % nearer than the background and {ctx.pct(r_f)} more than 5 % farther (current model: "
                    f"{ctx.pct(r_s)} nearer)")
