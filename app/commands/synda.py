@@ -33,6 +33,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
                    help="size: cpu = narrow U-Net, batch 16, 3000 steps; gpu = the thesis' size, batch 64, 20000 steps")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
+    p.add_argument("--target", choices=("normals", "depth", "lightness"),
+                   help="the final output's modality (default: rgb normals, as the thesis; depth depth). rgb with "
+                        "depth feeds a depth recogniser: 'recog eval MODEL COLOUR_TESTSET --synda GEN'")
     p.add_argument("--iterations", type=positive_int("--iterations"), help="training steps (overrides --preset)")
     p.add_argument("--batch", type=positive_int("--batch"), help="samples per step (overrides --preset)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -65,7 +68,10 @@ def synda_configs(args):
     from recog.synda.config import synda_preset
     cfg = synda_preset(args.preset, args.domain)
     over = {k: getattr(args, k) for k in ("iterations", "batch", "device") if getattr(args, k, None) is not None}
-    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over)).validate()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over))
+    if getattr(args, "target", None):
+        cfg = dataclasses.replace(cfg, generator=dataclasses.replace(cfg.generator, target=args.target))
+    cfg = cfg.validate()
     vo = {"subdivisions": args.subdivisions} if args.subdivisions is not None else {}
     views = DataConfig(variant="physical", preset=args.sensor, seed=args.seed, draws=args.draws, **vo).validate()
     return cfg, views
