@@ -4,6 +4,7 @@ synthetic domain the recogniser was trained on.
 * ``synda train --objects DIR|FILES|chairs --domain rgb|depth --out GEN`` (progress, checkpoints, resume)
 * ``synda map GEN INPUT... --out DIR`` (every intermediate modality as a PNG + a contact sheet)
 * ``synda augment --objects ... --out DIR`` (a contact sheet of A's samples)
+* ``synda testset --objects ... --out TESTSET`` (colour test scans rendered unlike A, for ``recog eval --synda``)
 """
 from __future__ import annotations
 
@@ -126,6 +127,26 @@ def register_views(sub) -> None:
     add_shared(p, "--overwrite", "a contact sheet already in DIR")
     p.set_defaults(func=_augment)
 
+    p = sub.add_parser("testset", help="render a colour test set unlike A (image textures, lights, photos, 3D occluders)",
+                       description="Render labelled colour scans of the objects with VTK (PyVista, off screen): image "
+                                   "textures on the mesh, Phong or physically based materials under 1-3 coloured "
+                                   "lights, 3D occluders, photographs behind; plus the rendered depth. The folder is "
+                                   "a recog test set with an rgb/ image per scan: 'realgap recog eval MODEL TESTSET "
+                                   "--synda RGB_GEN' maps each colour patch to depth for the recogniser.")
+    p.add_argument("--objects", required=True, help="as for synda train")
+    add_shared(p, "--out", "the test set folder", required=True, metavar="TESTSET")
+    p.add_argument("--per-object", type=positive_int("--per-object"), default=10, help="scans per object (default 10)")
+    p.add_argument("--backgrounds", default="skimage",
+                   help="folder of background photographs, searched recursively (default skimage: scikit-image's "
+                        "samples, which A also uses; give another folder for backgrounds A never saw)")
+    p.add_argument("--textures", default="skimage", help="folder of texture images (default skimage)")
+    p.add_argument("--max-occluders", type=int, default=3, help="occluding solids per scan, 0..N (default 3)")
+    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    add_shared(p, "--seed", "(default 3000)", default=3000)
+    add_shared(p, "--overwrite", "a test set already in TESTSET")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_testset)
+
 
 def _map(args) -> int:
     from app.synda_figures import map_figures
@@ -151,4 +172,19 @@ def _augment(args) -> int:
                               scale=args.scale)
     augment_sheet(out, samples, args.domain)
     print(f"{out}: contact_sheet.png and samples.npz of {args.samples} {args.domain} samples of A")
+    return 0
+
+
+def _testset(args) -> int:
+    from app.colour_render import PyVistaRenderer
+    from recog.objects import load_objects
+    from recog.synda.colour_testset import ColourTestsetConfig, image_files, make_colour_testset
+    cfg = ColourTestsetConfig(per_object=args.per_object, backgrounds=args.backgrounds, textures=args.textures,
+                              occluders=(0, args.max_occluders), seed=args.seed).validate()
+    objs = load_objects(args.objects, args.scale)
+    render = PyVistaRenderer(cfg, image_files(cfg.textures))
+    command = "realgap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    n = make_colour_testset(objs, args.out, cfg, render, overwrite=args.overwrite, progress=not args.no_progress,
+                            command=command)
+    print(f"{args.out}: {n} colour scans (rgb/, depth/, labels.json) of {', '.join(o.name for o in objs)}")
     return 0
