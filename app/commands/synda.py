@@ -126,7 +126,11 @@ def register_views(sub) -> None:
     add_shared(p, "--seed", "of the views and of A (default 0)", default=0)
     add_shared(p, "--overwrite", "a contact sheet already in DIR")
     p.set_defaults(func=_augment)
+    register_testset(sub)
 
+
+def register_testset(sub) -> None:
+    """``synda testset``: a colour test set rendered unlike A."""
     p = sub.add_parser("testset", help="render a colour test set unlike A (image textures, lights, photos, 3D occluders)",
                        description="Render labelled colour scans of the objects with VTK (PyVista, off screen): image "
                                    "textures on the mesh, Phong or physically based materials under 1-3 coloured "
