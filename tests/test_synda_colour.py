@@ -182,3 +182,17 @@ def test_colour_patch_and_image_errors(tmp_path):
     cv2.imwrite(str(tmp_path / "a.depth.png"), np.zeros((4, 4), np.uint16))
     cv2.imwrite(str(tmp_path / "a.color.png"), np.zeros((4, 4, 3), np.uint8))
     assert [f.name for f in image_files(str(tmp_path))] == ["a.color.png"]
+
+
+def test_train_target_flag():
+    """``synda train --target depth`` makes an rgb generator whose final output is depth (the depth recogniser's
+    input); without it the rgb preset keeps the thesis' normals."""
+    import argparse
+
+    from app.commands.synda import synda_configs
+    base = dict(preset="cpu", domain="rgb", seed=0, iterations=None, batch=None, device=None, subdivisions=None,
+                sensor="kinect_v1", draws=2)
+    cfg, _ = synda_configs(argparse.Namespace(**base, target="depth"))
+    assert cfg.domain == "rgb" and cfg.generator.target == "depth"
+    cfg, _ = synda_configs(argparse.Namespace(**base, target=None))
+    assert cfg.generator.target == "normals"
