@@ -16,6 +16,10 @@ symmetry-aware rotation error of its nearest database pose (median, before ICP, 
 vote gets right: the ``--no-icp`` evaluation); with ``--icp`` also the full pipeline (CAD
 verification + ICP) accuracy and rotation error after ICP.
 
+Colour domain: ``--generator`` an rgb generator with depth output (``synda train --domain rgb --target depth``)
+and ``--testset colour=TS`` a colour test set (``realgap synda testset``); the rows without the generator are
+then the recogniser reading the colour test set's rendered depth (a reference, not a colour baseline).
+
 Test sets (``realgap recog testset``) should come from a sensor the recogniser and the generator did
 not see: the ``structure`` preset's physical pipeline, and the training sensor with effect parameters
 outside the training randomisation (``recog testset --sensor kinect_v1 --effect-override EFFECT.PARAM=VALUE``
@@ -67,8 +71,8 @@ def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool
     from recog.synda.run import patch_mapper
     model = Recogniser.load(model_path)
     if generator:
-        model.patch_map, _ = patch_mapper(generator, model.patch)
-        model.patch_map_source = generator
+        model.patch_map, ginfo = patch_mapper(generator, model.patch, domain=None)
+        model.patch_map_source, model.patch_map_domain = generator, ginfo["domain"]
     t0 = time.perf_counter()
     r = evaluate(model, testset, None, icp=False, progress=False, max_scans=max_scans)
     row = {"n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],

@@ -53,6 +53,11 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
         scans = scans[:max_scans]
     folder = Path(testset)
     intr = camera.intrinsics
+    colour = model.patch_map is not None and getattr(model, "patch_map_domain", "depth") == "rgb"
+    if colour and any(sc.rgb is None for sc in scans):
+        from data_tools.errors import FormatError
+        raise FormatError(folder / "labels.json", "the SynDA generator reads colour images, these scans have none "
+                                                  "(a colour test set: 'realgap synda testset'; or a depth generator)")
     names = model.names
     conf = np.zeros((len(names), len(names)), int)
     rows = []
@@ -69,7 +74,11 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
             from data_tools.errors import FormatError
             raise FormatError(folder / sc.file, f"image is {depth.shape[1]}x{depth.shape[0]}, camera.json says "
                                                 f"{intr.width}x{intr.height}")
-        pred = model.predict(depth, intr, sc.bbox, icp=icp, k=k)
+        rgb = None
+        if colour:
+            from data_tools.sequence import read_rgb_image
+            rgb = read_rgb_image(folder / sc.rgb, (intr.height, intr.width))
+        pred = model.predict(depth, intr, sc.bbox, icp=icp, k=k, colour=rgb)
         gi, pi = names.index(sc.object), names.index(pred.object)
         conf[gi, pi] += 1
         desc_correct += int(pred.descriptor_object == sc.object)

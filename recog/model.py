@@ -116,6 +116,9 @@ class Recogniser:
         generator, :func:`recog.synda.run.patch_mapper`); ICP and verification still use the measured depth."""
         self.patch_map_source: str | None = None
         """Where :attr:`patch_map` came from (the generator file), reported by the evaluation."""
+        self.patch_map_domain = "depth"
+        """What :attr:`patch_map` reads: ``depth`` (the measured patch) or ``rgb`` (the scan's colour image cut
+        with the depth patch's virtual camera, :func:`recog.synda.colour_testset.colour_patch`)."""
 
     @property
     def names(self) -> list[str]:
@@ -161,7 +164,7 @@ class Recogniser:
 
     # ------------------------------------------------------------------ prediction
     def predict(self, depth_m: np.ndarray, intr: Intrinsics, bbox, icp: bool = True, k: int = 5,
-                verify: int = 6, inits: int = 3) -> Prediction:
+                verify: int = 6, inits: int = 3, colour: np.ndarray | None = None) -> Prediction:
         """Recognise the object in window ``bbox`` of ``depth_m`` ((H, W) metres).
 
         The k nearest descriptors vote for the object. With ``icp`` and ``verify`` > 1, the
@@ -173,9 +176,17 @@ class Recogniser:
         look-alike objects that differ in size are told apart by how their geometry fits the
         window; several starts keep ICP from deciding by a bad initial pose). Measured on a
         validation set of T-LESS obj_01-06 (structure sensor, 120 scans): 1 start 95.0 %,
-        3 starts 97.5 % correct."""
+        3 starts 97.5 % correct. ``colour``: the (H, W, 3) uint8 image registered to ``depth_m``, needed when
+        :attr:`patch_map_domain` is ``rgb``."""
         p = extract_patch(depth_m, intr, bbox, self.patch)
-        image = p.image if self.patch_map is None else np.asarray(self.patch_map(p.image), np.float32)
+        image = p.image
+        if self.patch_map is not None and self.patch_map_domain == "rgb":
+            if colour is None:
+                raise ConfigError("the SynDA generator reads colour images; this scan has none")
+            from recog.synda.colour_testset import colour_patch
+            image = np.asarray(self.patch_map(colour_patch(colour, intr, p, self.patch)), np.float32)
+        elif self.patch_map is not None:
+            image = np.asarray(self.patch_map(p.image), np.float32)
         m = self.db.query(self.describe(image[None]), k, per_object=max(inits, 1))[0]
         votes = {self.names[o]: round(w, 4) for o, w in sorted(m.votes.items(), key=lambda t: -t[1])}
 

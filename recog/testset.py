@@ -130,6 +130,8 @@ class TestScan:
     object: str
     pose: np.ndarray
     bbox: tuple[int, int, int, int]
+    rgb: str | None = None
+    """The scan's colour image (a colour test set, :mod:`recog.synda.colour_testset`), or None."""
 
 
 def make_testset(objects: list[RecogObject], out_dir: str | os.PathLike, config: TestsetConfig | None = None,
@@ -251,5 +253,8 @@ def read_testset(folder: str | os.PathLike, known: list[str] | None = None):
             box = check_bbox(bbox, camera.intrinsics.width, camera.intrinsics.height)
         except Exception as e:
             raise FormatError(lab, f"{where}: {e}") from None
-        scans.append(TestScan(str(it["file"]), str(it["object"]), pose, box))
+        rgb = it.get("rgb")
+        if rgb is not None and not (isinstance(rgb, str) and rgb):
+            raise FormatError(lab, f"{where}: rgb must be the colour image's file name, got {rgb!r}")
+        scans.append(TestScan(str(it["file"]), str(it["object"]), pose, box, rgb))
     return camera, scans

@@ -58,8 +58,10 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("testset", metavar="TESTSET", help="folder with camera.json, depth/ and labels.json")
     add_shared(p, "--out", "folder for eval.json, predictions.jsonl and figures/", metavar="DIR")
     p.add_argument("--no-icp", action="store_true", help="report the database poses only")
-    p.add_argument("--synda", metavar="GEN", help="a SynDA depth generator (realgap synda train --domain depth): the "
-                                                 "recogniser reads its mapping of each measured patch")
+    p.add_argument("--synda", metavar="GEN", help="a SynDA generator whose output is depth (realgap synda train): the "
+                                                 "recogniser reads its mapping of each measured patch (--domain depth) "
+                                                 "or of each colour image (--domain rgb --target depth, on a colour "
+                                                 "test set made by 'realgap synda testset')")
     p.add_argument("--k", type=ranged("--k", int, 1), default=5, help="neighbours voting for the object (default 5)")
     add_shared(p, "--max-frames", "evaluate the first N scans")
     add_shared(p, "--overwrite", "an eval.json already in DIR")
@@ -136,8 +138,8 @@ def _eval(args) -> int:
     model = Recogniser.load(args.model)
     if args.synda:
         from recog.synda.run import patch_mapper
-        model.patch_map, _ = patch_mapper(args.synda, model.patch)
-        model.patch_map_source = str(args.synda)
+        model.patch_map, ginfo = patch_mapper(args.synda, model.patch, domain=None)
+        model.patch_map_source, model.patch_map_domain = str(args.synda), ginfo["domain"]
     r = evaluate(model, args.testset, out, icp=not args.no_icp, k=args.k,
                  progress=not args.no_progress, max_scans=args.max_frames)
     if args.json:

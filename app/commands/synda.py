@@ -4,6 +4,7 @@ synthetic domain the recogniser was trained on.
 * ``synda train --objects DIR|FILES|chairs --domain rgb|depth --out GEN`` (progress, checkpoints, resume)
 * ``synda map GEN INPUT... --out DIR`` (every intermediate modality as a PNG + a contact sheet)
 * ``synda augment --objects ... --out DIR`` (a contact sheet of A's samples)
+* ``synda testset --objects ... --out TESTSET`` (colour test scans rendered unlike A, for ``recog eval --synda``)
 """
 from __future__ import annotations
 
@@ -33,6 +34,9 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
                    help="size: cpu = narrow U-Net, batch 16, 3000 steps; gpu = the thesis' size, batch 64, 20000 steps")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
+    p.add_argument("--target", choices=("normals", "depth", "lightness"),
+                   help="the final output's modality (default: rgb normals, as the thesis; depth depth). rgb with "
+                        "depth feeds a depth recogniser: 'recog eval MODEL COLOUR_TESTSET --synda GEN'")
     p.add_argument("--iterations", type=positive_int("--iterations"), help="training steps (overrides --preset)")
     p.add_argument("--batch", type=positive_int("--batch"), help="samples per step (overrides --preset)")
     p.add_argument("--device", help="torch device (overrides --preset)")
@@ -65,7 +69,10 @@ def synda_configs(args):
     from recog.synda.config import synda_preset
     cfg = synda_preset(args.preset, args.domain)
     over = {k: getattr(args, k) for k in ("iterations", "batch", "device") if getattr(args, k, None) is not None}
-    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over)).validate()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over))
+    if getattr(args, "target", None):
+        cfg = dataclasses.replace(cfg, generator=dataclasses.replace(cfg.generator, target=args.target))
+    cfg = cfg.validate()
     vo = {"subdivisions": args.subdivisions} if args.subdivisions is not None else {}
     views = DataConfig(variant="physical", preset=args.sensor, seed=args.seed, draws=args.draws, **vo).validate()
     return cfg, views
@@ -119,6 +126,30 @@ def register_views(sub) -> None:
     add_shared(p, "--seed", "of the views and of A (default 0)", default=0)
     add_shared(p, "--overwrite", "a contact sheet already in DIR")
     p.set_defaults(func=_augment)
+    register_testset(sub)
+
+
+def register_testset(sub) -> None:
+    """``synda testset``: a colour test set rendered unlike A."""
+    p = sub.add_parser("testset", help="render a colour test set unlike A (image textures, lights, photos, 3D occluders)",
+                       description="Render labelled colour scans of the objects with VTK (PyVista, off screen): image "
+                                   "textures on the mesh, Phong or physically based materials under 1-3 coloured "
+                                   "lights, 3D occluders, photographs behind; plus the rendered depth. The folder is "
+                                   "a recog test set with an rgb/ image per scan: 'realgap recog eval MODEL TESTSET "
+                                   "--synda RGB_GEN' maps each colour patch to depth for the recogniser.")
+    p.add_argument("--objects", required=True, help="as for synda train")
+    add_shared(p, "--out", "the test set folder", required=True, metavar="TESTSET")
+    p.add_argument("--per-object", type=positive_int("--per-object"), default=10, help="scans per object (default 10)")
+    p.add_argument("--backgrounds", default="skimage",
+                   help="folder of background photographs, searched recursively (default skimage: scikit-image's "
+                        "samples, which A also uses; give another folder for backgrounds A never saw)")
+    p.add_argument("--textures", default="skimage", help="folder of texture images (default skimage)")
+    p.add_argument("--max-occluders", type=int, default=3, help="occluding solids per scan, 0..N (default 3)")
+    p.add_argument("--scale", type=float, help="file units -> metres (default: guessed)")
+    add_shared(p, "--seed", "(default 3000)", default=3000)
+    add_shared(p, "--overwrite", "a test set already in TESTSET")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_testset)
 
 
 def _map(args) -> int:
@@ -145,4 +176,19 @@ def _augment(args) -> int:
                               scale=args.scale)
     augment_sheet(out, samples, args.domain)
     print(f"{out}: contact_sheet.png and samples.npz of {args.samples} {args.domain} samples of A")
+    return 0
+
+
+def _testset(args) -> int:
+    from app.colour_render import PyVistaRenderer
+    from recog.objects import load_objects
+    from recog.synda.colour_testset import ColourTestsetConfig, image_files, make_colour_testset
+    cfg = ColourTestsetConfig(per_object=args.per_object, backgrounds=args.backgrounds, textures=args.textures,
+                              occluders=(0, args.max_occluders), seed=args.seed).validate()
+    objs = load_objects(args.objects, args.scale)
+    render = PyVistaRenderer(cfg, image_files(cfg.textures))
+    command = "realgap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    n = make_colour_testset(objs, args.out, cfg, render, overwrite=args.overwrite, progress=not args.no_progress,
+                            command=command)
+    print(f"{args.out}: {n} colour scans (rgb/, depth/, labels.json) of {', '.join(o.name for o in objs)}")
     return 0

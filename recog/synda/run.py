@@ -81,25 +81,35 @@ def check_patch_match(gen_info: dict, patch: PatchConfig, gen_path) -> None:
                                     f"recogniser's objects)")
 
 
-def patch_mapper(gen_path: str | os.PathLike, patch: PatchConfig | None = None, device: str = "cpu"):
-    """(map, info): ``map((S, S) or (N, S, S) float32 normalised depth patches) -> the same shape``, h_G's final
-    output (clean synthetic depth); ``patch`` given: the generator must have been trained on such patches."""
+def patch_mapper(gen_path: str | os.PathLike, patch: PatchConfig | None = None, device: str = "cpu",
+                 domain: str | None = "depth"):
+    """(map, info): ``map`` takes (S, S) / (N, S, S) float32 normalised depth patches (a ``depth`` generator) or
+    (3, S, S) / (N, 3, S, S) colour patches in [-1, 1] (an ``rgb`` one) and returns h_G's final output, (S, S) /
+    (N, S, S) clean synthetic depth; ``info['domain']`` says which. ``domain``: the input domain the caller
+    needs (None: either); the generator's final output must be depth (the recogniser's input) and, with
+    ``patch`` given, it must have been trained on such patches."""
     import torch
 
     from recog.synda.io import load_generator
-    net, cfg, info = load_generator(gen_path, "depth", device)
+    net, cfg, info = load_generator(gen_path, domain, device)
+    if cfg.generator.target != "depth":
+        raise FormatError(gen_path, f"the generator's final output is {cfg.generator.target}, the recogniser reads "
+                                    f"depth (train it with 'realgap synda train --target depth')")
     if patch is not None:
         check_patch_match(info, patch, gen_path)
+    single = 3 if cfg.domain == "rgb" else 2
 
     def run(images: np.ndarray) -> np.ndarray:
         a = np.asarray(images, np.float32)
-        one = a.ndim == 2
-        x = torch.from_numpy(np.ascontiguousarray(a[None] if one else a))[:, None].to(device)
+        one = a.ndim == single
+        x = torch.from_numpy(np.ascontiguousarray(a[None] if one else a))
+        if cfg.domain != "rgb":
+            x = x[:, None]
         with torch.no_grad():
-            y = net(x)["output"][:, 0].cpu().numpy()
+            y = net(x.to(device))["output"][:, 0].cpu().numpy()
         return y[0] if one else y
 
-    return run, info
+    return run, {**info, "domain": cfg.domain}
 
 
 def modalities(gen_path: str | os.PathLike, images: np.ndarray, domain: str | None = None) -> tuple[dict, dict]:
