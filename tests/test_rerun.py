@@ -51,6 +51,7 @@ CASES = [
     ("synda map", ["synda", "map", "G.pt", "x.png", "--out", "{OUT}"], "contact_sheet.png"),
     ("synda augment", ["synda", "augment", "--objects", "chairs", "--domain", "depth", "--out", "{OUT}"],
      "contact_sheet.png"),
+    ("synda testset", ["synda", "testset", "--objects", "chairs", "--out", "{OUT}"], "labels.json"),
     ("synth sequence", ["synth", "sequence", "--out", "{OUT}"], "depth.txt"),
     ("synth views", ["synth", "views", "--model", "m.ply", "--out", "{OUT}"], "views.jsonl"),
     ("view --screenshot", ["view", "S", "--screenshot", "{OUT}"], None),

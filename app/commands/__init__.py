@@ -120,6 +120,7 @@ RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {
     "synda train": (("out", None),),
     "synda map": (("out", ("contact_sheet.png",)),),
     "synda augment": (("out", ("contact_sheet.png",)),),
+    "synda testset": (("out", ("labels.json",)),),
     "synth sequence": (("out", ("depth.txt",)),),
     "synth views": (("out", ("views.jsonl",)),),
     "view": (("screenshot", None), ("movie", None)),
@@ -157,7 +158,7 @@ OUTPUT_FLAGS = ("--out", "--screenshot", "--movie", "--json")
 OUTPUT_POSITIONALS = ("dst",)
 """Positional arguments naming something a command writes (``data convert-* SRC DST``)."""
 INPUT_FLAGS = ("--model", "--gt", "--camera", "--config", "--compare-against", "--objects", "--worlds", "--planar",
-               "--lab", "--recog", "--calib", "--synda")
+               "--lab", "--recog", "--calib", "--synda", "--backgrounds", "--textures")
 """Options naming files or folders a command reads (besides its positional arguments)."""
 
 
