@@ -13,11 +13,18 @@ import shlex
 import sys
 
 from app.commands import RESUMES, add_group, add_shared, positive_int
+from app.commands.flags import add_config_flags, config_overrides
+from recog.synda.config import SyndaTrainConfig
 
 NAME = "synda"
 HELP = "SynDA: map measured / real-like inputs into the clean synthetic domain (thesis ch. 5)"
 DESCRIPTION = ("Train a multi-decoder U-Net with self-attentive distillation on augmented synthetic views of "
                "CAD objects, map inputs with it, look at the augmentation.")
+
+
+_HAND_WRITTEN = ("iterations", "batch", "device", "seed", "lr", "beta1", "triplet_weight")
+"""SyndaTrainConfig fields with no generated ``synda train`` flag (the first four have hand-written ones that
+override the preset; the optimiser numbers are the preset's)."""
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -49,6 +56,9 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="training checkpoint every N steps (default 100)")
     p.add_argument("--work", help="folder for the simulated views and the checkpoint (default GEN.work)")
     p.add_argument("--keep-work", action="store_true", help="keep the work folder at the end")
+    p.add_argument("--init", metavar="GEN", help="start from this generator's weights (same architecture and domain; "
+                                                 "fine-tuning) instead of random ones")
+    add_config_flags(p, SyndaTrainConfig, "train.", flag_prefix="", exclude=_HAND_WRITTEN)
     add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
     add_shared(p, "--seed", "of views, weights and augmentation (default 0)", default=0)
     add_shared(p, "--overwrite", "a generator already at GEN")
@@ -69,6 +79,7 @@ def synda_configs(args):
     from recog.synda.config import synda_preset
     cfg = synda_preset(args.preset, args.domain)
     over = {k: getattr(args, k) for k in ("iterations", "batch", "device") if getattr(args, k, None) is not None}
+    over.update({k[len("train."):]: v for k, v in config_overrides(args).items() if k.startswith("train.")})
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over))
     if getattr(args, "target", None):
         cfg = dataclasses.replace(cfg, generator=dataclasses.replace(cfg.generator, target=args.target))
@@ -87,7 +98,7 @@ def _train(args) -> int:
     gen, info = train_synda(args.objects, args.out, cfg, views, work=args.work, scale=args.scale,
                             workers=args.workers, overwrite=args.overwrite, keep_work=args.keep_work,
                             progress=not args.no_progress, command=command, checkpoint_every=args.checkpoint_every,
-                            log=_log)
+                            log=_log, init=args.init)
     fl = info["final_losses"]
     print(f"{gen}: SynDA {cfg.domain} generator of {', '.join(info['object_names'])}; {info['training_views']} views, "
           f"{cfg.train.iterations} steps ({info['timings_s']['train_s']:.0f} s, views "

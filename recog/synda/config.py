@@ -230,6 +230,18 @@ class SyndaTrainConfig:
     """Seed of the initial weights and of the augmentation draws."""
     device: str = "cpu"
     """torch device."""
+    descriptor_weight: float = 0.0
+    """Weight of the descriptor (feature-matching) loss, a deviation from the thesis: the squared L2 (or L1,
+    :attr:`descriptor_distance`) between a frozen recogniser's descriptors of h_G's output and of the clean
+    target patch, mean over the batch. 0 = off (the shipped generator's recipe)."""
+    descriptor_recogniser: str = ""
+    """The frozen (clean-trained) recogniser folder whose network gives the descriptors; needed when
+    :attr:`descriptor_weight` > 0; its patches must be the generator's (size and crop)."""
+    descriptor_distance: Literal["l2", "l1"] = "l2"
+    """Distance of the descriptor loss: ``l2`` = squared Euclidean, ``l1`` = sum of absolute differences."""
+    object_weight: float = 0.0
+    """Weight of an extra L1 of the final output on the object's pixels (mean over the mask), on top of the
+    output's L1 over the whole patch, which the background dominates. 0 = off."""
 
     def validate(self) -> "SyndaTrainConfig":
         if self.iterations < 1 or self.batch < 1:
@@ -237,6 +249,13 @@ class SyndaTrainConfig:
         if not self.lr > 0 or not 0 <= self.beta1 < 1 or self.triplet_weight < 0:
             raise ConfigError(f"synda train lr must be > 0, beta1 in [0, 1), triplet_weight >= 0; got "
                               f"{self.lr}, {self.beta1}, {self.triplet_weight}")
+        if not (self.descriptor_weight >= 0 and self.object_weight >= 0):
+            raise ConfigError(f"synda train descriptor_weight and object_weight must be >= 0, got "
+                              f"{self.descriptor_weight}, {self.object_weight}")
+        if self.descriptor_distance not in ("l2", "l1"):
+            raise ConfigError(f"synda train descriptor_distance {self.descriptor_distance!r}: choose l2 or l1")
+        if self.descriptor_weight > 0 and not self.descriptor_recogniser:
+            raise ConfigError("synda train descriptor_weight > 0 needs descriptor_recogniser (a recogniser folder)")
         return self
 
 
@@ -262,6 +281,9 @@ class SyndaConfig:
         if self.domain == "depth" and "lightness" in self.generator.decoders + (self.generator.target,):
             raise ConfigError("synda depth domain has no lightness (it comes from the colour shading): "
                               "drop the lightness decoder")
+        if (self.train.descriptor_weight > 0 or self.train.object_weight > 0) and self.generator.target != "depth":
+            raise ConfigError(f"synda descriptor / object losses need the final output to be depth (the recogniser's "
+                              f"input), not {self.generator.target}")
         return self
 
     @property

@@ -8,6 +8,12 @@ cross-entropy for the mask (binary cross-entropy on logits for one channel; cros
 classes for ``mask_classes`` >= 2, the target then holding class indices). No per-task weights:
 the thesis leaves the weighting to the distillation module. L_t is the recogniser's triplet loss
 (:func:`recog.loss.triplet_loss`, thesis Eq. 5.1) on the flattened codes.
+
+Deviation, optional (off by default; :class:`recog.synda.config.SyndaTrainConfig`): a descriptor-space
+(feature-matching) term ``w_d ||f(h_R(x)) - f(y)||`` with ``f`` a frozen clean-trained recogniser's network
+(:func:`descriptor_loss`), and an object-weighted L1 of the output (:func:`object_l1`). The output L1 is
+dominated by the ~90 % background pixels and a smoothed chair passes it while the recogniser reads it as another
+chair (docs/synda.md, "Why the target is missed"); these terms ask for what the recogniser needs instead.
 """
 from __future__ import annotations
 
@@ -17,7 +23,7 @@ import torch.nn.functional as F
 from data_tools.errors import ConfigError
 from recog.loss import triplet_loss
 
-__all__ = ["modality_loss", "generator_loss", "bottleneck_triplet_loss"]
+__all__ = ["modality_loss", "generator_loss", "bottleneck_triplet_loss", "descriptor_loss", "object_l1"]
 
 
 def modality_loss(modality: str, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -60,3 +66,26 @@ def bottleneck_triplet_loss(code_anchor: torch.Tensor, code_pos: torch.Tensor, c
     """Scalar mean triplet loss (Eq. 5.1) of (B, D) bottleneck codes with (B,) margins (see
     :func:`recog.loss.dynamic_margin`)."""
     return triplet_loss(code_anchor, code_pos, code_neg, margin).mean()
+
+
+def descriptor_loss(net: torch.nn.Module, pred: torch.Tensor, target: torch.Tensor, distance: str = "l2") -> torch.Tensor:
+    """Scalar mean over the batch of the distance between ``net``'s descriptors of ``pred`` and of ``target``
+    ((B, 1, S, S) depth patches in the recogniser's normalisation, which h_G's tanh output already is:
+    :mod:`recog.patches`, fed to the network as :meth:`recog.model.Recogniser.describe` does). ``l2``: squared
+    Euclidean; ``l1``: sum of absolute differences. The target's descriptor carries no gradient; ``net`` should
+    be frozen (its parameters not in the optimiser, ``requires_grad`` off) so that only h_G learns."""
+    with torch.no_grad():
+        t = net(target)
+    d = net(pred) - t
+    if distance == "l1":
+        return d.abs().sum(1).mean()
+    if distance != "l2":
+        raise ConfigError(f"synda descriptor distance {distance!r}: choose l2 or l1")
+    return (d * d).sum(1).mean()
+
+
+def object_l1(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Scalar L1 of ``pred`` against ``target`` ((B, C, S, S)) on the pixels where ``mask`` (B, 1, S, S) is set,
+    mean over those pixels of the batch (0 when none is)."""
+    m = mask.to(pred.dtype)
+    return ((pred - target).abs() * m).sum() / (m.sum() * pred.shape[1]).clamp(min=1)

@@ -30,12 +30,14 @@ __all__ = ["train_synda", "patch_mapper", "check_patch_match"]
 def train_synda(objects_spec, gen: str | os.PathLike, cfg: SyndaConfig, views: DataConfig, *,
                 work: str | os.PathLike | None = None, scale: float | None = None, workers: int = 1,
                 overwrite: bool = False, keep_work: bool = False, progress: bool = True, command: str = "",
-                checkpoint_every: int = 100, log: Callable[[str], None] | None = None) -> tuple[Path, dict]:
-    """Train a generator of ``objects_spec`` into the file ``gen``; returns (path, info)."""
+                checkpoint_every: int = 100, log: Callable[[str], None] | None = None,
+                init: str | os.PathLike | None = None) -> tuple[Path, dict]:
+    """Train a generator of ``objects_spec`` into the file ``gen``; returns (path, info). ``init``: a generator
+    file to start from (fine-tuning, e.g. with the descriptor loss)."""
     from recog.synda.augment import Augmenter
     from recog.synda.data import folder_chunks, generate_synda_data, load_synda_data
     from recog.synda.io import save_generator
-    from recog.synda.train import default_work, evaluate_batch_loss, train_generator
+    from recog.synda.train import default_work, evaluate_batch_loss, load_descriptor_net, train_generator
     cfg.validate()
     views.validate()
     gen = Path(gen)
@@ -46,6 +48,9 @@ def train_synda(objects_spec, gen: str | os.PathLike, cfg: SyndaConfig, views: D
     work = Path(work) if work else default_work(gen)
     objs = load_objects(objects_spec, scale)
     patch = PatchConfig(size=cfg.generator.size, crop_m=round(1.2 * max(o.diameter_m for o in objs), 4))
+    dnet = None
+    if cfg.train.descriptor_weight > 0:
+        dnet = load_descriptor_net(cfg.train.descriptor_recogniser, patch.size, patch.crop_m, cfg.train.device)
     noisy = cfg.domain == "depth"
     had = folder_chunks(work / "data")
     if had and log is not None:
@@ -57,15 +62,15 @@ def train_synda(objects_spec, gen: str | os.PathLike, cfg: SyndaConfig, views: D
     data = load_synda_data(objs, work / "data", noisy)
     aug = Augmenter(cfg.augment, cfg.domain, cfg.generator.size)
     net, tlog = train_generator(cfg, data, work / "checkpoint.pt", augmenter=aug, progress=progress, log=log,
-                                checkpoint_every=checkpoint_every)
+                                checkpoint_every=checkpoint_every, descriptor_net=dnet, init=init)
     t["train_s"] = round(tlog.seconds, 1)
-    held = evaluate_batch_loss(net, cfg, data, aug, seed=12345)
+    held = evaluate_batch_loss(net, cfg, data, aug, seed=12345, descriptor_net=dnet)
     info = {"command": command, "seed": cfg.train.seed, "objects": [o.to_json() for o in objs],
             "object_names": [o.name for o in objs], "patch": asdict(patch), "views": asdict(views),
             "training_views": int(len(data)), "measured_draws": int(data.noisy.shape[1]),
             "final_losses": tlog.steps[-1] if tlog.steps else {}, "train_log": tlog.steps[-20:],
             "eval_mode_batch_loss": {k: round(v, 5) for k, v in held.items()},
-            "resumed_from_step": tlog.resumed_from, "chunks_made": made, "timings_s": t}
+            "resumed_from_step": tlog.resumed_from, "init": str(init) if init else None, "chunks_made": made, "timings_s": t}
     save_generator(gen, net, cfg, info)
     if not keep_work:
         shutil.rmtree(work, ignore_errors=True)

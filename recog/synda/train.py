@@ -17,6 +17,11 @@ Domains:
   light, procedural hue/saturation textures, backgrounds, occluders and blur; targets are the
   normals and depth on the object (0 normals / far depth +1 elsewhere), the mask and the lightness.
 
+Optional terms (off by default; a deviation from the thesis, see :mod:`recog.synda.loss`): the descriptor loss
+through a frozen recogniser's network (:func:`load_descriptor_net`) and the object-weighted output L1, weighted by
+``SyndaTrainConfig.descriptor_weight`` / ``object_weight``. ``init``: training may start from a generator file's
+weights (same architecture and domain) instead of the seed's random ones, to fine-tune with these terms.
+
 Deviation, on purpose: the optional triplet loss at the bottleneck (thesis Eq. 5.1, with poses)
 uses, without poses at hand, the view under a second augmentation as the positive and another
 sample of the batch as the negative, with a constant margin :data:`TRIPLET_MARGIN`; it doubles the
@@ -33,15 +38,16 @@ from typing import Callable
 import numpy as np
 import torch
 
-from data_tools.errors import ConfigError
+from data_tools.errors import ConfigError, FormatError
 from data_tools.training import TrainingState, run_steps, settings_of
 from recog.synda.augment import Augmenter
 from recog.synda.config import SyndaConfig
 from recog.synda.data import SyndaData, normals_from_depth
-from recog.synda.loss import bottleneck_triplet_loss, generator_loss
+from recog.synda.loss import bottleneck_triplet_loss, descriptor_loss, generator_loss, object_l1
 from recog.synda.model import Generator
 
-__all__ = ["SyndaTrainLog", "make_batch", "train_generator", "TRIPLET_MARGIN", "pick_threads"]
+__all__ = ["SyndaTrainLog", "make_batch", "train_generator", "TRIPLET_MARGIN", "pick_threads", "load_descriptor_net",
+           "extra_losses"]
 
 TRIPLET_MARGIN = 1.0
 """Margin of the bottleneck triplet loss (see the module docstring)."""
@@ -88,12 +94,59 @@ def make_batch(data: SyndaData, idx: np.ndarray, draw: np.ndarray, augmenter: Au
                           "mask": mask, "lightness": out["lightness"]}
 
 
+def load_descriptor_net(path: str | os.PathLike, size: int, crop_m: float | None = None,
+                        device: str | torch.device = "cpu") -> torch.nn.Module:
+    """The frozen network (eval mode, no gradients to its weights) of the recogniser folder ``path``, for the
+    descriptor loss. One-line :class:`FormatError` unless it reads ``size`` px patches (of ``crop_m`` metres when
+    given): only then is h_G's output, in the patch normalisation of :mod:`recog.patches`, what it was trained on."""
+    from recog.model import Recogniser
+    model = Recogniser.load(path)
+    if int(model.patch.size) != int(size) or (crop_m is not None and abs(float(model.patch.crop_m) - crop_m) > 1e-6):
+        raise FormatError(path, f"the recogniser reads {model.patch.size} px patches of {model.patch.crop_m} m, the "
+                                f"generator's are {size} px of {crop_m if crop_m is not None else '?'} m (another "
+                                f"normalisation): use a recogniser of the same objects and patch size")
+    net = model.net.to(device).eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return net
+
+
+def extra_losses(cfg: SyndaConfig, out: dict, tgt: dict, descriptor_net: torch.nn.Module | None) -> tuple[torch.Tensor, dict]:
+    """(weighted sum, parts) of the optional descriptor and object terms (see the module docstring); zero and
+    no parts when both weights are 0."""
+    tc = cfg.train
+    total, parts = out["output"].new_zeros(()), {}
+    y = tgt[cfg.generator.target]
+    if tc.descriptor_weight > 0:
+        if descriptor_net is None:
+            raise ConfigError("synda descriptor loss: no recogniser network given")
+        ld = descriptor_loss(descriptor_net, out["output"], y, tc.descriptor_distance)
+        total, parts["descriptor"] = total + tc.descriptor_weight * ld, float(ld.detach())
+    if tc.object_weight > 0:
+        lo = object_l1(out["output"], y, tgt["mask"])
+        total, parts["object"] = total + tc.object_weight * lo, float(lo.detach())
+    return total, parts
+
+
+def _load_init(net: Generator, cfg: SyndaConfig, init: str | os.PathLike) -> None:
+    from recog.synda.io import load_generator
+    from data_tools.config import config_to_dict
+    other, ocfg, _ = load_generator(init, cfg.domain)
+    if config_to_dict(ocfg.generator) != config_to_dict(cfg.generator):
+        raise FormatError(init, "its architecture differs from the one being trained (another preset or --target?)")
+    net.load_state_dict(other.state_dict())
+
+
 def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.PathLike | None = None, *,
                     augmenter: Augmenter | None = None, progress: bool = True, checkpoint_every: int = 100,
-                    log_every: int = 25, log: Callable[[str], None] | None = None) -> tuple[Generator, SyndaTrainLog]:
+                    log_every: int = 25, log: Callable[[str], None] | None = None,
+                    descriptor_net: torch.nn.Module | None = None,
+                    init: str | os.PathLike | None = None) -> tuple[Generator, SyndaTrainLog]:
     """Train h_G on ``data``; returns (generator in eval mode, :class:`SyndaTrainLog`). ``checkpoint``: the
     resumable state file (continued from when it exists; a resumed run reaches the same weights as an
-    uninterrupted one: the random states are restored and CPU kernels are deterministic)."""
+    uninterrupted one: the random states are restored and CPU kernels are deterministic). ``descriptor_net``:
+    the frozen network of the descriptor loss (default: loaded from ``cfg.train.descriptor_recogniser`` when its
+    weight is > 0, checking the patch size only); ``init``: a generator file to start from."""
     cfg.validate()
     tc = cfg.train
     device = torch.device(tc.device)
@@ -103,8 +156,13 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
         raise ConfigError(f"SynDA training needs at least 2 usable views, got {len(data)}")
     if data.clean.shape[-1] != cfg.generator.size:
         raise ConfigError(f"training patches are {data.clean.shape[-1]} px, the generator takes {cfg.generator.size}")
+    if tc.descriptor_weight > 0 and descriptor_net is None:     # before seeding: building its network draws
+        descriptor_net = load_descriptor_net(tc.descriptor_recogniser, cfg.generator.size, device=device)
     torch.manual_seed(tc.seed)
-    net = Generator(cfg.generator, cfg.domain).to(device)
+    net = Generator(cfg.generator, cfg.domain)
+    if init is not None:
+        _load_init(net, cfg, init)
+    net = net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=tc.lr, betas=(tc.beta1, 0.999))
     rng = np.random.default_rng(tc.seed)
     aug = augmenter or Augmenter(cfg.augment, cfg.domain, cfg.generator.size)
@@ -129,6 +187,8 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
             tgt = {k: torch.cat([v, tgt2[k]]) for k, v in tgt.items()}
         out = net(x)
         loss, parts = generator_loss(out, tgt, cfg.generator.target)
+        extra, more = extra_losses(cfg, out, tgt, descriptor_net)
+        loss, parts = loss + extra, {**parts, **more}
         if triplet:
             c1, c2 = out["code"][:B], out["code"][B:]
             lt = bottleneck_triplet_loss(c1, c2, c1.roll(1, 0), torch.full((B,), TRIPLET_MARGIN, device=device))
@@ -149,9 +209,10 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
 
 
 def evaluate_batch_loss(net: Generator, cfg: SyndaConfig, data: SyndaData, augmenter: Augmenter, seed: int,
-                        batch: int = 32) -> dict:
+                        batch: int = 32, descriptor_net: torch.nn.Module | None = None) -> dict:
     """Losses of ``net`` (eval mode) on one fixed batch (views and A drawn from ``seed``): a held-constant
-    yardstick to compare generators or steps."""
+    yardstick to compare generators or steps (with ``cfg``'s optional terms; the descriptor term needs
+    ``descriptor_net``)."""
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(data), batch)
     draw = rng.integers(0, max(data.noisy.shape[1], 1), batch)
@@ -159,6 +220,9 @@ def evaluate_batch_loss(net: Generator, cfg: SyndaConfig, data: SyndaData, augme
     with torch.no_grad():
         out = net(x)
         loss, parts = generator_loss(out, tgt, cfg.generator.target)
+        if cfg.train.descriptor_weight == 0 or descriptor_net is not None:
+            extra, more = extra_losses(cfg, out, tgt, descriptor_net)
+            loss, parts = loss + extra, {**parts, **more}
     return {"loss": float(loss), **parts}
 
 
