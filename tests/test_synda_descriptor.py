@@ -15,15 +15,7 @@ from recog.synda.io import save_generator
 from recog.synda.loss import descriptor_loss, object_l1
 from recog.synda.model import Generator
 from recog.synda.train import evaluate_batch_loss, load_descriptor_net, train_generator
-from tests.test_synda_train import S, boxes, config
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+from tests.test_synda_train import S, boxes, config, one_thread  # noqa: F401  (autouse: one torch thread)
 
 
 def tiny_recogniser(folder, size: int = S, crop_m: float = 0.5):
