@@ -45,6 +45,7 @@ import torch
 
 from data_tools.errors import ConfigError, FormatError
 from recog.synda.config import BACKGROUNDS, BLURS, TEXTURES, AugmentConfig
+from recog.synda.images import IMAGE_SUFFIXES, image_folder
 from recog.synda.noise import NOISE_KINDS, draw_noise, eval_noise, pixel_coords
 from recog.synda.polygons import polygon_masks, random_polygons
 from recog.synda.shading import blinn_phong
@@ -58,20 +59,13 @@ with sensor effects. It must be deterministic for given seeds (A's replayability
 
 BANK_SIDE = 128
 """Side (pixels) every background image is resized to."""
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def load_image_bank(source: str, side: int = BANK_SIDE) -> torch.Tensor:
     """(N, 3, side, side) float RGB in [0, 1] from the images of folder ``source`` (``skimage``:
     the sample images scikit-image ships); grey images are repeated to 3 channels, alpha dropped."""
     import skimage.io
-    if source == "skimage":
-        import skimage.data
-        folder = Path(skimage.data.__file__).parent
-    else:
-        folder = Path(source)
-    if not folder.is_dir():
-        raise FormatError(folder, "background image folder not found")
+    folder = image_folder(source, "background image")
     files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
     bank = []
     for f in files:

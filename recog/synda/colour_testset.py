@@ -47,15 +47,13 @@ import numpy as np
 
 from data_tools.errors import ConfigError, FormatError
 from recog.objects import RecogObject
+from recog.synda.images import image_files
 
 __all__ = ["ColourTestsetConfig", "ColourScene", "draw_scene", "make_colour_testset", "image_files",
            "colour_patch", "OCCLUDER_SHAPES", "compose"]
 
 OCCLUDER_SHAPES = ("sphere", "box", "cylinder", "cone")
 """Solids the renderer must know (``ColourScene.occluders[i]["shape"]``)."""
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-
 
 @dataclass
 class ColourTestsetConfig:
@@ -131,34 +129,6 @@ class ColourScene:
     """Index into the background image list."""
     crop: tuple[float, float, float] = (1.0, 0.0, 0.0)
     """Background crop: side fraction, x and y offset fractions of the remaining margin."""
-
-
-def image_files(source: str, recursive: bool = False, limit: int | None = None) -> list[Path]:
-    """Sorted 8-bit image files of folder ``source`` (``skimage``: scikit-image's sample images; 16-bit PNGs, i.e.
-    depth images, left out); at most ``limit``, evenly spaced. One-line error when there is none."""
-    if source == "skimage":
-        import skimage.data
-        folder = Path(skimage.data.__file__).parent
-    else:
-        folder = Path(source)
-    if not folder.is_dir():
-        raise FormatError(folder, "image folder not found")
-    it = folder.rglob("*") if recursive else folder.iterdir()
-    files = sorted(f for f in it if f.suffix.lower() in IMAGE_SUFFIXES and f.is_file() and _eight_bit(f))
-    if not files:
-        raise FormatError(folder, f"no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
-    if limit is not None and len(files) > limit:
-        files = [files[int(i)] for i in np.linspace(0, len(files) - 1, limit).round()]
-    return files
-
-
-def _eight_bit(f: Path) -> bool:
-    """False for a PNG of 16-bit samples (a depth image beside the colour frames, as in 7-Scenes folders)."""
-    if f.suffix.lower() != ".png":
-        return True
-    with open(f, "rb") as fh:
-        head = fh.read(26)
-    return len(head) < 26 or head[24] == 8
 
 
 def draw_scene(obj: RecogObject, oi: int, s: int, cfg: ColourTestsetConfig, n_textures: int,
