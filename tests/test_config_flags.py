@@ -90,3 +90,29 @@ def test_bad_flag_values_are_one_usage_line(argv, msg):
     with pytest.raises(UsageError) as e:
         _parser().parse_args(argv)
     assert msg in str(e.value) and "\n" not in str(e.value)
+
+
+@dataclass
+class Ranges:
+    span: tuple[float, float] = (0.0, 1.0)
+    """A range LO,HI."""
+    names: tuple[str, ...] = ("a",)
+    """Any number of names."""
+    sizes: tuple[int, ...] = (1, 2)
+    """Whole numbers."""
+
+
+def test_tuple_flags_take_comma_lists():
+    """A tuple field's flag reads ``LO,HI`` into the field's element types; a wrong count or a bad element is an
+    argparse error naming the flag (one usage line), and the parsed value round-trips through config_replace."""
+    import argparse
+
+    from app.commands.flags import add_config_flags, config_overrides
+    p = argparse.ArgumentParser(exit_on_error=False)
+    add_config_flags(p, Ranges)
+    args = p.parse_args(["--span", "0.25,0.5", "--names", "x,y,z", "--sizes", "3"])
+    assert config_overrides(args) == {"span": (0.25, 0.5), "names": ("x", "y", "z"), "sizes": (3,)}
+    assert config_replace(Ranges(), config_overrides(args)) == Ranges((0.25, 0.5), ("x", "y", "z"), (3,))
+    for bad in (["--span", "0.25"], ["--span", "0.1,abc"], ["--sizes", "1,2.5"]):
+        with pytest.raises(argparse.ArgumentError, match="--span|--sizes"):
+            p.parse_args(bad)

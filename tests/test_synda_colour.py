@@ -187,12 +187,35 @@ def test_colour_patch_and_image_errors(tmp_path):
 def test_train_target_flag():
     """``synda train --target depth`` makes an rgb generator whose final output is depth (the depth recogniser's
     input); without it the rgb preset keeps the thesis' normals."""
-    import argparse
-
+    from app.cli import build_parser
     from app.commands.synda import synda_configs
-    base = dict(preset="cpu", domain="rgb", seed=0, iterations=None, batch=None, device=None, subdivisions=None,
-                sensor="kinect_v1", draws=2)
-    cfg, _ = synda_configs(argparse.Namespace(**base, target="depth"))
+    base = ["synda", "train", "--objects", "chairs", "--domain", "rgb", "--out", "g.pt"]
+    cfg, _ = synda_configs(build_parser().parse_args(base + ["--target", "depth"]))
     assert cfg.domain == "rgb" and cfg.generator.target == "depth"
-    cfg, _ = synda_configs(argparse.Namespace(**base, target=None))
+    cfg, _ = synda_configs(build_parser().parse_args(base))
     assert cfg.generator.target == "normals"
+
+
+def test_train_flags_generated_from_config(capsys):
+    """Every SynDA field has a ``synda train`` flag that overrides the preset: optimiser numbers by their name,
+    the architecture's ablation switches as ``--no-generator.NAME``, A's ranges as ``LO,HI``; a range of the wrong
+    length is one usage line before any work, and an unset flag keeps the preset's value."""
+    import dataclasses
+
+    from app.cli import build_parser, main
+    from app.commands.synda import synda_configs
+    from recog.synda.config import synda_preset
+    base = ["synda", "train", "--objects", "chairs", "--domain", "depth", "--out", "g.pt", "--seed", "3"]
+    cfg, _ = synda_configs(build_parser().parse_args(base))
+    preset = synda_preset("cpu", "depth")
+    assert cfg == dataclasses.replace(preset, train=dataclasses.replace(preset.train, seed=3))
+    cfg, _ = synda_configs(build_parser().parse_args(base + [
+        "--iterations", "7", "--lr", "1e-3", "--no-generator.skips", "--generator.widths", "8,16,16,16,16,16",
+        "--augment.blur-sigma", "0.5,0.9", "--augment.blurs", "none,median"]))
+    assert cfg.train.iterations == 7 and cfg.train.lr == 1e-3 and cfg.train.seed == 3
+    assert cfg.generator.skips is False and cfg.generator.widths == (8, 16, 16, 16, 16, 16)
+    assert cfg.augment.blur_sigma == (0.5, 0.9) and cfg.augment.blurs == ("none", "median")
+    assert cfg.generator.decoders == preset.generator.decoders            # untouched fields keep the preset's
+    assert main(base + ["--augment.blur-sigma", "0.5"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--augment.blur-sigma" in err and "expected 2 comma-separated values" in err

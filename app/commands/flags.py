@@ -6,7 +6,8 @@ Per field: the flag ``--PREFIX.NAME`` (dashes for underscores; the underscore sp
 docstring and default as its help (a shared flag of :data:`app.commands.SHARED_FLAGS` keeps its standard help
 first), a nested dataclass field's fields as ``--NAME.FIELD``. Typed flags convert the value to the field's type,
 offer a ``Literal``'s choices and check the :class:`data_tools.config.Range` of its annotation, so a bad value is a
-one-line usage error (``argument --steps: must be >= 1, got 0``) before any work; the whole configuration is then
+one-line usage error (``argument --steps: must be >= 1, got 0``) before any work; a tuple field takes a comma
+list (``--ambient 0.1,0.2``); the whole configuration is then
 checked by its ``validate()``. Values land in ``args`` as ``cfg:DOTTED.NAME`` (:func:`config_overrides`).
 """
 from __future__ import annotations
@@ -17,7 +18,26 @@ import math
 import typing
 from typing import Any
 
-__all__ = ["add_config_flags", "config_overrides", "number_parser", "type_name"]
+__all__ = ["add_config_flags", "config_overrides", "list_parser", "number_parser", "type_name"]
+
+
+def list_parser(tp):
+    """argparse ``type`` of a tuple field: ``"a,b,c"`` -> a tuple of the element type (``tuple[float, float]``: exactly
+    two numbers; ``tuple[str, ...]``: any count); a bad element or count raises ArgumentTypeError (one usage line)."""
+    args = typing.get_args(tp)
+    elems = (args[0],) if len(args) == 2 and args[1] is Ellipsis else args
+
+    def parse(text: str):
+        items = [t.strip() for t in text.split(",")] if text.strip() else []
+        if elems and not (len(args) == 2 and args[1] is Ellipsis) and len(items) != len(elems):
+            raise argparse.ArgumentTypeError(f"expected {len(elems)} comma-separated values, got {text!r}")
+        out = []
+        for i, item in enumerate(items):
+            et = str if not elems else elems[0] if len(elems) == 1 else elems[i]
+            out.append(number_parser(et, None)(item) if et in (int, float) else item)
+        return tuple(out)
+    parse.__name__ = "list"
+    return parse
 
 
 def type_name(tp) -> str:
@@ -93,6 +113,8 @@ def add_config_flags(p, cls, prefix: str = "", *, exclude: tuple = (), aliases: 
             kw["choices"] = choices
         elif tp in (int, float, str):
             kw.update(type=number_parser(tp, field_range(cls, f.name)), metavar=type_name(tp))
+        elif typing.get_origin(tp) is tuple:
+            kw.update(type=list_parser(tp), metavar=type_name(tp))
         else:
             kw["metavar"] = type_name(tp)
         p.add_argument(*names, **kw)

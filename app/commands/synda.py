@@ -22,9 +22,20 @@ DESCRIPTION = ("Train a multi-decoder U-Net with self-attentive distillation on 
                "CAD objects, map inputs with it, look at the augmentation.")
 
 
-_HAND_WRITTEN = ("iterations", "batch", "device", "seed", "lr", "beta1", "triplet_weight")
-"""SyndaTrainConfig fields with no generated ``synda train`` flag (the first four have hand-written ones that
-override the preset; the optimiser numbers are the preset's)."""
+FLAG_ALIASES = {"generator.target": ("--target",)}
+"""``synda train`` flags kept under their short names: ``--target`` chooses the final output's modality."""
+
+
+def add_synda_flags(p) -> None:
+    """One generated flag per field of :class:`SyndaConfig` but ``domain`` (``--domain``) and ``train.seed``
+    (``--seed``): the optimiser's as ``--NAME`` (``--iterations``, ``--lr``), the architecture's as
+    ``--generator.NAME`` (the ablation switches: ``--no-generator.skips``), A's as ``--augment.NAME`` (a range as
+    ``LO,HI``). Each overrides the ``--preset``; the help shows the cpu preset's rgb values."""
+    from recog.synda.config import AugmentConfig, GeneratorConfig, synda_preset
+    shown = synda_preset("cpu", "rgb")
+    add_config_flags(p, SyndaTrainConfig, "train.", flag_prefix="", exclude=("seed",), defaults=shown.train)
+    add_config_flags(p, GeneratorConfig, "generator.", aliases=FLAG_ALIASES, defaults=shown.generator)
+    add_config_flags(p, AugmentConfig, "augment.", defaults=shown.augment)
 
 
 def register(parser: argparse.ArgumentParser) -> None:
@@ -39,14 +50,9 @@ def register(parser: argparse.ArgumentParser) -> None:
                    help="input domain: rgb (colour renders, the thesis) or depth (measured depth patches)")
     add_shared(p, "--out", "the generator file", required=True, metavar="GEN")
     p.add_argument("--preset", default="cpu", choices=("cpu", "gpu"),
-                   help="size: cpu = narrow U-Net, batch 16, 3000 steps; gpu = the thesis' size, batch 64, 20000 steps")
+                   help="size: cpu = narrow U-Net, batch 16, 3000 steps; gpu = the thesis' size, batch 64, 20000 "
+                        "steps; the configuration flags below override it")
     p.add_argument("--sensor", default="kinect_v1", help="sensor preset of the training views (default kinect_v1)")
-    p.add_argument("--target", choices=("normals", "depth", "lightness"),
-                   help="the final output's modality (default: rgb normals, as the thesis; depth depth). rgb with "
-                        "depth feeds a depth recogniser: 'recog eval MODEL COLOUR_TESTSET --synda GEN'")
-    p.add_argument("--iterations", type=positive_int("--iterations"), help="training steps (overrides --preset)")
-    p.add_argument("--batch", type=positive_int("--batch"), help="samples per step (overrides --preset)")
-    p.add_argument("--device", help="torch device (overrides --preset)")
     p.add_argument("--subdivisions", type=int, help="icosahedron subdivisions of the viewpoints (default 2)")
     p.add_argument("--draws", type=int, default=2, help="measured draws per view, depth domain (default 2)")
     p.add_argument("--scale", type=float, help="file units -> metres (default: guessed; 0.001 for millimetre CAD)")
@@ -58,7 +64,7 @@ def register(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-work", action="store_true", help="keep the work folder at the end")
     p.add_argument("--init", metavar="GEN", help="start from this generator's weights (same architecture and domain; "
                                                  "fine-tuning) instead of random ones")
-    add_config_flags(p, SyndaTrainConfig, "train.", flag_prefix="", exclude=_HAND_WRITTEN)
+    add_synda_flags(p)
     add_shared(p, "--workers", "processes simulating views (default 2)", default=2)
     add_shared(p, "--seed", "of views, weights and augmentation (default 0)", default=0)
     add_shared(p, "--overwrite", "a generator already at GEN")
@@ -77,13 +83,10 @@ def synda_configs(args):
 
     from recog.data import DataConfig
     from recog.synda.config import synda_preset
+    from data_tools.config import config_replace
     cfg = synda_preset(args.preset, args.domain)
-    over = {k: getattr(args, k) for k in ("iterations", "batch", "device") if getattr(args, k, None) is not None}
-    over.update({k[len("train."):]: v for k, v in config_overrides(args).items() if k.startswith("train.")})
-    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed, **over))
-    if getattr(args, "target", None):
-        cfg = dataclasses.replace(cfg, generator=dataclasses.replace(cfg.generator, target=args.target))
-    cfg = cfg.validate()
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, seed=args.seed))
+    cfg = config_replace(cfg, config_overrides(args), "synda train").validate()
     vo = {"subdivisions": args.subdivisions} if args.subdivisions is not None else {}
     views = DataConfig(variant="physical", preset=args.sensor, seed=args.seed, draws=args.draws, **vo).validate()
     return cfg, views
