@@ -52,7 +52,7 @@ import numpy as np
 
 __all__ = ["plane_noise_table", "mean_residual_maps", "khoshelham_sigma_m", "nguyen_sigma_m", "calibration_section",
            "BIN_EDGES_M", "INCIDENCE_EDGES_DEG", "GRAZING_EDGES_DEG", "noise_curve", "storage_quantum_m", "curve_term", "curve_table", "noise_curve_report",
-           "incidence_cells"]
+           "incidence_cells", "curve_groups", "curve_uncertainty"]
 
 
 def khoshelham_sigma_m(z: np.ndarray) -> np.ndarray:
@@ -206,12 +206,31 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
     (:func:`storage_quantum_m`) first, as the device's driver and file did to the measurement: a
     1 mm quantum adds 0.29 mm of spread, +28 % on the 0.36 mm of Kinect v1 noise at 0.5 m, which a
     float simulation lacks (its near bins then read low against the measurement)."""
+    groups = curve_groups(observations, side, max_pixels, seed, edges, incidence_edges)
+    std = np.full(len(groups), np.nan)
+    count = np.zeros(len(groups), int)
+    for k, parts in enumerate(groups):
+        if parts:
+            r = np.concatenate([p for _, p in parts])
+            count[k] = r.size
+            if r.size >= MIN_PIXELS:
+                std[k] = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    return std, count
+
+
+def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
+                 edges: Sequence[float] = BIN_EDGES_M,
+                 incidence_edges: Sequence[float] | None = None) -> list[list[tuple[int, np.ndarray]]]:
+    """Per bin (or cell, as :func:`noise_curve`): [(position of the observation in
+    ``observations``, its residuals depth - ideal (m) with their median removed), ...] for every
+    observation with at least 10 valid pixels there: what :func:`noise_curve` pools, kept per frame
+    so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames."""
     e = np.asarray(edges, float)
     ie = None if incidence_edges is None else np.asarray(incidence_edges, float)
     nj = 1 if ie is None else len(ie) - 1
     ncell = (len(e) - 1) * nj
-    pooled: list[list[np.ndarray]] = [[] for _ in range(ncell)]
-    for o in observations:
+    groups: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(ncell)]
+    for pos, o in enumerate(observations):
         flat = _pixels(o, max_pixels, seed)
         z = o.ideal.reshape(-1)[flat].astype(np.float64)
         d = getattr(o, side).reshape(-1)[flat].astype(np.float64)
@@ -232,16 +251,66 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
             if sel.sum() < 10:
                 continue
             r = d[sel] - z[sel]
-            pooled[k].append(r - np.median(r))
-    std = np.full(ncell, np.nan)
-    count = np.zeros(ncell, int)
-    for k, parts in enumerate(pooled):
-        if parts:
-            r = np.concatenate(parts)
-            count[k] = r.size
-            if r.size >= MIN_PIXELS:
-                std[k] = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    return std, count
+            groups[k].append((pos, r - np.median(r)))
+    return groups
+
+
+def _robust_std(r: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(r - np.median(r)))) if r.size >= MIN_PIXELS else float("nan")
+
+
+def curve_uncertainty(measured: list[list[tuple[int, np.ndarray]]],
+                      simulated: Sequence[list[list[tuple[int, np.ndarray]]]], n_frames: int,
+                      n_boot: int = 200, level: float = 0.95, seed: int = 0,
+                      max_pixels_per_bin: int = 40000) -> list[dict]:
+    """The sampling spread of the noise curve over frames: a frame-level bootstrap.
+
+    ``measured``: :func:`curve_groups` of the measured side of ``n_frames`` observations;
+    ``simulated``: the same of one or more simulations of those frames (their stds are averaged,
+    as a benchmark averages seeds). Each of ``n_boot`` replicates draws ``n_frames`` frames with
+    replacement (one draw for every bin: a frame's pixels at all distances stay together) and
+    recomputes, per bin, the pooled robust std of the measured residuals and the simulated /
+    measured ratio on the same frames. Pixels within a frame are far from independent (one frame's
+    plane, incidence and noise level), so the frame, not the pixel, is the unit that is resampled.
+
+    Per bin: {"frames": frames with residuals there, "measured_ci": (lo, hi) m, "ratio_ci":
+    (lo, hi)}: the central ``level`` percentile interval (NaN where fewer than half the replicates
+    have the bin). Each bin's groups are thinned uniformly at random to about
+    ``max_pixels_per_bin`` residuals in all (the same share of every frame: the frames keep their
+    weights), which leaves the frame-level spread and bounds the cost."""
+    rng = np.random.default_rng([int(seed), 43])
+    nb = len(measured)
+
+    def thin(groups, rate, salt):
+        r2 = np.random.default_rng([int(seed), salt])
+        return {pos: (g if rate >= 1 else g[r2.random(g.size) < rate]) for pos, g in groups}
+    meas, sims = [], []
+    for k in range(nb):
+        tot = sum(g.size for _, g in measured[k])
+        rate = min(1.0, max_pixels_per_bin / tot) if tot else 1.0
+        meas.append(thin(measured[k], rate, 2 * k))
+        sims.append([thin(s[k], rate, 2 * k + 1 + 1000 * j) for j, s in enumerate(simulated)])
+    counts = rng.multinomial(int(n_frames), np.full(int(n_frames), 1.0 / int(n_frames)), size=int(n_boot))
+    out = []
+    a = 100 * (1 - level) / 2
+    for k in range(nb):
+        m_s, r_s = [], []
+        for c in counts:
+            mr = [np.repeat(g, c[p]) if c[p] > 1 else g for p, g in meas[k].items() if c[p] > 0]
+            m = _robust_std(np.concatenate(mr)) if mr else float("nan")
+            ss = []
+            for sk in sims[k]:
+                sr = [np.repeat(g, c[p]) if c[p] > 1 else g for p, g in sk.items() if c[p] > 0]
+                ss.append(_robust_std(np.concatenate(sr)) if sr else float("nan"))
+            m_s.append(m)
+            r_s.append(float(np.mean(ss)) / m if ss and m > 0 else float("nan"))
+        m_s, r_s = np.array(m_s), np.array(r_s)
+        ok_m, ok_r = np.isfinite(m_s), np.isfinite(r_s)
+        nan2 = (float("nan"), float("nan"))
+        out.append({"frames": len(meas[k]),
+                    "measured_ci": tuple(np.percentile(m_s[ok_m], [a, 100 - a])) if ok_m.mean() >= 0.5 else nan2,
+                    "ratio_ci": tuple(np.percentile(r_s[ok_r], [a, 100 - a])) if ok_r.mean() >= 0.5 else nan2})
+    return out
 
 
 def curve_term(measured_std: np.ndarray, simulated_std: np.ndarray) -> float:
