@@ -353,10 +353,12 @@ def noise_curve_report(weight: float, before, after, max_pixels, seed: int) -> d
 
 def incidence_cells(observations: Sequence, max_pixels: int | None = 20000, seed: int = 0,
                     edges: Sequence[float] = BIN_EDGES_M,
-                    incidence_edges: Sequence[float] = INCIDENCE_EDGES_DEG) -> tuple[np.ndarray, np.ndarray]:
-    """(mean ideal depth m, mean incidence factor theta^2 / (pi/2 - theta)^2 / sqrt(z)) per (distance
-    bin, incidence class) cell of :func:`noise_curve` (same pixels, flattened the same way; NaN where
-    a cell has no measured pixel): where in a cell the axial noise's terms are evaluated."""
+                    incidence_edges: Sequence[float] = INCIDENCE_EDGES_DEG,
+                    z_exponent: float = -0.5) -> tuple[np.ndarray, np.ndarray]:
+    """(mean ideal depth m, mean incidence factor theta^2 / (pi/2 - theta)^2 z^z_exponent) per
+    (distance bin, incidence class) cell of :func:`noise_curve` (same pixels, flattened the same way;
+    NaN where a cell has no measured pixel): where in a cell the axial noise's terms are evaluated
+    (``z_exponent``: the incidence term's distance law, ``axial_noise.incidence_z_exponent``)."""
     from synth.lab.feature_maps import incidence_angle_deg
     from synth.sensor.effects.axial_noise import incidence_factor
     e, ie = np.asarray(edges, float), np.asarray(incidence_edges, float)
@@ -372,7 +374,7 @@ def incidence_cells(observations: Sequence, max_pixels: int | None = 20000, seed
         j = np.searchsorted(ie, np.nan_to_num(a, nan=-1.0), side="right") - 1
         ok &= (b >= 0) & (b < len(e) - 1) & (j >= 0) & (j < nj)
         c = (b * nj + j)[ok]
-        g = incidence_factor(np.radians(a[ok])) / np.sqrt(np.maximum(z[ok], 0.05))
+        g = incidence_factor(np.radians(a[ok])) * np.maximum(z[ok], 0.05) ** float(z_exponent)
         np.add.at(sz, c, z[ok])
         np.add.at(sg, c, g)
         np.add.at(cnt, c, 1)
@@ -383,7 +385,8 @@ def incidence_cells(observations: Sequence, max_pixels: int | None = 20000, seed
 def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float]:
     """A starting point that puts the model's noise curve on the measured one, when the model
     has ``axial_noise`` (of its fitted ``specs``): the classic planar calibration (Nguyen et al.
-    2012's form sigma0 + sigma2 (z - z_offset)^2 + incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z))
+    2012's form sigma0 + sigma2 (z - z_offset)^2 + incidence_m theta^2 / (pi/2 - theta)^2 z^p, their
+    p = -0.5)
     fitted to the measured curve per (distance bin, incidence class) cell, less what the model's
     other effects already contribute.
 
@@ -394,8 +397,10 @@ def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float
     noise sources add in variance (an approximation for the robust std) - less the model's own
     sigma1 z. sigma0, sigma2, incidence_m >= 0 (those fitted) then minimise the relative squared
     error (the term's log ratio to first order) by non-negative least squares for each z_offset on
-    a 0.025 m grid over its bounds, each clipped to its search bounds (a mean factor per cell stands
-    for the mixture of the cell's angles: an approximation the search refines). {} when
+    a 0.025 m grid over its bounds and, when ``axial_noise.incidence_z_exponent`` is fitted, for each
+    distance law p of the incidence term in -0.5 (Nguyen's), 0, 1, 2 (constant in disparity), each
+    clipped to its search bounds (a mean factor per cell stands for the mixture of the cell's angles:
+    an approximation the search refines). {} when
     axial_noise is not fitted, the term is off, or fewer than 3 cells have data; with ``cells``
     also when the incidence term is not fitted or no grazing cell (``GRAZING_EDGES_DEG``) has data.
 
@@ -404,8 +409,8 @@ def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float
     the better of the two by the objective)."""
     from scipy.optimize import nnls
     keys = {s.key: s for s in specs}
-    k0, k2, ko, ki = ("axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m",
-                      "axial_noise.incidence_m")
+    k0, k2, ko, ki, kp = ("axial_noise.sigma0_m", "axial_noise.sigma2_per_m", "axial_noise.z_offset_m",
+                          "axial_noise.incidence_m", "axial_noise.incidence_z_exponent")
     if k2 not in keys or getattr(objective, "noise_weight", 0) <= 0:
         return {}
     obs = objective.curve(config)[1]
@@ -416,31 +421,36 @@ def curve_start(config, objective, specs, cells: bool = True) -> dict[str, float
     ie = INCIDENCE_EDGES_DEG if cells else None
     m, _ = noise_curve(obs, "measured", px, seed, incidence_edges=ie)
     s, _ = noise_curve(obs, "simulated", px, seed, incidence_edges=ie)
-    if cells:
-        zc, gc = incidence_cells(obs, px, seed)
-    else:
-        e = np.asarray(BIN_EDGES_M)
-        zc, gc = 0.5 * (e[:-1] + e[1:]), np.zeros(len(e) - 1)
     p = next(x for x in config.effects if x.name == "axial_noise").params
-    zz, gg = np.nan_to_num(zc, nan=1.0), np.nan_to_num(gc)
-    now = p.sigma0_m + p.sigma1 * zz + p.sigma2_per_m * (zz - p.z_offset_m) ** 2 + p.incidence_m * gg
+    exponents = [p.incidence_z_exponent]
+    if cells and kp in keys:        # the incidence term's distance law: Nguyen's, 0, z, constant in disparity
+        exponents = sorted({min(max(v, keys[kp].low), keys[kp].high) for v in (-0.5, 0.0, 1.0, 2.0)})
+    e = np.asarray(BIN_EDGES_M)
+    zc = incidence_cells(obs, px, seed)[0] if cells else 0.5 * (e[:-1] + e[1:])
+    zz = np.nan_to_num(zc, nan=1.0)
+    now_g = np.nan_to_num(incidence_cells(obs, px, seed, z_exponent=p.incidence_z_exponent)[1]) if cells else 0.0
+    now = p.sigma0_m + p.sigma1 * zz + p.sigma2_per_m * (zz - p.z_offset_m) ** 2 + p.incidence_m * now_g
     other2 = np.where(np.isfinite(s), np.maximum(np.nan_to_num(s) ** 2 - now ** 2, 0.0), 0.0)
     want = np.sqrt(np.maximum(m ** 2 - other2, 0.0)) - p.sigma1 * zz
     ok = np.isfinite(m) & np.isfinite(zc) & (want > 0)
     if ok.sum() < 3:
         return {}
-    z, g, t = zc[ok], gc[ok], want[ok]
+    z, t = zc[ok], want[ok]
     lo, hi = (keys[ko].low, keys[ko].high) if ko in keys else (p.z_offset_m, p.z_offset_m)
     best = None
-    for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
-        cols = ([np.ones_like(z)] if k0 in keys else []) + [(z - off) ** 2] + ([g] if ki in keys and cells else [])
-        A = np.stack(cols, 1) / t[:, None]
-        x, r = nnls(A, np.ones_like(t))
-        if best is None or r < best[0]:
-            best = (r, off, x)
-    _, off, x = best
+    for ex in exponents:
+        g = (np.nan_to_num(incidence_cells(obs, px, seed, z_exponent=ex)[1]) if cells else np.zeros(len(zc)))[ok]
+        for off in np.unique(np.clip(np.arange(lo, hi + 1e-9, 0.025), lo, hi)):
+            cols = ([np.ones_like(z)] if k0 in keys else []) + [(z - off) ** 2] + ([g] if ki in keys and cells else [])
+            A = np.stack(cols, 1) / t[:, None]
+            x, r = nnls(A, np.ones_like(t))
+            if best is None or r < best[0] - 1e-12:
+                best = (r, off, x, ex)
+    _, off, x, ex = best
     x = list(x)
     out = {}
+    if cells and kp in keys:
+        out[kp] = float(ex)
     if k0 in keys:
         out[k0] = float(x.pop(0))
     out[k2] = float(x.pop(0))
