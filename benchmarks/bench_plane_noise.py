@@ -3,7 +3,8 @@ reference (issue #43 item 3: within 10 % of the measured in every 0.25 m bin fro
 each ratio shown beside the measurement's own sampling spread.
 
     .venv/bin/python benchmarks/bench_plane_noise.py PLANE_REF [--effects axial_noise,range_limits]
-        [--search-frames N] [--search-pixels N] [--min-frames 10] [--boot 200] [--json OUT] [--no-rounding]
+        [--search-frames N] [--search-pixels N] [--min-frames 10] [--boot 200] [--block 1] [--json OUT]
+        [--no-rounding]
 
 ``PLANE_REF``: a sequence made by ``realgap data make-reference --plane`` (poses, masks and plane).
 The even frames are fitted (``fit_model``, :class:`~synth.lab.fit.FitConfig` with the noise-curve
@@ -13,7 +14,8 @@ the odd frames are held out: per bin, the measured robust std of depth - plane
 over ``--seeds`` simulation seeds.
 
 Columns: ``measured CI`` and ``ratio CI``: 95 % frame-level bootstrap intervals
-(:func:`synth.lab.calibration.curve_uncertainty`: the held-out frames resampled with replacement);
+(:func:`synth.lab.calibration.curve_uncertainty`: the held-out frames resampled with replacement,
+in runs of ``--block`` consecutive frames);
 ``fit/held``: the measured std of the fitted half over that of the held-out half (how much the
 measured curve itself moves between two disjoint frame sets); ``frames``: held-out frames with
 target pixels in the bin. Verdict per bin: ``too few frames`` (fewer than ``--min-frames``: the
@@ -61,6 +63,8 @@ def main(argv=None) -> int:
                     help="FitConfig.max_pixels_per_frame (default: FitConfig's)")
     ap.add_argument("--min-frames", type=int, default=10, help="fewest held-out frames a bin needs to be judged")
     ap.add_argument("--boot", type=int, default=200, help="bootstrap replicates")
+    ap.add_argument("--block", type=int, default=1,
+                    help="bootstrap runs of this many consecutive held-out frames together (correlated views)")
     ap.add_argument("--json", default=None, help="write the table here (JSON)")
     args = ap.parse_args(argv)
     import synth.lab.calibration as cal
@@ -85,7 +89,7 @@ def main(argv=None) -> int:
     s_groups = [cal.curve_groups(o, "simulated", None, 0) for o in obs]
     fit_meas = cal.noise_curve(fit.observations([fit.measured_depth(k) for k in range(len(fit))]),
                                "measured", None, 0)[0]
-    unc = cal.curve_uncertainty(m_groups, s_groups, len(held), n_boot=args.boot)
+    unc = cal.curve_uncertainty(m_groups, s_groups, len(held), n_boot=args.boot, block=args.block)
     edges = cal.BIN_EDGES_M
     rows, worst, worst_judged = [], 0.0, 0.0
     print(f"{'bin [m]':10s} {'measured mm':>11s} {'measured CI':>13s} {'fit/held':>8s} {'simulated':>9s} "

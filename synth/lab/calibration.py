@@ -262,7 +262,7 @@ def _robust_std(r: np.ndarray) -> float:
 def curve_uncertainty(measured: list[list[tuple[int, np.ndarray]]],
                       simulated: Sequence[list[list[tuple[int, np.ndarray]]]], n_frames: int,
                       n_boot: int = 200, level: float = 0.95, seed: int = 0,
-                      max_pixels_per_bin: int = 40000) -> list[dict]:
+                      max_pixels_per_bin: int = 40000, block: int = 1) -> list[dict]:
     """The sampling spread of the noise curve over frames: a frame-level bootstrap.
 
     ``measured``: :func:`curve_groups` of the measured side of ``n_frames`` observations;
@@ -277,7 +277,9 @@ def curve_uncertainty(measured: list[list[tuple[int, np.ndarray]]],
     (lo, hi)}: the central ``level`` percentile interval (NaN where fewer than half the replicates
     have the bin). Each bin's groups are thinned uniformly at random to about
     ``max_pixels_per_bin`` residuals in all (the same share of every frame: the frames keep their
-    weights), which leaves the frame-level spread and bounds the cost."""
+    weights), which leaves the frame-level spread and bounds the cost. ``block`` > 1: a moving-block
+    bootstrap's simplest form - runs of ``block`` consecutive frames are drawn together (neighbouring
+    frames of a slow hand-held sweep see nearly the same view, so they are not independent)."""
     rng = np.random.default_rng([int(seed), 43])
     nb = len(measured)
 
@@ -290,7 +292,9 @@ def curve_uncertainty(measured: list[list[tuple[int, np.ndarray]]],
         rate = min(1.0, max_pixels_per_bin / tot) if tot else 1.0
         meas.append(thin(measured[k], rate, 2 * k))
         sims.append([thin(s[k], rate, 2 * k + 1 + 1000 * j) for j, s in enumerate(simulated)])
-    counts = rng.multinomial(int(n_frames), np.full(int(n_frames), 1.0 / int(n_frames)), size=int(n_boot))
+    nblk = -(-int(n_frames) // max(int(block), 1))
+    bc = rng.multinomial(nblk, np.full(nblk, 1.0 / nblk), size=int(n_boot))
+    counts = np.repeat(bc, max(int(block), 1), axis=1)[:, :int(n_frames)]
     out = []
     a = 100 * (1 - level) / 2
     for k in range(nb):
