@@ -3,13 +3,14 @@ reference (issue #43 item 3: within 10 % of the measured in every 0.25 m bin fro
 each ratio shown beside the measurement's own sampling spread.
 
     .venv/bin/python benchmarks/bench_plane_noise.py PLANE_REF [--effects axial_noise,range_limits]
-        [--search-frames N] [--search-pixels N] [--min-frames 10] [--boot 200] [--block 1] [--json OUT]
-        [--no-rounding]
+        [--search-frames N] [--search-pixels N] [--eval-frames N] [--split alternate|halves]
+        [--min-frames 10] [--boot 200] [--block 1] [--json OUT] [--no-rounding]
 
 ``PLANE_REF``: a sequence made by ``realgap data make-reference --plane`` (poses, masks and plane).
 The even frames are fitted (``fit_model``, :class:`~synth.lab.fit.FitConfig` with the noise-curve
-term; ``--search-frames`` / ``--search-pixels`` set its ``max_frames`` / ``max_pixels_per_frame``),
-the odd frames are held out: per bin, the measured robust std of depth - plane
+term; ``--search-frames`` / ``--search-pixels`` / ``--eval-frames`` set its ``max_frames`` /
+``max_pixels_per_frame`` / ``eval_frames``), the odd frames are held out (``--split halves``: the
+first half of the sequence fitted, the second held out): per bin, the measured robust std of depth - plane
 (:func:`synth.lab.calibration.noise_curve`, every target pixel) against the simulated one, the mean
 over ``--seeds`` simulation seeds.
 
@@ -61,6 +62,11 @@ def main(argv=None) -> int:
                     help="FitConfig.max_frames: fitted frames the search sees (default: FitConfig's)")
     ap.add_argument("--search-pixels", type=int, default=None,
                     help="FitConfig.max_pixels_per_frame (default: FitConfig's)")
+    ap.add_argument("--split", choices=("alternate", "halves"), default="alternate",
+                    help="fit the even frames and hold out the odd ones (alternate), or fit the first half of the "
+                         "sequence and hold out the second (halves: other views, not the neighbours of fitted frames)")
+    ap.add_argument("--eval-frames", type=int, default=None,
+                    help="FitConfig.eval_frames: fitted frames of the final scores and the noise-curve calibration")
     ap.add_argument("--min-frames", type=int, default=10, help="fewest held-out frames a bin needs to be judged")
     ap.add_argument("--boot", type=int, default=200, help="bootstrap replicates")
     ap.add_argument("--block", type=int, default=1,
@@ -72,11 +78,18 @@ def main(argv=None) -> int:
     if args.no_rounding:
         cal.storage_quantum_m = lambda depth, share=0.99: 0.0
     t0 = time.perf_counter()
-    fit = MeasuredSequence.load(args.seq, frame_slice="0::2")
-    held = MeasuredSequence.load(args.seq, frame_slice="1::2")
+    if args.split == "halves":
+        h = len(MeasuredSequence.load(args.seq)) // 2
+        fit_slice, held_slice = f":{h}", f"{h}:"
+    else:
+        fit_slice, held_slice = "0::2", "1::2"
+    fit = MeasuredSequence.load(args.seq, frame_slice=fit_slice)
+    held = MeasuredSequence.load(args.seq, frame_slice=held_slice)
     kw = {}
     if args.search_frames is not None:
         kw["max_frames"] = args.search_frames
+    if args.eval_frames is not None:
+        kw["eval_frames"] = args.eval_frames
     if args.search_pixels is not None:
         kw["max_pixels_per_frame"] = args.search_pixels
     res = fit_model(fit, fit.default_config([e for e in args.effects.split(",") if e]),

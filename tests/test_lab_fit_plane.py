@@ -213,3 +213,28 @@ def test_bench_verdicts():
     assert verdict(0.85, (0.75, 0.95), 20, 10) == "unresolved"
     assert verdict(0.85, (0.80, 0.89), 20, 10) == "OFF"
     assert verdict(1.20, (1.12, 1.30), 20, 10) == "OFF"
+
+
+def disparity_incidence(z, theta):
+    """A known curve whose incidence term is constant in disparity: 1.0 mm + 1.6 mm/m^2 z^2 + 0.05 mm
+    theta^2 / (pi/2 - theta)^2 (z / 1 m)^2 (axial_noise.incidence_z_exponent 2)."""
+    from synth.sensor.effects.axial_noise import incidence_factor
+    return 0.0010 + 0.0016 * z ** 2 + 0.00005 * incidence_factor(theta) * z ** 2
+
+
+@pytest.mark.slow
+def test_fit_recovers_an_incidence_term_constant_in_disparity(tmp_path):
+    """As the incidence test above, with the incidence term growing as z^2 (Nguyen's law falls as
+    1 / sqrt z: at 78 deg it would be 5.6 x too high at 0.8 m for the 2.5 m value): the fitted distance
+    law is the disparity one (exponent >= 1.5) and every held-out 0.25 m bin is within 10 %."""
+    from synth.lab.calibration import curve_table
+    tilts = np.tile([0, 50, 65, 72, 78], 4)
+    dist = np.linspace(0.8, 2.7, 20) * np.cos(np.radians(tilts))
+    ref = plane_reference(tmp_path, dist, disparity_incidence, seed=3, tilts_deg=tilts)
+    fit, held = MeasuredSequence.load(ref, frame_slice="0::2"), MeasuredSequence.load(ref, frame_slice="1::2")
+    res = fit_model(fit, fit.default_config(["axial_noise"]),
+                    fit_config=FitConfig(max_frames=6, max_pixels_per_frame=4000, eval_pixels_per_frame=8000,
+                                         intervals=False))
+    assert res.params["axial_noise.incidence_z_exponent"] >= 1.5, res.params
+    rows = curve_table(held.observations(held.simulate(res.config, 0)), None, 0)
+    assert len(rows) >= 8 and all(abs(r["ratio"] - 1) <= 0.10 for r in rows), rows
