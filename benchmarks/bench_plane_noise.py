@@ -52,6 +52,37 @@ def verdict(ratio: float, ci: tuple[float, float], frames: int, min_frames: int,
     return "unresolved"
 
 
+def chunked_groups(seq, frame_slice: str, n: int, config, seeds: int, chunk: int = 40):
+    """(measured, [simulated per seed]) :func:`synth.lab.calibration.curve_groups` (every target pixel) of
+    the ``n`` frames that ``frame_slice`` selects, ``chunk`` frames at a time (each chunk loaded afresh:
+    the cached renders and draws of a 500-frame sequence do not fit in memory); ``config`` None: the
+    measured side alone. Group positions count over the whole slice."""
+    import synth.lab.calibration as cal
+    from synth.lab import MeasuredSequence
+    from synth.lab.measured import parse_frame_slice
+    sl = parse_frame_slice(frame_slice)
+    pos = np.arange(100000)[sl][:n]
+    m_all, s_all = None, None
+    for a in range(0, n, chunk):
+        part = pos[a:a + chunk]
+        step = int(part[1] - part[0]) if len(part) > 1 else 1
+        ms = MeasuredSequence.load(seq, frame_slice=f"{part[0]}:{part[-1] + 1}:{step}")
+        sims = [ms.simulate(config, s) for s in range(seeds)] if config is not None else []
+        obs = ms.observations(sims[0] if sims else [ms.measured_depth(k) for k in range(len(ms))])
+        m = cal.curve_groups(obs, "measured", None, 0)
+        ss = [cal.curve_groups(ms.observations(x), "simulated", None, 0) for x in sims]
+        shift = [[[(p + a, g.astype(np.float32)) for p, g in b] for b in gs] for gs in [m, *ss]]
+        if m_all is None:
+            m_all, s_all = shift[0], shift[1:]
+        else:
+            for b in range(len(m_all)):
+                m_all[b] += shift[0][b]
+                for j in range(len(s_all)):
+                    s_all[j][b] += shift[1 + j][b]
+        del ms, obs, sims
+    return m_all, s_all
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("seq", help="a planar reference (data make-reference --plane)")
@@ -97,12 +128,12 @@ def main(argv=None) -> int:
     t_fit = time.perf_counter() - t0
     print("fitted:", {k: round(v, 6) for k, v in res.params.items() if isinstance(v, float)},
           f"({t_fit:.0f} s, {res.evaluations} evaluations, {len(fit)} fit / {len(held)} held-out frames)")
-    obs = [held.observations(held.simulate(res.config, s)) for s in range(args.seeds)]
-    m_groups = cal.curve_groups(obs[0], "measured", None, 0)
-    s_groups = [cal.curve_groups(o, "simulated", None, 0) for o in obs]
-    fit_meas = cal.noise_curve(fit.observations([fit.measured_depth(k) for k in range(len(fit))]),
-                               "measured", None, 0)[0]
-    unc = cal.curve_uncertainty(m_groups, s_groups, len(held), n_boot=args.boot, block=args.block)
+    n_fit, n_held = len(fit), len(held)
+    del fit, held           # their cached renders: the held-out frames are evaluated in chunks
+    m_groups, s_groups = chunked_groups(args.seq, held_slice, n_held, res.config, args.seeds)
+    fit_groups, _ = chunked_groups(args.seq, fit_slice, n_fit, None, 0)
+    fit_meas = [cal._robust_std(np.concatenate([g for _, g in b])) if b else float("nan") for b in fit_groups]
+    unc = cal.curve_uncertainty(m_groups, s_groups, n_held, n_boot=args.boot, block=args.block)
     edges = cal.BIN_EDGES_M
     rows, worst, worst_judged = [], 0.0, 0.0
     print(f"{'bin [m]':10s} {'measured mm':>11s} {'measured CI':>13s} {'fit/held':>8s} {'simulated':>9s} "
