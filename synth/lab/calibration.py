@@ -39,6 +39,11 @@ capture (7-Scenes chess), and their noise grows with the angle (Nguyen et al. 20
 curve in distance alone averages away; the cells let the fit separate axial noise's incidence
 term from its distance terms. The reported table stays per distance bin.
 
+The curve's sampling spread: :func:`curve_groups` keeps the residuals per (frame, bin) and
+:func:`curve_uncertainty` bootstraps frames (``benchmarks/bench_plane_noise.py`` prints the
+intervals beside each ratio): a bin filled by a few grazing views moves by tens of percent between
+two sets of frames, more than the 10 % a fit is asked to meet.
+
 Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
 0.25 m bin of a plane the tilt left is far below the noise of these sensors.
 """

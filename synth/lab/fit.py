@@ -130,7 +130,9 @@ class FitConfig:
     """On a sequence with a planar reference (``data make-reference --plane``): weight of the
     noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
     measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m and over those bins split
-    into incidence classes), so the fit honours the curve sensor people calibrate first; there the
+    into incidence classes), so the fit honours the curve sensor people calibrate first (its
+    closed-form start, :func:`synth.lab.calibration.curve_start`, is computed on the evaluation set,
+    ``eval_frames``: the search's few frames hold few far or grazing pixels); there the
     effects' ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too, their search
     budget on top of ``max_evaluations``; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
