@@ -334,7 +334,8 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             if g < g_start:
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names, plane)
-        if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first,
+        if (fc.data_starts and obj.noise_weight > 0        # planar target: the noise curve calibrated first,
+                and any(sp.key == "axial_noise.sigma2_per_m" for sp in specs)):
             # on the evaluation set: the few search frames hold few far and grazing pixels (7-Scenes chess)
             from synth.lab.calibration import curve_start
             ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
