@@ -174,3 +174,67 @@ def test_fit_recovers_a_known_incidence_curve_on_held_out_frames(tmp_path):
     cfg = fit.default_config(["axial_noise"])
     assert "axial_noise.incidence_m" not in [s.key for s in param_specs(cfg)]
     assert "axial_noise.incidence_m" in [s.key for s in param_specs(cfg, plane=True)]
+
+
+def _checker_frame(index, amp_measured, amp_simulated, z=1.1):
+    """A plane at ``z`` (bin 1.0-1.25 m), residuals +-amp (robust std 1.4826 amp) on a checkerboard."""
+    ideal = np.full((30, 40), z, np.float32)
+    sign = np.where(np.indices(ideal.shape).sum(0) % 2 == 0, 1.0, -1.0)
+    return SimpleNamespace(ideal=ideal, index=index, measured=(ideal + amp_measured * sign).astype(np.float32),
+                           simulated=(ideal + amp_simulated * sign).astype(np.float32))
+
+
+def test_curve_bootstrap_by_hand():
+    """Identical frames: every replicate gives the same std, so the interval has no width (1.4826 mm,
+    ratio exactly 2). Two frames of +-1 and +-3 mm: a replicate draws {1, 1}, {1, 3} or {3, 3} (chance
+    1/4, 1/2, 1/4), whose pooled robust std is 1.4826, 2.9652 (the median |r| of a 50/50 mix is 2 mm)
+    or 4.4478 mm: the 95 % interval spans 1.4826-4.4478 mm, the ratio (simulated +-2 mm on both
+    frames) 2/3-2. Blocks of 2 frames draw both frames together: no spread again."""
+    from synth.lab.calibration import curve_groups, curve_uncertainty
+    same = [_checker_frame(k, 0.001, 0.002) for k in range(4)]
+    u = curve_uncertainty(curve_groups(same, "measured", None), [curve_groups(same, "simulated", None)], 4, n_boot=50)
+    assert u[2]["frames"] == 4 and u[0]["frames"] == 0 and np.isnan(u[0]["measured_ci"][0])
+    assert u[2]["measured_ci"] == pytest.approx((1.4826e-3, 1.4826e-3), rel=1e-3)
+    assert u[2]["ratio_ci"] == pytest.approx((2.0, 2.0), rel=1e-3)
+    two = [_checker_frame(0, 0.001, 0.002), _checker_frame(1, 0.003, 0.002)]
+    u = curve_uncertainty(curve_groups(two, "measured", None), [curve_groups(two, "simulated", None)], 2, n_boot=200)
+    assert u[2]["measured_ci"] == pytest.approx((1.4826e-3, 4.4478e-3), rel=1e-3)
+    assert u[2]["ratio_ci"] == pytest.approx((2.0 / 3.0, 2.0), rel=1e-3)
+    u = curve_uncertainty(curve_groups(two, "measured", None), [curve_groups(two, "simulated", None)], 2, n_boot=50,
+                          block=2)
+    assert u[2]["measured_ci"][0] == pytest.approx(u[2]["measured_ci"][1])
+
+
+def test_bench_verdicts():
+    """A bin is judged only with enough frames; OFF only when the whole ratio interval is outside 10 %."""
+    from benchmarks.bench_plane_noise import verdict
+    assert verdict(0.70, (0.3, 1.05), 7, 10) == "too few frames"
+    assert verdict(1.05, (0.8, 1.3), 20, 10) == "within"
+    assert verdict(0.85, (0.75, 0.95), 20, 10) == "unresolved"
+    assert verdict(0.85, (0.80, 0.89), 20, 10) == "OFF"
+    assert verdict(1.20, (1.12, 1.30), 20, 10) == "OFF"
+
+
+def disparity_incidence(z, theta):
+    """A known curve whose incidence term is constant in disparity: 1.0 mm + 1.6 mm/m^2 z^2 + 0.05 mm
+    theta^2 / (pi/2 - theta)^2 (z / 1 m)^2 (axial_noise.incidence_z_exponent 2)."""
+    from synth.sensor.effects.axial_noise import incidence_factor
+    return 0.0010 + 0.0016 * z ** 2 + 0.00005 * incidence_factor(theta) * z ** 2
+
+
+@pytest.mark.slow
+def test_fit_recovers_an_incidence_term_constant_in_disparity(tmp_path):
+    """As the incidence test above, with the incidence term growing as z^2 (Nguyen's law falls as
+    1 / sqrt z: at 78 deg it would be 5.6 x too high at 0.8 m for the 2.5 m value): the fitted distance
+    law is the disparity one (exponent >= 1.5) and every held-out 0.25 m bin is within 10 %."""
+    from synth.lab.calibration import curve_table
+    tilts = np.tile([0, 50, 65, 72, 78], 4)
+    dist = np.linspace(0.8, 2.7, 20) * np.cos(np.radians(tilts))
+    ref = plane_reference(tmp_path, dist, disparity_incidence, seed=3, tilts_deg=tilts)
+    fit, held = MeasuredSequence.load(ref, frame_slice="0::2"), MeasuredSequence.load(ref, frame_slice="1::2")
+    res = fit_model(fit, fit.default_config(["axial_noise"]),
+                    fit_config=FitConfig(max_frames=6, max_pixels_per_frame=4000, eval_pixels_per_frame=8000,
+                                         intervals=False))
+    assert res.params["axial_noise.incidence_z_exponent"] >= 1.5, res.params
+    rows = curve_table(held.observations(held.simulate(res.config, 0)), None, 0)
+    assert len(rows) >= 8 and all(abs(r["ratio"] - 1) <= 0.10 for r in rows), rows

@@ -130,7 +130,9 @@ class FitConfig:
     """On a sequence with a planar reference (``data make-reference --plane``): weight of the
     noise-vs-distance term added to the gap (:mod:`synth.lab.calibration`: mean |ln(simulated /
     measured plane-fit std)| over 0.25 m distance bins from 0.5 to 3 m and over those bins split
-    into incidence classes), so the fit honours the curve sensor people calibrate first; there the
+    into incidence classes), so the fit honours the curve sensor people calibrate first (its
+    closed-form start, :func:`synth.lab.calibration.curve_start`, is computed on the evaluation set,
+    ``eval_frames``: the search's few frames hold few far or grazing pixels); there the
     effects' ``PLANE_ONLY`` terms (axial noise's incidence term) are fitted too, their search
     budget on top of ``max_evaluations``; 0 = the gap alone. Ignored on other sequences."""
     compare: CompareConfig = field(default_factory=CompareConfig)
@@ -298,7 +300,7 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     """
     fc = (fit_config or FitConfig()).validate()
     t0 = time.perf_counter()
-    stages, mark, ev = {}, [t0, 0], None
+    stages, mark, ev, calibrated = {}, [t0, 0], None, None
 
     def stage(name: str) -> None:        # close the stage that ran since the last mark
         n, now = obj.evaluations + (ev.evaluations if ev is not None else 0), time.perf_counter()
@@ -332,13 +334,20 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             if g < g_start:
                 start_cfg, g_start = cand, g
                 specs = param_specs(start_cfg, names, plane)
-        if fc.data_starts and obj.noise_weight > 0:     # planar target: the noise curve calibrated first
+        if (fc.data_starts and obj.noise_weight > 0        # planar target: the noise curve calibrated first,
+                and any(sp.key == "axial_noise.sigma2_per_m" for sp in specs)):
+            # on the evaluation set: the few search frames hold few far and grazing pixels (7-Scenes chess)
             from synth.lab.calibration import curve_start
-            base_cfg = start_cfg
+            ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
+                           fc.noise_curve_weight)
+            ev.memo = {}
+            base_cfg, g_cal = start_cfg, ev(start_cfg)
             for cells in (True, False):     # per incidence cell, and per distance bin alone: the better
-                cs = curve_start(base_cfg, obj, specs, cells)
-                if cs and (g := obj(cand := set_params(base_cfg, cs))) < g_start:
-                    start_cfg, g_start = cand, g
+                cs = curve_start(base_cfg, ev, specs, cells)
+                if cs and (g := ev(cand := set_params(base_cfg, cs))) < g_cal:
+                    calibrated, g_cal = cand, g
+            if calibrated is not None:
+                start_cfg, g_start = calibrated, obj(calibrated)
             specs = param_specs(start_cfg, names, plane)
         stats: dict = {}
         stage("start")
@@ -366,9 +375,10 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
             bar.close()
     stage("search")
     stages["search"]["budget"] = int(sfc.max_evaluations) if specs else 0
-    ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
-                   fc.noise_curve_weight)
-    ev.memo = {}
+    if ev is None:
+        ev = Objective(measured, eval_frames, fc.compare_config(fc.eval_pixels_per_frame), fc.seed,
+                       fc.noise_curve_weight)
+        ev.memo = {}
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         from synth.lab.intervals import revert_moves
@@ -391,6 +401,10 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     curve_before = ev.curve(config) if ev.noise_weight > 0 else None
     after = ev(best_cfg) if best_cfg is not config else before
     curve_after = ev.curve(best_cfg) if ev.noise_weight > 0 else None
+    if calibrated is not None and best_cfg is not calibrated and (g := ev(calibrated)) < after:
+        # the search on its few frames moved away from the noise curve calibrated on all of them
+        best_cfg, best_x, after, curve_after = calibrated, get_params(calibrated, specs), g, ev.curve(calibrated)
+        stages["start"]["calibration_kept"] = True
     kept = False
     if after > before:
         best_cfg, best_x, after, kept = config, get_params(config, specs), before, True

@@ -26,7 +26,15 @@ class AxialNoiseParams:
     incidence_m: float = param(0.0, "m")
     """Incidence term of the std (Nguyen, Izadi & Lovell 2012's Kinect v1 axial model):
     + incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z / 1 m), theta the angle between the camera ray
-    and the surface normal (capped at :data:`MAX_INCIDENCE_DEG`); their fit is 1e-4 m. Metres."""
+    and the surface normal (capped at :data:`MAX_INCIDENCE_DEG`); their fit is 1e-4 m. Metres.
+    Its distance law is ``incidence_z_exponent``."""
+    incidence_z_exponent: float = param(-0.5, "1")
+    """The incidence term grows as (z / 1 m)^incidence_z_exponent: -0.5 is Nguyen et al. 2012's
+    empirical 1 / sqrt(z); 2 makes the term constant in disparity (the matcher's disparity error
+    grows with the slant of the surface - elongated, dimmer dots, a broader correlation peak - and
+    turns into depth as z^2 / (f b), the same law as the noise itself: Khoshelham & Elberink 2012),
+    which the grazing floor and table of 7-Scenes chess follow better beyond 2 m (docs/sensor_lab.md).
+    Dimensionless; fitted on planar references only."""
 
 
 MAX_INCIDENCE_DEG = 85.0
@@ -55,7 +63,8 @@ def _native_fb_ratio(preset) -> float:
 @register_effect
 class AxialNoise(Effect):
     """z += sigma(z) n, n ~ N(0, 1), sigma(z) = sigma0 + sigma1 z + sigma2 (z - z_offset)^2
-    (+ the incidence term incidence_m theta^2 / (pi/2 - theta)^2 / sqrt(z), Nguyen et al. 2012).
+    (+ the incidence term incidence_m theta^2 / (pi/2 - theta)^2 z^incidence_z_exponent; Nguyen et al.
+    2012: z^-0.5).
 
     Physics: a triangulating sensor measures disparity d = f b / z with a roughly constant
     error sigma_d, so sigma_z = z^2 sigma_d / (f b) (Khoshelham & Elberink 2012: 1.425e-5 Z^2
@@ -75,8 +84,9 @@ class AxialNoise(Effect):
     DRAW_FROM_SHAPE = True
     Params = AxialNoiseParams
     FITTABLE = {"sigma0_m": (0.0, 0.1), "sigma1": (0.0, 0.1), "sigma2_per_m": (0.0, 0.05),
-                "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0), "incidence_m": (0.0, 0.005)}
-    PLANE_ONLY = ("incidence_m",)
+                "z_offset_m": (0.0, 2.0), "reflectance_exponent": (0.0, 2.0), "incidence_m": (0.0, 0.005),
+                "incidence_z_exponent": (-0.5, 2.0)}
+    PLANE_ONLY = ("incidence_m", "incidence_z_exponent")
     """The incidence term is fitted on planar references only: the noise-curve term there compares
     the spread per distance and incidence (:func:`synth.lab.calibration.noise_curve`); the gap's
     pooled error distributions elsewhere cannot separate it from the distance terms."""
@@ -198,7 +208,7 @@ class AxialNoise(Effect):
             v = state.view
             cos_t, _ = cos_incidence(v, np.zeros(3, np.float32))
             theta = np.arccos(np.clip(cos_t, 0.0, 1.0))
-            s = s + p.incidence_m * incidence_factor(theta) / np.sqrt(np.maximum(z, 0.05))
+            s = s + p.incidence_m * incidence_factor(theta) * np.maximum(z, 0.05) ** p.incidence_z_exponent
         if p.reflectance_exponent and state is not None:
             v = state.view
             cos_i, _ = cos_incidence(v, state.preset.projector_offset_m)
