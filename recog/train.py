@@ -64,8 +64,10 @@ class TrainConfig:
     ch. 5's "A(synthetic)" baseline: procedural depth backgrounds, nearer polygon occluders, blur; the ranges
     of ``synda_preset('cpu', 'depth').augment``), each patch of each step drawn anew, on top of the variant's
     sensor model; 0 = off. Every patch augmented (1) made the LeNet descriptor collapse to one point within 50
-    steps (chairs, physical variant: spread 0.012, loss 1.0), hence a fraction; the database stays built from
-    the unaugmented patches. Needs the object masks of this version's training chunks."""
+    steps (chairs, physical variant: spread 0.012, loss 1.0), hence a fraction; with a fraction the pair term
+    (two independently augmented draws of a view) still shrinks the descriptors, so an A-trained recogniser wants
+    a low :attr:`pair_weight` (0.1: docs/synda.md). The database stays built from the unaugmented patches. Needs
+    the object masks of this version's training chunks."""
     seed: int = 0
     """Seed of the initial weights and of the mining."""
     device: str = "cpu"
