@@ -1,7 +1,11 @@
 """Fingerprints of the shipped neural models (slam/neural/weights/front_2d, planar_3d): on fixed seeded inputs the
 localisation estimates, the pose fields, a recalled view and a hallucinated one reduce to a few numbers recorded
 from the code before the package's reshaping (issue 45). A refactoring that changes what the shipped weights compute
-(a layer order, a normalisation, a rounding) changes them; same machine, same threads, so the tolerance is 1e-6."""
+(a layer order, a normalisation, a rounding) changes them. Another CPU model computes the same float32 kernels with
+other summation orders (the recorded numbers came from CI's machine; an AMD EPYC with the same AVX512 capability
+gives inference sums 5e-8 apart and, after 12 training steps, losses 1.2e-4 and weight sums 7e-4 apart), so the
+inference fingerprints are compared to 1e-6 of their largest value and the short training run to 5e-3 relative:
+far below what a changed layer or normalisation moves (whole per cent and more)."""
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +22,10 @@ def _stats(x) -> list[float]:
     return [float(x.sum()), float((x * x).sum()), float((x * np.linspace(-1, 1, x.size)).sum())]
 
 
-def _close(got, want):
-    assert np.allclose(np.asarray(got, np.float64), np.asarray(want, np.float64), rtol=1e-6, atol=1e-6), (got, want)
+def _close(got, want, rtol: float = 1e-6):
+    """``got`` equals ``want`` to ``rtol`` of the largest recorded value (a ramp sum may nearly cancel)."""
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    assert np.allclose(got, want, rtol=0, atol=rtol * max(1.0, float(np.abs(want).max()))), (got.tolist(), want.tolist())
 
 
 def fingerprint_2d():
@@ -138,8 +144,10 @@ EXPECTED_TRAIN_LOG = {'log': [{'step': 2, 'anam': 0.24582}, {'step': 4, 'anam': 
 def test_short_2d_training_log():
     """A short seeded 2D training run logs the same losses and ends at the same weights as recorded."""
     got = train_log_2d()
-    assert got["log"] == EXPECTED_TRAIN_LOG["log"]
-    _close(got["weights"], EXPECTED_TRAIN_LOG["weights"])
+    assert [sorted(r) for r in got["log"]] == [sorted(r) for r in EXPECTED_TRAIN_LOG["log"]]
+    for g, w in zip(got["log"], EXPECTED_TRAIN_LOG["log"]):
+        assert all(abs(g[k] - w[k]) <= 5e-3 * abs(w[k]) for k in w), (g, w)
+    assert np.allclose(got["weights"], EXPECTED_TRAIN_LOG["weights"], rtol=5e-3, atol=0), got["weights"]
 
 
 EXPECTED_ABLATIONS_3D = {
