@@ -89,6 +89,21 @@ def _threshold_in(jump: np.ndarray, fattened: np.ndarray, lo: float, hi: float,
     return None
 
 
+def _stump(jump: np.ndarray, fattened: np.ndarray) -> float | None:
+    """The threshold t that best splits ``fattened`` pixels (jump > t) from the others: fewest
+    misclassified, in the middle (geometric mean) of the jumps bounding the best split; None
+    without both kinds of pixels."""
+    o = np.argsort(jump)
+    j, f = np.asarray(jump, np.float64)[o], np.asarray(fattened, bool)[o]
+    if f.all() or not f.any():
+        return None
+    # split i: the first i pixels (smallest jumps) below the threshold
+    err = np.concatenate([[0], np.cumsum(f)]) + np.concatenate([np.cumsum((~f)[::-1])[::-1], [0]])
+    i = np.flatnonzero(err == err.min())
+    lo, hi = j[max(i[0] - 1, 0)], j[min(i[-1], j.size - 1)]
+    return float(np.sqrt(max(lo, 1e-6) * max(hi, 1e-6)))
+
+
 def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0) -> tuple[str, float] | None:
     """The smallest depth jump across which the measured depth of the pixels right behind an edge
     (ring 1: a nearer surface among the 8 neighbours, nearer by more than ``rel``) carries the
@@ -265,9 +280,42 @@ class EdgeFattening(Effect):
         if best is None:
             return {}
         out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
+        if px > 0:      # the disparity threshold again, against the nearest surface of the whole window
+            t = cls._window_threshold(measured, fb, best[1], best[2], rel)
+            if t is not None:
+                out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
         if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0, nearer):
             out[f"{cls.name}.gate"] = "none"
         return out
+
+    @staticmethod
+    def _window_threshold(measured, fb: float, radius: int, shape: str, rel: float) -> float | None:
+        """The disparity threshold (px) that best splits the measured pixels carrying a nearer
+        surface's depth from the others (:func:`_stump`), the jump taken to the nearest surface of
+        the (radius, shape) window - what the model compares (ring 1 alone underestimates it: a
+        pixel beside a small jump may take the depth of a bigger one farther in the window). Pixels
+        whose window holds a surface nearer by more than ``rel`` (clear edges), the measured holes
+        among them too where that surface's depth lies within the measured ones (0.5-99.5th
+        percentile): a hole behind a foreground the sensor measures was not fattened."""
+        import cv2
+        from synth.sensor.effects._common import measured_samples
+        k = window_kernel(radius, shape)
+        samples = list(measured_samples(measured))
+        valid = np.concatenate([m[m > 0] for _, m, _, _ in samples])
+        if valid.size < 100:
+            return None
+        lo, hi = np.percentile(valid, [0.5, 99.5])
+        js, fs = [], []
+        for _, m, r, ok in samples:
+            z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
+            near = cv2.erode(z, k)
+            # a hole whose nearer surface the sensor would have measured (within the measured depths)
+            # was not fattened: a fattened pixel carries that depth (e.g. a background beyond the range)
+            sel = ok & (near < z * (1 - rel)) & ((m > 0) | ((near >= lo) & (near <= hi)))
+            if sel.any():
+                js.append(fb / near[sel] - fb / z[sel])
+                fs.append((m[sel] > 0) & (np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
+        return _stump(np.concatenate(js), np.concatenate(fs)) if js else None
 
     @staticmethod
     def _fattens_slopes(measured, radius: int, shape: str, rel_gate: float, nearer, min_pixels: int = 30) -> bool:
