@@ -19,6 +19,12 @@ class LensDistortionParams:
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
     k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
+    outside: str = param("seen", "", choices=("seen", "hole"))
+    """What a distorted pixel whose undistorted position lies outside the pinhole image reports:
+    ``seen`` (the lens's ray sees the scene there, as a camera's own lens does) or ``hole`` (depth
+    computed on a pinhole grid of the image's size and warped to the distorted one, as a device or
+    driver that rectifies, registers or resamples its depth does: no source pixel, no depth - a
+    barrel lens then cuts the corners). ``sensor fit`` picks it from the data (``fit_start``)."""
 
 
 def undistort_pixels(pts: np.ndarray, K: np.ndarray, coeffs) -> np.ndarray:
@@ -96,6 +102,7 @@ class LensDistortion(Effect):
     Params = LensDistortionParams
     in_reference = True
     FITTABLE = {"k1": (-0.5, 0.5), "k2": (-0.5, 0.5)}
+    START_ONLY_PARAMS = ("outside",)
 
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
@@ -204,6 +211,7 @@ class LensDistortion(Effect):
                     x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
             return x, float(costs[i])
 
+        border = cls._border_holes(measured, frames, intr, base)
         c0 = cost(0.0)
         k1, c1 = best_on(cls.START_GRID, cost)
         if "edge_fattening" in config.names(enabled_only=True):
@@ -216,7 +224,9 @@ class LensDistortion(Effect):
                 c0 = cost(0.0)
                 k1, c1 = best_on(cls.START_GRID, cost)
         if not c1 < 0.95 * c0:
-            return {}
+            if border is None:
+                return {}
+            k1 = border     # the corners' holes say what the edges did not
         # k2 at that k1, then k1 again finely at that k2 (coordinate steps: a lens is mostly k1)
         k2, c2 = best_on(cls.START_GRID_K2, lambda v: cost(k1, v))
         if not c2 < 0.98 * c1:
@@ -227,7 +237,52 @@ class LensDistortion(Effect):
         out = {f"{cls.name}.k1": float(np.clip(k1, lo, hi))}
         if k2:
             out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
+        if border is not None:
+            out[f"{cls.name}.outside"] = "hole"
         return out
+
+    BORDER_MIN_IOU = 0.7
+    """Least intersection-over-union of the measured holes with the region a barrel k1 leaves
+    without a source pixel (:meth:`_border_holes`)."""
+
+    @classmethod
+    def _border_holes(cls, measured, frames, intr, base) -> float | None:
+        """The k1 < 0 of :attr:`START_GRID` whose out-of-image region (distorted pixels whose
+        undistorted position falls outside the pinhole image: what ``outside = "hole"`` cuts) best
+        matches the measured holes in the band the most barrel grid value cuts, when the
+        intersection over union reaches :attr:`BORDER_MIN_IOU` on at least 0.5 % of the image; None
+        otherwise (a lens whose rays see the corners, or no barrel lens)."""
+        from synth.sensor.effects._common import measured_samples
+        H, W = intr.height, intr.width
+        holes = None
+        for _, m, r, ok in measured_samples(measured, frames):
+            h = (m <= 0) & ok
+            holes = h.astype(np.int32) if holes is None else holes + h
+        if holes is None:
+            return None
+        n = len(list(frames)) if frames is not None else len(measured)
+        always = holes >= max(1, n)         # a hole in every frame: the image frame, not the scene
+
+        def region(k1: float) -> np.ndarray:
+            c = list(base)
+            c[0] += k1
+            mx, my = distortion_maps(intr, tuple(c))
+            return (mx < -0.5) | (mx > W - 0.5) | (my < -0.5) | (my > H - 0.5)
+
+        grid = [float(k) for k in cls.START_GRID if k < 0]
+        band = region(min(grid))
+        if not band.any():
+            return None
+        best = None
+        for k1 in grid:
+            o = region(k1)
+            if o.sum() < 0.005 * H * W:
+                continue
+            meas = always & band
+            iou = float((o & meas).sum()) / max(float((o | meas).sum()), 1.0)
+            if best is None or iou > best[0]:
+                best = (iou, k1)
+        return best[1] if best is not None and best[0] >= cls.BORDER_MIN_IOU else None
 
     def validate(self) -> None:
         super().validate()
@@ -300,6 +355,11 @@ class LensDistortion(Effect):
             state.view = cast_view(state.renderer, state.ray_dirs_cam, state.view.row_c2w)
             state.depth = state.view.depth.copy()
             state.valid = state.view.hit.copy()
+            if self.params.outside == "hole":
+                W, H = state.intr.width, state.intr.height
+                out = (mx < -0.5) | (mx > W - 0.5) | (my < -0.5) | (my > H - 0.5)
+                state.valid &= ~out
+                state.depth = np.where(out, 0.0, state.depth).astype(state.depth.dtype)
         else:
             z = np.where(state.valid, state.depth, 0).astype(np.float32)
             z = cv2.remap(z, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
