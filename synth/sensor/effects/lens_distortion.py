@@ -118,7 +118,8 @@ class LensDistortion(Effect):
     def fit_start(cls, measured, config, frames) -> dict[str, float]:
         """k1 from depth edges: the ideal depth is warped as the sensor would see it for every k1 of
         :attr:`START_GRID` (k2 = 0; pixels undistorted by OpenCV's iteration, nearest neighbour, on a
-        grid of ~320 columns) and its depth edges (adjacent depths differing by > 4 %) are matched with
+        grid of ~320 columns) and its depth edges (adjacent depths differing by > 4 %, or by 5 x the
+        measured noise of neighbour differences when that is more) are matched with
         the measured ones by the symmetric chamfer distance (mean distance to the nearest edge of the
         other image, capped at 5 px). Edges do not move under depth biases, scale errors or noise
         (which a depth residual would mix in: a 0.3 px disparity offset is a 4 % depth change at
@@ -130,7 +131,9 @@ class LensDistortion(Effect):
         warped ideal depth is fattened too, by a square window whose radius (0-10 grid px) is scanned
         at the first k1 before k1 is scanned again. Nothing when k1 does not beat k1 = 0 by 5 % of
         the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
-        pixels. Tangential terms are not estimated (the fit has none)."""
+        pixels. Tangential terms are not estimated (the fit has none). ``outside`` is "hole" when the
+        measured holes present in every frame match the region a barrel k1 leaves without a source
+        pixel (:meth:`_border_holes`); that k1 is the start when the edges gave none."""
         import cv2
 
         from synth.sensor.effects._common import measured_samples
