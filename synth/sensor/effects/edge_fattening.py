@@ -158,7 +158,8 @@ class EdgeFattening(Effect):
     discontinuity (adjacent pixels differing by more than ``min_jump_rel``), a grey erosion
     (minimum depth) over a (2r+1)^2 window replaces pixels whose minimum is nearer by
     ``min_jump_rel`` (holes next to the foreground that the scene surface covers are filled
-    too; steep but continuous surfaces are left alone).
+    too; steep but continuous surfaces are left alone, unless ``gate`` is "none"); with
+    ``min_jump_px`` the nearer surface must also lead by that much disparity.
     """
 
     name = "edge_fattening"
@@ -217,7 +218,12 @@ class EdgeFattening(Effect):
         the smallest relative jump from which they are becomes ``min_jump_rel``'s start and the
         radius is read on edges above it (an independent generator fattening only across jumps of
         1.6 px of disparity, 20-40 % of depth at 160 px width, gave no start at all: ring 1 over
-        every 6 % edge was fattened in 30 % of the pixels)."""
+        every 6 % edge was fattened in 30 % of the pixels). When the disparity jump separates the
+        fattened ring-1 pixels at least as well as the relative one (:func:`_jump_threshold`), the
+        start is ``min_jump_px`` (refined against the nearest surface of the whole window,
+        :meth:`_window_threshold`) with ``min_jump_rel`` 0. ``gate`` is "none" when pixels whose window
+        holds a nearer surface but no discontinuity of the ideal view are fattened too
+        (:meth:`_fattens_slopes`)."""
         import cv2
         from synth.sensor.effects._common import measured_samples
         rel0 = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
