@@ -19,6 +19,17 @@ class EdgeFatteningParams:
     matcher's window: Kinect v1, StereoBM) or ``disk`` (Euclidean radius r: matchers with
     circular or weighted windows, and filtering that spreads isotropically). ``sensor fit``
     picks the shape from the data (see ``fit_start``)."""
+    min_jump_px: float = param(0.0, "px")
+    """A neighbour counts as foreground only when its disparity f b / z exceeds the pixel's by more
+    than this, pixels (0 = no disparity test): a matcher locks onto a nearer surface when the
+    disparity jump is one it can see - a disparity threshold is a depth threshold that grows with
+    depth (rel ~ jump z / f b). Both tests apply; ``min_jump_rel`` 0 leaves this one alone."""
+    gate: str = param("edges", "", choices=("edges", "none"))
+    """Where fattening may happen: ``edges`` only within the window of a discontinuity of the ideal
+    view (a neighbour off the pixel's tangent plane by ``min_jump_rel``: steep but continuous
+    surfaces are left alone), ``none`` wherever the window holds a nearer surface by the thresholds
+    (a matcher or a post-filter, e.g. a disparity max filter, that does not tell a depth edge from a
+    steep slope). ``sensor fit`` picks it from the data (see ``fit_start``)."""
 
 
 def window_kernel(radius: int, shape: str) -> np.ndarray:
@@ -61,15 +72,53 @@ def depth_discontinuities(view, ray_dirs_cam: np.ndarray, rel: float) -> np.ndar
     return out
 
 
-def _jump_threshold(samples, rel: float, min_pixels: int = 30) -> float | None:
-    """The smallest relative depth jump 1 - z_near / z across which the measured depth of the pixels
-    right behind an edge (ring 1: a nearer surface among the 8 neighbours) carries the foreground's
-    depth in at least half of them, in every 0.05-decade bin of jumps from there up (bins of
-    ``min_pixels`` pixels or more); None when ring 1 is fattened from the smallest jump ``rel`` on
-    (the threshold is then no larger than ``rel``) or never. ``samples``: (measured depth, ideal
+def _threshold_in(jump: np.ndarray, fattened: np.ndarray, lo: float, hi: float,
+                  min_pixels: int) -> float | None:
+    """The smallest jump (bins of 0.05 decades from ``lo`` to ``hi``) from which at least half the
+    pixels of every bin of ``min_pixels`` or more are ``fattened``; None when the first bin already
+    is (a threshold no larger than ``lo``) or no bin is."""
+    edges = 10.0 ** np.arange(np.log10(lo), np.log10(hi) + 0.05, 0.05)
+    b = np.digitize(jump, edges) - 1
+    shares = [(edges[k], float(fattened[b == k].mean())) for k in range(len(edges) - 1)
+              if np.count_nonzero(b == k) >= min_pixels]
+    if not shares or shares[0][1] >= 0.5:
+        return None
+    for j, (e, _) in enumerate(shares):
+        if all(sh >= 0.5 for _, sh in shares[j:]):
+            return float(e)
+    return None
+
+
+def _stump(jump: np.ndarray, fattened: np.ndarray) -> float | None:
+    """The threshold t that best splits ``fattened`` pixels (jump > t) from the others: fewest
+    misclassified, in the middle (geometric mean) of the jumps bounding the best split; None
+    without both kinds of pixels."""
+    o = np.argsort(jump)
+    j, f = np.asarray(jump, np.float64)[o], np.asarray(fattened, bool)[o]
+    if f.all() or not f.any():
+        return None
+    # split i: the first i pixels (smallest jumps) below the threshold
+    err = np.concatenate([[0], np.cumsum(f)]) + np.concatenate([np.cumsum((~f)[::-1])[::-1], [0]])
+    i = np.flatnonzero(err == err.min())
+    lo, hi = j[max(i[0] - 1, 0)], j[min(i[-1], j.size - 1)]
+    return float(np.sqrt(max(lo, 1e-6) * max(hi, 1e-6)))
+
+
+def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0) -> tuple[str, float] | None:
+    """The smallest depth jump across which the measured depth of the pixels right behind an edge
+    (ring 1: a nearer surface among the 8 neighbours, nearer by more than ``rel``) carries the
+    foreground's depth in at least half of them, in every 0.05-decade bin of jumps from there up
+    (bins of ``min_pixels`` pixels or more), measured two ways: as the relative jump 1 - z_near / z
+    (``("rel", q)``) and, when ``fb`` > 0 (f b, px m), as the disparity jump f b / z_near - f b / z
+    in pixels (``("px", d)``). The form whose threshold classifies the ring-1 pixels (fattened iff
+    the jump exceeds it) with fewer errors wins, the disparity one on a tie: a matcher sees
+    disparities, so an edge it can see at 1 m (a large disparity jump) may be one it cannot at 3 m
+    for the same relative jump, and a scene whose edges all lie in a few depth bands separates
+    both ways. None when ring 1 is
+    fattened from the smallest jump on in both forms, or never. ``samples``: (measured depth, ideal
     depth with 1e6 where nothing is hit, usable mask) per frame, (H, W) each."""
     import cv2
-    qs, fs = [], []
+    qs, ds, fs = [], [], []
     for m, z, ok in samples:
         z = np.asarray(z, np.float32)
         near = cv2.erode(z, np.ones((3, 3), np.uint8))
@@ -77,19 +126,24 @@ def _jump_threshold(samples, rel: float, min_pixels: int = 30) -> float | None:
         sel = ok & (m > 0) & (q > rel) & (q < 0.95)
         if sel.any():
             qs.append(q[sel])
+            ds.append(fb / near[sel] - fb / z[sel] if fb > 0 else np.zeros(int(sel.sum())))
             fs.append(np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel]))
     if not qs:
         return None
-    q, f = np.concatenate(qs), np.concatenate(fs)
-    edges = 10.0 ** np.arange(np.log10(rel), np.log10(0.95) + 0.05, 0.05)
-    b = np.digitize(q, edges) - 1
-    shares = [(edges[k], float(f[b == k].mean())) for k in range(len(edges) - 1) if np.count_nonzero(b == k) >= min_pixels]
-    if not shares or shares[0][1] >= 0.5:
+    q, d, f = np.concatenate(qs), np.concatenate(ds), np.concatenate(fs)
+    found = []
+    t = _threshold_in(q, f, rel, 0.95, min_pixels)
+    if t is not None:
+        found.append(("rel", t, int(np.count_nonzero(f != (q > t)))))
+    if fb > 0 and d.size:
+        t = _threshold_in(d, f, max(float(d.min()), 0.05), max(float(d.max()), 0.1), min_pixels)
+        if t is not None:
+            found.append(("px", t, int(np.count_nonzero(f != (d > t)))))
+    if not found:
         return None
-    for j, (lo, _) in enumerate(shares):
-        if all(sh >= 0.5 for _, sh in shares[j:]):
-            return float(lo)
-    return None
+    if len(found) == 2 and found[1][2] <= found[0][2]:
+        return found[1][:2]
+    return found[0][:2]
 
 
 @register_effect
@@ -104,7 +158,8 @@ class EdgeFattening(Effect):
     discontinuity (adjacent pixels differing by more than ``min_jump_rel``), a grey erosion
     (minimum depth) over a (2r+1)^2 window replaces pixels whose minimum is nearer by
     ``min_jump_rel`` (holes next to the foreground that the scene surface covers are filled
-    too; steep but continuous surfaces are left alone).
+    too; steep but continuous surfaces are left alone, unless ``gate`` is "none"); with
+    ``min_jump_px`` the nearer surface must also lead by that much disparity.
     """
 
     name = "edge_fattening"
@@ -116,8 +171,8 @@ class EdgeFattening(Effect):
     IDENTITY_PARAMS = {"radius_px": 0}
     sensor_types = ("structured_light", "active_stereo")  # triangulation
     Params = EdgeFatteningParams
-    FITTABLE = {"radius_px": (0, 20), "min_jump_rel": (0.0, 1.0)}
-    START_ONLY_PARAMS = ("window",)
+    FITTABLE = {"radius_px": (0, 20), "min_jump_rel": (0.0, 1.0), "min_jump_px": (0.0, 4.0)}
+    START_ONLY_PARAMS = ("window", "gate")
     stage = STAGE_DROPOUT + 5
 
     def apply(self, state, draw) -> None:
@@ -135,10 +190,14 @@ class EdgeFattening(Effect):
         # only across real discontinuities, not along steep but continuous surfaces: a
         # neighbour is across an edge when its depth differs from the depth the pixel's own
         # tangent plane predicts for it by more than min_jump_rel
-        jump = depth_discontinuities(state.view, state.ray_dirs_cam, self.params.min_jump_rel)
-        near_edge = cv2.dilate(jump.astype(np.uint8), k) > 0
-        fat = (near_edge & (near < big) & state.view.hit
-               & (near < own * np.float32(1.0 - self.params.min_jump_rel)))
+        fat = (near < big) & state.view.hit & (near < own * np.float32(1.0 - self.params.min_jump_rel))
+        if self.params.gate == "edges":
+            jump = depth_discontinuities(state.view, state.ray_dirs_cam, self.params.min_jump_rel)
+            fat &= cv2.dilate(jump.astype(np.uint8), k) > 0
+        fb = float(getattr(state.preset, "fb", 0.0) or 0.0)
+        if self.params.min_jump_px > 0 and fb > 0:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                fat &= fb / near - fb / own > np.float32(self.params.min_jump_px)
         state.depth = np.where(fat, near, state.depth).astype(np.float32)
         state.valid = state.valid | fat
         state.log[self.name] = {"fattened_px": int(fat.sum()), "radius_px": r}
@@ -159,16 +218,34 @@ class EdgeFattening(Effect):
         the smallest relative jump from which they are becomes ``min_jump_rel``'s start and the
         radius is read on edges above it (an independent generator fattening only across jumps of
         1.6 px of disparity, 20-40 % of depth at 160 px width, gave no start at all: ring 1 over
-        every 6 % edge was fattened in 30 % of the pixels)."""
+        every 6 % edge was fattened in 30 % of the pixels). When the disparity jump separates the
+        fattened ring-1 pixels at least as well as the relative one (:func:`_jump_threshold`), the
+        start is ``min_jump_px`` (refined against the nearest surface of the whole window,
+        :meth:`_window_threshold`) with ``min_jump_rel`` 0. ``gate`` is "none" when pixels whose window
+        holds a nearer surface but no discontinuity of the ideal view are fattened too
+        (:meth:`_fattens_slopes`)."""
         import cv2
         from synth.sensor.effects._common import measured_samples
-        rel = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
-        rel = max(2.0 * rel, 0.06)      # clear edges only: the radius does not depend on which edges
-        thr = _jump_threshold(((m, np.where(r.hit, r.depth, 1e6), ok) for _, m, r, ok in measured_samples(measured)), rel)
-        out = {}
-        if thr is not None and thr > rel:
-            rel = min(thr, 0.9)
-            out[f"{cls.name}.min_jump_rel"] = float(np.clip(thr, *cls.FITTABLE["min_jump_rel"]))
+        rel0 = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
+        rel = max(2.0 * rel0, 0.06)      # clear edges only: the radius does not depend on which edges
+        fb = float(config.preset.fb) if getattr(config.preset, "type", "") != "tof" else 0.0
+        thr = _jump_threshold(((m, np.where(r.hit, r.depth, 1e6), ok) for _, m, r, ok in measured_samples(measured)),
+                              rel, fb=fb)
+        out, px = {}, 0.0
+        if thr is not None and thr[0] == "rel" and thr[1] > rel:
+            rel = min(thr[1], 0.9)
+            out[f"{cls.name}.min_jump_rel"] = rel0 = float(np.clip(thr[1], *cls.FITTABLE["min_jump_rel"]))
+        elif thr is not None and thr[0] == "px":        # a disparity threshold: no relative one
+            px = float(np.clip(thr[1], *cls.FITTABLE["min_jump_px"]))
+            rel0 = 0.0
+            out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
+
+        def nearer(near: np.ndarray, z: np.ndarray) -> np.ndarray:
+            """A surface in the window that fattens a pixel of ideal depth z (the start's thresholds)."""
+            if px > 0:
+                with np.errstate(divide="ignore"):
+                    return fb / near - fb / z > px
+            return near < z * (1 - rel)
         K = 15
         shapes = ("square", "disk")
         fat = {sh: np.zeros(K + 2) for sh in shapes}
@@ -181,7 +258,7 @@ class EdgeFattening(Effect):
                     near = cv2.erode(z, window_kernel(k, sh))
                     # a clear edge first within k px, and nothing nearer at all (by 1 %) within k - 1 px
                     # (a weaker edge there would have fattened the pixel by itself)
-                    ring = ok & (near < z * (1 - rel)) & ~(prev < z * 0.99)
+                    ring = ok & nearer(near, z) & ~(prev < z * 0.99)
                     prev = near
                     sel = ring & (m > 0)
                     if sel.any():
@@ -208,7 +285,64 @@ class EdgeFattening(Effect):
                 best = (drop, r, sh)
         if best is None:
             return {}
-        return {**out, f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]}
+        out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
+        if px > 0:      # the disparity threshold again, against the nearest surface of the whole window
+            t = cls._window_threshold(measured, fb, best[1], best[2], rel)
+            if t is not None:
+                out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
+        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0, nearer):
+            out[f"{cls.name}.gate"] = "none"
+        return out
+
+    @staticmethod
+    def _window_threshold(measured, fb: float, radius: int, shape: str, rel: float) -> float | None:
+        """The disparity threshold (px) that best splits the measured pixels carrying a nearer
+        surface's depth from the others (:func:`_stump`), the jump taken to the nearest surface of
+        the (radius, shape) window - what the model compares (ring 1 alone underestimates it: a
+        pixel beside a small jump may take the depth of a bigger one farther in the window). Pixels
+        whose window holds a surface nearer by more than ``rel`` (clear edges), the measured holes
+        among them too where that surface's depth lies within the measured ones (0.5-99.5th
+        percentile): a hole behind a foreground the sensor measures was not fattened."""
+        import cv2
+        from synth.sensor.effects._common import measured_samples
+        k = window_kernel(radius, shape)
+        samples = list(measured_samples(measured))
+        valid = np.concatenate([m[m > 0] for _, m, _, _ in samples])
+        if valid.size < 100:
+            return None
+        lo, hi = np.percentile(valid, [0.5, 99.5])
+        js, fs = [], []
+        for _, m, r, ok in samples:
+            z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
+            near = cv2.erode(z, k)
+            # a hole whose nearer surface the sensor would have measured (within the measured depths)
+            # was not fattened: a fattened pixel carries that depth (e.g. a background beyond the range)
+            sel = ok & (near < z * (1 - rel)) & ((m > 0) | ((near >= lo) & (near <= hi)))
+            if sel.any():
+                js.append(fb / near[sel] - fb / z[sel])
+                fs.append((m[sel] > 0) & (np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
+        return _stump(np.concatenate(js), np.concatenate(fs)) if js else None
+
+    @staticmethod
+    def _fattens_slopes(measured, radius: int, shape: str, rel_gate: float, nearer, min_pixels: int = 30) -> bool:
+        """True when the measured depth is fattened away from depth edges too: of the pixels whose
+        (radius, shape) window holds a surface ``nearer`` (the start's thresholds) but no
+        discontinuity of the ideal view (tangent-plane test at ``rel_gate``, the model's ``edges``
+        gate), at least half carry the nearer depth (>= ``min_pixels`` such pixels; a steep floor
+        or side wall seen by a matcher whose window's nearest depth wins)."""
+        import cv2
+        from synth.sensor.effects._common import measured_samples
+        k = window_kernel(radius, shape)
+        fat = cnt = 0
+        for _, m, r, ok in measured_samples(measured):
+            z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
+            near = cv2.erode(z, k)
+            gated = cv2.dilate(depth_discontinuities(r, r.ray_dirs_cam, rel_gate).astype(np.uint8), k) > 0
+            sel = ok & (m > 0) & nearer(near, z) & ~gated
+            if sel.any():
+                fat += int(np.count_nonzero(np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
+                cnt += int(sel.sum())
+        return cnt >= min_pixels and fat >= 0.5 * cnt
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:

@@ -19,6 +19,12 @@ class LensDistortionParams:
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
     k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
+    outside: str = param("seen", "", choices=("seen", "hole"))
+    """What a distorted pixel whose undistorted position lies outside the pinhole image reports:
+    ``seen`` (the lens's ray sees the scene there, as a camera's own lens does) or ``hole`` (depth
+    computed on a pinhole grid of the image's size and warped to the distorted one, as a device or
+    driver that rectifies, registers or resamples its depth does: no source pixel, no depth - a
+    barrel lens then cuts the corners). ``sensor fit`` picks it from the data (``fit_start``)."""
 
 
 def undistort_pixels(pts: np.ndarray, K: np.ndarray, coeffs) -> np.ndarray:
@@ -96,6 +102,7 @@ class LensDistortion(Effect):
     Params = LensDistortionParams
     in_reference = True
     FITTABLE = {"k1": (-0.5, 0.5), "k2": (-0.5, 0.5)}
+    START_ONLY_PARAMS = ("outside",)
 
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
@@ -111,7 +118,8 @@ class LensDistortion(Effect):
     def fit_start(cls, measured, config, frames) -> dict[str, float]:
         """k1 from depth edges: the ideal depth is warped as the sensor would see it for every k1 of
         :attr:`START_GRID` (k2 = 0; pixels undistorted by OpenCV's iteration, nearest neighbour, on a
-        grid of ~320 columns) and its depth edges (adjacent depths differing by > 4 %) are matched with
+        grid of ~320 columns) and its depth edges (adjacent depths differing by > 4 %, or by 5 x the
+        measured noise of neighbour differences when that is more) are matched with
         the measured ones by the symmetric chamfer distance (mean distance to the nearest edge of the
         other image, capped at 5 px). Edges do not move under depth biases, scale errors or noise
         (which a depth residual would mix in: a 0.3 px disparity offset is a 4 % depth change at
@@ -123,7 +131,9 @@ class LensDistortion(Effect):
         warped ideal depth is fattened too, by a square window whose radius (0-10 grid px) is scanned
         at the first k1 before k1 is scanned again. Nothing when k1 does not beat k1 = 0 by 5 % of
         the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
-        pixels. Tangential terms are not estimated (the fit has none)."""
+        pixels. Tangential terms are not estimated (the fit has none). ``outside`` is "hole" when the
+        measured holes present in every frame match the region a barrel k1 leaves without a source
+        pixel (:meth:`_border_holes`); that k1 is the start when the edges gave none."""
         import cv2
 
         from synth.sensor.effects._common import measured_samples
@@ -134,12 +144,14 @@ class LensDistortion(Effect):
         shape = vv.shape
         pts = np.stack([uu.ravel(), vv.ravel()], -1).astype(np.float64).reshape(-1, 1, 2)
 
+        tau = [0.04]
+
         def edges(d: np.ndarray) -> np.ndarray:
             e = np.zeros(d.shape, bool)
             for ax in (0, 1):
                 a = d[:-1, :] if ax == 0 else d[:, :-1]
                 b = d[1:, :] if ax == 0 else d[:, 1:]
-                jump = (a > 0) & (b > 0) & (np.abs(a - b) > 0.04 * np.minimum(a, b))
+                jump = (a > 0) & (b > 0) & (np.abs(a - b) > tau[0] * np.minimum(a, b))
                 if ax == 0:
                     e[:-1, :] |= jump
                     e[1:, :] |= jump
@@ -151,6 +163,18 @@ class LensDistortion(Effect):
         def dist_to(e: np.ndarray) -> np.ndarray:
             return cv2.distanceTransform((~e).astype(np.uint8), cv2.DIST_L2, 3)
 
+        # the edge threshold stays above the measured noise: 5 x the robust std of the relative
+        # difference of horizontal neighbours (most pairs lie on one surface), at least 4 % (a
+        # small image of a noisy sensor - 2 % depth noise at 3 m and 160 px - else reads a third of
+        # its pixels as edges and the chamfer cost stops seeing k1)
+        rel_d = []
+        for _, m, r, ok in measured_samples(measured, frames):
+            a, b = m[:, :-1], m[:, 1:]
+            sel = (a > 0) & (b > 0) & ok[:, :-1] & ok[:, 1:]
+            rel_d.append(np.abs(a[sel] - b[sel]) / np.minimum(a[sel], b[sel]))
+        rel_d = np.concatenate(rel_d) if rel_d else np.zeros(0)
+        if rel_d.size > 100:
+            tau[0] = max(0.04, 5.0 * 1.4826 * float(np.median(rel_d)))
         data = []
         for _, m, r, ok in measured_samples(measured, frames):
             mg = np.where(ok[vv, uu], m[vv, uu], 0).astype(np.float64)
@@ -204,6 +228,7 @@ class LensDistortion(Effect):
                     x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
             return x, float(costs[i])
 
+        border = cls._border_holes(measured, frames, intr, base)
         c0 = cost(0.0)
         k1, c1 = best_on(cls.START_GRID, cost)
         if "edge_fattening" in config.names(enabled_only=True):
@@ -216,7 +241,9 @@ class LensDistortion(Effect):
                 c0 = cost(0.0)
                 k1, c1 = best_on(cls.START_GRID, cost)
         if not c1 < 0.95 * c0:
-            return {}
+            if border is None:
+                return {}
+            k1 = border     # the corners' holes say what the edges did not
         # k2 at that k1, then k1 again finely at that k2 (coordinate steps: a lens is mostly k1)
         k2, c2 = best_on(cls.START_GRID_K2, lambda v: cost(k1, v))
         if not c2 < 0.98 * c1:
@@ -227,7 +254,52 @@ class LensDistortion(Effect):
         out = {f"{cls.name}.k1": float(np.clip(k1, lo, hi))}
         if k2:
             out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
+        if border is not None:
+            out[f"{cls.name}.outside"] = "hole"
         return out
+
+    BORDER_MIN_IOU = 0.7
+    """Least intersection-over-union of the measured holes with the region a barrel k1 leaves
+    without a source pixel (:meth:`_border_holes`)."""
+
+    @classmethod
+    def _border_holes(cls, measured, frames, intr, base) -> float | None:
+        """The k1 < 0 of :attr:`START_GRID` whose out-of-image region (distorted pixels whose
+        undistorted position falls outside the pinhole image: what ``outside = "hole"`` cuts) best
+        matches the measured holes in the band the most barrel grid value cuts, when the
+        intersection over union reaches :attr:`BORDER_MIN_IOU` on at least 0.5 % of the image; None
+        otherwise (a lens whose rays see the corners, or no barrel lens)."""
+        from synth.sensor.effects._common import measured_samples
+        H, W = intr.height, intr.width
+        holes = None
+        for _, m, r, ok in measured_samples(measured, frames):
+            h = (m <= 0) & ok
+            holes = h.astype(np.int32) if holes is None else holes + h
+        if holes is None:
+            return None
+        n = len(list(frames)) if frames is not None else len(measured)
+        always = holes >= max(1, n)         # a hole in every frame: the image frame, not the scene
+
+        def region(k1: float) -> np.ndarray:
+            c = list(base)
+            c[0] += k1
+            mx, my = distortion_maps(intr, tuple(c))
+            return (mx < -0.5) | (mx > W - 0.5) | (my < -0.5) | (my > H - 0.5)
+
+        grid = [float(k) for k in cls.START_GRID if k < 0]
+        band = region(min(grid))
+        if not band.any():
+            return None
+        best = None
+        for k1 in grid:
+            o = region(k1)
+            if o.sum() < 0.005 * H * W:
+                continue
+            meas = always & band
+            iou = float((o & meas).sum()) / max(float((o | meas).sum()), 1.0)
+            if best is None or iou > best[0]:
+                best = (iou, k1)
+        return best[1] if best is not None and best[0] >= cls.BORDER_MIN_IOU else None
 
     def validate(self) -> None:
         super().validate()
@@ -300,6 +372,11 @@ class LensDistortion(Effect):
             state.view = cast_view(state.renderer, state.ray_dirs_cam, state.view.row_c2w)
             state.depth = state.view.depth.copy()
             state.valid = state.view.hit.copy()
+            if self.params.outside == "hole":
+                W, H = state.intr.width, state.intr.height
+                out = (mx < -0.5) | (mx > W - 0.5) | (my < -0.5) | (my > H - 0.5)
+                state.valid &= ~out
+                state.depth = np.where(out, 0.0, state.depth).astype(state.depth.dtype)
         else:
             z = np.where(state.valid, state.depth, 0).astype(np.float32)
             z = cv2.remap(z, mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
