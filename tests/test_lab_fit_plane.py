@@ -152,6 +152,19 @@ def test_incidence_factor_by_hand():
     assert f == pytest.approx([0.0, 1.0, 4.0, 289.0, 289.0])
 
 
+def _fit_tilted_planes(tmp_path, noise, seed: int):
+    """20 hand-made plane frames turned by 0, 50, 65, 72 or 78 deg at 0.8-2.7 m along the axis with ``noise``;
+    ``axial_noise`` fitted on the even frames. Returns (the fit's result, the odd frames)."""
+    tilts = np.tile([0, 50, 65, 72, 78], 4)
+    dist = np.linspace(0.8, 2.7, 20) * np.cos(np.radians(tilts))
+    ref = plane_reference(tmp_path, dist, noise, seed=seed, tilts_deg=tilts)
+    fit, held = MeasuredSequence.load(ref, frame_slice="0::2"), MeasuredSequence.load(ref, frame_slice="1::2")
+    res = fit_model(fit, fit.default_config(["axial_noise"]),
+                    fit_config=FitConfig(max_frames=6, max_pixels_per_frame=4000, eval_pixels_per_frame=8000,
+                                         intervals=False))
+    return res, held
+
+
 def test_fit_recovers_a_known_incidence_curve_on_held_out_frames(tmp_path):
     """20 hand-made plane frames (no simulator), each turned by exactly 0, 50, 65, 72 or 78 deg, at
     0.8-2.7 m along the axis, noise ``nguyen_incidence``; fitted on the even frames (the incidence
@@ -159,19 +172,13 @@ def test_fit_recovers_a_known_incidence_curve_on_held_out_frames(tmp_path):
     within 20 % of 0.3 mm, and the simulated plane-fit std within 10 % of the measured in every
     0.25 m bin (a z^2 curve alone was 1.28 x too high at normal incidence and 0.81 x at grazing)."""
     from synth.lab.calibration import curve_table
-    tilts = np.tile([0, 50, 65, 72, 78], 4)
-    dist = np.linspace(0.8, 2.7, 20) * np.cos(np.radians(tilts))
-    ref = plane_reference(tmp_path, dist, nguyen_incidence, seed=2, tilts_deg=tilts)
-    fit, held = MeasuredSequence.load(ref, frame_slice="0::2"), MeasuredSequence.load(ref, frame_slice="1::2")
-    res = fit_model(fit, fit.default_config(["axial_noise"]),
-                    fit_config=FitConfig(max_frames=6, max_pixels_per_frame=4000, eval_pixels_per_frame=8000,
-                                         intervals=False))
+    res, held = _fit_tilted_planes(tmp_path, nguyen_incidence, seed=2)
     assert res.params["axial_noise.incidence_m"] == pytest.approx(0.0003, rel=0.2)
     rows = curve_table(held.observations(held.simulate(res.config, 0)), None, 0)
     assert len(rows) >= 8 and all(abs(r["ratio"] - 1) <= 0.10 for r in rows), rows
     # elsewhere (no planar reference) the incidence term is not a fitted parameter
     from synth.lab.params import param_specs
-    cfg = fit.default_config(["axial_noise"])
+    cfg = held.default_config(["axial_noise"])
     assert "axial_noise.incidence_m" not in [s.key for s in param_specs(cfg)]
     assert "axial_noise.incidence_m" in [s.key for s in param_specs(cfg, plane=True)]
 
@@ -228,13 +235,7 @@ def test_fit_recovers_an_incidence_term_constant_in_disparity(tmp_path):
     1 / sqrt z: at 78 deg it would be 5.6 x too high at 0.8 m for the 2.5 m value): the fitted distance
     law is the disparity one (exponent >= 1.5) and every held-out 0.25 m bin is within 10 %."""
     from synth.lab.calibration import curve_table
-    tilts = np.tile([0, 50, 65, 72, 78], 4)
-    dist = np.linspace(0.8, 2.7, 20) * np.cos(np.radians(tilts))
-    ref = plane_reference(tmp_path, dist, disparity_incidence, seed=3, tilts_deg=tilts)
-    fit, held = MeasuredSequence.load(ref, frame_slice="0::2"), MeasuredSequence.load(ref, frame_slice="1::2")
-    res = fit_model(fit, fit.default_config(["axial_noise"]),
-                    fit_config=FitConfig(max_frames=6, max_pixels_per_frame=4000, eval_pixels_per_frame=8000,
-                                         intervals=False))
+    res, held = _fit_tilted_planes(tmp_path, disparity_incidence, seed=3)
     assert res.params["axial_noise.incidence_z_exponent"] >= 1.5, res.params
     rows = curve_table(held.observations(held.simulate(res.config, 0)), None, 0)
     assert len(rows) >= 8 and all(abs(r["ratio"] - 1) <= 0.10 for r in rows), rows
