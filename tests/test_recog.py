@@ -449,8 +449,8 @@ def test_synda_augmented_training_data(trained, model_files):
     y1, y2, y3 = aug(x, rows, 7), aug(x, rows, 7), aug(x, rows, 8)
     assert y1.shape == x.shape and torch.equal(y1, y2) and not torch.equal(y1, y3)
     assert float(y1.min()) >= -1 and float(y1.max()) <= 1 and float((y1 - x).abs().mean()) > 0.01
-    half = aug(x, rows, 7, 0.5)                  # a fraction: those patches A'd exactly as before, the rest kept
-    same_as_a = [torch.equal(half[i], y1[i]) for i in range(8)]
+    half = aug(x, rows, 7, 0.5)                  # a fraction: those patches A'd as before (to float rounding), the rest kept
+    same_as_a = [torch.allclose(half[i], y1[i], rtol=0, atol=1e-5) for i in range(8)]   # batched kernels: ~1e-7
     kept = [torch.equal(half[i], x[i]) for i in range(8)]
     assert all(s or k for s, k in zip(same_as_a, kept)) and any(kept) and not all(kept)
     cfg = dataclasses.replace(TrainConfig(), iterations=3, batch=8, synda_augment=1.0)
