@@ -249,7 +249,7 @@ def _synda_augmenter(data: TrainingData, size: int):
         if len(pick) == 0:
             return x
         m = masks[torch.from_numpy(rows)[pick]].to(device=x.device, dtype=torch.float32)[:, None]
-        y = x.clone()      # A acts on each sample alone: the picked ones come out as in a full-batch apply
+        y = x.clone()      # A acts on each sample alone: the picked ones come out as in a full-batch apply (to float rounding)
         y[pick.to(x.device)] = aug.apply({"depth": x[pick.to(x.device)], "mask": m}, select_params(params, pick))["input"]
         return y
 
