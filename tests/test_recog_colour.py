@@ -124,6 +124,27 @@ def test_colour_training_is_deterministic_for_a_seed():
         dataclasses.replace(cfg, synda_augment=0.5).validate()
 
 
+def test_checkpoint_records_the_input(tmp_path):
+    """A training checkpoint records what the network reads: continuing a depth run as a colour one (or the reverse)
+    is a one-line error naming the checkpoint, and a colour run resumed from its checkpoint ends with the weights of
+    an uninterrupted one."""
+    td = _views()
+    syms = [None, None]
+    depth = dataclasses.replace(TrainConfig(), iterations=2, batch=4, checkpoint_every=1, descriptor=8)
+    ck = tmp_path / "checkpoint.pt"
+    train_network(td, syms, depth, 32, checkpoint=ck, progress=False)
+    with pytest.raises(RealgapError) as e:
+        train_network(td, syms, dataclasses.replace(depth, input="rgb"), 32, checkpoint=ck, progress=False)
+    assert "\n" not in str(e.value) and "input" in str(e.value) and str(ck) in str(e.value)
+    rgb = dataclasses.replace(depth, input="rgb", iterations=4, checkpoint_every=2)
+    whole = train_network(td, syms, rgb, 32, progress=False)[0].state_dict()
+    ck2 = tmp_path / "rgb.pt"
+    train_network(td, syms, dataclasses.replace(rgb, iterations=2), 32, checkpoint=ck2, progress=False)
+    resumed, log = train_network(td, syms, rgb, 32, checkpoint=ck2, progress=False)
+    assert log.resumed_from == 2
+    assert all(torch.equal(whole[k], resumed.state_dict()[k]) for k in whole)
+
+
 def test_colour_recogniser_train_eval_and_wrong_channels(tmp_path, capsys):
     """``recog train --input rgb`` builds a 3-channel recogniser whose database holds A renders (its json records
     the input); ``recog eval`` reads a colour test set's colour images with it; a depth test set, a SynDA generator
