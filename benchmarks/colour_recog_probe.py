@@ -11,7 +11,7 @@ for every view's second render the nearest first render of *another* view: how o
 1/3 for the chairs) and the median pose angle to it (degrees; the median between random views is printed beside).
 ``--easy``: a diagnostic of the pipeline, not a baseline - A without texture, occluder, blur or background (the
 shaded object on black), for training and self-check alike. ``--checkpoint``: only the self-check of a training
-checkpoint (a running or killed ``recog train --input rgb``).
+checkpoint (a running or killed ``recog train --input rgb``) or of a finished recogniser's ``weights.pt``.
 """
 from __future__ import annotations
 
@@ -96,9 +96,9 @@ def main(argv=None) -> int:
     if args.checkpoint:
         st = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
         net = make_network(cfg.network, 64, cfg.descriptor, 3)
-        net.load_state_dict(st["net"])
+        net.load_state_dict(st["net"] if "net" in st else st)       # a checkpoint or a recogniser's weights.pt
         net.eval()
-        res = {"checkpoint": args.checkpoint, "step": int(st["step"])}
+        res = {"checkpoint": args.checkpoint, "step": int(st["step"]) if "step" in st else None}
     else:
         net, log = T.train_network(td, [o.symmetry for o in objs], cfg, 64, progress=False)
         res = {"overrides": over, "easy": args.easy, "iterations": args.iterations,
