@@ -17,8 +17,11 @@ vote gets right: the ``--no-icp`` evaluation); with ``--icp`` also the full pipe
 verification + ICP) accuracy and rotation error after ICP.
 
 Colour domain: ``--generator`` an rgb generator with depth output (``synda train --domain rgb --target depth``)
-and ``--testset colour=TS`` a colour test set (``realgap synda testset``); the rows without the generator are
-then the recogniser reading the colour test set's rendered depth (a reference, not a colour baseline).
+and ``--testset colour=TS`` a colour test set (``realgap synda testset``); the rows of a depth recogniser without
+the generator are then the recogniser reading the colour test set's rendered depth (a reference, not a colour
+baseline); a colour recogniser (``recog train --input rgb``: the A-trained colour baseline) reads the colour
+patches themselves. Table 5.2 for colour: ``--recog atrained=ATRAINED_RGB,clean=CLEAN --synda-recog clean``. The
+``reads`` column says what each row's descriptor read: ``depth``, ``rgb`` or ``synda-rgb`` / ``synda-depth``.
 
 Test sets (``realgap recog testset``) should come from a sensor the recogniser and the generator did
 not see: the ``structure`` preset's physical pipeline, and the training sensor with effect parameters
@@ -70,12 +73,17 @@ def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool
     from recog.model import Recogniser
     from recog.synda.run import patch_mapper
     model = Recogniser.load(model_path)
+    if generator and model.input == "rgb":
+        raise SystemExit(f"--synda-recog: {model_path} reads colour (recog train --input rgb); a generator maps to "
+                         f"depth, so give only depth recognisers a SynDA row")
+    reads = model.input
     if generator:
         model.patch_map, ginfo = patch_mapper(generator, model.patch, domain=None)
         model.patch_map_source, model.patch_map_domain = generator, ginfo["domain"]
+        reads = f"synda-{ginfo['domain']}"
     t0 = time.perf_counter()
     r = evaluate(model, testset, None, icp=False, progress=False, max_scans=max_scans)
-    row = {"n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],
+    row = {"reads": reads, "n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],
            "rot_err_deg_median_before_icp": r["before_icp"]["rot_err_deg"]["median"],
            "rot_within_20deg_before_icp": r["before_icp"]["rot_err_deg"].get("acc_at_20"),
            "seconds_no_icp": round(time.perf_counter() - t0, 1)}
@@ -154,6 +162,11 @@ def main(argv=None) -> int:
     with_synda = set(recogs) if args.synda_recog is None else set(filter(None, args.synda_recog.split(",")))
     if not with_synda <= set(recogs):
         raise SystemExit(f"--synda-recog: no recogniser named {sorted(with_synda - set(recogs))[0]!r}")
+    from recog.model import Recogniser
+    colour = [n for n in sorted(with_synda) if Recogniser.load(recogs[n]).input == "rgb"]
+    if colour:     # before any row is computed
+        raise SystemExit(f"--synda-recog: {colour[0]} reads colour (recog train --input rgb); a generator maps to "
+                         f"depth, so give only depth recognisers a SynDA row")
     for ts, path in testsets.items():
         for name, model in recogs.items():
             for gen in ((None, args.generator) if name in with_synda else (None,)):
@@ -165,10 +178,10 @@ def main(argv=None) -> int:
     if args.ablation:
         result["ablation"] = ablation(args, next(iter(recogs.values())), testsets, out)
     (out / "bench_synda.json").write_text(json.dumps(result, indent=2))
-    print(f"{'test set':10s} {'recogniser':10s} {'synda':5s} {'vote %':>7s} {'rot med before':>14s}"
+    print(f"{'test set':10s} {'recogniser':12s} {'reads':11s} {'vote %':>7s} {'rot med before':>14s}"
           + (f" {'full %':>7s} {'rot med after':>13s}" if args.icp else ""))
     for r in rows:
-        line = (f"{r['testset']:10s} {r['recogniser']:10s} {str(r['synda']):5s} {100 * r['vote_accuracy']:7.1f} "
+        line = (f"{r['testset']:10s} {r['recogniser']:12s} {r['reads']:11s} {100 * r['vote_accuracy']:7.1f} "
                 f"{r['rot_err_deg_median_before_icp'] or float('nan'):14.1f}")
         if args.icp:
             line += f" {100 * r['accuracy_full']:7.1f} {r['rot_err_deg_median_after_icp'] or float('nan'):13.1f}"

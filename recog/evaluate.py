@@ -58,6 +58,11 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
         from data_tools.errors import FormatError
         raise FormatError(folder / "labels.json", "the SynDA generator reads colour images, these scans have none "
                                                   "(a colour test set: 'realgap synda testset'; or a depth generator)")
+    if model.input == "rgb" and any(sc.rgb is None for sc in scans):
+        from data_tools.errors import FormatError
+        raise FormatError(folder / "labels.json", "this recogniser reads colour (recog train --input rgb), these "
+                                                  "scans have none (a colour test set: 'realgap synda testset')")
+    colour = colour or model.input == "rgb"
     names = model.names
     conf = np.zeros((len(names), len(names)), int)
     rows = []

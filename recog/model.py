@@ -125,13 +125,24 @@ class Recogniser:
         return [o["name"] for o in self.objects]
 
     # ------------------------------------------------------------------ descriptors
+    @property
+    def input(self) -> str:
+        """What the network reads: ``depth`` or ``rgb`` (:attr:`recog.train.TrainConfig.input`)."""
+        return self.train.input
+
     def describe(self, patches: np.ndarray, batch: int = 512) -> np.ndarray:
-        """(N, S, S) patches -> (N, d) float32 descriptors."""
+        """(N, S, S) depth patches or (N, C, S, S) patches of the network's channel count C -> (N, d) float32
+        descriptors; another channel count is a one-line ConfigError (:func:`recog.net.check_input`)."""
         import torch
+
+        from recog.net import check_input
         out = []
         with torch.no_grad():
             for i in range(0, len(patches), batch):
-                x = torch.from_numpy(np.ascontiguousarray(patches[i:i + batch], np.float32)).unsqueeze(1)
+                x = torch.from_numpy(np.ascontiguousarray(patches[i:i + batch], np.float32))
+                if x.dim() == 3:
+                    x = x.unsqueeze(1)
+                check_input(self.net, x, f"this recogniser ({self.input})")
                 out.append(self.net(x).numpy())
         return np.concatenate(out) if out else np.zeros((0, self.train.descriptor), np.float32)
 
@@ -177,10 +188,20 @@ class Recogniser:
         window; several starts keep ICP from deciding by a bad initial pose). Measured on a
         validation set of T-LESS obj_01-06 (structure sensor, 120 scans): 1 start 95.0 %,
         3 starts 97.5 % correct. ``colour``: the (H, W, 3) uint8 image registered to ``depth_m``, needed when
-        :attr:`patch_map_domain` is ``rgb``."""
+        :attr:`patch_map_domain` is ``rgb`` or the network reads colour (:attr:`input` ``rgb``: it describes the
+        colour image cut with the depth patch's virtual camera; verification and ICP use the depth)."""
         p = extract_patch(depth_m, intr, bbox, self.patch)
         image = p.image
-        if self.patch_map is not None and self.patch_map_domain == "rgb":
+        if self.input == "rgb":
+            if self.patch_map is not None:
+                raise ConfigError("a SynDA generator maps its input to depth, this recogniser reads colour "
+                                  "(--input rgb): use a depth recogniser with --synda")
+            if colour is None:
+                raise ConfigError("this recogniser reads colour patches (recog train --input rgb); the scan has no "
+                                  "colour image (a colour test set: 'realgap synda testset')")
+            from recog.synda.colour_testset import colour_patch
+            image = colour_patch(colour, intr, p, self.patch)
+        elif self.patch_map is not None and self.patch_map_domain == "rgb":
             if colour is None:
                 raise ConfigError("the SynDA generator reads colour images; this scan has none")
             from recog.synda.colour_testset import colour_patch
@@ -249,7 +270,7 @@ class Recogniser:
         import torch
 
         from data_tools.config import config_from_dict
-        from recog.net import make_network
+        from recog.net import INPUT_CHANNELS, make_network
         folder = Path(folder)
         meta_path = folder / "recogniser.json"
         if folder.is_file():
@@ -269,7 +290,7 @@ class Recogniser:
         data = config_from_dict(DataConfig, meta.get("data", {}), f"{meta_path}: data", strict=True)
         train = config_from_dict(TrainConfig, meta.get("train", {}), f"{meta_path}: train", strict=True)
         check_object_records(meta.get("objects"), meta_path)
-        net = make_network(train.network, patch.size, train.descriptor)
+        net = make_network(train.network, patch.size, train.descriptor, INPUT_CHANNELS[train.input])
         try:
             net.load_state_dict(torch.load(folder / "weights.pt", map_location="cpu", weights_only=True))
         except FileNotFoundError:

@@ -97,7 +97,12 @@ def train_recogniser(objects_spec, out: str | os.PathLike, data: DataConfig, tra
     model = Recogniser([o.to_json() for o in objs], net, DescriptorDB(np.zeros((0, 1), np.float32), *([np.zeros(0)] * 4)),
                        patch, data, train, folder=folder)
     N, D = td.patches.shape[:2]
-    desc = model.describe(td.patches.reshape(N * D, patch.size, patch.size).astype(np.float32)).reshape(N, D, -1)
+    if train.input == "rgb":     # a colour recogniser indexes A renders of the views (TrainConfig.input)
+        from recog.train import database_seed, render_colour_views
+        views = render_colour_views(td, patch.size, database_seed(train)).reshape(N * D, 3, patch.size, patch.size)
+    else:
+        views = td.patches.reshape(N * D, patch.size, patch.size).astype(np.float32)
+    desc = model.describe(views).reshape(N, D, -1)
     check = _self_check(desc, td)
     db = DescriptorDB(desc.reshape(N * D, -1), np.repeat(td.obj, D), np.repeat(td.R_local, D, axis=0),
                       td.offset.reshape(N * D, 3), np.repeat(td.view, D), index)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Callable
+from typing import Annotated, Callable, Literal
 
 import numpy as np
 
@@ -28,7 +28,8 @@ from data_tools.errors import ConfigError
 from data_tools.training import TrainingState, run_steps, settings_of
 from recog.data import TrainingData
 
-__all__ = ["TrainConfig", "TRAIN_PRESETS", "TripletMiner", "train_network", "TrainLog"]
+__all__ = ["TrainConfig", "TRAIN_PRESETS", "TripletMiner", "train_network", "TrainLog", "colour_renderer",
+           "render_colour_views", "database_seed"]
 
 
 @dataclass
@@ -68,6 +69,16 @@ class TrainConfig:
     (two independently augmented draws of a view) still shrinks the descriptors, so an A-trained recogniser wants
     a low :attr:`pair_weight` (0.1: docs/synda.md). The database stays built from the unaugmented patches. Needs
     the object masks of this version's training chunks."""
+    input: Literal["depth", "rgb"] = "depth"
+    """What the network reads: ``depth``, the normalised depth patch (1 channel, every shipped recogniser), or
+    ``rgb``, a colour patch in [-1, 1] (3 channels): SynDA's A-trained colour baseline (thesis ch. 5, Table 5.2's
+    "A(synthetic)" row for colour). With ``rgb`` every training patch is rendered anew each step by SynDA's colour
+    augmentation A (``synda_preset('cpu', 'rgb').augment``, the ranges the rgb generator is trained on: Blinn-Phong
+    shading of the view's normals under a random light, procedural hue/saturation textures, image or noise
+    backgrounds, polygon occluders, blur) from the normals of its depth patch and its object mask, so both draws of
+    a view (the pair) are two renders; the database holds one A render per view and draw with a fixed seed
+    (:func:`database_seed`), and evaluation reads the scan's colour image (``recog eval`` on a colour test set,
+    ``realgap synda testset``). Train it on the ``clean`` variant (the normals of noisy depth are noise)."""
     seed: int = 0
     """Seed of the initial weights and of the mining."""
     device: str = "cpu"
@@ -78,6 +89,9 @@ class TrainConfig:
         if self.network not in NETWORKS:
             raise ConfigError(f"unknown network {self.network!r}; choose one of {', '.join(NETWORKS)}")
         check_fields(self)
+        if self.input == "rgb" and self.synda_augment > 0:
+            raise ConfigError("--synda-augment is SynDA's depth augmentation; with --input rgb every patch is "
+                              "already rendered by its colour augmentation (leave --synda-augment at 0)")
         return self
 
 
@@ -177,13 +191,13 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
     import torch
 
     from recog.loss import dynamic_margin, pair_loss, triplet_loss
-    from recog.net import make_network
+    from recog.net import INPUT_CHANNELS, make_network
     config.validate()
     device = torch.device(config.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
     torch.manual_seed(config.seed)
-    net = make_network(config.network, size, config.descriptor).to(device)
+    net = make_network(config.network, size, config.descriptor, INPUT_CHANNELS[config.input]).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     rng = np.random.default_rng(config.seed)
     miner = TripletMiner(data, symmetries, config.hard_negatives)
@@ -196,12 +210,15 @@ def train_network(data: TrainingData, symmetries: list[dict], config: TrainConfi
         tlog.resumed_from, tlog.steps = resumed
 
     augment = _synda_augmenter(data, size) if config.synda_augment > 0 else None
+    render = colour_renderer(data, size) if config.input == "rgb" else None
 
     def step_fn(step: int) -> dict:
         a, ad, p, pd, n, nd, qd, same, ang = miner.sample(rng, config.batch, config.same_object_negatives)
         x = torch.cat([patches[a, ad], patches[p, pd], patches[n, nd], patches[a, qd]]).float().unsqueeze(1)
         if augment is not None:
             x = augment(x, np.concatenate([a, p, n, a]), int(rng.integers(0, 2 ** 62)), config.synda_augment)
+        if render is not None:
+            x = render(x, np.concatenate([a, p, n, a]), int(rng.integers(0, 2 ** 62)))
         f = net(x.to(device))
         B = config.batch
         fb, fp, fn, fq = f[:B], f[B:2 * B], f[2 * B:3 * B], f[3 * B:]
@@ -254,3 +271,55 @@ def _synda_augmenter(data: TrainingData, size: int):
         return y
 
     return run
+
+
+def _view_masks(data: TrainingData, what: str):
+    import torch
+    if data.mask is None:
+        raise ConfigError(f"{what} needs the object masks of the training chunks, which chunks made by an older "
+                          f"version lack (delete the model's data folder to simulate them again)")
+    return torch.from_numpy(data.mask)
+
+
+def colour_renderer(data: TrainingData, size: int):
+    """``(x (B, 1, S, S) normalised depth patches, view rows (B,), seed) -> (B, 3, S, S)`` colour patches in [-1, 1]:
+    SynDA's colour augmentation A (``synda_preset('cpu', 'rgb').augment``) of each patch's normals
+    (:func:`recog.synda.data.normals_from_depth`) with its view's object mask, its random parameters drawn from
+    ``seed`` (the same seed gives the same images: training replays on resume). ``TrainConfig.input == 'rgb'``;
+    ConfigError when the chunks hold no masks."""
+    import torch
+
+    from recog.synda.augment import Augmenter
+    from recog.synda.config import synda_preset
+    from recog.synda.data import normals_from_depth
+    masks = _view_masks(data, "--input rgb")
+    aug = Augmenter(synda_preset("cpu", "rgb").augment, "rgb", size)
+
+    def run(x, rows, seed: int):
+        m = masks[torch.from_numpy(np.asarray(rows))].to(device=x.device, dtype=torch.float32)[:, None]
+        return aug.apply({"normals": normals_from_depth(x.float()), "mask": m}, aug.draw(len(rows), seed))["input"]
+
+    return run
+
+
+def database_seed(config: TrainConfig) -> int:
+    """The seed of the A renders a colour recogniser's database is built from (fixed by ``config.seed``, apart from
+    the training steps' draws)."""
+    import zlib
+    return zlib.crc32(f"recog-colour-database/{config.seed}".encode()) & 0x7FFFFFFF
+
+
+def render_colour_views(data: TrainingData, size: int, seed: int, batch: int = 256) -> np.ndarray:
+    """(N, D, 3, S, S) float32: one A render (:func:`colour_renderer`) of every view and draw of ``data``, in
+    batches of ``batch`` patches, batch ``i`` drawn with ``seed + i`` (deterministic for a seed and batch)."""
+    import torch
+    N, D, S = data.patches.shape[0], data.patches.shape[1], data.patches.shape[-1]
+    render = colour_renderer(data, size)
+    flat = data.patches.reshape(N * D, S, S)
+    rows = np.repeat(np.arange(N), D)
+    out = np.zeros((N * D, 3, S, S), np.float32)
+    for i, s in enumerate(range(0, N * D, batch)):
+        x = torch.from_numpy(flat[s:s + batch].astype(np.float32))[:, None]
+        with torch.no_grad():
+            out[s:s + batch] = render(x, rows[s:s + batch], seed + i).numpy()
+    return out.reshape(N, D, 3, S, S)

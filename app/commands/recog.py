@@ -136,6 +136,9 @@ def _eval(args) -> int:
     from recog.model import Recogniser
     out = check_output_dir(args.out, finished="eval.json", overwrite=args.overwrite) if args.out else None
     model = Recogniser.load(args.model)
+    if args.synda and model.input == "rgb":
+        raise ConfigError("--synda: a SynDA generator maps its input to depth, this recogniser reads colour "
+                          "(trained with --input rgb); give a depth recogniser")
     if args.synda:
         from recog.synda.run import patch_mapper
         model.patch_map, ginfo = patch_mapper(args.synda, model.patch, domain=None)
@@ -146,9 +149,12 @@ def _eval(args) -> int:
         print(json.dumps(r, indent=2))
         return 0
     b = r["before_icp"]
+
+    def num(v, scale=1.0):      # a median of no correctly recognised scan is None
+        return "n/a" if v is None else f"{scale * v:.1f}"
     print(f"accuracy {100 * r['accuracy']:.1f} % on {r['n_scans']} scans; rotation error (symmetry-aware) median "
-          f"{b['rot_err_deg']['median']:.1f} deg before ICP, {r['rot_err_deg']['median']:.1f} deg after; "
-          f"translation median {1000 * r['trans_err_m']['median']:.1f} mm" + (f"; {out}/eval.json" if out else ""))
+          f"{num(b['rot_err_deg']['median'])} deg before ICP, {num(r['rot_err_deg']['median'])} deg after; "
+          f"translation median {num(r['trans_err_m']['median'], 1000)} mm" + (f"; {out}/eval.json" if out else ""))
     return 0
 
 
