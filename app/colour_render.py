@@ -34,7 +34,10 @@ class PyVistaRenderer:
 
     def __init__(self, cfg: ColourTestsetConfig, textures: list[Path]):
         import pyvista as pv
+
+        from app.viewer.window import quiet_vtk_warnings
         pv.OFF_SCREEN = True
+        quiet_vtk_warnings()          # no "bad X server connection" line per run: EGL renders off screen
         self.cfg = cfg
         self.texture_files = list(textures)
         self._textures: dict[int, object] = {}
