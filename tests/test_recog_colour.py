@@ -182,6 +182,10 @@ def test_colour_recogniser_train_eval_and_wrong_channels(tmp_path, capsys):
     assert main(["recog", "eval", str(model), str(ts), "--no-icp", "--out", str(out), "--no-progress"]) == 0
     r = json.loads((out / "eval.json").read_text())
     assert r["n_scans"] == 2 and 0 <= r["accuracy_descriptor"] <= 1
+    from app.viewer.data import RecogSession          # the viewer shows the colour patch the descriptor read
+    view = RecogSession(out, ts).scan(0)
+    assert view["patch"].shape == (64, 64, 3) and "mapped" not in view
+    assert view["predicted"] == json.loads((out / "predictions.jsonl").read_text().splitlines()[0])["predicted"]
     capsys.readouterr()
     assert main(["recog", "eval", str(model), str(ts), "--synda", "recog/weights/synda_depth/generator.pt",
                  "--no-icp", "--json", "--no-progress"]) == 1

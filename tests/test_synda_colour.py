@@ -153,6 +153,12 @@ def test_colour_testset_is_read_by_recog_eval(tmp_path, capsys):
     p = extract_patch(read_depth_png(ts / sc.file, cam.depth_scale), cam.intrinsics, sc.bbox, model.patch)
     c = colour_patch(read_rgb_image(ts / sc.rgb), cam.intrinsics, p, model.patch)
     assert c.shape == (3, model.patch.size, model.patch.size) and c.min() >= -1 and c.max() <= 1
+    # the viewer's recognition mode shows the colour patch the generator read and its depth mapping
+    from app.viewer.data import RecogSession
+    view = RecogSession(out, ts).scan(0)
+    S = model.patch.size
+    assert view["patch"].shape == (S, S, 3) and view["patch"].dtype == np.uint8 and view["mapped"].shape == (S, S)
+    assert np.array_equal(view["patch"], np.clip((c.transpose(1, 2, 0) + 1) * 127.5, 0, 255).astype(np.uint8))
     # bad inputs: scans without colour; a generator with normals as output
     lab = [{k: v for k, v in x.items() if k != "rgb"} for x in labels]
     (ts / "labels.json").write_text(json.dumps(lab))

@@ -356,40 +356,60 @@ class RecogSession:
         self.scans = {s.file: s for s in scans}
         self.testset = Path(testset)
         self.summary = {k: ev.get(k) for k in ("accuracy", "accuracy_descriptor", "n_scans")}
+        self.icp = bool(ev.get("icp", True))
+        """Whether the evaluation refined by ICP (``recog eval --no-icp``: the viewer shows the same answers)."""
         self.synda = ev.get("synda")
         """The SynDA generator the evaluation read through (``recog eval --synda``), or None."""
         if self.synda:
             from recog.synda.run import patch_mapper
-            self.model.patch_map, _ = patch_mapper(self.synda, self.model.patch)
+            self.model.patch_map, ginfo = patch_mapper(self.synda, self.model.patch, domain=None)
+            self.model.patch_map_domain = ginfo["domain"]
+        self.reads_colour = self.model.input == "rgb" or (self.synda is not None
+                                                          and self.model.patch_map_domain == "rgb")
+        """The descriptor reads the scans' colour images (a colour recogniser, or an rgb generator in front)."""
+        if self.reads_colour and any(sc.rgb is None for sc in scans):
+            raise FormatError(self.testset / "labels.json", "this evaluation read colour images, these scans have "
+                                                            "none (give the colour test set it was made on)")
 
     def __len__(self) -> int:
         return len(self.rows)
 
     def scan(self, i: int) -> dict:
         """Measured points (camera frame) of scan i's window, the recognised model's mesh at the
-        estimated pose, and whether it was right; with a SynDA evaluation also the measured patch
-        (``patch``) and the generator's mapping of it (``mapped``), (S, S) normalised depth."""
-        from data_tools.sequence import read_depth_png
+        estimated pose, and whether it was right; with a SynDA evaluation also the patch the generator
+        read (``patch``: (S, S) normalised depth, or (S, S, 3) uint8 colour for an rgb generator) and its
+        mapping (``mapped``, (S, S) normalised depth); for a colour recogniser the colour patch it read."""
+        from data_tools.sequence import read_depth_png, read_rgb_image
         row = self.rows[i]
         sc = self.scans[row["file"]]
         depth = read_depth_png(self.testset / sc.file, self.camera.depth_scale)
-        pred = self.model.predict(depth, self.camera.intrinsics, sc.bbox)
+        intr = self.camera.intrinsics
+        rgb = read_rgb_image(self.testset / sc.rgb, (intr.height, intr.width)) if self.reads_colour else None
+        pred = self.model.predict(depth, intr, sc.bbox, icp=self.icp, colour=rgb)
         x0, y0, x1, y1 = sc.bbox
         gx, gy = (x1 - x0) // 2, (y1 - y0) // 2
         x0, y0, x1, y1 = max(x0 - gx, 0), max(y0 - gy, 0), x1 + gx, y1 + gy
         win = depth[y0:y1, x0:x1]
         vv, uu = np.nonzero(win > 0)
         z = win[vv, uu]
-        intr = self.camera.intrinsics
         pts = np.stack([(uu + x0 - intr.cx) / intr.fx * z, (vv + y0 - intr.cy) / intr.fy * z, z], 1)
         obj = self.model.object(self.model.index_of(pred.object))
         mesh = obj.merged().transformed(pred.pose)
         out = {"points": pts, "mesh": mesh, "object": sc.object, "predicted": pred.object,
                "correct": pred.object == sc.object, "file": sc.file, "pose_true": sc.pose, "pose": pred.pose}
-        if self.synda:
+        if self.synda or self.reads_colour:
             from recog.patches import extract_patch
-            patch = extract_patch(depth, intr, sc.bbox, self.model.patch).image
-            out.update(patch=patch, mapped=np.asarray(self.model.patch_map(patch)))
+            p = extract_patch(depth, intr, sc.bbox, self.model.patch)
+            patch = p.image
+            if self.reads_colour:
+                from recog.synda.colour_testset import colour_patch
+                c = colour_patch(rgb, intr, p, self.model.patch)              # (3, S, S) in [-1, 1]
+                patch = np.clip((c.transpose(1, 2, 0) + 1.0) * 127.5, 0, 255).astype(np.uint8)
+                out.update(patch=patch)
+                if self.synda:
+                    out.update(mapped=np.asarray(self.model.patch_map(c)))
+            else:
+                out.update(patch=patch, mapped=np.asarray(self.model.patch_map(patch)))
         return out
 
 

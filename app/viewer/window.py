@@ -139,6 +139,10 @@ class Viewer:
                 self.p = pv.Plotter(shape=(2, 3), groups=[(np.s_[:], np.s_[:2])], off_screen=off_screen,
                                     window_size=window_size, border=False)
                 self.panes = {"3d": (0, 0), "patch": (0, 2), "mapped": (1, 2)}
+            elif session.reads_colour:    # a colour recogniser: the colour patch it read beside the 3-D view
+                self.p = pv.Plotter(shape=(1, 3), groups=[(0, np.s_[:2])], off_screen=off_screen,
+                                    window_size=window_size, border=False)
+                self.panes = {"3d": (0, 0), "patch": (0, 2)}
             else:
                 self.p = pv.Plotter(off_screen=off_screen, window_size=window_size)
                 self.panes = {"3d": (0, 0)}
@@ -505,8 +509,11 @@ class Viewer:
         self.p.camera_position = [(0, 0, 0), tuple(sc["pose"][:3, 3]), (0, -1, 0)]
         self.p.reset_camera()
         self.pane_images["3d"] = None
-        if "mapped" in sc:
+        if "patch" in sc and sc["patch"].ndim == 3:     # the colour patch (an rgb generator's or recogniser's input)
+            self._image("patch", sc["patch"], "colour patch" + ("" if "mapped" in sc else " (what the recogniser reads)"))
+        elif "patch" in sc:
             self._image("patch", sc["patch"], "measured patch", cmap="viridis", clim=(-1, 1), bar="depth (patch units)")
+        if "mapped" in sc:
             self._image("mapped", sc["mapped"], "SynDA mapping (what the recogniser reads)", cmap="viridis",
                         clim=(-1, 1), bar="depth (patch units)")
 
