@@ -24,21 +24,21 @@ def _plane_obs(measured, simulated, ideal):
 
 
 def test_centred_clip_keeps_a_bias_beyond_the_clip():
-    """Errors of 20 scales with 0.5 scale of noise: clipped about 0 both sides read 10 and W1 sees no
-    difference; about the measured median a 1-scale difference of the simulated bias survives,
-    and an outlier far from the centre is still clipped."""
+    """Errors of 20-21 scales with 0.5 scale of noise: clipped about 0 both sides read 10 and W1
+    sees no difference; about the simulated median the 1-scale difference survives, and an
+    outlier far from the centre is still clipped."""
     rng = np.random.default_rng(0)
     n = 400
     z = np.full(n, 2.0)
     ym = 20.0 + 0.5 * rng.standard_normal(n)
     ys = 21.0 + 0.5 * rng.standard_normal(n)
     ym[0] = 500.0                                     # a flying pixel
-    a, b = centred_clip(ym, np.ones(n, bool), ys, z, 10.0)
+    a, b = centred_clip(ym, ys, np.ones(n, bool), z, 10.0)
     assert abs(np.median(a) - 20.0) < 0.1 and abs(np.median(b) - 21.0) < 0.15
-    assert a[0] <= np.median(ym) + 10.0 + 1e-9      # still clipped, about the centre
-    # an unbiased measurement is clipped as before (centre ~ 0: the median of the noise)
+    assert a[0] <= np.median(ys) + 10.0 + 1e-9      # still clipped, about the centre
+    # an unbiased simulation is clipped as before (centre ~ 0: the median of the noise)
     y0 = 0.5 * rng.standard_normal(n)
-    c, _ = centred_clip(y0, np.ones(n, bool), y0, z, 10.0)
+    c, _ = centred_clip(y0, y0, np.ones(n, bool), z, 10.0)
     assert np.allclose(c, y0)
 
 
@@ -56,6 +56,13 @@ def test_gap_sees_a_scale_error_under_a_large_bias():
     g_right = compare([_plane_obs(meas, right, ideal)], cc).gap
     g_off = compare([_plane_obs(meas, off, ideal)], cc).gap
     assert g_off > g_right + 0.5, (g_right, g_off)
+    # a model without the bias cannot lower its gap by more noise (a window centred on the
+    # measurement would clip the noisy simulation's far tail for free and reward its near tail)
+    unbiased = ideal + noise()
+    noisy = ideal + 0.06 * rng.standard_normal((H, W))
+    g_unbiased = compare([_plane_obs(meas, unbiased, ideal)], cc).gap
+    g_noisy = compare([_plane_obs(meas, noisy, ideal)], cc).gap
+    assert g_noisy >= g_unbiased - 0.05, (g_unbiased, g_noisy)
 
 
 class _Render(SimpleNamespace):

@@ -21,7 +21,7 @@ the depth-dependent scale ``s(z) = a + b z^2`` (default a = 1 mm, b = 2 mm/m^2: 
 axial noise of a Kinect-class structured-light sensor, so one unit ~ one typical noise level; a
 documented alternative is any a, b in :class:`CompareConfig`) and clipped to ``±error_clip``
 (default 10) about a centre ``c_z`` so that a few flying pixels or model-misalignment outliers
-cannot dominate: ``y = c_z + clip(e / s(z) - c_z, -c, c)``, ``c_z`` the median measured normalised
+cannot dominate: ``y = c_z + clip(e / s(z) - c_z, -c, c)``, ``c_z`` the median simulated normalised
 error of the pixel's 0.25 m ideal-depth bin (the same for both sides; ~0 without a systematic bias,
 and a bias of more than ``c`` scales is not saturated: :func:`synth.lab.gap_stats.centred_clip`).
 
@@ -259,7 +259,7 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
         raise RealgapError("compare: no frame has ideal geometry (ideal depth is 0 everywhere)")
 
     scale = error_scale_m(smp.z, cfg)
-    ym, ys = centred_clip(smp.err_m / scale, smp.valid_m, smp.err_s / scale, smp.z, cfg.error_clip,
+    ym, ys = centred_clip(smp.err_m / scale, smp.err_s / scale, smp.valid_s, smp.z, cfg.error_clip,
                           cfg.min_valid_count)
     pooled = Pooled(ym, smp.valid_m, ys, smp.valid_s)
     sorted_m = SortedErrors(smp.err_m, smp.valid_m)

@@ -176,7 +176,7 @@ def worst_blocks(observations: Sequence[FrameObservation], config: CompareConfig
         em = np.where(vm, me - z, np.nan)
         es = np.where(vs, se - z, np.nan)
         sc = error_scale_m(z, cfg)
-        ym, ys = centred_clip(em / sc, vm, es / sc, z, cfg.error_clip, cfg.min_valid_count)
+        ym, ys = centred_clip(em / sc, es / sc, vs, z, cfg.error_clip, cfg.min_valid_count)
         pooled = Pooled(ym, vm, ys, vs)
         w1, na, nb = pooled.w1(key, nk)
         n = np.bincount(key, minlength=nk).astype(np.float64)
