@@ -20,8 +20,10 @@ Errors. For a valid pixel (depth > 0) the error is ``e = depth - ideal`` (metres
 the depth-dependent scale ``s(z) = a + b z^2`` (default a = 1 mm, b = 2 mm/m^2: roughly the
 axial noise of a Kinect-class structured-light sensor, so one unit ~ one typical noise level; a
 documented alternative is any a, b in :class:`CompareConfig`) and clipped to ``±error_clip``
-(default 10) so that a few flying pixels or model-misalignment outliers cannot dominate:
-``y = clip(e / s(z), -c, c)``.
+(default 10) about a centre ``c_z`` so that a few flying pixels or model-misalignment outliers
+cannot dominate: ``y = c_z + clip(e / s(z) - c_z, -c, c)``, ``c_z`` the median simulated normalised
+error of the pixel's 0.25 m ideal-depth bin (the same for both sides; ~0 without a systematic bias,
+and a bias of more than ``c`` scales is not saturated: :func:`synth.lab.gap_stats.centred_clip`).
 
 Per bin. For every feature f (``distance``, ``incidence``, ``radial``, ``material``,
 ``edge_distance``, ``edge_shadow`` when a projector offset is known; see
@@ -101,8 +103,8 @@ from data_tools.results import json_safe
 from synth.lab.compare_config import PRESETS, CompareConfig, compare_preset, error_scale_m
 from synth.lab.feature_maps import radial_max_px
 from synth.lab.features import FrameObservation, make_feature
-from synth.lab.gap_stats import (CompareCache, Pooled, SortedErrors, bin_terms, collect_samples, noise_floor,
-                                 wasserstein1, weighted_mean, within_var)
+from synth.lab.gap_stats import (CompareCache, Pooled, SortedErrors, bin_terms, centred_clip, collect_samples,
+                                 noise_floor, wasserstein1, weighted_mean, within_var)
 
 __all__ = ["CompareConfig", "CompareResult", "CompareCache", "PRESETS", "compare_preset", "compare",
            "load_result", "error_scale_m", "wasserstein1", "FrameObservation", "BREAKDOWN_FEATURES",
@@ -257,9 +259,8 @@ def compare(observations: Sequence[FrameObservation], config: CompareConfig | No
         raise RealgapError("compare: no frame has ideal geometry (ideal depth is 0 everywhere)")
 
     scale = error_scale_m(smp.z, cfg)
-    c = cfg.error_clip
-    ym = np.clip(smp.err_m / scale, -c, c)
-    ys = np.clip(smp.err_s / scale, -c, c)
+    ym, ys = centred_clip(smp.err_m / scale, smp.err_s / scale, smp.valid_s, smp.z, cfg.error_clip,
+                          cfg.min_valid_count)
     pooled = Pooled(ym, smp.valid_m, ys, smp.valid_s)
     sorted_m = SortedErrors(smp.err_m, smp.valid_m)
     sorted_s = SortedErrors(smp.err_s, smp.valid_s)

@@ -13,7 +13,7 @@ from data_tools.results import json_safe
 from synth.lab.compare import CompareResult, check_observations
 from synth.lab.compare_config import CompareConfig, error_scale_m
 from synth.lab.features import FrameObservation
-from synth.lab.gap_stats import Pooled, SortedErrors, bin_terms, noise_floor, within_var
+from synth.lab.gap_stats import Pooled, SortedErrors, bin_terms, centred_clip, noise_floor, within_var
 
 __all__ = ["Region", "VALIDITY_LABELS", "SIGNIFICANCE", "error_map", "validity_map", "worst_bins",
            "worst_blocks", "worst_regions"]
@@ -176,8 +176,7 @@ def worst_blocks(observations: Sequence[FrameObservation], config: CompareConfig
         em = np.where(vm, me - z, np.nan)
         es = np.where(vs, se - z, np.nan)
         sc = error_scale_m(z, cfg)
-        c = cfg.error_clip
-        ym, ys = np.clip(em / sc, -c, c), np.clip(es / sc, -c, c)
+        ym, ys = centred_clip(em / sc, es / sc, vs, z, cfg.error_clip, cfg.min_valid_count)
         pooled = Pooled(ym, vm, ys, vs)
         w1, na, nb = pooled.w1(key, nk)
         n = np.bincount(key, minlength=nk).astype(np.float64)

@@ -71,3 +71,106 @@ class RollingShutter(Effect):
         state.valid = state.view.hit.copy()
         shift = np.linalg.norm(rows[-1, :3, 3] - rows[0, :3, 3])
         state.log[self.name] = {"active": True, "top_to_bottom_translation_m": float(shift)}
+
+    @classmethod
+    def fit_start(cls, measured, config, frames) -> dict[str, float]:
+        """Readout and reference row from how each row's measured depth sits in time.
+
+        Along the constant-velocity path between a frame's previous pose and its own, the ideal depth
+        of every pixel is rendered at times s = -1 .. 1 frame periods (:data:`START_STEPS` steps); a
+        row exposed at t_v reads that depth at t_v (linear between two samples on one surface; where
+        the pixel changes surface between two samples - a depth edge sweeping across it - the
+        nearer sample's surface), plus noise sigma ~ z^2 (triangulation; its level read robustly
+        from the measurement). The row times lie on t_v = (v / (H - 1) - reference_row) readout /
+        frame period, and (readout, reference_row) minimise the truncated squared error
+        sum min(((m - z(t_v)) / sigma)^2, 9) over the moving frames' measured pixels: a grid over
+        readout 0 .. one frame period (a rolling shutter reads a frame within the frame's period)
+        and reference row 0 .. 1, then two finer grids about the best. Smooth surfaces tell each
+        row's time through the rate of their depth change; edges tell it sharply (which surface the
+        pixel saw), and the truncation keeps pixels that other effects changed from pulling. Pixels
+        whose depth comes within 3 sigma of the measured depths' range are left out (only their
+        draws inside the range are valid: a one-sided residual). Why a start: the gap sees the
+        rows' mean time well, readout x (0.5 - reference_row), but the spread of the rows' times
+        weakly, so readout and reference row trade along a narrow valley a coarse search does not
+        follow. Nothing for a static sequence."""
+        from synth.sensor.effects._common import robust_std
+        from synth.sensor.state import interpolate_pose
+        dt = 1.0 / float(config.preset.fps)
+        H = int(measured.intrinsics.height)
+        svals = np.linspace(-1.0, 1.0, START_STEPS)
+        Z, SAME, V, M, zm_all = [], [], [], [], []
+        for k in frames:
+            prev = measured.prev_poses[k]
+            pose = measured.poses[k]
+            if prev is None or np.array_equal(prev, pose):
+                continue
+            m = measured.measured_depth(k)
+            rs = [measured.renderer.render(interpolate_pose(pose, prev, s), measured.intrinsics, with_rgb=False)
+                  for s in svals]
+            zs = np.stack([np.where(r.hit, r.depth, 0).astype(np.float64) for r in rs])      # (S, H, W)
+            ids = np.stack([np.where(r.hit, r.instance_ids, -1) for r in rs])
+            ok = (m > 0) & (zs > 0).all(0)
+            mask = measured.mask(k)
+            if mask is not None:
+                ok &= mask
+            # a sample pair on one surface interpolates linearly; on two, a step at the nearer sample
+            same = (ids[1:] == ids[:-1]) & (np.abs(zs[1:] - zs[:-1]) < 0.05 * zs[:-1])
+            vv, uu = np.nonzero(ok)
+            Z.append(zs[:, vv, uu])
+            SAME.append(same[:, vv, uu])
+            M.append(m[vv, uu])
+            V.append(vv)
+            zm_all.append(m[m > 0])
+        if not Z:
+            return {}
+        z, same = np.concatenate(Z, 1), np.concatenate(SAME, 1)        # (S, N), (S - 1, N)
+        m, v = np.concatenate(M), np.concatenate(V)
+        zc = z[START_STEPS // 2]
+        sig = max(robust_std((m - zc) / zc ** 2), 1e-9) * zc ** 2
+        zlo, zhi = np.percentile(np.concatenate(zm_all), [0.1, 99.9])
+        inside = (z.max(0) + 3.0 * sig < zhi) & (z.min(0) - 3.0 * sig > zlo)
+        moves = (z.max(0) - z.min(0)) > 0.1 * sig            # a pixel whose depth never changes says nothing
+        sel = inside & moves
+        if sel.sum() < 200:
+            return {}
+        z, same, m, v, sig = z[:, sel], same[:, sel], m[sel], v[sel], sig[sel]
+        x = np.arange(H) / max(H - 1, 1)
+        step = svals[1] - svals[0]
+        cols = np.arange(m.size)
+
+        def cost(readout: float, ref: float) -> float:
+            t = (x[v] - ref) * readout / dt                    # (N,) frame periods
+            f = np.clip((t - svals[0]) / step, 0.0, START_STEPS - 1 - 1e-9)
+            i = f.astype(np.int64)
+            w = f - i
+            z0, z1 = z[i, cols], z[i + 1, cols]
+            zhat = np.where(same[np.minimum(i, START_STEPS - 2), cols], z0 + w * (z1 - z0), np.where(w < 0.5, z0, z1))
+            return float(np.minimum(((m - zhat) / sig) ** 2, 9.0).sum())
+
+        lo, hi = cls.FITTABLE["readout_time_s"]
+        r_hi = min(hi, dt)
+        best = None
+        for R_grid, p_grid in ((np.linspace(lo, r_hi, 33), np.linspace(0.0, 1.0, 17)),):
+            for R in R_grid:
+                for rho in p_grid:
+                    c = cost(R, rho)
+                    if best is None or c < best[0]:
+                        best = (c, R, rho)
+        dR, dp = (r_hi - lo) / 32, 1.0 / 16
+        for _ in range(3):            # finer grids about the best
+            _, R0, p0 = best
+            for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, r_hi):
+                for rho in np.clip(p0 + dp * np.linspace(-1, 1, 9), 0.0, 1.0):
+                    c = cost(R, rho)
+                    if c < best[0]:
+                        best = (c, R, rho)
+            dR, dp = dR / 4, dp / 4
+        _, R, rho = best
+        if R <= lo:
+            return {}
+        return {f"{cls.name}.readout_time_s": float(R), f"{cls.name}.reference_row": float(rho)}
+
+
+START_STEPS = 17
+"""Times at which :meth:`RollingShutter.fit_start` renders each moving frame (evenly from one frame
+period before to one after the frame's pose: steps of 1/8 period)."""
