@@ -71,16 +71,11 @@ def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool
     """Vote accuracy and rotation error before ICP (no-ICP run); with ``icp`` also the full pipeline."""
     from recog.evaluate import evaluate
     from recog.model import Recogniser
-    from recog.synda.run import patch_mapper
     model = Recogniser.load(model_path)
-    if generator and model.input == "rgb":
-        raise SystemExit(f"--synda-recog: {model_path} reads colour (recog train --input rgb); a generator maps to "
-                         f"depth, so give only depth recognisers a SynDA row")
     reads = model.input
-    if generator:
-        model.patch_map, ginfo = patch_mapper(generator, model.patch, domain=None)
-        model.patch_map_source, model.patch_map_domain = generator, ginfo["domain"]
-        reads = f"synda-{ginfo['domain']}"
+    if generator:      # main() has refused a SynDA row for a colour recogniser before any row
+        from recog.synda.run import use_synda
+        reads = f"synda-{use_synda(model, generator)['domain']}"
     t0 = time.perf_counter()
     r = evaluate(model, testset, None, icp=False, progress=False, max_scans=max_scans)
     row = {"reads": reads, "n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],

@@ -53,16 +53,14 @@ def evaluate(model: Recogniser, testset: str | os.PathLike, out: str | os.PathLi
         scans = scans[:max_scans]
     folder = Path(testset)
     intr = camera.intrinsics
-    colour = model.patch_map is not None and getattr(model, "patch_map_domain", "depth") == "rgb"
+    colour = model.reads_colour
     if colour and any(sc.rgb is None for sc in scans):
         from data_tools.errors import FormatError
-        raise FormatError(folder / "labels.json", "the SynDA generator reads colour images, these scans have none "
-                                                  "(a colour test set: 'realgap synda testset'; or a depth generator)")
-    if model.input == "rgb" and any(sc.rgb is None for sc in scans):
-        from data_tools.errors import FormatError
         raise FormatError(folder / "labels.json", "this recogniser reads colour (recog train --input rgb), these "
-                                                  "scans have none (a colour test set: 'realgap synda testset')")
-    colour = colour or model.input == "rgb"
+                                                  "scans have none (a colour test set: 'realgap synda testset')"
+                          if model.input == "rgb" else
+                          "the SynDA generator reads colour images, these scans have none "
+                          "(a colour test set: 'realgap synda testset'; or a depth generator)")
     names = model.names
     conf = np.zeros((len(names), len(names)), int)
     rows = []

@@ -130,6 +130,11 @@ class Recogniser:
         """What the network reads: ``depth`` or ``rgb`` (:attr:`recog.train.TrainConfig.input`)."""
         return self.train.input
 
+    @property
+    def reads_colour(self) -> bool:
+        """Whether recognising a scan needs its colour image: a colour network, or an rgb generator in front."""
+        return self.input == "rgb" or (self.patch_map is not None and self.patch_map_domain == "rgb")
+
     def describe(self, patches: np.ndarray, batch: int = 512) -> np.ndarray:
         """(N, S, S) depth patches or (N, C, S, S) patches of the network's channel count C -> (N, d) float32
         descriptors; another channel count is a one-line ConfigError (:func:`recog.net.check_input`)."""

@@ -136,13 +136,9 @@ def _eval(args) -> int:
     from recog.model import Recogniser
     out = check_output_dir(args.out, finished="eval.json", overwrite=args.overwrite) if args.out else None
     model = Recogniser.load(args.model)
-    if args.synda and model.input == "rgb":
-        raise ConfigError("--synda: a SynDA generator maps its input to depth, this recogniser reads colour "
-                          "(trained with --input rgb); give a depth recogniser")
     if args.synda:
-        from recog.synda.run import patch_mapper
-        model.patch_map, ginfo = patch_mapper(args.synda, model.patch, domain=None)
-        model.patch_map_source, model.patch_map_domain = str(args.synda), ginfo["domain"]
+        from recog.synda.run import use_synda
+        use_synda(model, args.synda)
     r = evaluate(model, args.testset, out, icp=not args.no_icp, k=args.k,
                  progress=not args.no_progress, max_scans=args.max_frames)
     if args.json:

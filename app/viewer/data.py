@@ -361,11 +361,9 @@ class RecogSession:
         self.synda = ev.get("synda")
         """The SynDA generator the evaluation read through (``recog eval --synda``), or None."""
         if self.synda:
-            from recog.synda.run import patch_mapper
-            self.model.patch_map, ginfo = patch_mapper(self.synda, self.model.patch, domain=None)
-            self.model.patch_map_domain = ginfo["domain"]
-        self.reads_colour = self.model.input == "rgb" or (self.synda is not None
-                                                          and self.model.patch_map_domain == "rgb")
+            from recog.synda.run import use_synda
+            use_synda(self.model, self.synda)
+        self.reads_colour = self.model.reads_colour
         """The descriptor reads the scans' colour images (a colour recogniser, or an rgb generator in front)."""
         if self.reads_colour and any(sc.rgb is None for sc in scans):
             raise FormatError(self.testset / "labels.json", "this evaluation read colour images, these scans have "
@@ -400,16 +398,14 @@ class RecogSession:
         if self.synda or self.reads_colour:
             from recog.patches import extract_patch
             p = extract_patch(depth, intr, sc.bbox, self.model.patch)
-            patch = p.image
             if self.reads_colour:
                 from recog.synda.colour_testset import colour_patch
                 c = colour_patch(rgb, intr, p, self.model.patch)              # (3, S, S) in [-1, 1]
-                patch = np.clip((c.transpose(1, 2, 0) + 1.0) * 127.5, 0, 255).astype(np.uint8)
-                out.update(patch=patch)
+                out["patch"] = np.clip((c.transpose(1, 2, 0) + 1.0) * 127.5, 0, 255).astype(np.uint8)
                 if self.synda:
-                    out.update(mapped=np.asarray(self.model.patch_map(c)))
+                    out["mapped"] = np.asarray(self.model.patch_map(c))
             else:
-                out.update(patch=patch, mapped=np.asarray(self.model.patch_map(patch)))
+                out.update(patch=p.image, mapped=np.asarray(self.model.patch_map(p.image)))
         return out
 
 

@@ -24,7 +24,7 @@ from recog.objects import load_objects
 from recog.patches import PatchConfig
 from recog.synda.config import SyndaConfig
 
-__all__ = ["train_synda", "patch_mapper", "check_patch_match"]
+__all__ = ["train_synda", "patch_mapper", "use_synda", "check_patch_match"]
 
 
 def train_synda(objects_spec, gen: str | os.PathLike, cfg: SyndaConfig, views: DataConfig, *,
@@ -84,6 +84,18 @@ def check_patch_match(gen_info: dict, patch: PatchConfig, gen_path) -> None:
         raise FormatError(gen_path, f"the generator was trained on {p.get('size')} px patches of {p.get('crop_m')} m, "
                                     f"the recogniser cuts {patch.size} px of {patch.crop_m} m (train it on the "
                                     f"recogniser's objects)")
+
+
+def use_synda(model, generator: str | os.PathLike) -> dict:
+    """Put SynDA's generator file ``generator`` in front of the descriptor of ``model`` (a
+    :class:`recog.model.Recogniser`: its ``patch_map``, source and input domain); returns the generator's info.
+    A colour recogniser is a one-line ConfigError: a generator maps its input to depth."""
+    if model.input == "rgb":
+        raise ConfigError("--synda: a SynDA generator maps its input to depth, this recogniser reads colour "
+                          "(trained with --input rgb); give a depth recogniser")
+    model.patch_map, ginfo = patch_mapper(generator, model.patch, domain=None)
+    model.patch_map_source, model.patch_map_domain = str(generator), ginfo["domain"]
+    return ginfo
 
 
 def patch_mapper(gen_path: str | os.PathLike, patch: PatchConfig | None = None, device: str = "cpu",

@@ -19,7 +19,7 @@ __all__ = ["wasserstein1", "Pooled", "SortedErrors", "W1_NULL_CONSTANT", "bin_te
            "within_var", "weighted_mean", "CompareCache", "collect_samples", "centred_clip", "CLIP_CENTRE_BIN_M"]
 
 CLIP_CENTRE_BIN_M = 0.25
-"""Width (metres of ideal depth) of the bins whose measured median error centres the error clip
+"""Width (metres of ideal depth) of the bins whose simulated median error centres the error clip
 (:func:`centred_clip`)."""
 
 
@@ -42,18 +42,10 @@ def centred_clip(y_m: np.ndarray, y_s: np.ndarray, valid_s: np.ndarray, z: np.nd
     centre = np.zeros_like(y_m, dtype=np.float64)
     ok = valid_s & np.isfinite(y_s)
     if ok.any():
-        b = np.floor(np.asarray(z, np.float64) / CLIP_CENTRE_BIN_M).astype(np.int64)
-        b = np.clip(b, 0, None)
+        b = np.clip(np.floor(np.asarray(z, np.float64) / CLIP_CENTRE_BIN_M).astype(np.int64), 0, None)
         nb = int(b.max()) + 1
-        cnt = np.bincount(b[ok], minlength=nb)
-        order = np.lexsort((y_s[ok], b[ok]))
-        ys_sorted = y_s[ok][order]
-        starts = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-        med = np.zeros(nb)
-        has = cnt >= max(int(min_count), 1)
-        lo = starts + (cnt - 1) // 2
-        hi = starts + cnt // 2
-        med[has] = 0.5 * (ys_sorted[lo[has]] + ys_sorted[hi[has]])
+        med = SortedErrors(y_s, ok).quantiles(b, nb, (0.5,))[0]
+        med[np.bincount(b[ok], minlength=nb) < max(int(min_count), 1)] = 0.0
         centre = med[b]
     return (centre + np.clip(y_m - centre, -clip, clip), centre + np.clip(y_s - centre, -clip, clip))
 

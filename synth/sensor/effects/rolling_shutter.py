@@ -150,12 +150,11 @@ class RollingShutter(Effect):
         lo, hi = cls.FITTABLE["readout_time_s"]
         r_hi = min(hi, dt)
         best = None
-        for R_grid, p_grid in ((np.linspace(lo, r_hi, 33), np.linspace(0.0, 1.0, 17)),):
-            for R in R_grid:
-                for rho in p_grid:
-                    c = cost(R, rho)
-                    if best is None or c < best[0]:
-                        best = (c, R, rho)
+        for R in np.linspace(lo, r_hi, 33):
+            for rho in np.linspace(0.0, 1.0, 17):
+                c = cost(R, rho)
+                if best is None or c < best[0]:
+                    best = (c, R, rho)
         dR, dp = (r_hi - lo) / 32, 1.0 / 16
         for _ in range(3):            # finer grids about the best
             _, R0, p0 = best
