@@ -82,6 +82,10 @@ def quiet_vtk_warnings() -> None:
         pass
 
 
+TITLE_FONT_SIZE = 8
+"""Font size (points) of every image pane's title."""
+
+
 def _set_text(actor, text: str) -> None:
     """Change the text of an actor of ``Plotter.add_text`` (a text actor or a corner annotation)."""
     if hasattr(actor, "SetInput"):
@@ -210,7 +214,12 @@ class Viewer:
         if key in self._actors:
             _set_text(self._actors[key], text)
         else:
-            self._actors[key] = self.p.add_text(text, position="upper_left", font_size=9, color="white")
+            # a text actor anchored at the pane's top left in normalised viewport coordinates: one font size in
+            # every pane (a corner annotation scales its font with the pane and the text's length)
+            actor = self.p.add_text(text, position=(0.01, 0.985), viewport=True, font_size=TITLE_FONT_SIZE,
+                                    color="white")
+            actor.GetTextProperty().SetVerticalJustificationToTop()
+            self._actors[key] = actor
 
     def _message(self, pane: str, text: str) -> None:
         """A pane without data: a centred message (the pane's image becomes None)."""
