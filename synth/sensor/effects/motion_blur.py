@@ -229,27 +229,36 @@ def warp_view(view, rows_c2w: np.ndarray, intr, full: bool = True, ray_dirs_cam:
 
 
 @kernel
+def _source_pixel(Pw, hit, Ro, to, v, u, fx, fy, cx, cy, H, W):
+    """The source pixel (su, sv) pixel (u, v) of the row-``v`` pose sees: its world point ``Pw[v, u]`` projected
+    with that row's pose (``Ro``, ``to``), rounded to the nearest pixel; a pixel that sees nothing (or a point
+    behind the camera) keeps its own place, and beyond the image border the border pixel is taken (its plane
+    extended)."""
+    fu = 0.0
+    fv = 0.0
+    if hit[v, u]:
+        x0 = Pw[v, u, 0] - to[v, 0]
+        x1 = Pw[v, u, 1] - to[v, 1]
+        x2 = Pw[v, u, 2] - to[v, 2]
+        y0 = Ro[v, 0, 0] * x0 + Ro[v, 1, 0] * x1 + Ro[v, 2, 0] * x2
+        y1 = Ro[v, 0, 1] * x0 + Ro[v, 1, 1] * x1 + Ro[v, 2, 1] * x2
+        y2 = Ro[v, 0, 2] * x0 + Ro[v, 1, 2] * x1 + Ro[v, 2, 2] * x2
+        if y2 > 1e-6:
+            fu = fx * y0 / y2 + cx - u
+            fv = fy * y1 / y2 + cy - v
+    su = min(max(int(np.floor(u - fu + 0.5)), 0), W - 1)
+    sv = min(max(int(np.floor(v - fv + 0.5)), 0), H - 1)
+    return su, sv
+
+
+@kernel
 def _warp_rows(r0, r1, Pw, Nc, hit, ids, alb, spec, Rc, Ro, to, xn, yn, fx, fy, cx, cy,
                out_pc, out_nc, out_pw, out_hit, out_ids, out_alb, out_spec, out_src, full):
     """Rows [r0, r1) of :func:`warp_view`."""
     H, W = hit.shape
     for v in range(r0, r1):
         for u in range(W):
-            fu = 0.0
-            fv = 0.0
-            if hit[v, u]:
-                x0 = Pw[v, u, 0] - to[v, 0]
-                x1 = Pw[v, u, 1] - to[v, 1]
-                x2 = Pw[v, u, 2] - to[v, 2]
-                y0 = Ro[v, 0, 0] * x0 + Ro[v, 1, 0] * x1 + Ro[v, 2, 0] * x2
-                y1 = Ro[v, 0, 1] * x0 + Ro[v, 1, 1] * x1 + Ro[v, 2, 1] * x2
-                y2 = Ro[v, 0, 2] * x0 + Ro[v, 1, 2] * x1 + Ro[v, 2, 2] * x2
-                if y2 > 1e-6:
-                    fu = fx * y0 / y2 + cx - u
-                    fv = fy * y1 / y2 + cy - v
-            # nearest source pixel; beyond the image border the border pixel's plane is extended
-            su = min(max(int(np.floor(u - fu + 0.5)), 0), W - 1)
-            sv = min(max(int(np.floor(v - fv + 0.5)), 0), H - 1)
+            su, sv = _source_pixel(Pw, hit, Ro, to, v, u, fx, fy, cx, cy, H, W)
             t = -1.0
             n0 = 0.0
             n1 = 0.0
@@ -309,20 +318,7 @@ def _warped_pattern_rows(r0, r1, Pw, Nc, hit, shading, Rc, Ro, to, xn, yn, fx, f
     hp, wp = pattern.shape
     for v in range(r0, r1):
         for u in range(W):
-            fu = 0.0
-            fv = 0.0
-            if hit[v, u]:
-                x0 = Pw[v, u, 0] - to[v, 0]
-                x1 = Pw[v, u, 1] - to[v, 1]
-                x2 = Pw[v, u, 2] - to[v, 2]
-                y0 = Ro[v, 0, 0] * x0 + Ro[v, 1, 0] * x1 + Ro[v, 2, 0] * x2
-                y1 = Ro[v, 0, 1] * x0 + Ro[v, 1, 1] * x1 + Ro[v, 2, 1] * x2
-                y2 = Ro[v, 0, 2] * x0 + Ro[v, 1, 2] * x1 + Ro[v, 2, 2] * x2
-                if y2 > 1e-6:
-                    fu = fx * y0 / y2 + cx - u
-                    fv = fy * y1 / y2 + cy - v
-            su = min(max(int(np.floor(u - fu + 0.5)), 0), W - 1)
-            sv = min(max(int(np.floor(v - fv + 0.5)), 0), H - 1)
+            su, sv = _source_pixel(Pw, hit, Ro, to, v, u, fx, fy, cx, cy, H, W)
             g = shading[sv, su]
             if not (hit[sv, su] and g > 0.0):
                 continue                              # sees nothing, or nothing lit: no radiance
