@@ -444,6 +444,24 @@ class IdealRenderer:
 
 
 @kernel
+def _colour_pixel(i, t, u, v, f, c0, d1, d2, out):
+    """``out[i]`` = the triangle ``t``'s vertex colour interpolated at (u[i], v[i]) times the shading factor ``f``,
+    rounded and clipped to uint8 (float32 steps in the numpy version's order)."""
+    for ch in range(3):
+        x = d1[ch, t] * u[i]
+        y = d2[ch, t] * v[i]
+        x = x + y
+        x = x + c0[ch, t]
+        x = x * f
+        x = x + np.float32(0.5)
+        if x < np.float32(0.0):
+            x = np.float32(0.0)
+        elif x > np.float32(255.0):
+            x = np.float32(255.0)
+        out[i, ch] = np.uint8(x)
+
+
+@kernel
 def _vertex_colour_kernel(tri, u, v, cos, hit, c0, d1, d2, a, b, out):
     """:meth:`IdealRenderer._vertex_colour_rgb` in one compiled pass (float32 steps in the numpy
     version's order, so the bytes are identical)."""
@@ -456,19 +474,7 @@ def _vertex_colour_kernel(tri, u, v, cos, hit, c0, d1, d2, a, b, out):
         f = min(abs(cos[i]), np.float32(1.0))
         f = f * a
         f = f + b
-        t = tri[i]
-        for ch in range(3):
-            x = d1[ch, t] * u[i]
-            y = d2[ch, t] * v[i]
-            x = x + y
-            x = x + c0[ch, t]
-            x = x * f
-            x = x + np.float32(0.5)
-            if x < np.float32(0.0):
-                x = np.float32(0.0)
-            elif x > np.float32(255.0):
-                x = np.float32(255.0)
-            out[i, ch] = np.uint8(x)
+        _colour_pixel(i, tri[i], u, v, f, c0, d1, d2, out)
 
 
 @kernel
@@ -488,16 +494,4 @@ def _vertex_colour_normals_kernel(tri, u, v, nc, dx, dy, dz, hit, c0, d1, d2, a,
         f = min(abs(cos[0]), np.float32(1.0))
         f = f * a
         f = f + b
-        t = tri[i]
-        for ch in range(3):
-            x = d1[ch, t] * u[i]
-            y = d2[ch, t] * v[i]
-            x = x + y
-            x = x + c0[ch, t]
-            x = x * f
-            x = x + np.float32(0.5)
-            if x < np.float32(0.0):
-                x = np.float32(0.0)
-            elif x > np.float32(255.0):
-                x = np.float32(255.0)
-            out[i, ch] = np.uint8(x)
+        _colour_pixel(i, tri[i], u, v, f, c0, d1, d2, out)
