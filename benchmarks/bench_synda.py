@@ -1,5 +1,5 @@
-"""Benchmark: SynDA in front of the triplet recogniser (thesis Tables 5.2-5.4, depth domain), on the
-same test scans for every row.
+"""Benchmark: SynDA in front of the triplet recogniser (thesis Tables 5.2-5.4; depth generators on depth scans,
+rgb generators on the colour scans of ``synda testset``), on the same test scans for every row.
 
     .venv/bin/python benchmarks/bench_synda.py --recog clean=CLEAN_MODEL,physical=recog/weights/chairs \\
         --generator recog/weights/synda_depth/generator.pt \\
@@ -7,8 +7,8 @@ same test scans for every row.
     .venv/bin/python benchmarks/bench_synda.py ... --ablation --objects chairs --iterations 300
 
 Thesis Tables 5.2/5.3's three rows: ``--recog clean=CLEAN,atrained=ATRAINED --synda-recog clean`` (a recogniser
-trained on clean synthetic views, one trained on A(synthetic) - ``recog train --synda-augment`` -, and SynDA +
-the clean one).
+trained on clean synthetic views, one trained on A(synthetic) - ``recog train --synda-augment`` in depth,
+``--input rgb`` in colour -, and SynDA + the clean one).
 
 Rows per test set: each recogniser alone, and each recogniser reading the generator's mapping of the
 measured patch (``recog eval --synda``). Columns: the descriptor's own k-NN vote accuracy and the

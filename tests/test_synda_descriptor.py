@@ -140,3 +140,24 @@ def test_bad_recogniser_is_one_line(tmp_path, capsys):
                  "--descriptor-weight", "1", "--descriptor-recogniser", str(folder), "--no-progress"]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "reads 16 px patches" in err
+
+
+def test_bad_init_fails_before_any_view_is_simulated(tmp_path, capsys):
+    """``synda train --init`` with a generator of the other domain is a one-line error before the views are
+    simulated (the work folder stays empty), and so is --device cuda on a machine without a GPU."""
+    from app.cli import main
+    cfg = config(iterations=1)
+    rgb = dataclasses.replace(cfg, domain="rgb").validate()
+    save_generator(tmp_path / "rgb.pt", Generator(rgb.generator, "rgb"), rgb, {})
+    work = tmp_path / "work"
+    assert main(["synda", "train", "--objects", "chairs", "--domain", "depth", "--init", str(tmp_path / "rgb.pt"),
+                 "--work", str(work), "--out", str(tmp_path / "g.pt"), "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "rgb.pt" in err, err
+    assert not (work / "data").exists() or not any((work / "data").iterdir())
+    if not torch.cuda.is_available():
+        assert main(["synda", "train", "--objects", "chairs", "--domain", "depth", "--device", "cuda",
+                     "--work", str(work), "--out", str(tmp_path / "g.pt"), "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "no GPU" in err, err
+        assert not (work / "data").exists() or not any((work / "data").iterdir())

@@ -216,6 +216,8 @@ def test_map_writes_every_modality_and_a_contact_sheet(tmp_path, capsys):
     (lambda d: __import__("cv2").imwrite(str(d / "x.png"), np.zeros((64, 64, 3), np.uint8)), "a colour image"),
     (lambda d: __import__("cv2").imwrite(str(d / "x.png"), np.zeros((64, 64), np.uint16)), "needs --bbox"),
     (lambda d: (d / "x.txt").write_text("hi"), "unknown input type"),
+    (lambda d: np.save(d / "x.npy", np.full((64, 64), 5.0, np.float32)), "values must lie in [-1, 1] (normalised "
+                                                                         "patches), got 5 to 5"),
 ])
 def test_map_bad_inputs_are_one_line(tmp_path, capsys, make, words):
     from app.cli import main

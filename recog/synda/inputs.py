@@ -21,6 +21,10 @@ from data_tools.errors import ConfigError, FormatError
 
 __all__ = ["read_inputs", "augment_samples"]
 
+RANGE_TOLERANCE = 1e-3
+"""How far past [-1, 1] an input value may lie (float rounding of a normalised patch) before it is an error;
+what lies within it is clipped."""
+
 
 def _check(a: np.ndarray, c: int, s: int, path) -> np.ndarray:
     if a.ndim == 2:
@@ -32,6 +36,9 @@ def _check(a: np.ndarray, c: int, s: int, path) -> np.ndarray:
                                 f"{tuple(a.shape)}")
     if not np.issubdtype(a.dtype, np.floating) or not np.all(np.isfinite(a)):
         raise FormatError(path, f"expected finite float values in [-1, 1], got {a.dtype}")
+    lo, hi = float(a.min()), float(a.max())
+    if lo < -1.0 - RANGE_TOLERANCE or hi > 1.0 + RANGE_TOLERANCE:
+        raise FormatError(path, f"values must lie in [-1, 1] (normalised patches), got {lo:.4g} to {hi:.4g}")
     return np.clip(a.astype(np.float32), -1.0, 1.0)
 
 

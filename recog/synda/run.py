@@ -37,9 +37,10 @@ def train_synda(objects_spec, gen: str | os.PathLike, cfg: SyndaConfig, views: D
     from recog.synda.augment import Augmenter
     from recog.synda.data import folder_chunks, generate_synda_data, load_synda_data
     from recog.synda.io import save_generator
-    from recog.synda.train import default_work, evaluate_batch_loss, load_descriptor_net, train_generator
+    from recog.synda.train import check_start, default_work, evaluate_batch_loss, load_descriptor_net, train_generator
     cfg.validate()
     views.validate()
+    check_start(cfg, init)
     gen = Path(gen)
     if gen.exists() and not overwrite:
         raise FormatError(gen, "a generator is already there (use --overwrite to replace it)")

@@ -128,13 +128,24 @@ def extra_losses(cfg: SyndaConfig, out: dict, tgt: dict, descriptor_net: torch.n
     return total, parts
 
 
-def _load_init(net: Generator, cfg: SyndaConfig, init: str | os.PathLike) -> None:
+def check_start(cfg: SyndaConfig, init: str | os.PathLike | None = None) -> None:
+    """What would stop training, checked before anything is simulated: a cuda device without a GPU, and an
+    ``init`` generator of another version, domain or architecture (ConfigError / FormatError)."""
+    if torch.device(cfg.train.device).type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
+    if init is not None:
+        _init_generator(cfg, init)
+
+
+def _init_generator(cfg: SyndaConfig, init: str | os.PathLike) -> Generator:
+    """The generator in the file ``init``, checked to have ``cfg``'s domain and architecture (building it draws
+    from torch's random generator)."""
     from recog.synda.io import load_generator
     from data_tools.config import config_to_dict
     other, ocfg, _ = load_generator(init, cfg.domain)
     if config_to_dict(ocfg.generator) != config_to_dict(cfg.generator):
         raise FormatError(init, "its architecture differs from the one being trained (another preset or --target?)")
-    net.load_state_dict(other.state_dict())
+    return other
 
 
 def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.PathLike | None = None, *,
@@ -150,8 +161,7 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
     cfg.validate()
     tc = cfg.train
     device = torch.device(tc.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device 'cuda' requested but no GPU is available here (use --preset cpu)")
+    check_start(cfg)
     if len(data) < 2:
         raise ConfigError(f"SynDA training needs at least 2 usable views, got {len(data)}")
     if data.clean.shape[-1] != cfg.generator.size:
@@ -161,7 +171,7 @@ def train_generator(cfg: SyndaConfig, data: SyndaData, checkpoint: str | os.Path
     torch.manual_seed(tc.seed)
     net = Generator(cfg.generator, cfg.domain)
     if init is not None:
-        _load_init(net, cfg, init)
+        net.load_state_dict(_init_generator(cfg, init).state_dict())
     net = net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=tc.lr, betas=(tc.beta1, 0.999))
     rng = np.random.default_rng(tc.seed)
