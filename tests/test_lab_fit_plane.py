@@ -138,6 +138,34 @@ def test_fit_honours_the_noise_curve_on_held_out_frames(curve_ref):
     assert np.any(np.abs(ratios[0.0] - 1.0) > 0.10), ratios[0.0]
 
 
+def test_local_plane_removes_a_tilt_by_hand():
+    """A strip of a floor at 2.5-2.6 m whose measured depth carries the +-1 mm checkerboard plus a
+    reference-plane misfit affine in inverse depth (1/z' - 1/z = 1e-3 + 2e-3 u - 4e-3 v /m, u, v the
+    pixel over the width, up to about 9 mm at the strip's ends): about its median the spread is
+    several mm; about its local plane (the default) it is the checkerboard's 1.4826 mm again, as it
+    is on the simulated side (no misfit) with or without; ``local_plane=False`` gives the median
+    alone. Fewer than 30 pixels: the median alone either way."""
+    from synth.lab.calibration import curve_groups, local_plane_residuals, noise_curve
+    H, W = 30, 40
+    v, u = np.indices((H, W)).astype(float)
+    ideal = (2.5 + 0.1 * v / H).astype(np.float32)
+    uu, vv = (u - W / 2) / W, (v - H / 2) / W
+    sign = np.where((u + v) % 2 == 0, 1.0, -1.0)
+    tilted = 1.0 / (1.0 / ideal + 1e-3 + 2e-3 * uu - 4e-3 * vv)
+    o = SimpleNamespace(ideal=ideal, index=0, measured=(tilted + 0.001 * sign).astype(np.float32),
+                        simulated=(ideal + 0.001 * sign).astype(np.float32))
+    b = 8                                                   # 2.5-2.75 m
+    m_plane = noise_curve([o], "measured", None)[0][b]
+    m_median = noise_curve([o], "measured", None, local_plane=False)[0][b]
+    s_plane = noise_curve([o], "simulated", None)[0][b]
+    assert m_plane == pytest.approx(1.4826e-3, rel=0.02) and s_plane == pytest.approx(1.4826e-3, rel=0.02)
+    assert m_median > 2.5e-3
+    g = curve_groups([o], "measured", None, local_plane=False)[b][0][1]
+    assert abs(np.median(g)) < 1e-9
+    r = np.array([0.001, -0.001] * 10)
+    assert np.allclose(local_plane_residuals(r + 0.004, np.full(20, 2.6), np.zeros((20, 2))), r)
+
+
 def nguyen_incidence(z, theta):
     """The known curve with incidence: 1.2 mm + 1.9 mm/m^2 (z - 0.4 m)^2 + 0.3 mm theta^2 / (pi/2 -
     theta)^2 / sqrt(z) (Nguyen et al. 2012's form, 3 x their incidence coefficient)."""

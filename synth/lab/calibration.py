@@ -164,6 +164,11 @@ GRAZING_EDGES_DEG = INCIDENCE_EDGES_DEG[1:]
 curve, so a capture without grazing views is fitted as by the distance curve alone."""
 MIN_PIXELS = 200
 """Fewest valid residuals a bin needs on each side to count."""
+LOCAL_PLANE = True
+"""The noise curve's residuals are taken about a local plane per (frame, bin) group
+(:func:`local_plane_residuals`), on the measured and the simulated side alike: the axial noise is
+the spread about the surface, not the reference plane's misfit far from the pixels that fitted it
+(docs/sensor_lab.md, "Noise against distance on a real plane"). False: the median per group alone."""
 
 
 def _pixels(o, max_pixels: int | None, seed: int) -> np.ndarray:
@@ -197,7 +202,8 @@ def storage_quantum_m(depth: np.ndarray, share: float = 0.99) -> float:
 
 def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
                 edges: Sequence[float] = BIN_EDGES_M,
-                incidence_edges: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                incidence_edges: Sequence[float] | None = None,
+                local_plane: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(robust std per bin (m, NaN where a bin has too few pixels), valid pixels per bin) of the
     ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring).
 
@@ -211,7 +217,7 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
     (:func:`storage_quantum_m`) first, as the device's driver and file did to the measurement: a
     1 mm quantum adds 0.29 mm of spread, +28 % on the 0.36 mm of Kinect v1 noise at 0.5 m, which a
     float simulation lacks (its near bins then read low against the measurement)."""
-    groups = curve_groups(observations, side, max_pixels, seed, edges, incidence_edges)
+    groups = curve_groups(observations, side, max_pixels, seed, edges, incidence_edges, local_plane)
     std = np.full(len(groups), np.nan)
     count = np.zeros(len(groups), int)
     for k, parts in enumerate(groups):
@@ -225,11 +231,17 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
 
 def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
                  edges: Sequence[float] = BIN_EDGES_M,
-                 incidence_edges: Sequence[float] | None = None) -> list[list[tuple[int, np.ndarray]]]:
+                 incidence_edges: Sequence[float] | None = None,
+                 local_plane: bool | None = None) -> list[list[tuple[int, np.ndarray]]]:
     """Per bin (or cell, as :func:`noise_curve`): [(position of the observation in
     ``observations``, its residuals depth - ideal (m) with their median removed), ...] for every
     observation with at least 10 valid pixels there: what :func:`noise_curve` pools, kept per frame
-    so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames."""
+    so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames.
+
+    ``local_plane`` (None: :data:`LOCAL_PLANE`): each group's residuals are taken about its own
+    local plane (:func:`local_plane_residuals`), else about their median alone."""
+    if local_plane is None:
+        local_plane = LOCAL_PLANE
     e = np.asarray(edges, float)
     ie = None if incidence_edges is None else np.asarray(incidence_edges, float)
     nj = 1 if ie is None else len(ie) - 1
@@ -251,13 +263,51 @@ def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 200
             j = np.clip(np.searchsorted(ie, np.nan_to_num(a, nan=-1.0), side="right") - 1, -1, nj)
             ok &= (j >= 0) & (j < nj)
             b = np.where((b >= 0) & (b < len(e) - 1), b * nj + j, -1)
+        if local_plane:
+            v, u = np.divmod(flat, o.ideal.shape[1])
+            uv = np.stack([(u - 0.5 * o.ideal.shape[1]) / o.ideal.shape[1],
+                           (v - 0.5 * o.ideal.shape[0]) / o.ideal.shape[1]], 1)
         for k in range(ncell):
             sel = ok & (b == k)
             if sel.sum() < 10:
                 continue
             r = d[sel] - z[sel]
+            if local_plane:
+                r = local_plane_residuals(r, z[sel], uv[sel])
             groups[k].append((pos, r - np.median(r)))
     return groups
+
+
+LOCAL_PLANE_MIN_PIXELS = 30
+"""Fewest valid pixels a (frame, bin) group needs for its local plane to be removed (fewer: its median
+alone); 3 parameters are fitted, which lowers the std of n pixels by sqrt(1 - 3 / n) on both sides alike."""
+
+
+def local_plane_residuals(r: np.ndarray, z: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The residuals ``r`` (N,) = depth - ideal (m) of one (frame, bin) group less their local plane.
+
+    A plane that is off the reference plane (tilted by the reference's fit, which the near pixels
+    dominate, or by the sensor's low-frequency depth distortion over the strip the bin cuts out of a
+    grazing floor) differs from it by an affine function of the pixel in *inverse* depth:
+    1 / z' - 1 / z = a + b u + c v, i.e. in depth z' - z = -z^2 (a + b u + c v) to first order. That
+    is fitted by least squares on columns z^2, z^2 u, z^2 v (``z`` (N,) ideal depth m, ``uv`` (N, 2)
+    pixel coordinates relative to the image centre over the image width) and removed - the local
+    plane fit per target patch of Khoshelham & Elberink 2012 and Nguyen et al. 2012, whose axial
+    noise is the spread about the patch's own plane. The pixels beyond 5 robust std of the median
+    (flying pixels, mixed edges) are left out of the fit. ``r`` itself, less its median, when fewer
+    than :data:`LOCAL_PLANE_MIN_PIXELS`."""
+    r = np.asarray(r, np.float64)
+    if r.size < LOCAL_PLANE_MIN_PIXELS:
+        return r - np.median(r)
+    r0 = r - np.median(r)
+    s = 1.4826 * float(np.median(np.abs(r0)))
+    keep = np.abs(r0) <= 5.0 * s if s > 0 else np.ones(r.size, bool)
+    if keep.sum() < LOCAL_PLANE_MIN_PIXELS:
+        return r0
+    z2 = np.asarray(z, np.float64) ** 2
+    A = np.stack([z2, z2 * uv[:, 0], z2 * uv[:, 1]], 1)
+    x, *_ = np.linalg.lstsq(A[keep], r[keep], rcond=None)
+    return r - A @ x
 
 
 def _robust_std(r: np.ndarray) -> float:
