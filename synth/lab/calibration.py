@@ -26,9 +26,11 @@ measures the curve of the measured and of the simulated depth the same way, and
 
 The curve. Target pixels (ideal depth > 0: inside the frame's mask) are binned by their ideal
 depth into ``BIN_EDGES_M`` (0.5-3.0 m, 0.25 m wide). In each (frame, bin) group the residuals
-depth - ideal of the valid pixels have their median removed (a per-frame offset of the plane is
-a bias, not noise: the plane fit of a calibration removes it too), then per bin the pooled
-residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do not dominate it).
+depth - ideal of the valid pixels are taken about the group's own local plane
+(:func:`local_plane_residuals`; :data:`LOCAL_PLANE`): a per-frame offset or tilt of the reference
+plane is a bias, not noise - the plane fit per target patch of a calibration removes it too - then
+per bin the pooled residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do
+not dominate it).
 A bin counts only when both sides have at least ``MIN_PIXELS`` valid residuals.
 
 The term: the mean over counted bins of |ln(s_simulated / s_measured)| (0.095 for a 10 % error
@@ -44,8 +46,15 @@ The curve's sampling spread: :func:`curve_groups` keeps the residuals per (frame
 intervals beside each ratio): a bin filled by a few grazing views moves by tens of percent between
 two sets of frames, more than the 10 % a fit is asked to meet.
 
-Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
-0.25 m bin of a plane the tilt left is far below the noise of these sensors.
+Why a local plane and not the median alone: the frame's reference plane is fitted on all of the
+frame's target pixels, which the near ones dominate; where a floor or table is seen at 60-80 deg
+beyond 2.5 m, a 0.25 m bin is a long strip across the image, and the reference's tilt error, the
+sensor's low-frequency depth distortion and the surface's own shape put a ramp along that strip
+that the median leaves in. The measured side then counts it as noise while the simulated side
+(rendered from the reference plane itself) has none. The local plane takes it out of both alike,
+and leaves the pixel noise: it is 3 parameters over tens to thousands of pixels, and a spatially
+correlated noise (the matcher's window, a few pixels) varies far faster than a plane over the
+strip. What is left of a curved misfit over one strip (its second order) stays in.
 """
 from __future__ import annotations
 
