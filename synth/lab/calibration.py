@@ -243,7 +243,7 @@ def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 200
                  incidence_edges: Sequence[float] | None = None,
                  local_plane: bool | None = None) -> list[list[tuple[int, np.ndarray]]]:
     """Per bin (or cell, as :func:`noise_curve`): [(position of the observation in
-    ``observations``, its residuals depth - ideal (m) with their median removed), ...] for every
+    ``observations``, its residuals depth - ideal (m) about their local plane, median 0), ...] for every
     observation with at least 10 valid pixels there: what :func:`noise_curve` pools, kept per frame
     so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames.
 
