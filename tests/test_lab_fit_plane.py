@@ -166,6 +166,23 @@ def test_local_plane_removes_a_tilt_by_hand():
     assert np.allclose(local_plane_residuals(r + 0.004, np.full(20, 2.6), np.zeros((20, 2))), r)
 
 
+def test_plane_noise_parts_by_hand():
+    """benchmarks/plane_noise_parts.group_parts on a strip at 2.5-2.6 m with the +-1 mm checkerboard
+    plus a bend of 0.05 z^2 u^2 (up to ~8 mm at the strip's ends): the median and the local plane
+    keep the bend (their spread above 1.4826 mm), the local quadric takes it out."""
+    from benchmarks.plane_noise_parts import group_parts
+    H, W = 30, 40
+    v, u = np.indices((H, W)).astype(float)
+    z = (2.5 + 0.1 * v / H).ravel()
+    uv = np.stack([((u - W / 2) / W).ravel(), ((v - H / 2) / W).ravel()], 1)
+    sign = np.where((u + v) % 2 == 0, 1.0, -1.0).ravel()
+    r = 0.001 * sign + 0.05 * z ** 2 * uv[:, 0] ** 2
+    rs = lambda x: 1.4826 * np.median(np.abs(x - np.median(x)))      # noqa: E731
+    p = group_parts(r, z, uv)
+    assert rs(p["median"]) > 1.8e-3 and rs(p["plane"]) > 1.8e-3
+    assert rs(p["quadric"]) == pytest.approx(1.4826e-3, rel=0.02)
+
+
 def test_local_plane_sees_the_noise_of_a_twisted_target(tmp_path):
     """20 hand-made tilted frames (0-78 deg, 0.8-2.7 m, noise ``nguyen_incidence``) of a target
     twisted by 5e-3 /m (height 5e-3 x y m: a shape the frame's reference plane does not follow),
