@@ -3,13 +3,13 @@ reference (issue #43 item 3: within 10 % of the measured in every 0.25 m bin fro
 each ratio shown beside the measurement's own sampling spread.
 
     .venv/bin/python benchmarks/bench_plane_noise.py PLANE_REF [--effects axial_noise,range_limits]
-        [--search-frames N] [--search-pixels N] [--eval-frames N] [--split alternate|halves]
-        [--min-frames 10] [--boot 200] [--block 1] [--json OUT] [--no-rounding]
+        [--search-frames N] [--search-pixels N] [--eval-frames N] [--split alternate|halves] [--curve-weight W]
+        [--min-frames 10] [--boot 200] [--block 1] [--json OUT] [--no-rounding] [--median-only]
 
 ``PLANE_REF``: a sequence made by ``realgap data make-reference --plane`` (poses, masks and plane).
 The even frames are fitted (``fit_model``, :class:`~synth.lab.fit.FitConfig` with the noise-curve
 term; ``--search-frames`` / ``--search-pixels`` / ``--eval-frames`` set its ``max_frames`` /
-``max_pixels_per_frame`` / ``eval_frames``), the odd frames are held out (``--split halves``: the
+``max_pixels_per_frame`` / ``eval_frames``; ``--curve-weight`` its ``noise_curve_weight``), the odd frames are held out (``--split halves``: the
 first half of the sequence fitted, the second held out): per bin, the measured robust std of depth - plane
 (:func:`synth.lab.calibration.noise_curve`, every target pixel) against the simulated one, the mean
 over ``--seeds`` simulation seeds.
@@ -23,7 +23,10 @@ target pixels in the bin. Verdict per bin: ``too few frames`` (fewer than ``--mi
 bin is listed, not judged), ``within`` (|ratio - 1| <= 10 %), ``OFF`` (the whole ratio CI outside
 0.9-1.1: off by more than the sampling spread allows), ``unresolved`` (outside 10 % but its CI
 reaches into 0.9-1.1). ``--no-rounding``: without the simulation's rounding to the measured depth's
-storage quantum (the behaviour before it, for comparison).
+storage quantum (the behaviour before it, for comparison). ``--median-only``: each (frame, bin)
+group's residuals about their median alone, not about their local plane
+(:data:`synth.lab.calibration.LOCAL_PLANE` False, in the fit's objective and in the table: the
+behaviour before it, for comparison).
 """
 from __future__ import annotations
 
@@ -88,6 +91,8 @@ def main(argv=None) -> int:
     ap.add_argument("seq", help="a planar reference (data make-reference --plane)")
     ap.add_argument("--effects", default="axial_noise,range_limits")
     ap.add_argument("--no-rounding", action="store_true", help="simulation not rounded to the measured quantum")
+    ap.add_argument("--median-only", action="store_true",
+                    help="residuals about each (frame, bin) group's median, not its local plane (fit and table)")
     ap.add_argument("--seeds", type=int, default=2, help="simulation seeds averaged per bin")
     ap.add_argument("--search-frames", type=int, default=None,
                     help="FitConfig.max_frames: fitted frames the search sees (default: FitConfig's)")
@@ -98,6 +103,8 @@ def main(argv=None) -> int:
                          "sequence and hold out the second (halves: other views, not the neighbours of fitted frames)")
     ap.add_argument("--eval-frames", type=int, default=None,
                     help="FitConfig.eval_frames: fitted frames of the final scores and the noise-curve calibration")
+    ap.add_argument("--curve-weight", type=float, default=None,
+                    help="FitConfig.noise_curve_weight: the noise-curve term's weight beside the gap (default: FitConfig's)")
     ap.add_argument("--min-frames", type=int, default=10, help="fewest held-out frames a bin needs to be judged")
     ap.add_argument("--boot", type=int, default=200, help="bootstrap replicates")
     ap.add_argument("--block", type=int, default=1,
@@ -108,6 +115,8 @@ def main(argv=None) -> int:
     from synth.lab import FitConfig, MeasuredSequence, fit_model
     if args.no_rounding:
         cal.storage_quantum_m = lambda depth, share=0.99: 0.0
+    if args.median_only:
+        cal.LOCAL_PLANE = False
     t0 = time.perf_counter()
     if args.split == "halves":
         h = len(MeasuredSequence.load(args.seq)) // 2
@@ -123,6 +132,8 @@ def main(argv=None) -> int:
         kw["eval_frames"] = args.eval_frames
     if args.search_pixels is not None:
         kw["max_pixels_per_frame"] = args.search_pixels
+    if args.curve_weight is not None:
+        kw["noise_curve_weight"] = args.curve_weight
     res = fit_model(fit, fit.default_config([e for e in args.effects.split(",") if e]),
                     fit_config=FitConfig(intervals=False, **kw))
     t_fit = time.perf_counter() - t0

@@ -26,9 +26,11 @@ measures the curve of the measured and of the simulated depth the same way, and
 
 The curve. Target pixels (ideal depth > 0: inside the frame's mask) are binned by their ideal
 depth into ``BIN_EDGES_M`` (0.5-3.0 m, 0.25 m wide). In each (frame, bin) group the residuals
-depth - ideal of the valid pixels have their median removed (a per-frame offset of the plane is
-a bias, not noise: the plane fit of a calibration removes it too), then per bin the pooled
-residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do not dominate it).
+depth - ideal of the valid pixels are taken about the group's own local plane
+(:func:`local_plane_residuals`; :data:`LOCAL_PLANE`): a per-frame offset or tilt of the reference
+plane is a bias, not noise - the plane fit per target patch of a calibration removes it too - then
+per bin the pooled residuals give the robust std 1.4826 x MAD (outliers such as flying pixels do
+not dominate it).
 A bin counts only when both sides have at least ``MIN_PIXELS`` valid residuals.
 
 The term: the mean over counted bins of |ln(s_simulated / s_measured)| (0.095 for a 10 % error
@@ -44,8 +46,15 @@ The curve's sampling spread: :func:`curve_groups` keeps the residuals per (frame
 intervals beside each ratio): a bin filled by a few grazing views moves by tens of percent between
 two sets of frames, more than the 10 % a fit is asked to meet.
 
-Approximation: the median removal per (frame, bin) takes out the offset, not a tilt; over a
-0.25 m bin of a plane the tilt left is far below the noise of these sensors.
+Why a local plane and not the median alone: the frame's reference plane is fitted on all of the
+frame's target pixels, which the near ones dominate; where a floor or table is seen at 60-80 deg
+beyond 2.5 m, a 0.25 m bin is a long strip across the image, and the reference's tilt error, the
+sensor's low-frequency depth distortion and the surface's own shape put a ramp along that strip
+that the median leaves in. The measured side then counts it as noise while the simulated side
+(rendered from the reference plane itself) has none. The local plane takes it out of both alike,
+and leaves the pixel noise: it is 3 parameters over tens to thousands of pixels, and a spatially
+correlated noise (the matcher's window, a few pixels) varies far faster than a plane over the
+strip. What is left of a curved misfit over one strip (its second order) stays in.
 """
 from __future__ import annotations
 
@@ -164,6 +173,11 @@ GRAZING_EDGES_DEG = INCIDENCE_EDGES_DEG[1:]
 curve, so a capture without grazing views is fitted as by the distance curve alone."""
 MIN_PIXELS = 200
 """Fewest valid residuals a bin needs on each side to count."""
+LOCAL_PLANE = True
+"""The noise curve's residuals are taken about a local plane per (frame, bin) group
+(:func:`local_plane_residuals`), on the measured and the simulated side alike: the axial noise is
+the spread about the surface, not the reference plane's misfit far from the pixels that fitted it
+(docs/sensor_lab.md, "Noise against distance on a real plane"). False: the median per group alone."""
 
 
 def _pixels(o, max_pixels: int | None, seed: int) -> np.ndarray:
@@ -197,7 +211,8 @@ def storage_quantum_m(depth: np.ndarray, share: float = 0.99) -> float:
 
 def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
                 edges: Sequence[float] = BIN_EDGES_M,
-                incidence_edges: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                incidence_edges: Sequence[float] | None = None,
+                local_plane: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(robust std per bin (m, NaN where a bin has too few pixels), valid pixels per bin) of the
     ``side`` ("measured" or "simulated") depth of FrameObservations (module docstring).
 
@@ -211,7 +226,7 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
     (:func:`storage_quantum_m`) first, as the device's driver and file did to the measurement: a
     1 mm quantum adds 0.29 mm of spread, +28 % on the 0.36 mm of Kinect v1 noise at 0.5 m, which a
     float simulation lacks (its near bins then read low against the measurement)."""
-    groups = curve_groups(observations, side, max_pixels, seed, edges, incidence_edges)
+    groups = curve_groups(observations, side, max_pixels, seed, edges, incidence_edges, local_plane)
     std = np.full(len(groups), np.nan)
     count = np.zeros(len(groups), int)
     for k, parts in enumerate(groups):
@@ -225,11 +240,17 @@ def noise_curve(observations: Sequence, side: str, max_pixels: int | None = 2000
 
 def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 20000, seed: int = 0,
                  edges: Sequence[float] = BIN_EDGES_M,
-                 incidence_edges: Sequence[float] | None = None) -> list[list[tuple[int, np.ndarray]]]:
+                 incidence_edges: Sequence[float] | None = None,
+                 local_plane: bool | None = None) -> list[list[tuple[int, np.ndarray]]]:
     """Per bin (or cell, as :func:`noise_curve`): [(position of the observation in
-    ``observations``, its residuals depth - ideal (m) with their median removed), ...] for every
+    ``observations``, its residuals depth - ideal (m) about their local plane, median 0), ...] for every
     observation with at least 10 valid pixels there: what :func:`noise_curve` pools, kept per frame
-    so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames."""
+    so a frame-level bootstrap (:func:`curve_uncertainty`) can resample frames.
+
+    ``local_plane`` (None: :data:`LOCAL_PLANE`): each group's residuals are taken about its own
+    local plane (:func:`local_plane_residuals`), else about their median alone."""
+    if local_plane is None:
+        local_plane = LOCAL_PLANE
     e = np.asarray(edges, float)
     ie = None if incidence_edges is None else np.asarray(incidence_edges, float)
     nj = 1 if ie is None else len(ie) - 1
@@ -251,13 +272,51 @@ def curve_groups(observations: Sequence, side: str, max_pixels: int | None = 200
             j = np.clip(np.searchsorted(ie, np.nan_to_num(a, nan=-1.0), side="right") - 1, -1, nj)
             ok &= (j >= 0) & (j < nj)
             b = np.where((b >= 0) & (b < len(e) - 1), b * nj + j, -1)
+        if local_plane:
+            v, u = np.divmod(flat, o.ideal.shape[1])
+            uv = np.stack([(u - 0.5 * o.ideal.shape[1]) / o.ideal.shape[1],
+                           (v - 0.5 * o.ideal.shape[0]) / o.ideal.shape[1]], 1)
         for k in range(ncell):
             sel = ok & (b == k)
             if sel.sum() < 10:
                 continue
             r = d[sel] - z[sel]
+            if local_plane:
+                r = local_plane_residuals(r, z[sel], uv[sel])
             groups[k].append((pos, r - np.median(r)))
     return groups
+
+
+LOCAL_PLANE_MIN_PIXELS = 30
+"""Fewest valid pixels a (frame, bin) group needs for its local plane to be removed (fewer: its median
+alone); 3 parameters are fitted, which lowers the std of n pixels by sqrt(1 - 3 / n) on both sides alike."""
+
+
+def local_plane_residuals(r: np.ndarray, z: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """The residuals ``r`` (N,) = depth - ideal (m) of one (frame, bin) group less their local plane.
+
+    A plane that is off the reference plane (tilted by the reference's fit, which the near pixels
+    dominate, or by the sensor's low-frequency depth distortion over the strip the bin cuts out of a
+    grazing floor) differs from it by an affine function of the pixel in *inverse* depth:
+    1 / z' - 1 / z = a + b u + c v, i.e. in depth z' - z = -z^2 (a + b u + c v) to first order. That
+    is fitted by least squares on columns z^2, z^2 u, z^2 v (``z`` (N,) ideal depth m, ``uv`` (N, 2)
+    pixel coordinates relative to the image centre over the image width) and removed - the local
+    plane fit per target patch of Khoshelham & Elberink 2012 and Nguyen et al. 2012, whose axial
+    noise is the spread about the patch's own plane. The pixels beyond 5 robust std of the median
+    (flying pixels, mixed edges) are left out of the fit. ``r`` itself, less its median, when fewer
+    than :data:`LOCAL_PLANE_MIN_PIXELS`."""
+    r = np.asarray(r, np.float64)
+    if r.size < LOCAL_PLANE_MIN_PIXELS:
+        return r - np.median(r)
+    r0 = r - np.median(r)
+    s = 1.4826 * float(np.median(np.abs(r0)))
+    keep = np.abs(r0) <= 5.0 * s if s > 0 else np.ones(r.size, bool)
+    if keep.sum() < LOCAL_PLANE_MIN_PIXELS:
+        return r0
+    z2 = np.asarray(z, np.float64) ** 2
+    A = np.stack([z2, z2 * uv[:, 0], z2 * uv[:, 1]], 1)
+    x, *_ = np.linalg.lstsq(A[keep], r[keep], rcond=None)
+    return r - A @ x
 
 
 def _robust_std(r: np.ndarray) -> float:
