@@ -37,6 +37,9 @@ def _frame(rng, law: str, albedos=(0.15, 0.8)) -> tuple[FrameObservation, dict]:
         x = (np.log10(alb * np.cos(np.radians(ang)) / r ** 2) - math.log10(0.06)) / -0.1
     elif law == "angle":
         x = (ang - 55.0) / 3.0
+    elif law == "sharp":        # a sharp signal cut that holes the weakest ~2 % (dark band, grazing)
+        sig = np.log10(alb * np.cos(np.radians(ang)) / r ** 2)
+        x = (sig - np.quantile(sig, 0.02)) / -0.02
     elif law == "rare":
         x = np.where(ang > 60, math.log(0.01 / 0.99), -30.0)     # 1 % above 60 deg: ~0.3 % overall
     else:
@@ -58,6 +61,15 @@ def test_holes_that_follow_the_signal_are_told_from_holes_that_follow_the_angle(
     assert sig.driver == "low_reflectance" and sig.log_ratio > 50
     assert ang.driver == "incidence_dropout" and ang.log_ratio < -50
     assert "explained better by the returned signal" in sig.sentence()
+
+
+def test_a_sharp_signal_cut_in_the_tail_is_read_as_low_reflectance():
+    """The holes follow the signal but only its weakest ~2 % drop (a sharp cut): each effect's own
+    law (a logistic) tells it; a step function of 32 quantile bins put the whole cut inside its lowest
+    bin and could not (the mystery generator's low reflectance at signal50 0.004)."""
+    hd = hole_drivers(_ctx("sharp"))
+    assert hd.hole_rate > 0.01
+    assert hd.driver == "low_reflectance" and hd.log_ratio > 10, hd
 
 
 def test_holes_that_follow_neither_are_a_tie():

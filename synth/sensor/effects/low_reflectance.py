@@ -77,14 +77,16 @@ class LowReflectance(Effect):
         normalised, gives signal50 where it crosses 0.5 (scanning from bright to dark) and the
         width from its 0.25 and 0.75 crossings (the logistic's quartiles: width = (x75 - x25) /
         (2 ln 3) decades). The form whose logistic predicts the holes of every pixel best (Brier
-        score) wins. Nothing when no form's excess reaches 0.5."""
+        score) wins. Only pixels whose ideal depth lies where the sensor measures at all count
+        (``measured_samples(in_range=True)``): the holes beyond a range limit are far and weak too.
+        Nothing when no form's excess reaches 0.5."""
         from synth.sensor.effects._common import measured_samples
         from synth.sensor.state import ViewGeometry
         rng = np.random.default_rng(0)
         renderer = measured.renderer
         logs = {"irradiance": [], "albedo": []}
         holes = []
-        for _, m, r, ok in measured_samples(measured):
+        for _, m, r, ok in measured_samples(measured, in_range=True):      # range-limit holes left out
             idx = np.flatnonzero(ok)
             if idx.size > 40000:
                 idx = np.sort(rng.choice(idx, 40000, replace=False))
