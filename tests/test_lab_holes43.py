@@ -88,3 +88,15 @@ def test_low_reflectance_start_from_the_tail_of_the_transition():
     assert x50 == pytest.approx(-2.1, abs=0.05) and w == pytest.approx(0.15, rel=0.25)
     # no holes beyond a constant rate: no start
     assert _logistic_ml(x, (rng.random(x.size) < 0.02).astype(float), None) is None
+
+
+def test_fattening_radius_on_a_steep_floor(tmp_path):
+    """Mystery seed 28 (radius 4, jump 0.91 px): ring k must have nothing within k - 1 px that
+    would have fattened the pixel by itself; with any 1 % step counted, the 160 px floor (1-2 % a
+    row) left no pixel past ring 1 and the start read radius 1. At the threshold read from the data
+    (a relative jump of 15 % here) the rings hold and the radius reads 4."""
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    mystery.generate(tmp_path / "ef", "edge_fattening", seed=28, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "ef")
+    st = EdgeFattening.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "edge_fattening"]), [0, 1, 2, 3])
+    assert st["edge_fattening.radius_px"] == 4.0 and st["edge_fattening.window"] == "square"
