@@ -100,3 +100,14 @@ def test_fattening_radius_on_a_steep_floor(tmp_path):
     ms = MeasuredSequence.load(tmp_path / "ef")
     st = EdgeFattening.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "edge_fattening"]), [0, 1, 2, 3])
     assert st["edge_fattening.radius_px"] == 4.0 and st["edge_fattening.window"] == "square"
+
+
+def test_candidates_tied_within_the_occam_margin_are_refined_too():
+    """The ranking treats gains within the Occam margin (relative) as equal, so a candidate tied with
+    the refined best is refined as well; one clearly behind is not."""
+    from synth.lab.diagnose import _tied_with
+    c = [SimpleNamespace(effect=e, gap_after=g) for e, g in
+         (("depth_bias", 0.2291), ("edge_fattening", 0.2292), ("low_reflectance", 0.48))]
+    assert [x.effect for x in _tied_with(c[1:], c[:1], 1.0, 0.01)] == ["edge_fattening"]
+    assert _tied_with(c[1:], c[:1], 1.0, 0.0) == []
+    assert _tied_with(c[1:], [], 1.0, 0.01) == []
