@@ -12,13 +12,16 @@ effect of the catalog leaves, and that is checked without simulating anything:
   A dropout by returned signal depends on albedo cos(theta) / r^2, a dropout by incidence on
   theta alone. Among the pixels the current model keeps (away from depth edges, at ideal depths
   within the 0.5-99.5th percentiles of the measured ones: range limits are not the question),
-  the measured holes are explained by the best logistic hole rate in log10(signal)
-  (``low_reflectance``'s own law) and by the best logistic in theta (``incidence_dropout``'s), two
-  numbers each, and the two Bernoulli log-likelihoods are compared: the variable the holes follow
-  explains them better (the other is only a noisy proxy of it). (A step function of each variable
-  on 32 quantile bins was used first: a sharp signal cut that holes 1 % of the pixels falls inside
-  its lowest bin, and on the mystery generator's seed 30 it read a true low reflectance as an
-  incidence dropout by e^23; the logistic reads it as low reflectance by e^560.) A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
+  the measured holes are explained by the best hole rate falling monotonically with the signal and
+  by the best one rising monotonically with theta (isotonic regressions: both dropout laws are
+  monotone, neither shape is assumed), and the two Bernoulli log-likelihoods are compared: the
+  variable the holes follow explains them better (the other is only a noisy proxy of it). Two
+  earlier forms failed on the mystery generator (its laws, computed with its own variables): step
+  functions on 32 quantile bins put a sharp cut that holes the weakest 1 % inside their lowest bin
+  and read seed 30's true low reflectance as an incidence dropout by e^23 (monotone: low
+  reflectance by e^306); the two effects' logistic laws read seed 28's true incidence dropout - a
+  probit in the angle, which a logistic in log10(albedo cos / r^2) imitates better than a logistic
+  in the angle - as low reflectance by e^2463 (monotone: incidence by e^476). A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
   decides; otherwise the data cannot separate the two (holes that follow neither clearly, or a
   scene where signal and angle go together: one albedo, a narrow range of distances) and
   :func:`~synth.lab.diagnose.diagnose` names the two as a tie.
@@ -70,9 +73,9 @@ class HoleDrivers:
     """Which variable the holes follow: the returned signal or the incidence angle."""
 
     ll_signal: float
-    """Log-likelihood (nats) of the holes under the best logistic hole rate in log10 signal."""
+    """Log-likelihood (nats) of the holes under the best hole rate falling monotonically with the signal."""
     ll_angle: float
-    """The same under the best logistic in the incidence angle."""
+    """The same under the best rate rising monotonically with the incidence angle."""
     pixels: int
     """Pixels the statistics use."""
     hole_rate: float
@@ -103,28 +106,33 @@ class HoleDrivers:
                 f"explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.0f}")
 
 
-def _logistic_ll(hole: np.ndarray, x: np.ndarray, iterations: int = 50) -> float:
-    """Bernoulli log-likelihood (nats) of ``hole`` under the best logistic hole rate
-    1 / (1 + exp(-(a + b x))) (maximum likelihood by Newton's method on standardised x; a tiny ridge
-    keeps perfectly separated holes finite): each dropout effect's own law, two numbers each."""
+def _pava(y: np.ndarray) -> np.ndarray:
+    """The non-decreasing sequence nearest to ``y`` in least squares (pool adjacent violators): for
+    0/1 data, the maximum-likelihood non-decreasing rate."""
+    vals, wts, lens = [], [], []
+    for v in np.asarray(y, np.float64):
+        vals.append(float(v))
+        wts.append(1.0)
+        lens.append(1)
+        while len(vals) > 1 and vals[-2] > vals[-1]:
+            w = wts[-2] + wts[-1]
+            vals[-2:] = [(vals[-2] * wts[-2] + vals[-1] * wts[-1]) / w]
+            wts[-2:] = [w]
+            lens[-2:] = [lens[-2] + lens[-1]]
+    return np.repeat(vals, lens)
+
+
+def _monotone_ll(hole: np.ndarray, x: np.ndarray, increasing: bool) -> float:
+    """Bernoulli log-likelihood (nats) of ``hole`` under the best hole rate that is monotone in ``x``
+    (non-decreasing when ``increasing``): isotonic regression, no shape assumed beyond the monotony
+    both dropout laws share, and unchanged by any monotone transform of x (log or not, logistic or
+    probit)."""
     y = hole.astype(np.float64)
-    sd = float(np.std(x))
-    if y.size == 0 or sd == 0 or y.min() == y.max():
-        p = float(np.clip(y.mean() if y.size else 0.5, 1e-12, 1 - 1e-12))
-        return float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
-    X = np.stack([np.ones_like(y), (np.asarray(x, np.float64) - float(np.mean(x))) / sd], 1)
-    p0 = float(np.clip(y.mean(), 1e-6, 1 - 1e-6))
-    w = np.array([np.log(p0 / (1 - p0)), 0.0])
-    ridge = 1e-6 * y.size * np.diag([0.0, 1.0])
-    for _ in range(iterations):
-        p = 1.0 / (1.0 + np.exp(-np.clip(X @ w, -50, 50)))
-        step = np.linalg.solve((X * (p * (1 - p))[:, None]).T @ X + ridge + 1e-12 * np.eye(2),
-                               X.T @ (y - p) - ridge @ w)
-        w += step
-        if float(np.max(np.abs(step))) < 1e-8:
-            break
-    z = np.clip(X @ w, -50, 50)
-    return float(np.sum(y * z - np.logaddexp(0.0, z)))
+    o = np.argsort(x if increasing else -np.asarray(x), kind="stable")
+    p = np.empty_like(y)
+    p[o] = _pava(y[o])
+    p = np.clip(p, 1e-12, 1 - 1e-12)
+    return float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
 
 
 def hole_drivers(ctx) -> HoleDrivers | None:
@@ -153,7 +161,7 @@ def hole_drivers(ctx) -> HoleDrivers | None:
     hole = (ctx.measured <= 0)[use]
     a = ang[use]
     sig = np.log10(alb[use] * np.cos(np.radians(a)) / r[use] ** 2)
-    return HoleDrivers(_logistic_ll(hole, sig), _logistic_ll(hole, a), int(use.sum()), float(hole.mean()))
+    return HoleDrivers(_monotone_ll(hole, sig, False), _monotone_ll(hole, a, True), int(use.sum()), float(hole.mean()))
 
 
 def foreground_spill(ctx) -> tuple[float, float, float, int] | None:
