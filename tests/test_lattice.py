@@ -72,3 +72,37 @@ def test_real_kinect_v1_depth_is_on_one_disparity_lattice():
         assert r is not None and r.concentration > 0.5, (folder, r)
         out.append(r.step_px)
     assert out[0] == pytest.approx(out[1], rel=0.03) and out[0] == pytest.approx(0.125, rel=0.03), out
+
+
+def test_phase_of_a_fine_step_far_from_the_origin():
+    """The phase is that of the ABSOLUTE disparity, so a step read 2e-4 off moves it by 2e-4 x d / step
+    (a third of a step at d ~ 5 px with 0.03125 px steps: a 160 px Kinect, f b ~ 10.5 px m): the
+    step must be refined beyond the fine grid's 0.05 % for the phase to hold (the mystery generator's
+    quantisation at 160 px, step / noise 2)."""
+    fb, step, phase = 10.5, 0.03125, 0.33
+    rng = np.random.default_rng(11)
+    z_true = rng.uniform(1.8, 4.0, 20000)
+    di = fb / z_true
+    d = di + rng.normal(0.0, step / 2.0, di.size)
+    d = (np.round(d / step - phase) + phase) * step
+    z = np.round(fb / d * 5000.0) / 5000.0
+    lat = detect_lattice(fb / z, di, fb=fb, max_samples=20000)
+    assert lat is not None
+    assert lat.step_px == pytest.approx(step, rel=2e-5), lat
+    assert min(abs(lat.phase - phase), 1 - abs(lat.phase - phase)) < 0.01, lat
+
+
+def test_a_step_read_off_the_lattice_is_searched_only_near_it():
+    """fit_start's step_source "lattice" narrows the step's search bounds to LATTICE_WINDOW around it
+    (a free search traded the step for noise); "search" keeps the FITTABLE range."""
+    from synth.lab.params import param_specs
+    from synth.sensor.config import SensorConfig
+    from synth.sensor.effects.disparity_quantization import LATTICE_WINDOW
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "disparity_quantization"])
+    free = {s.key: s for s in param_specs(cfg)}["disparity_quantization.step_px"]
+    assert (free.low, free.high) == (0.0, 1.0)
+    locked = cfg.with_params({"disparity_quantization.step_px": 0.03125,
+                              "disparity_quantization.step_source": "lattice"})
+    s = {s.key: s for s in param_specs(locked)}["disparity_quantization.step_px"]
+    assert s.low == pytest.approx(0.03125 * (1 - LATTICE_WINDOW)) and s.high == pytest.approx(0.03125 * (1 + LATTICE_WINDOW))
+    assert s.value == pytest.approx(0.03125)

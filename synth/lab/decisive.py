@@ -12,10 +12,16 @@ effect of the catalog leaves, and that is checked without simulating anything:
   A dropout by returned signal depends on albedo cos(theta) / r^2, a dropout by incidence on
   theta alone. Among the pixels the current model keeps (away from depth edges, at ideal depths
   within the 0.5-99.5th percentiles of the measured ones: range limits are not the question),
-  the measured holes are explained by the best step function of log10(signal) and by the best
-  step function of theta with the same number of quantile bins (:data:`BINS`), and the two
-  Bernoulli log-likelihoods are compared: the variable the holes follow explains them better
-  (the other is only a noisy proxy of it). A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
+  the measured holes are explained by the best hole rate falling monotonically with the signal and
+  by the best one rising monotonically with theta (isotonic regressions: both dropout laws are
+  monotone, neither shape is assumed), and the two Bernoulli log-likelihoods are compared: the
+  variable the holes follow explains them better (the other is only a noisy proxy of it). Two
+  earlier forms failed on the mystery generator (its laws, computed with its own variables): step
+  functions on 32 quantile bins put a sharp cut that holes the weakest 1 % inside their lowest bin
+  and read seed 30's true low reflectance as an incidence dropout by e^23 (monotone: low
+  reflectance by e^306); the two effects' logistic laws read seed 28's true incidence dropout - a
+  probit in the angle, which a logistic in log10(albedo cos / r^2) imitates better than a logistic
+  in the angle - as low reflectance by e^2463 (monotone: incidence by e^476). A likelihood ratio of at least e^:data:`MIN_LOG_RATIO`
   decides; otherwise the data cannot separate the two (holes that follow neither clearly, or a
   scene where signal and angle go together: one albedo, a narrow range of distances) and
   :func:`~synth.lab.diagnose.diagnose` names the two as a tie.
@@ -48,8 +54,6 @@ from synth.lab.evidence import SPILL_BAND_PX   # one band for edge fattening's s
 __all__ = ["HoleDrivers", "hole_drivers", "foreground_spill", "decisive_signatures", "missing_lattice", "MIN_LOG_RATIO",
            "promote", "EXACT", "HOLE_ONLY", "LEARNED_MAPS", "RadialShift", "radial_shift"]
 
-BINS = 32
-"""Quantile bins of each variable's step function (the same number for both: equal complexity)."""
 MIN_LOG_RATIO = 10.0
 """The better variable must explain the holes by a likelihood ratio of at least e^10 (~22000)."""
 MIN_HOLE_RATE = 0.01
@@ -69,9 +73,9 @@ class HoleDrivers:
     """Which variable the holes follow: the returned signal or the incidence angle."""
 
     ll_signal: float
-    """Log-likelihood (nats) of the holes under the best :data:`BINS`-step function of log10 signal."""
+    """Log-likelihood (nats) of the holes under the best hole rate falling monotonically with the signal."""
     ll_angle: float
-    """The same under the best step function of the incidence angle."""
+    """The same under the best rate rising monotonically with the incidence angle."""
     pixels: int
     """Pixels the statistics use."""
     hole_rate: float
@@ -102,17 +106,33 @@ class HoleDrivers:
                 f"explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.0f}")
 
 
-def _binned_ll(hole: np.ndarray, x: np.ndarray, bins: int = BINS) -> float:
-    """Bernoulli log-likelihood (nats) of ``hole`` under a hole rate that is constant on each of
-    ``bins`` quantile bins of ``x`` (the best step function of x with that many steps)."""
-    edges = np.unique(np.quantile(x, np.linspace(0, 1, bins + 1)[1:-1]))
-    b = np.searchsorted(edges, x)
-    n = np.bincount(b)
-    k = np.bincount(b, weights=hole.astype(np.float64))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = k / n
-        ll = np.where(k > 0, k * np.log(np.where(k > 0, p, 1)), 0) + np.where(n > k, (n - k) * np.log(np.where(n > k, 1 - p, 1)), 0)
-    return float(np.nansum(ll))
+def _pava(y: np.ndarray) -> np.ndarray:
+    """The non-decreasing sequence nearest to ``y`` in least squares (pool adjacent violators): for
+    0/1 data, the maximum-likelihood non-decreasing rate."""
+    vals, wts, lens = [], [], []
+    for v in np.asarray(y, np.float64):
+        vals.append(float(v))
+        wts.append(1.0)
+        lens.append(1)
+        while len(vals) > 1 and vals[-2] > vals[-1]:
+            w = wts[-2] + wts[-1]
+            vals[-2:] = [(vals[-2] * wts[-2] + vals[-1] * wts[-1]) / w]
+            wts[-2:] = [w]
+            lens[-2:] = [lens[-2] + lens[-1]]
+    return np.repeat(vals, lens)
+
+
+def _monotone_ll(hole: np.ndarray, x: np.ndarray, increasing: bool) -> float:
+    """Bernoulli log-likelihood (nats) of ``hole`` under the best hole rate that is monotone in ``x``
+    (non-decreasing when ``increasing``): isotonic regression, no shape assumed beyond the monotony
+    both dropout laws share, and unchanged by any monotone transform of x (log or not, logistic or
+    probit)."""
+    y = hole.astype(np.float64)
+    o = np.argsort(x if increasing else -np.asarray(x), kind="stable")
+    p = np.empty_like(y)
+    p[o] = _pava(y[o])
+    p = np.clip(p, 1e-12, 1 - 1e-12)
+    return float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
 
 
 def hole_drivers(ctx) -> HoleDrivers | None:
@@ -141,7 +161,7 @@ def hole_drivers(ctx) -> HoleDrivers | None:
     hole = (ctx.measured <= 0)[use]
     a = ang[use]
     sig = np.log10(alb[use] * np.cos(np.radians(a)) / r[use] ** 2)
-    return HoleDrivers(_binned_ll(hole, sig), _binned_ll(hole, a), int(use.sum()), float(hole.mean()))
+    return HoleDrivers(_monotone_ll(hole, sig, False), _monotone_ll(hole, a, True), int(use.sum()), float(hole.mean()))
 
 
 def foreground_spill(ctx) -> tuple[float, float, float, int] | None:

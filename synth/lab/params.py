@@ -98,7 +98,8 @@ def _narrowed(lo: float, hi: float, plausible) -> tuple[float, float]:
 
 def param_specs(config, names: Sequence[str] | None = None, plane: bool = False) -> list[ParamSpec]:
     """Fittable parameters of the enabled effects ``names`` (default all enabled) of ``config``:
-    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``).
+    FITTABLE bounds narrowed to what the device can physically have (``Effect.plausible_bounds``)
+    and to what ``fit_start`` measured exactly (``Effect.search_bounds``).
     ``plane``: the objective has the noise-curve term of a planar reference, so the effects'
     ``PLANE_ONLY`` parameters are fitted too (e.g. axial noise's incidence term)."""
     enabled = config.names(enabled_only=True)
@@ -109,7 +110,7 @@ def param_specs(config, names: Sequence[str] | None = None, plane: bool = False)
         if not e.enabled:
             raise ConfigError(f"effect {n!r} is disabled in this model; enable it to fit it")
         types = getattr(e, "FITTABLE_FOR", {})
-        plausible = e.plausible_bounds(config.preset)
+        plausible = e.search_bounds(config.preset)
         items = [(k, *_narrowed(lo, hi, plausible.get(k)), getattr(e.params, k)) for k, (lo, hi) in e.FITTABLE.items()
                  if (k not in types or config.preset.type in types[k])
                  and (plane or k not in getattr(e, "PLANE_ONLY", ()))]

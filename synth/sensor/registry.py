@@ -291,6 +291,13 @@ class Effect(ABC):
         reported as at bound. Default: FITTABLE as it is."""
         return {}
 
+    def search_bounds(self, preset) -> dict[str, tuple[float, float]]:
+        """The narrowing the lab's search uses for this effect as it stands: :meth:`plausible_bounds`,
+        and where ``fit_start`` measured a parameter exactly from the data (recorded in one of its
+        :attr:`START_ONLY_PARAMS`), a narrow window around that value (e.g. a disparity step read
+        off the measured lattice). Default: :meth:`plausible_bounds`."""
+        return self.plausible_bounds(preset)
+
     # -- helpers ---------------------------------------------------------------------------
     def to_json(self) -> dict:
         return {"name": self.name, "enabled": self.enabled, "params": params_to_dict(self.params)}

@@ -62,20 +62,40 @@ def drop_with_probability(state, p: np.ndarray, u: np.ndarray, name: str) -> Non
     state.log[name]["mean_drop_probability"] = float(p[state.ideal.hit].mean()) if state.ideal.hit.any() else 0.0
 
 
-def measured_samples(measured, frames=None):
+def measured_samples(measured, frames=None, in_range: bool = False):
     """Yield, per frame of a :class:`synth.lab.measured.MeasuredSequence` (default every loaded
     frame), ``(k, measured depth, ideal RenderResult, usable)`` with ``usable`` (H, W) bool: the
     ideal geometry is there and, when the sequence has masks, inside the mask (what the lab
-    compares). For the effects' closed-form ``fit_start`` estimates."""
-    ks = range(len(measured)) if frames is None else frames
+    compares). For the effects' closed-form ``fit_start`` estimates.
+
+    ``in_range``: usable pixels also have an ideal depth within the measured valid depths'
+    0.5-99.5th percentiles over those frames (:func:`measured_depth_range`): where the sensor
+    measures at all. For the starts of hole-making effects: the pixels beyond a range limit are
+    holes too, and they are the far, weak-signal, grazing ones (half of a 160 px frame of the mystery
+    generator's scenes: a low-reflectance start read signal50 2-4 x too high from them)."""
+    ks = list(range(len(measured)) if frames is None else frames)
+    lo, hi = measured_depth_range(measured, ks) if in_range else (0.0, np.inf)
     for k in ks:
         m = measured.measured_depth(k)
         r = measured.render(k)
         ok = r.hit & (r.depth > 0)
+        if in_range:
+            ok &= (r.depth >= lo) & (r.depth <= hi)
         mask = measured.mask(k)
         if mask is not None:
             ok &= mask
         yield k, m, r, ok
+
+
+def measured_depth_range(measured, frames, q: float = 0.0) -> tuple[float, float]:
+    """(low, high) metres: the ``q`` and 1 - ``q`` quantiles of the measured valid depths of
+    ``frames`` ((0, inf) when none is valid)."""
+    z = [measured.measured_depth(k) for k in frames]
+    z = np.concatenate([a[a > 0].ravel() for a in z]) if z else np.zeros(0)
+    if z.size == 0:
+        return 0.0, float("inf")
+    lo, hi = np.quantile(z, [q, 1.0 - q])
+    return float(lo), float(hi)
 
 
 def locally_flat(depth: np.ndarray, radius_px: int = 8, rel: float = 0.03, min_share: float = 0.3) -> np.ndarray:

@@ -14,6 +14,18 @@ from synth.sensor.registry import STAGE_QUANTIZE, ConfigParameter, Effect, Signa
 class DisparityQuantizationParams:
     step_px: float = param(0.0, "px")
     """Disparity step, pixels; 0 = the preset's (Kinect v1: 1/8)."""
+    step_source: str = param("search", "", choices=("search", "lattice"))
+    """Where ``step_px`` comes from: "search" (the fit searches it within its bounds) or "lattice"
+    (``fit_start`` read it off the disparity lattice of the measurement, which fixes the step
+    whatever the noise; the fit then searches it only within :data:`LATTICE_WINDOW` of that value)."""
+
+
+LATTICE_WINDOW = 0.005
+"""Relative half-width of the step's search window once the step is read off the measured lattice.
+The lattice gives the step to ~1e-5 (every measured disparity lies on it); at a step of 1.5-3 x the
+noise the gap barely sees the step, and a free search trades it for noise: with the noise start 13 %
+high a search moved a measured 0.03125 px step to 0.007 px (a lattice finer than the noise: no
+quantisation), where the gap at the true step and noise was 25 % lower."""
 
 
 def _phase_applies(config) -> bool:
@@ -81,6 +93,7 @@ class DisparityQuantization(Effect):
     Params = DisparityQuantizationParams
     START_PRIORITY = -1     # the noise start reads the noise through the levels it finds (axial_noise.fit_start)
     FITTABLE = {"step_px": (0.0, 1.0)}
+    START_ONLY_PARAMS = ("step_source",)
     CONFIG_PARAMETERS = {"level_phase": LEVEL_PHASE}
     stage = STAGE_QUANTIZE
 
@@ -92,11 +105,22 @@ class DisparityQuantization(Effect):
         would give, the depth PNG's 1/5000 m rounding weighted; recovers the step within 3 % for
         step / noise 1.5-8 on hand-made disparities). Nothing is returned (defaults kept) when no
         lattice shows. The phase is the absolute one of ``level_phase``; the lab drops it where
-        that parameter does not apply (active stereo)."""
+        that parameter does not apply (active stereo). ``step_source`` "lattice" narrows the step's
+        search to :data:`LATTICE_WINDOW` around the detected step (:meth:`search_bounds`)."""
         lat = cls.lattice(measured, config.preset, frames)
         if lat is None:
             return {}
-        return {"disparity_quantization.step_px": lat.step_px, "disparity_quantization.level_phase": lat.phase}
+        return {"disparity_quantization.step_px": lat.step_px, "disparity_quantization.level_phase": lat.phase,
+                "disparity_quantization.step_source": "lattice"}
+
+    def search_bounds(self, preset) -> dict[str, tuple[float, float]]:
+        """The step within :data:`LATTICE_WINDOW` of its value when it was read off the measured lattice
+        (``step_source`` "lattice"), else the FITTABLE range."""
+        out = dict(self.plausible_bounds(preset))
+        step = float(self.params.step_px)
+        if self.params.step_source == "lattice" and step > 0:
+            out["step_px"] = (step * (1.0 - LATTICE_WINDOW), step * (1.0 + LATTICE_WINDOW))
+        return out
 
     @staticmethod
     def lattice(measured, preset, frames, samples_per_frame: int = 5000):

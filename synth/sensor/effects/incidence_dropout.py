@@ -81,15 +81,18 @@ class IncidenceDropout(Effect):
         """The 50 % angle, the width and the reference ray from the measured hole rate vs incidence
         angle (the angle between the IDEAL geometry's normal and the camera ray, the projector ray,
         or the larger of both; the reference with the sharpest transition wins, since measuring
-        against another ray blurs it): per 0.25° bin (>= 40 pixels) the excess hole rate over the rate below 40° (other holes), normalised to
+        against another ray blurs it): per 0.25° bin (>= 40 pixels) the excess hole rate over the rate below 40° (other holes;
+        on an oblique view with too few pixels there, the rate of the quarter of the pixels at the smallest angles), normalised to
         [0, 1]; angle50 is where it first reaches 0.5, the width (theta75 - theta25) / (2 ln 3)
         (the logistic's quartiles), at least 0.1° - a hard cut gives the smallest width. Nothing
-        when the excess never reaches 0.5 (no dropout, or no data at grazing angles)."""
+        when the excess never reaches 0.5 (no dropout, or no data at grazing angles). Only pixels
+        whose ideal depth lies where the sensor measures at all count (``measured_samples(in_range=True)``:
+        a floor beyond the range limit is grazing and all holes)."""
         from synth.sensor.effects._common import measured_samples
         refs = ("camera",) if config.preset.type == "tof" else ("camera", "projector", "both")
         edges = np.arange(0.0, 90.01, 0.25)
         curves = {ref: (np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)) for ref in refs}
-        for _, m, r, ok in measured_samples(measured):
+        for _, m, r, ok in measured_samples(measured, in_range=True):      # range-limit holes left out
             pts = getattr(r, "points_cam", None)
             for ref in refs:
                 th = incidence_angles_deg(r.normals_cam, r.ray_dirs_cam, pts, config.preset.projector_offset_m,
@@ -118,6 +121,10 @@ class IncidenceDropout(Effect):
         have = total >= 40
         centres = 0.5 * (edges[:-1] + edges[1:])
         low = centres < 40
+        if have[low].sum() < 3:     # an oblique view (within the range, nothing faces the sensor):
+            # the other holes' rate from the quarter of the pixels at the smallest angles
+            q = float(np.searchsorted(np.cumsum(total), 0.25 * total.sum()))
+            low = centres <= centres[min(int(q), len(centres) - 1)]
         if have[low].sum() < 3 or not have[~low].any():
             return None
         rate = np.where(have, holes / np.maximum(total, 1), np.nan)

@@ -76,15 +76,18 @@ class LowReflectance(Effect):
         rate per bin, less the rate of the brightest quarter of the pixels (other holes),
         normalised, gives signal50 where it crosses 0.5 (scanning from bright to dark) and the
         width from its 0.25 and 0.75 crossings (the logistic's quartiles: width = (x75 - x25) /
-        (2 ln 3) decades). The form whose logistic predicts the holes of every pixel best (Brier
-        score) wins. Nothing when no form's excess reaches 0.5."""
+        (2 ln 3) decades); both are then refined by maximum likelihood on every pixel
+        (:func:`_logistic_ml`, which also starts from the tail when no bin reaches 0.5). The form whose logistic predicts the holes of every pixel best (Brier
+        score) wins. Only pixels whose ideal depth lies where the sensor measures at all count
+        (``measured_samples(in_range=True)``): the holes beyond a range limit are far and weak too.
+        Nothing when no form's excess reaches 0.5."""
         from synth.sensor.effects._common import measured_samples
         from synth.sensor.state import ViewGeometry
         rng = np.random.default_rng(0)
         renderer = measured.renderer
         logs = {"irradiance": [], "albedo": []}
         holes = []
-        for _, m, r, ok in measured_samples(measured):
+        for _, m, r, ok in measured_samples(measured, in_range=True):      # range-limit holes left out
             idx = np.flatnonzero(ok)
             if idx.size > 40000:
                 idx = np.sort(rng.choice(idx, 40000, replace=False))
@@ -104,7 +107,7 @@ class LowReflectance(Effect):
         best = None
         for form, parts in logs.items():
             x = np.concatenate(parts)
-            est = _logistic_from_rates(x, h)
+            est = _logistic_ml(x, h, _logistic_from_rates(x, h))
             if est is None:
                 continue
             x50, w, base = est
@@ -150,6 +153,42 @@ class LowReflectance(Effect):
             return ctx.weak("reflectance signature", gain, numbers)
         return (f"dark materials (albedo < {cut}: {', '.join(dark_names[:4])}) lose {ctx.pct(r_d)} of their pixels, "
                 f"more than brighter ones ({ctx.pct(r_b)}) and than the current model on the dark ones ({ctx.pct(r_mod)}).")
+
+
+MIN_LL_GAIN = 10.0
+"""The maximum-likelihood logistic must explain the holes better than a constant rate by this many
+nats (a likelihood ratio of e^10) to be a start."""
+
+
+def _logistic_ml(x: np.ndarray, hole: np.ndarray, est):
+    """(x50, width, base) maximising the Bernoulli likelihood of ``hole`` under base + (1 - base) /
+    (1 + exp((x - x50) / width)) (base: the brightest quarter's rate, fixed), from ``est`` (the
+    binned crossings of :func:`_logistic_from_rates`) or, when those never reach 0.5, from the
+    weakest percentile of x: within the range limits a sensor may measure only the tail of the
+    transition (its 50 % point lies where the range cut already holes every pixel) - the tail's
+    rise still fixes it. None when the logistic does not beat the constant rate by
+    :data:`MIN_LL_GAIN` nats."""
+    from scipy.optimize import minimize
+    if x.size < 200:
+        return None
+    base = float(hole[x >= np.quantile(x, 0.75)].mean()) if est is None else float(est[2])
+    if base >= 0.95:
+        return None
+    start = (float(est[0]), float(est[1])) if est is not None else (float(np.quantile(x, 0.01)), 0.25)
+    y = hole.astype(np.float64)
+
+    def nll(v):
+        p = base + (1.0 - base) / (1.0 + np.exp(np.clip((x - v[0]) / np.exp(v[1]), -50, 50)))
+        p = np.clip(p, 1e-12, 1 - 1e-12)
+        return -float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
+
+    r = minimize(nll, [start[0], np.log(max(start[1], 0.01))], method="Nelder-Mead",
+                 options={"xatol": 1e-4, "fatol": 1e-3, "maxiter": 400})
+    pc = float(np.clip(y.mean(), 1e-12, 1 - 1e-12))
+    ll0 = float(np.sum(y * np.log(pc) + (1 - y) * np.log(1 - pc)))
+    if not (-float(r.fun) - ll0 >= MIN_LL_GAIN):
+        return None
+    return float(r.x[0]), float(np.exp(r.x[1])), base
 
 
 def _logistic_from_rates(x: np.ndarray, hole: np.ndarray, bin_w: float = 0.05):
