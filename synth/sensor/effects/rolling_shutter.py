@@ -85,7 +85,9 @@ class RollingShutter(Effect):
         frame period, and (readout, reference_row) minimise the truncated squared error
         sum min(((m - z(t_v)) / sigma)^2, 9) over the moving frames' measured pixels: a grid over
         readout 0 .. one frame period (a rolling shutter reads a frame within the frame's period)
-        and reference row 0 .. 1, then two finer grids about the best. Smooth surfaces tell each
+        and reference row 0 .. 1, then finer grids about the best, and a conventional reference row
+        (first, centre or last row) kept unless the data clearly ask for another
+        (:func:`fit_row_times`). Smooth surfaces tell each
         row's time through the rate of their depth change; edges tell it sharply (which surface the
         pixel saw), and the truncation keeps pixels that other effects changed from pulling. Pixels
         whose depth comes within 3 sigma of the measured depths' range are left out (only their
@@ -148,26 +150,66 @@ class RollingShutter(Effect):
             return float(np.minimum(((m - zhat) / sig) ** 2, 9.0).sum())
 
         lo, hi = cls.FITTABLE["readout_time_s"]
-        r_hi = min(hi, dt)
-        best = None
-        for R in np.linspace(lo, r_hi, 33):
-            for rho in np.linspace(0.0, 1.0, 17):
-                c = cost(R, rho)
-                if best is None or c < best[0]:
-                    best = (c, R, rho)
-        dR, dp = (r_hi - lo) / 32, 1.0 / 16
-        for _ in range(3):            # finer grids about the best
-            _, R0, p0 = best
-            for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, r_hi):
-                for rho in np.clip(p0 + dp * np.linspace(-1, 1, 9), 0.0, 1.0):
-                    c = cost(R, rho)
-                    if c < best[0]:
-                        best = (c, R, rho)
-            dR, dp = dR / 4, dp / 4
-        _, R, rho = best
+        R, rho = fit_row_times(cost, lo, min(hi, dt))
         if R <= lo:
             return {}
         return {f"{cls.name}.readout_time_s": float(R), f"{cls.name}.reference_row": float(rho)}
+
+
+CONVENTIONAL_REFERENCE_ROWS = (0.0, 0.5, 1.0)
+"""Reference rows a driver stamps: the start of the readout (first row), mid-exposure (centre row) and
+its end (last row)."""
+
+CONVENTION_CHI2 = 3.84
+"""Cost increase (chi-square, 1 degree of freedom, 95 %) below which :func:`fit_row_times` prefers a
+conventional reference row to the free one."""
+
+
+def _min_readout(cost, ref: float, lo: float, hi: float) -> tuple[float, float]:
+    """(cost, readout) minimising ``cost(readout, ref)`` over readout lo .. hi (s) at a fixed reference
+    row: a 33-point grid, then three finer grids about the best."""
+    best = min((cost(R, ref), R) for R in np.linspace(lo, hi, 33))
+    dR = (hi - lo) / 32
+    for _ in range(3):
+        R0 = best[1]
+        best = min([best] + [(cost(R, ref), R) for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, hi)])
+        dR /= 4
+    return best
+
+
+def fit_row_times(cost, lo: float, hi: float) -> tuple[float, float]:
+    """(readout s, reference row) minimising ``cost(readout, reference_row)`` (a negative
+    log-likelihood in chi-square units: sum of squared normalised residuals) over readout lo .. hi and
+    reference row 0 .. 1.
+
+    The free minimum: a 33 x 17 grid, then three finer grids about the best. Why a convention test:
+    the data fix each row's exposure time only where pixels change under the motion; when those lie
+    in a band of rows (the floor at the bottom, the top beyond the range limit), only the time of
+    that band - readout x (band row - reference row) - is measured, and readout and reference row
+    trade along a valley whose floor is flat to within the noise (a free minimum then lands anywhere
+    along it, 1.5-2x the true readout). A driver stamps the frame at one of
+    :data:`CONVENTIONAL_REFERENCE_ROWS`; the best readout at each of those is kept unless the free
+    reference row lowers the cost by more than :data:`CONVENTION_CHI2` (a likelihood-ratio test with
+    one degree of freedom): a free reference row is used only when the data ask for it."""
+    best = None
+    for R in np.linspace(lo, hi, 33):
+        for rho in np.linspace(0.0, 1.0, 17):
+            c = cost(R, rho)
+            if best is None or c < best[0]:
+                best = (c, R, rho)
+    dR, dp = (hi - lo) / 32, 1.0 / 16
+    for _ in range(3):            # finer grids about the best
+        _, R0, p0 = best
+        for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, hi):
+            for rho in np.clip(p0 + dp * np.linspace(-1, 1, 9), 0.0, 1.0):
+                c = cost(R, rho)
+                if c < best[0]:
+                    best = (c, R, rho)
+        dR, dp = dR / 4, dp / 4
+    conv = min((*_min_readout(cost, rho, lo, hi), rho) for rho in CONVENTIONAL_REFERENCE_ROWS)
+    if conv[0] <= best[0] + CONVENTION_CHI2:
+        return float(conv[1]), float(conv[2])
+    return float(best[1]), float(best[2])
 
 
 START_STEPS = 17
