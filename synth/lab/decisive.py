@@ -106,31 +106,16 @@ class HoleDrivers:
                 f"explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.0f}")
 
 
-def _pava(y: np.ndarray) -> np.ndarray:
-    """The non-decreasing sequence nearest to ``y`` in least squares (pool adjacent violators): for
-    0/1 data, the maximum-likelihood non-decreasing rate."""
-    vals, wts, lens = [], [], []
-    for v in np.asarray(y, np.float64):
-        vals.append(float(v))
-        wts.append(1.0)
-        lens.append(1)
-        while len(vals) > 1 and vals[-2] > vals[-1]:
-            w = wts[-2] + wts[-1]
-            vals[-2:] = [(vals[-2] * wts[-2] + vals[-1] * wts[-1]) / w]
-            wts[-2:] = [w]
-            lens[-2:] = [lens[-2] + lens[-1]]
-    return np.repeat(vals, lens)
-
-
 def _monotone_ll(hole: np.ndarray, x: np.ndarray, increasing: bool) -> float:
     """Bernoulli log-likelihood (nats) of ``hole`` under the best hole rate that is monotone in ``x``
     (non-decreasing when ``increasing``): isotonic regression, no shape assumed beyond the monotony
     both dropout laws share, and unchanged by any monotone transform of x (log or not, logistic or
     probit)."""
+    from scipy.optimize import isotonic_regression       # pool adjacent violators: for 0/1 data the ML monotone rate
     y = hole.astype(np.float64)
     o = np.argsort(x if increasing else -np.asarray(x), kind="stable")
     p = np.empty_like(y)
-    p[o] = _pava(y[o])
+    p[o] = isotonic_regression(y[o]).x
     p = np.clip(p, 1e-12, 1 - 1e-12)
     return float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
 

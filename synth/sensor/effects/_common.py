@@ -68,8 +68,8 @@ def measured_samples(measured, frames=None, in_range: bool = False):
     ideal geometry is there and, when the sequence has masks, inside the mask (what the lab
     compares). For the effects' closed-form ``fit_start`` estimates.
 
-    ``in_range``: usable pixels also have an ideal depth within the measured valid depths'
-    0.5-99.5th percentiles over those frames (:func:`measured_depth_range`): where the sensor
+    ``in_range``: usable pixels also have an ideal depth between the smallest and the largest measured
+    valid depth over those frames (:func:`measured_depth_range`): where the sensor
     measures at all. For the starts of hole-making effects: the pixels beyond a range limit are
     holes too, and they are the far, weak-signal, grazing ones (half of a 160 px frame of the mystery
     generator's scenes: a low-reflectance start read signal50 2-4 x too high from them)."""
@@ -87,15 +87,14 @@ def measured_samples(measured, frames=None, in_range: bool = False):
         yield k, m, r, ok
 
 
-def measured_depth_range(measured, frames, q: float = 0.0) -> tuple[float, float]:
-    """(low, high) metres: the ``q`` and 1 - ``q`` quantiles of the measured valid depths of
-    ``frames`` ((0, inf) when none is valid)."""
+def measured_depth_range(measured, frames) -> tuple[float, float]:
+    """(low, high) metres: the smallest and the largest measured valid depth of ``frames`` ((0, inf)
+    when none is valid)."""
     z = [measured.measured_depth(k) for k in frames]
     z = np.concatenate([a[a > 0].ravel() for a in z]) if z else np.zeros(0)
     if z.size == 0:
         return 0.0, float("inf")
-    lo, hi = np.quantile(z, [q, 1.0 - q])
-    return float(lo), float(hi)
+    return float(z.min()), float(z.max())
 
 
 def locally_flat(depth: np.ndarray, radius_px: int = 8, rel: float = 0.03, min_share: float = 0.3) -> np.ndarray:

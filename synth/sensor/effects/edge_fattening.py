@@ -261,22 +261,17 @@ class EdgeFattening(Effect):
             rel0 = 0.0
             out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
 
-        def nearer(near: np.ndarray, z: np.ndarray) -> np.ndarray:
-            """A surface in the window that fattens a pixel of ideal depth z (the start's thresholds)."""
+        def fattens(near: np.ndarray, z: np.ndarray, rel_step: float) -> np.ndarray:
+            """A surface at ``near`` in the window that fattens a pixel of ideal depth z: the start's
+            disparity threshold when it has one, else a relative step of ``rel_step``."""
             if px > 0:
                 with np.errstate(divide="ignore"):
                     return fb / near - fb / z > px
-            return near < z * (1 - rel)
-        def weaker(near: np.ndarray, z: np.ndarray) -> np.ndarray:
-            """A surface that fattens a pixel of ideal depth z at the threshold read from the data
-            (the disparity or relative jump of :func:`_jump_threshold`), else any 1 % step. Ring
-            k must have none within k - 1 px; with a fixed 1 % a 160 px floor (1-2 % a row) left no
-            pixel past ring 1 and the radius read 1 (mystery seeds 28 and 37: 4 and 3)."""
-            if px > 0:
-                with np.errstate(divide="ignore"):
-                    return fb / near - fb / z > px
-            return near < z * (1 - (thr_rel if thr_rel > 0 else 0.01))
-        thr_rel = rel0 if f"{cls.name}.min_jump_rel" in out else 0.0
+            return near < z * (1 - rel_step)
+        # ring k must have nothing within k - 1 px that would have fattened the pixel by itself: at the
+        # threshold read from the data, else any 1 % step (with a fixed 1 % a 160 px floor, 1-2 % a row,
+        # left no pixel past ring 1 and the radius read 1: mystery seeds 28 and 37, 4 and 3)
+        weak_rel = rel0 if f"{cls.name}.min_jump_rel" in out and rel0 > 0 else 0.01
         K = 15
         shapes = ("square", "disk")
         fat = {sh: np.zeros(K + 2) for sh in shapes}
@@ -289,7 +284,7 @@ class EdgeFattening(Effect):
                     near = cv2.erode(z, window_kernel(k, sh))
                     # a clear edge first within k px, and nothing within k - 1 px that would have
                     # fattened the pixel by itself (the threshold read from the data, else 1 %)
-                    ring = ok & nearer(near, z) & ~weaker(prev, z)
+                    ring = ok & fattens(near, z, rel) & ~fattens(prev, z, weak_rel)
                     prev = near
                     sel = ring & (m > 0)
                     if sel.any():
@@ -321,7 +316,7 @@ class EdgeFattening(Effect):
             t = cls._window_threshold(measured, fb, best[1], best[2], rel)
             if t is not None:
                 out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
-        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0, nearer):
+        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0, lambda near, z: fattens(near, z, rel)):
             out[f"{cls.name}.gate"] = "none"
         return out
 
