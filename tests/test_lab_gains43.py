@@ -1,0 +1,74 @@
+"""Issue #43 item 6, mystery generator's misses on seeds 31-40: the base refit's lost-pixel guard
+and a hidden edge fattening (edge_fattening 40), the noise start under disparity quantisation."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from synth.lab.guards import lost_fraction, measured_range
+
+
+class _Fake:
+    """What the guards and ``measured_samples`` read: measured depth, the ideal render, no masks."""
+
+    def __init__(self, measured, ideal):
+        self._m, self._z = measured, ideal
+
+    def __len__(self):
+        return len(self._m)
+
+    def measured_depth(self, k):
+        return self._m[k]
+
+    def render(self, k):
+        z = self._z[k]
+        return SimpleNamespace(depth=z.astype(np.float32), hit=z > 0)
+
+    def mask(self, k):
+        return None
+
+
+def _fattened_scene():
+    """A wall at 2 m (columns 0-59) before a background at 6 m (columns 60-119), 40 rows. The sensor
+    sees to 4 m: the background is a hole, except 4 columns the wall's edge fattened (measured 2 m
+    on the 6 m background: 4 / 64 = 6 % of the measured-valid pixels)."""
+    H, W = 40, 120
+    z = np.full((H, W), 2.0)
+    z[:, 60:] = 6.0
+    m = np.where(z < 4.0, z, 0.0)
+    m[:, 60:64] = 2.0
+    return _Fake([m.astype(np.float32)], [z]), z
+
+
+def test_a_range_limit_cutting_only_fattened_background_loses_nothing():
+    """A model without the fattening and its range limit at 4 m leaves the 4 fattened columns
+    invalid: 6.25 % counted as lost before (more than the 2 % a refit may lose, so diagnose kept
+    the device's 8 m range and every candidate's own refit of the range limit earned the same
+    gain); their ideal depth (6 m) lies beyond every measured depth, so they are not counted now.
+    A careless cut at 1.5 m loses the wall, inside the measured range, and still counts."""
+    ms, z = _fattened_scene()
+    seen = measured_range(ms, [0])
+    assert seen.high == pytest.approx(2.0)
+    at4 = [np.where(z < 4.0, z, 0.0).astype(np.float32)]
+    assert lost_fraction(ms, at4, [0]) == pytest.approx(4 / 64)          # the old count
+    assert lost_fraction(ms, at4, [0], seen) == 0.0
+    careless = [np.zeros_like(z, np.float32)]
+    assert lost_fraction(ms, careless, [0], seen) == pytest.approx(60 / 64)
+
+
+@pytest.mark.slow
+def test_mystery_edge_fattening_40_is_named_first(tmp_path):
+    """The case (160x120, 4 frames, the bench's --quick budgets): rolling_shutter, depth_bias and
+    edge_fattening tied at gain 0.9331 with the truth third, every gain the range limit's; now the
+    refit keeps the range limit and edge fattening leads alone."""
+    from synth.lab import DiagnoseConfig, FitConfig, MeasuredSequence, diagnose, mystery
+    mystery.generate(tmp_path / "s", "edge_fattening", seed=40, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    fc = FitConfig(max_frames=4, max_pixels_per_frame=3000, eval_pixels_per_frame=8000, intervals=False)
+    dc = DiagnoseConfig(model_evaluations=40, candidate_evaluations=16, refine_top=1, refine_evaluations=16)
+    d = diagnose(ms, ms.default_config(["axial_noise", "range_limits"]), fit_config=fc, diagnose_config=dc)
+    assert not d.refit_rejected
+    assert d.ranking[0].effect == "edge_fattening", [(c.effect, c.gain) for c in d.ranking[:4]]
+    assert d.ranking[0].gain > 2 * d.ranking[1].gain
