@@ -72,3 +72,42 @@ def test_mystery_edge_fattening_40_is_named_first(tmp_path):
     assert not d.refit_rejected
     assert d.ranking[0].effect == "edge_fattening", [(c.effect, c.gain) for c in d.ranking[:4]]
     assert d.ranking[0].gain > 2 * d.ranking[1].gain
+
+
+@pytest.mark.parametrize("ratio", [1.5, 2.0])
+def test_noise_start_under_quantisation_removes_the_steps_variance(ratio):
+    """Kinect-like disparities (f b of the preset, rows of one depth each from 1.2 to 3.2 m, step
+    1/8 px at a fixed phase, noise step / ratio): the disparity noise read from the quantised
+    residuals' robust spread is a multiple of the step (1.4826 step / sqrt 2 = 0.131 px: +110 % at
+    step / noise 2, +57 % at 1.5 where the level-crossing reading is not used) and holds step^2 / 12 of
+    rounding; with the standard deviation and Sheppard's correction the start is within 5 % at both."""
+    from synth.sensor.config import SensorConfig
+    from synth.sensor.effects.axial_noise import AxialNoise
+    step = 0.125
+    sd = step / ratio
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "disparity_quantization"])
+    cfg = cfg.with_params({"disparity_quantization.step_px": step})
+    fb = float(cfg.preset.fb)
+    rng = np.random.default_rng(3)
+    H, W = 120, 160
+    z = np.repeat(np.linspace(1.2, 3.2, H)[:, None], W, 1)
+    ms, zs = [], []
+    for _ in range(3):
+        d = fb / z + sd * rng.standard_normal((H, W))
+        d = step * np.round((d - 0.03) / step) + 0.03
+        ms.append((fb / d).astype(np.float32))
+        zs.append(z)
+    start = AxialNoise.fit_start(_Fake(ms, zs), cfg, [0, 1, 2])
+    assert abs(start["axial_noise.sigma2_per_m"] / (sd / fb) - 1.0) < 0.05, start["axial_noise.sigma2_per_m"] * fb
+
+
+def test_quantised_spread_by_hand():
+    """Differences 0, +-1 step in the proportions 2:1:1 (var / 2 = step^2 / 4) and one edge at 40
+    steps (left out): sigma_d^2 = 1/4 - 1/12 = 1/6 steps^2; the MAD-based spread read 1.05 steps.
+    At or below the rounding's own spread: 10 % of the spread."""
+    from synth.sensor.effects.axial_noise import quantised_spread
+    d = np.array([0.0, 0.0, 1.0, -1.0] * 100 + [40.0])
+    assert quantised_spread(d, 1.0) == pytest.approx(np.sqrt(1 / 4 - 1 / 12), rel=0.01)
+    small = np.array([0.0] * 30 + [1.0, -1.0])
+    v = 1.0 / 32
+    assert quantised_spread(small, 1.0) == pytest.approx(0.1 * np.sqrt(v))
