@@ -111,3 +111,32 @@ def test_quantised_spread_by_hand():
     small = np.array([0.0] * 30 + [1.0, -1.0])
     v = 1.0 / 32
     assert quantised_spread(small, 1.0) == pytest.approx(0.1 * np.sqrt(v))
+
+
+def test_rolling_shutter_band_time_row():
+    """Usable pixels in rows 30 and 90 of 121 (v / (H - 1) = 0.25 and 0.75, 3 : 1 pixels): band row
+    0.375. Docs' seed 34 numbers: truth readout 0.018 s stamped at the first row; the fit's 0.0304 s
+    at reference row 0.325 misses the readout (+69 %) but gives the band's time, 0.018 x 0.8 = 0.0144
+    s against 0.0304 x 0.475 = 0.01444 s; a fit at the right readout but the centre row does not."""
+    from benchmarks.generator_report import BAND_QUANTITY, band_row, recovery_rows
+    from synth.sensor.config import SensorConfig
+    H, W = 121, 8
+    z = np.full((H, W), 2.0)
+    m = np.zeros((H, W))
+    m[30, :6] = 2.0
+    m[90, :2] = 2.0
+    assert band_row(_Fake([m], [z])) == pytest.approx((6 * 0.25 + 2 * 0.75) / 8)
+    truth = {"effect": "rolling_shutter", "noise2m": 0.0056,
+             "raw": {"params": {"readout_time_s": 0.018, "reference_row": 0.0}}}
+
+    def fitted(readout, ref):
+        return SensorConfig.build("kinect_v1", [{"name": "axial_noise", "params": {"sigma2_per_m": 0.0014}},
+                                                {"name": "rolling_shutter", "params": {"readout_time_s": readout,
+                                                                                       "reference_row": ref}}])
+    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.0304, 0.325), 43.5, set(), 0.8)}
+    assert not rows["readout [s]"]["within"] and rows[BAND_QUANTITY]["within"]
+    assert rows[BAND_QUANTITY]["true"] == pytest.approx(0.0144)
+    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.018, 0.5), 43.5, set(), 0.8)}
+    assert rows["readout [s]"]["within"] and not rows[BAND_QUANTITY]["within"]
+    assert [r["quantity"] for r in recovery_rows("mystery", truth, fitted(0.018, 0.0), 43.5, set())] == [
+        "noise at 2 m [m]", "readout [s]"]
