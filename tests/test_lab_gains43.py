@@ -140,3 +140,21 @@ def test_rolling_shutter_band_time_row():
     assert rows["readout [s]"]["within"] and not rows[BAND_QUANTITY]["within"]
     assert [r["quantity"] for r in recovery_rows("mystery", truth, fitted(0.018, 0.0), 43.5, set())] == [
         "noise at 2 m [m]", "readout [s]"]
+
+
+def test_lens_start_matches_edges_only_where_the_sensor_measured(tmp_path):
+    """Mystery lens_distortion seed 39 (160x120, a static camera: boxes before a floor, the far wall
+    beyond the range, k1 -0.212). The warped ideal depth's edges were taken wherever the reference
+    had geometry, so the boxes' tops against the far wall - holes in the measurement, never a measured
+    edge - were matched too: the chamfer cost fell monotonically towards barrel (1.97 at k1 0, 1.76 at
+    the grid's -0.3), the start was k1 -0.308 with k2 -0.15, and the search stopped at -0.166. Edges
+    of the warped ideal now count only between measured-valid pixels, as the measured edges do: the
+    cost has its minimum inside the grid and the start is within 0.05 (the search then reaches the
+    truth)."""
+    from synth.lab import MeasuredSequence, mystery
+    from synth.sensor.effects.lens_distortion import LensDistortion
+    a = mystery.generate(tmp_path / "s", "lens_distortion", seed=39, n_frames=2, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    k1 = a["params"]["k1"]
+    st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
+    assert abs(st["lens_distortion.k1"] - k1) < 0.05 and st.get("lens_distortion.k2", 0.0) == 0.0, (st, k1)
