@@ -387,13 +387,18 @@ def refit_base(cx: _Ctx, config) -> BaseRefit:
 
     Guard (issue 43): a refit whose simulation leaves more of the measured-valid pixels invalid than
     the model as given (by more than :data:`~synth.lab.guards.LOST_TOLERANCE`) is rejected: it
-    lowered the gap by comparing fewer pixels, not by explaining them."""
-    from synth.lab.guards import LOST_TOLERANCE, lost_fraction
+    lowered the gap by comparing fewer pixels, not by explaining them. Only pixels whose ideal depth
+    lies within the measured valid depths count (:func:`~synth.lab.guards.lost_fraction` with
+    ``seen``): beyond them a measured pixel is valid only through an effect that moved it (a
+    fattened edge over a far background), the very effect the candidates are for."""
+    from synth.lab.guards import LOST_TOLERANCE, lost_fraction, measured_range
     measured, frames, obj = cx.measured, cx.frames, cx.obj
+    seen = measured_range(measured, frames)
     gap_given = obj(config)
     model_specs = param_specs(config) if cx.dc.refit_model else []
     sims_given = measured.simulate(config, cx.fc.seed, frames)
     lost_given = lost_fraction(measured, sims_given, frames)
+    guard_given = lost_fraction(measured, sims_given, frames, seen)     # within the measured range
     out = BaseRefit(config, gap_given, gap_given, {sp.key: float(sp.value) for sp in model_specs}, lost_given)
     if not model_specs:
         return out
@@ -411,10 +416,11 @@ def refit_base(cx: _Ctx, config) -> BaseRefit:
     if not g < gap_given:
         return out
     refit = set_params(start_cfg, x)
-    lost = lost_fraction(measured, measured.simulate(refit, cx.fc.seed, frames), frames)
-    if lost > lost_given + LOST_TOLERANCE:
-        out.rejected = (f"the refit lost {100 * (lost - lost_given):.0f} % more of the measured-valid pixels "
-                        f"than the model as given")
+    sims = measured.simulate(refit, cx.fc.seed, frames)
+    lost, guard = lost_fraction(measured, sims, frames), lost_fraction(measured, sims, frames, seen)
+    if guard > guard_given + LOST_TOLERANCE:
+        out.rejected = (f"the refit lost {100 * (guard - guard_given):.0f} % more of the measured-valid pixels "
+                        f"(whose ideal depth lies within the measured depths) than the model as given")
         return out
     return BaseRefit(refit, float(g), gap_given, {k: float(v) for k, v in x.items()}, lost)
 

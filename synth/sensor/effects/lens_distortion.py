@@ -175,11 +175,14 @@ class LensDistortion(Effect):
         rel_d = np.concatenate(rel_d) if rel_d else np.zeros(0)
         if rel_d.size > 100:
             tau[0] = max(0.04, 5.0 * 1.4826 * float(np.median(rel_d)))
+        # the warped ideal's edges count only between measured-valid pixels, as the measured ones do:
+        # a reference edge next to a measured hole (a box's top against a wall beyond the range) has
+        # no measured counterpart, and such edges pulled the cost monotonically towards barrel
         data = []
         for _, m, r, ok in measured_samples(measured, frames):
             mg = np.where(ok[vv, uu], m[vv, uu], 0).astype(np.float64)
             em = edges(mg)
-            data.append((em, dist_to(em), np.where(r.hit, r.depth, 0).astype(np.float64), ok[vv, uu]))
+            data.append((em, dist_to(em), np.where(r.hit, r.depth, 0).astype(np.float64), ok[vv, uu] & (mg > 0)))
         if not data or sum(int(d[0].sum()) for d in data) < 200:
             return {}
         e = config.effect("lens_distortion") if "lens_distortion" in config.names() else cls()
