@@ -158,3 +158,62 @@ def test_lens_start_matches_edges_only_where_the_sensor_measured(tmp_path):
     k1 = a["params"]["k1"]
     st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
     assert abs(st["lens_distortion.k1"] - k1) < 0.05 and st.get("lens_distortion.k2", 0.0) == 0.0, (st, k1)
+
+
+class _FakeViews(_Fake):
+    """:class:`_Fake` whose renders also carry fronto-parallel normals and straight-ahead rays (what
+    the edge-fattening start's slope test reads)."""
+
+    def render(self, k):
+        z = self._z[k]
+        H, W = z.shape
+        return SimpleNamespace(depth=z.astype(np.float32), hit=z > 0,
+                               normals_cam=np.broadcast_to(np.float32([0, 0, -1]), (H, W, 3)),
+                               ray_dirs_cam=np.broadcast_to(np.float32([0, 0, 1]), (H, W, 3)))
+
+
+def _disparity_fattened_scenes(fb=10.0, jump_px=1.5, radius=2, far_limit=4.5):
+    """Five 30 x 40 frames, vertical edges only, measured by a matcher that takes the nearest depth of
+    its 5 x 5 window when that surface's disparity fb / z exceeds the pixel's by more than
+    ``jump_px`` (f b 10 px m), and sees nothing beyond ``far_limit`` m. Ring-1 pixels (3 x 3 nearest,
+    relative jump q, disparity jump d in px):
+
+    * 1.0 | 1.5 m: q 0.33, d 3.33, fattened;  1.0 | 1.1 m: q 0.09, d 0.91, not;  0.5 | 0.54 m: q 0.07,
+      d 1.48, not;
+    * 2.0 | one column at 2.5 | 3.5 m: the 3.5 m column beside the strip has q 0.29, d 1.14 to it, but
+      the 2.0 m surface two columns away leads by 2.14 px: fattened (the strip itself, q 0.2, d 1.0: not);
+    * 8 | 4.0 | 8 m (a far background beyond the range beside a surface the sensor measures): q 0.5,
+      d 1.25: not fattened, so holes - 60 ring-1 pixels.
+
+    The measured ring-1 pixels alone split without error at a relative jump (0.2 | 0.29) and with 30
+    errors at a disparity jump (the 1.14 px column between 1.0 and 1.48 px); counting the holes beside
+    the 4 m surface, the relative split errs on 60 and the disparity one on 30."""
+    import cv2
+    H, W = 30, 40
+    scenes = []
+    for cols in ([(0, 1.0), (20, 1.5)], [(0, 1.0), (20, 1.1)], [(0, 0.5), (20, 0.54)],
+                 [(0, 2.0), (18, 2.5), (19, 3.5)], [(0, 8.0), (13, 4.0), (27, 8.0)]):
+        z = np.zeros((H, W), np.float32)
+        for c, depth in cols:
+            z[:, c:] = depth
+        near = cv2.erode(z, np.ones((2 * radius + 1,) * 2, np.uint8))
+        m = np.where(fb / near - fb / z > jump_px, near, z)
+        scenes.append((np.where(m < far_limit, m, 0.0).astype(np.float32), z))
+    return _FakeViews([m for m, _ in scenes], [z for _, z in scenes])
+
+
+def test_edge_fattening_start_reads_a_disparity_threshold_from_the_holes_too():
+    """The disparity threshold is the start (relative threshold 0), near the true 1.5 px, when the holes
+    beside measured surfaces count as not fattened; before, the valid ring-1 pixels alone chose a
+    relative threshold (0.27) and no disparity one - the mystery generator's seed 42, whose start then
+    fattened a far background's holes and scored worse than no fattening."""
+    from synth.sensor.effects.edge_fattening import EdgeFattening, EdgeFatteningParams
+    ms = _disparity_fattened_scenes()
+    config = SimpleNamespace(effect=lambda name: SimpleNamespace(params=EdgeFatteningParams()),
+                             names=lambda: ["edge_fattening"],
+                             preset=SimpleNamespace(fb=10.0, type="structured_light"))
+    start = EdgeFattening.fit_start(ms, config, None)
+    assert start["edge_fattening.min_jump_rel"] == 0.0, start
+    assert 1.48 <= start["edge_fattening.min_jump_px"] <= 2.14, start     # between the closest jumps either side
+    assert start["edge_fattening.radius_px"] == 2.0, start
+    assert start["edge_fattening.window"] == "square", start
