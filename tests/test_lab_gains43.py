@@ -186,8 +186,7 @@ def _disparity_fattened_scenes(fb=10.0, jump_px=1.5, radius=2, far_limit=4.5):
       d 1.25: not fattened, so holes - 60 ring-1 pixels.
 
     The measured ring-1 pixels alone split without error at a relative jump (0.2 | 0.29) and with 30
-    errors at a disparity jump (the 1.14 px column between 1.0 and 1.48 px); counting the holes beside
-    the 4 m surface, the relative split errs on 60 and the disparity one on 30."""
+    errors at a disparity jump (the 1.14 px column between 1.0 and 1.48 px)."""
     import cv2
     H, W = 30, 40
     scenes = []
@@ -203,8 +202,9 @@ def _disparity_fattened_scenes(fb=10.0, jump_px=1.5, radius=2, far_limit=4.5):
 
 
 def test_edge_fattening_start_reads_a_disparity_threshold_from_the_holes_too():
-    """The disparity threshold is the start (relative threshold 0), near the true 1.5 px, when the holes
-    beside measured surfaces count as not fattened; before, the valid ring-1 pixels alone chose a
+    """The disparity threshold is the start (relative threshold 0), near the true 1.5 px: over the
+    radius-2 window, the holes beside the 4 m surface counted as not fattened, the disparity stump errs
+    on no pixel and the relative one on 90 (the 60 holes among them). Before, the valid ring-1 pixels alone chose a
     relative threshold (0.27) and no disparity one - the mystery generator's seed 42, whose start then
     fattened a far background's holes and scored worse than no fattening."""
     from synth.sensor.effects.edge_fattening import EdgeFattening, EdgeFatteningParams

@@ -121,8 +121,7 @@ def _stump(jump: np.ndarray, fattened: np.ndarray) -> float | None:
     return float(np.sqrt(max(lo, 1e-6) * max(hi, 1e-6)))
 
 
-def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0,
-                    seen: tuple[float, float] | None = None) -> tuple[str, float] | None:
+def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0) -> tuple[str, float] | None:
     """The smallest depth jump across which the measured depth of the pixels right behind an edge
     (ring 1: a nearer surface among the 8 neighbours, nearer by more than ``rel``) carries the
     foreground's depth in at least half of them, in every 0.05-decade bin of jumps from there up
@@ -134,31 +133,18 @@ def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0,
     for the same relative jump, and a scene whose edges all lie in a few depth bands separates
     both ways. None when ring 1 is
     fattened from the smallest jump on in both forms, or never. ``samples``: (measured depth, ideal
-    depth with 1e6 where nothing is hit, usable mask) per frame, (H, W) each.
-
-    ``seen`` (lo, hi), m: the measured valid depths' range (:func:`_seen_depths`). Ring-1 holes whose
-    nearer surface lies within it count as not fattened (the sensor measures that depth, so a fattened
-    pixel would carry it; the rule of :meth:`EdgeFattening._window_threshold`). Without them a
-    threshold is read on the measured pixels alone, and a form that separates those but would fatten
-    the holes wins: the mystery generator's seed 42 (disparity threshold 1.66 px, a far background
-    beyond the range) - its valid ring-1 pixels split without error at a relative jump of 0.30,
-    while 164 holes beside edges of more than 0.30 but less than 1.66 px that the relative start
-    filled made the start's gap worse than the base model's; with them the disparity stump errs on
-    11 pixels, the relative one on 29."""
+    depth with 1e6 where nothing is hit, usable mask) per frame, (H, W) each."""
     import cv2
     qs, ds, fs = [], [], []
     for m, z, ok in samples:
         z = np.asarray(z, np.float32)
         near = cv2.erode(z, np.ones((3, 3), np.uint8))
         q = 1.0 - near / z
-        meas = m > 0
-        if seen is not None:
-            meas |= (near >= seen[0]) & (near <= seen[1])
-        sel = ok & meas & (q > rel) & (q < 0.95)
+        sel = ok & (m > 0) & (q > rel) & (q < 0.95)
         if sel.any():
             qs.append(q[sel])
             ds.append(fb / near[sel] - fb / z[sel] if fb > 0 else np.zeros(int(sel.sum())))
-            fs.append((m[sel] > 0) & (np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
+            fs.append(np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel]))
     if not qs:
         return None
     q, d, f = np.concatenate(qs), np.concatenate(ds), np.concatenate(fs)
@@ -179,16 +165,6 @@ def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0,
     if len(found) == 2 and found[1][2] <= found[0][2]:
         return found[1][:2]
     return found[0][:2]
-
-
-def _seen_depths(samples) -> tuple[float, float] | None:
-    """The measured valid depths' 0.5-99.5th percentiles (m) over ``samples`` ((k, measured, render,
-    usable) per frame); None with fewer than 100 valid pixels."""
-    valid = np.concatenate([m[m > 0] for _, m, _, _ in samples]) if samples else np.zeros(0)
-    if valid.size < 100:
-        return None
-    lo, hi = np.percentile(valid, [0.5, 99.5])
-    return float(lo), float(hi)
 
 
 @register_effect
@@ -272,11 +248,10 @@ class EdgeFattening(Effect):
         import cv2
         from synth.sensor.effects._common import measured_samples
         rel0 = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
-        rel = max(2.0 * rel0, 0.06)      # clear edges only: the radius does not depend on which edges
+        rel = clear = max(2.0 * rel0, 0.06)      # clear edges only: the radius does not depend on which edges
         fb = float(config.preset.fb) if getattr(config.preset, "type", "") != "tof" else 0.0
-        samples = list(measured_samples(measured))
-        thr = _jump_threshold(((m, np.where(r.hit, r.depth, 1e6), ok) for _, m, r, ok in samples),
-                              rel, fb=fb, seen=_seen_depths(samples))
+        thr = _jump_threshold(((m, np.where(r.hit, r.depth, 1e6), ok) for _, m, r, ok in measured_samples(measured)),
+                              rel, fb=fb)
         out, px = {}, 0.0
         if thr is not None and thr[0] == "rel" and thr[1] > rel:
             rel = min(thr[1], 0.9)
@@ -337,7 +312,14 @@ class EdgeFattening(Effect):
         if best is None:
             return {}
         out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
-        if px > 0:      # the disparity threshold again, against the nearest surface of the whole window
+        if px == 0 and fb > 0 and f"{cls.name}.min_jump_rel" in out:
+            # a relative threshold read on ring 1: the disparity one instead when it splits the window's
+            # pixels, holes beside measured surfaces included, with fewer errors (:meth:`_window_splits`)
+            sp = cls._window_splits(measured, fb, best[1], best[2], clear)
+            if sp is not None and sp["px"][1] < sp["rel"][1]:
+                px, rel0 = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"])), 0.0
+                out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
+        elif px > 0:      # the disparity threshold again, against the nearest surface of the whole window
             t = cls._window_threshold(measured, fb, best[1], best[2], rel)
             if t is not None:
                 out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
@@ -347,22 +329,38 @@ class EdgeFattening(Effect):
 
     @staticmethod
     def _window_threshold(measured, fb: float, radius: int, shape: str, rel: float) -> float | None:
+        """The disparity stump of :meth:`_window_splits` (px; None without enough pixels)."""
+        sp = EdgeFattening._window_splits(measured, fb, radius, shape, rel)
+        return None if sp is None else sp["px"][0]
+
+    @staticmethod
+    def _window_splits(measured, fb: float, radius: int, shape: str, rel: float) -> dict | None:
         """The disparity threshold (px) that best splits the measured pixels carrying a nearer
         surface's depth from the others (:func:`_stump`), the jump taken to the nearest surface of
         the (radius, shape) window - what the model compares (ring 1 alone underestimates it: a
         pixel beside a small jump may take the depth of a bigger one farther in the window). Pixels
         whose window holds a surface nearer by more than ``rel`` (clear edges), the measured holes
         among them too where that surface's depth lies within the measured ones (0.5-99.5th
-        percentile): a hole behind a foreground the sensor measures was not fattened."""
+        percentile): a hole behind a foreground the sensor measures was not fattened.
+
+        Returns {"px": (threshold px, errors), "rel": (threshold, errors)}: the stump of each form of
+        the jump (disparity f b / near - f b / z, relative 1 - near / z) and how many of those pixels
+        it misclassifies; None without a split. Which form the matcher follows shows here, not on
+        ring 1 (:func:`_jump_threshold`): the valid ring-1 pixels of a scene whose edges lie in a few
+        depth bands split either way, and the relative start then fattens holes that the sensor left
+        (the mystery generator's seed 42, disparity threshold 1.66 px, radius 2: its valid ring-1
+        pixels split without error at a relative jump of 0.30, a start that filled the holes beside a
+        far background and scored worse than no fattening; over the radius-2 window with those holes,
+        the disparity stump 1.658 px errs on no pixel, the relative one on 48)."""
         import cv2
         from synth.sensor.effects._common import measured_samples
         k = window_kernel(radius, shape)
         samples = list(measured_samples(measured))
-        seen = _seen_depths(samples)
-        if seen is None:
+        valid = np.concatenate([m[m > 0] for _, m, _, _ in samples])
+        if valid.size < 100:
             return None
-        lo, hi = seen
-        js, fs = [], []
+        lo, hi = np.percentile(valid, [0.5, 99.5])
+        js, qs, fs = [], [], []
         for _, m, r, ok in samples:
             z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
             near = cv2.erode(z, k)
@@ -371,8 +369,18 @@ class EdgeFattening(Effect):
             sel = ok & (near < z * (1 - rel)) & ((m > 0) | ((near >= lo) & (near <= hi)))
             if sel.any():
                 js.append(fb / near[sel] - fb / z[sel])
+                qs.append(1.0 - near[sel] / z[sel])
                 fs.append((m[sel] > 0) & (np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
-        return _stump(np.concatenate(js), np.concatenate(fs)) if js else None
+        if not js:
+            return None
+        f = np.concatenate(fs)
+        out = {}
+        for form, jump in (("px", np.concatenate(js)), ("rel", np.concatenate(qs))):
+            t = _stump(jump, f)
+            if t is None:
+                return None
+            out[form] = (t, int(np.count_nonzero(f != (jump > t))))
+        return out
 
     @staticmethod
     def _fattens_slopes(measured, radius: int, shape: str, rel_gate: float, nearer, min_pixels: int = 30) -> bool:
