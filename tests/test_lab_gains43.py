@@ -201,7 +201,7 @@ def _disparity_fattened_scenes(fb=10.0, jump_px=1.5, radius=2, far_limit=4.5):
     return _FakeViews([m for m, _ in scenes], [z for _, z in scenes])
 
 
-def test_edge_fattening_start_reads_a_disparity_threshold_from_the_holes_too():
+def test_edge_fattening_start_takes_the_disparity_form_that_splits_the_window_better():
     """The disparity threshold is the start (relative threshold 0), near the true 1.5 px: over the
     radius-2 window, the holes beside the 4 m surface counted as not fattened, the disparity stump errs
     on no pixel and the relative one on 90 (the 60 holes among them). Before, the valid ring-1 pixels alone chose a
