@@ -8,26 +8,7 @@ import numpy as np
 import pytest
 
 from synth.lab.guards import lost_fraction, measured_range
-
-
-class _Fake:
-    """What the guards and ``measured_samples`` read: measured depth, the ideal render, no masks."""
-
-    def __init__(self, measured, ideal):
-        self._m, self._z = measured, ideal
-
-    def __len__(self):
-        return len(self._m)
-
-    def measured_depth(self, k):
-        return self._m[k]
-
-    def render(self, k):
-        z = self._z[k]
-        return SimpleNamespace(depth=z.astype(np.float32), hit=z > 0)
-
-    def mask(self, k):
-        return None
+from tests.fake_measured import FakeMeasured as _Fake
 
 
 def _fattened_scene():

@@ -4,14 +4,13 @@ shutter's readout / reference-row valley, and the coordinate search missing a na
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
-
 import numpy as np
 
 from synth.lab.compare import CompareConfig, compare
 from synth.lab.features import FrameObservation
 from synth.lab.gap_stats import centred_clip
 from data_tools.camera import Intrinsics
+from tests.fake_measured import FakeMeasured
 
 
 def _plane_obs(measured, simulated, ideal):
@@ -65,30 +64,6 @@ def test_gap_sees_a_scale_error_under_a_large_bias():
     assert g_noisy >= g_unbiased - 0.05, (g_unbiased, g_noisy)
 
 
-class _Render(SimpleNamespace):
-    pass
-
-
-class _FakeMeasured:
-    """What ``measured_samples`` reads: measured depth, the ideal render (depth, hit), no masks."""
-
-    def __init__(self, measured, ideal):
-        self._m, self._z = measured, ideal
-
-    def __len__(self):
-        return len(self._m)
-
-    def measured_depth(self, k):
-        return self._m[k]
-
-    def render(self, k):
-        z = self._z[k]
-        return _Render(depth=z.astype(np.float32), hit=z > 0)
-
-    def mask(self, k):
-        return None
-
-
 def test_noise_start_without_locally_flat_measured_pixels():
     """Top half: a flat wall at 6 m beyond the range (measured holes); bottom half: a floor whose
     depth grows 1.5 % a row (nowhere flat within 3 % over 8 px), disparity noise 0.05 px. The
@@ -110,7 +85,7 @@ def test_noise_start_without_locally_flat_measured_pixels():
         m[z > 4.0] = 0.0
         ms.append(m.astype(np.float32))
         zs.append(z)
-    start = AxialNoise.fit_start(_FakeMeasured(ms, zs), cfg, [0, 1, 2])
+    start = AxialNoise.fit_start(FakeMeasured(ms, zs), cfg, [0, 1, 2])
     assert "axial_noise.sigma2_per_m" in start
     assert abs(start["axial_noise.sigma2_per_m"] / (sd / fb) - 1.0) < 0.08
 
