@@ -19,6 +19,12 @@ class LensDistortionParams:
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
     k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
+    tangential: str = param("", "")
+    """Tangential (decentring) distortion "p1,p2" added to p1, p2 of the same coefficients (OpenCV's
+    order k1 k2 p1 p2 k3, normalised image units; a lens element off the axis by a fraction of a
+    millimetre gives |p| ~ 1e-3), empty for none. Measured by ``sensor fit``'s start from the data
+    (``fit_start``) and kept fixed by the search (a start-only value: the search's budget stays on
+    k1, k2, and a radial fit without these terms biases k1)."""
     outside: str = param("seen", "", choices=("seen", "hole"))
     """What a distorted pixel whose undistorted position lies outside the pinhole image reports:
     ``seen`` (the lens's ray sees the scene there, as a camera's own lens does) or ``hole`` (depth
@@ -55,7 +61,7 @@ def warped_ideal_depth(config, intr, depth: np.ndarray) -> np.ndarray:
     if "lens_distortion" not in config.names(enabled_only=True):
         return depth
     e = config.effect("lens_distortion")
-    if not (e.params.k1 or e.params.k2):
+    if not (e.params.k1 or e.params.k2 or any(e.tangential_terms())):
         return depth
     mx, my = distortion_maps(intr, e.coefficients(config.preset))
     return cv2.remap(np.asarray(depth, np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
@@ -102,7 +108,7 @@ class LensDistortion(Effect):
     Params = LensDistortionParams
     in_reference = True
     FITTABLE = {"k1": (-0.5, 0.5), "k2": (-0.5, 0.5)}
-    START_ONLY_PARAMS = ("outside",)
+    START_ONLY_PARAMS = ("outside", "tangential")
 
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
@@ -251,12 +257,15 @@ class LensDistortion(Effect):
         # (k1, k2) finely by the depth residual of the warped ideal depth (sub-pixel: bilinear within
         # a surface), which the chamfer's whole-pixel edges cannot resolve: the gap's valley in (k1, k2)
         # is narrow and diagonal, so a wrong k2 start is one the search does not leave
-        k1, k2 = cls._refine_radial(data_z, pts, shape, intr, base, k1, tau[0],
-                                    lambda zw: fatten(zw, fat_r), fat_r)
+        k1, k2, p1, p2 = cls._refine_radial(data_z, pts, shape, intr, base, k1, tau[0],
+                                            lambda zw: fatten(zw, fat_r), fat_r)
         lo, hi = cls.FITTABLE["k1"]
         out = {f"{cls.name}.k1": float(np.clip(k1, lo, hi))}
         if k2:
             out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
+        if p1 or p2:
+            m = cls.TANGENTIAL_MAX
+            out[f"{cls.name}.tangential"] = f"{np.clip(p1, -m, m):.6f},{np.clip(p2, -m, m):.6f}"
         if border is not None:
             out[f"{cls.name}.outside"] = "hole"
         return out
@@ -265,6 +274,13 @@ class LensDistortion(Effect):
     """k1 offsets (around the chamfer start) of the residual refinement (:meth:`_refine_radial`)."""
     REFINE_GRID_K2 = np.linspace(-0.15, 0.15, 7)
     """k2 values of the residual refinement."""
+    TANGENTIAL_GRID = np.linspace(-0.004, 0.004, 9)
+    """p1 (and p2) values of the start's tangential scan (:meth:`_refine_radial`)."""
+    TANGENTIAL_MAX = 0.01
+    """Largest |p1|, |p2| a model may hold (a decentred element of a depth camera's lens: ~1e-3)."""
+    TANGENTIAL_MIN_DROP = 0.0025
+    """Least relative drop of the start's residual cost that keeps the measured p1, p2 (else none):
+    a lens without tangential terms keeps its model unchanged."""
 
     @classmethod
     def _refine_radial(cls, data_z, pts, shape, intr, base, k1: float, tau: float, fatten,
@@ -310,10 +326,12 @@ class LensDistortion(Effect):
             out[~inside] = 0.0
             return out
 
-        def cost(a1: float, a2: float) -> float:
+        def cost(a1: float, a2: float, q1: float = 0.0, q2: float = 0.0) -> float:
             c = list(base)
             c[0] += a1
             c[1] += a2
+            c[2] += q1
+            c[3] += q2
             und = undistort_pixels(pts, intr.K, c).reshape(-1, 2) if any(c) else pts.reshape(-1, 2)
             tot, n = 0.0, 0
             for m, z, use in data_z:
@@ -345,16 +363,30 @@ class LensDistortion(Effect):
             return x, float(costs[i])
 
         if not idx.size or not np.isfinite(cost(k1, 0.0)):
-            return k1, 0.0
+            return k1, 0.0, 0.0, 0.0
         k1, _ = parabola(cls.START_GRID, [cost(float(a1), 0.0) for a1 in cls.START_GRID])
         lo1, hi1 = cls.FITTABLE["k1"]
         grid1 = np.clip(k1 + cls.REFINE_STEPS_K1, lo1, hi1)
         best = [parabola(grid1, [cost(float(a1), float(a2)) for a1 in grid1]) for a2 in cls.REFINE_GRID_K2]
         k2, _ = parabola(cls.REFINE_GRID_K2, [c for _, c in best])
         j = int(np.argmin([c for _, c in best]))
-        grid1 = np.clip(best[j][0] + 0.25 * cls.REFINE_STEPS_K1, lo1, hi1)
-        k1, _ = parabola(grid1, [cost(float(a1), k2) for a1 in grid1])
-        return k1, k2
+        fine = np.clip(best[j][0] + 0.25 * cls.REFINE_STEPS_K1, lo1, hi1)
+        k1, c_rad = parabola(fine, [cost(float(a1), k2) for a1 in fine])
+        c_rad = cost(k1, k2)
+        # tangential p1, p2 at that (k1, k2): p1, then p2, then p1 again (they move pixels across each
+        # other's directions, and neither moves them radially); kept when the cost drops clearly
+        g = cls.TANGENTIAL_GRID
+        p1 = p2 = 0.0
+        for which in (1, 2, 1):
+            if which == 1:
+                p1, _ = parabola(g, [cost(k1, k2, float(q), p2) for q in g])
+            else:
+                p2, _ = parabola(g, [cost(k1, k2, p1, float(q)) for q in g])
+        c_tan = cost(k1, k2, p1, p2)
+        if not c_tan < (1.0 - cls.TANGENTIAL_MIN_DROP) * c_rad:
+            return k1, k2, 0.0, 0.0
+        k1, _ = parabola(fine, [cost(float(a1), k2, p1, p2) for a1 in fine])
+        return k1, k2, p1, p2
 
     BORDER_MIN_IOU = 0.7
     """Least intersection-over-union of the measured holes with the region a barrel k1 leaves
@@ -405,18 +437,38 @@ class LensDistortion(Effect):
             from data_tools.errors import ConfigError
             raise ConfigError(f"effect 'lens_distortion': coefficients need 4, 5 or 8 numbers, "
                               f"got {len(self.params.coefficients)}")
+        try:
+            p = self.tangential_terms()
+        except ValueError:
+            p = None
+        if p is None or not all(math.isfinite(x) and abs(x) <= self.TANGENTIAL_MAX for x in p):
+            from data_tools.errors import ConfigError
+            raise ConfigError(f"effect 'lens_distortion': tangential must be 'p1,p2' (two numbers within "
+                              f"+-{self.TANGENTIAL_MAX}) or empty, got {self.params.tangential!r}")
+
+    def tangential_terms(self) -> tuple[float, float]:
+        """(p1, p2) of ``tangential`` ((0, 0) when empty)."""
+        t = self.params.tangential.strip()
+        if not t:
+            return 0.0, 0.0
+        p1, p2 = (float(x) for x in t.split(","))
+        return p1, p2
 
     def coefficients(self, preset) -> tuple:
         """The OpenCV coefficients in use: ``coefficients`` (else the preset's), padded to 5 and
-        with ``k1``, ``k2`` added when those are set (the tangential terms of real lenses are small
-        and poorly constrained by depth alone, so only the radial ones are fitted)."""
+        with ``k1``, ``k2`` and ``tangential``'s p1, p2 added when those are set (the radial terms
+        are fitted; the tangential ones, small and weakly constrained by depth, only measured by the
+        start when the data show them clearly)."""
         base = tuple(self.params.coefficients) or tuple(preset.distortion)
-        if not (self.params.k1 or self.params.k2):
+        p1, p2 = self.tangential_terms()
+        if not (self.params.k1 or self.params.k2 or p1 or p2):
             return base
         c = [float(x) for x in base]
         c += [0.0] * (5 - len(c))
         c[0] += float(self.params.k1)
         c[1] += float(self.params.k2)
+        c[2] += p1
+        c[3] += p2
         return tuple(c)
 
     def stage_for(self, physical_model: bool) -> int:
