@@ -131,14 +131,15 @@ def test_lens_start_matches_edges_only_where_the_sensor_measured(tmp_path):
     the grid's -0.3), the start was k1 -0.308 with k2 -0.15, and the search stopped at -0.166. Edges
     of the warped ideal now count only between measured-valid pixels, as the measured edges do: the
     cost has its minimum inside the grid and the start is within 0.05 (the search then reaches the
-    truth)."""
+    truth); the residual refinement after it (:meth:`LensDistortion._refine_radial`) puts k1 within 0.02
+    and keeps k2 near 0 (the generator's lens is k1 alone)."""
     from synth.lab import MeasuredSequence, mystery
     from synth.sensor.effects.lens_distortion import LensDistortion
     a = mystery.generate(tmp_path / "s", "lens_distortion", seed=39, n_frames=2, width=160, height=120)
     ms = MeasuredSequence.load(tmp_path / "s")
     k1 = a["params"]["k1"]
     st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
-    assert abs(st["lens_distortion.k1"] - k1) < 0.05 and st.get("lens_distortion.k2", 0.0) == 0.0, (st, k1)
+    assert abs(st["lens_distortion.k1"] - k1) < 0.02 and abs(st.get("lens_distortion.k2", 0.0)) < 0.02, (st, k1)
 
 
 class _FakeViews(_Fake):
@@ -198,3 +199,64 @@ def test_edge_fattening_start_takes_the_disparity_form_that_splits_the_window_be
     assert 1.48 <= start["edge_fattening.min_jump_px"] <= 2.14, start     # between the closest jumps either side
     assert start["edge_fattening.radius_px"] == 2.0, start
     assert start["edge_fattening.window"] == "square", start
+
+
+def test_lens_start_refines_k1_and_k2_jointly_by_the_subpixel_residual(tmp_path):
+    """Mystery lens_distortion seed 48 (160x120, 4 frames, k1 -0.083 alone). The chamfer cost of
+    whole-pixel edges jumps by ~10 % between neighbouring k1 at this size; its k2 scan kept k2 +0.044
+    (the start was k1 -0.066, k2 +0.044), and the fit's coordinate search cannot leave a wrong k2 in
+    the gap's narrow diagonal (k1, k2) valley: it ended at k1 -0.098, k2 +0.044 (gap 0.100 against
+    0.046 at the truth) and the noise's sigma0 took up the misregistration (noise at 2 m +11 %). The
+    depth residual of the warped ideal depth (bilinear within a surface) scanned jointly over k1, k2
+    starts within 0.005 of the true k1 with k2 within 0.01 of 0, and measures no tangential terms."""
+    from synth.lab import MeasuredSequence, mystery
+    from synth.sensor.effects.lens_distortion import LensDistortion
+    a = mystery.generate(tmp_path / "s", "lens_distortion", seed=48, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    k1 = a["params"]["k1"]
+    st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
+    assert abs(st["lens_distortion.k1"] - k1) < 0.005, (st, k1)
+    assert abs(st.get("lens_distortion.k2", 0.0)) < 0.01, st
+    assert "lens_distortion.tangential" not in st, st
+
+
+def test_lens_start_measures_the_hidden_generators_tangential_terms(tmp_path):
+    """Hidden lens_distortion seed 26 (160x120, 4 frames; k1 -0.186, k2 0.034, p1 0.0019, p2
+    -0.0008). Without p1, p2 the gap prefers k1 near -0.16 and the fit missed k1 by 0.024; the start now
+    scans p1, p2 by the same sub-pixel residual at its (k1, k2) and keeps them (start-only, the search
+    leaves them) because they lower the residual clearly: p1 within 0.0007, p2 within 0.001, and
+    (k1, k2) near the truth."""
+    from synth.lab import MeasuredSequence
+    from synth.sensor.effects.lens_distortion import LensDistortion
+    from tests import hidden_effects as he
+    t = he.generate(tmp_path / "s", "lens_distortion", seed=26, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
+    p1, p2 = (float(x) for x in st["lens_distortion.tangential"].split(","))
+    assert abs(p1 - t["p1"]) < 0.0007 and abs(p2 - t["p2"]) < 0.001, (st, t)
+    assert abs(st["lens_distortion.k1"] - t["k1"]) < 0.01 and abs(st["lens_distortion.k2"] - t["k2"]) < 0.02, (st, t)
+
+
+def test_lens_tangential_terms_shape_the_warp_by_the_brown_conrady_formula():
+    """``tangential`` "p1,p2" is added to OpenCV's 3rd and 4th coefficient: forward-distorting, by
+    hand, the ideal position a pixel of the maps looks at gives back that pixel; a malformed or
+    implausible value is a one-line ConfigError."""
+    from data_tools.errors import ConfigError
+    from synth.sensor.effects.lens_distortion import LensDistortion, LensDistortionParams, distortion_maps
+    from synth.sensor.presets import get_preset
+    pre = get_preset("kinect_v1").replace(distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
+    e = LensDistortion(LensDistortionParams(k1=-0.18, tangential="0.004,-0.003"))
+    assert e.coefficients(pre) == pytest.approx((-0.18, 0.0, 0.004, -0.003, 0.0))
+    assert LensDistortion(LensDistortionParams(k1=-0.18)).coefficients(pre) == pytest.approx((-0.18, 0, 0, 0, 0))
+    intr = pre.intrinsics
+    mx, my = distortion_maps(intr, e.coefficients(pre))
+    for u, v in ((20, 28), (600, 440), (320, 240), (80, 400)):
+        x, y = (mx[v, u] - intr.cx) / intr.fx, (my[v, u] - intr.cy) / intr.fy
+        r2 = x * x + y * y
+        xd = x * (1 - 0.18 * r2) + 2 * 0.004 * x * y - 0.003 * (r2 + 2 * x * x)
+        yd = y * (1 - 0.18 * r2) + 0.004 * (r2 + 2 * y * y) - 2 * 0.003 * x * y
+        assert xd * intr.fx + intr.cx == pytest.approx(u, abs=0.02)
+        assert yd * intr.fy + intr.cy == pytest.approx(v, abs=0.02)
+    for bad in ("0.004", "a,b", "0.05,0"):
+        with pytest.raises(ConfigError, match="tangential"):
+            LensDistortion(LensDistortionParams(tangential=bad))

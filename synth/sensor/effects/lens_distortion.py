@@ -113,8 +113,6 @@ class LensDistortion(Effect):
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
     """k1 values of the closed-form start's scan."""
-    START_GRID_K2 = np.linspace(-0.15, 0.15, 13)
-    """k2 values of the start's second scan (at the best k1)."""
 
     def __init__(self, params=None, enabled=True):
         super().__init__(params, enabled)
@@ -129,15 +127,17 @@ class LensDistortion(Effect):
         the measured ones by the symmetric chamfer distance (mean distance to the nearest edge of the
         other image, capped at 5 px). Edges do not move under depth biases, scale errors or noise
         (which a depth residual would mix in: a 0.3 px disparity offset is a 4 % depth change at
-        3 m), only under the lens. Then k2 is scanned over :attr:`START_GRID_K2` at that k1 (kept when
-        it lowers the cost by 2 %) and k1 again on a fine grid at that k2; each best grid value is
-        refined by a parabola through its neighbours. When the model has edge_fattening, the fattening
+        3 m), only under the lens. The chamfer decides whether there is a lens and where to start;
+        (k1, k2) and the tangential p1, p2 are then measured by the sub-pixel depth residual of the
+        warped ideal depth (:meth:`_refine_radial`: whole-pixel edges cannot place k1 finely on a small
+        image, nor tell k2). When the model has edge_fattening, the fattening
         moves the measured edges into the background by its radius (5-6 px: the chamfer's cap, where
         the cost stops seeing k1 - an independent-generator pair started at k1 0.13 for 0.18), so the
         warped ideal depth is fattened too, by a square window whose radius (0-10 grid px) is scanned
         at the first k1 before k1 is scanned again. Nothing when k1 does not beat k1 = 0 by 5 % of
         the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
-        pixels. Tangential terms are not estimated (the fit has none). ``outside`` is "hole" when the
+        pixels. ``tangential`` ("p1,p2") only when those lower the residual by
+        :attr:`TANGENTIAL_MIN_DROP` (the search keeps them fixed). ``outside`` is "hole" when the
         measured holes present in every frame match the region a barrel k1 leaves without a source
         pixel (:meth:`_border_holes`); that k1 is the start when the edges gave none."""
         import cv2
@@ -284,7 +284,7 @@ class LensDistortion(Effect):
 
     @classmethod
     def _refine_radial(cls, data_z, pts, shape, intr, base, k1: float, tau: float, fatten,
-                       fat_r: int = 0) -> tuple[float, float]:
+                       fat_r: int = 0) -> tuple[float, float, float, float]:
         """(k1, k2) minimising the mean clipped relative depth residual over measured-valid pixels with
         reference geometry: r = (m - z_w) / z_w less its mean (clipped at +-``tau``) in 0.25 m bins of
         z_w, then min(|r|, ``tau``), where z_w is the ideal depth warped as the sensor sees it under
@@ -292,8 +292,10 @@ class LensDistortion(Effect):
         neighbour across edges, then ``fatten``. k1 first over :attr:`START_GRID` at k2 = 0, then
         jointly: for every k2 of :attr:`REFINE_GRID_K2` the best k1 of that k1 +
         :attr:`REFINE_STEPS_K1`, the best k2 by a parabola through its neighbours and k1 again on a
-        4 x finer grid at that k2. ``k1`` (the chamfer's) is the answer when the residual cannot
-        tell (no comparable pixels).
+        4 x finer grid at that k2. Then p1, p2 over :attr:`TANGENTIAL_GRID` (p1, p2, p1 again; a
+        parabola each), kept when they lower the cost by :attr:`TANGENTIAL_MIN_DROP` of it (then k1 once
+        more at them), else 0. Returns (k1, k2, p1, p2); ``k1`` (the chamfer's) and zeros when the
+        residual cannot tell (no comparable pixels).
 
         Why: the residual sees the sub-pixel shift of sloped surfaces (a lens moves pixel (x, y) by
         k r^2 (x fx, y fy)) that the chamfer's whole-pixel edges do not (its cost jumps by ~10 %
@@ -371,7 +373,7 @@ class LensDistortion(Effect):
         k2, _ = parabola(cls.REFINE_GRID_K2, [c for _, c in best])
         j = int(np.argmin([c for _, c in best]))
         fine = np.clip(best[j][0] + 0.25 * cls.REFINE_STEPS_K1, lo1, hi1)
-        k1, c_rad = parabola(fine, [cost(float(a1), k2) for a1 in fine])
+        k1, _ = parabola(fine, [cost(float(a1), k2) for a1 in fine])
         c_rad = cost(k1, k2)
         # tangential p1, p2 at that (k1, k2): p1, then p2, then p1 again (they move pixels across each
         # other's directions, and neither moves them radially); kept when the cost drops clearly
