@@ -274,6 +274,10 @@ class LensDistortion(Effect):
     """k1 offsets (around the chamfer start) of the residual refinement (:meth:`_refine_radial`)."""
     REFINE_GRID_K2 = np.linspace(-0.15, 0.15, 7)
     """k2 values of the residual refinement."""
+    K2_MIN_DROP = 0.001
+    """Least relative drop of the residual cost (best k2 against k2 = 0, each at its best k1) that
+    keeps a k2 (else 0): along the valley where k1 and k2 trade the residual is nearly flat, and a
+    k2 chosen there moves k1 by as much as the bench's tolerance."""
     TANGENTIAL_GRID = np.linspace(-0.004, 0.004, 9)
     """p1 (and p2) values of the start's tangential scan (:meth:`_refine_radial`)."""
     TANGENTIAL_MAX = 0.01
@@ -291,8 +295,8 @@ class LensDistortion(Effect):
         (k1, k2) - bilinear where the four source pixels lie on one surface (within 4 %), nearest
         neighbour across edges, then ``fatten``. k1 first over :attr:`START_GRID` at k2 = 0, then
         jointly: for every k2 of :attr:`REFINE_GRID_K2` the best k1 of that k1 +
-        :attr:`REFINE_STEPS_K1`, the best k2 by a parabola through its neighbours and k1 again on a
-        4 x finer grid at that k2. Then p1, p2 over :attr:`TANGENTIAL_GRID` (p1, p2, p1 again; a
+        :attr:`REFINE_STEPS_K1`, the best k2 by a parabola through its neighbours (0 unless it lowers
+        the cost by :attr:`K2_MIN_DROP`) and k1 again on a 4 x finer grid at that k2. Then p1, p2 over :attr:`TANGENTIAL_GRID` (p1, p2, p1 again; a
         parabola each), kept when they lower the cost by :attr:`TANGENTIAL_MIN_DROP` of it (then k1 once
         more at them), else 0. Returns (k1, k2, p1, p2); ``k1`` (the chamfer's) and zeros when the
         residual cannot tell (no comparable pixels).
@@ -372,6 +376,9 @@ class LensDistortion(Effect):
         best = [parabola(grid1, [cost(float(a1), float(a2)) for a1 in grid1]) for a2 in cls.REFINE_GRID_K2]
         k2, _ = parabola(cls.REFINE_GRID_K2, [c for _, c in best])
         j = int(np.argmin([c for _, c in best]))
+        i0 = int(np.argmin(np.abs(cls.REFINE_GRID_K2)))
+        if not best[j][1] < (1.0 - cls.K2_MIN_DROP) * best[i0][1]:
+            k2, j = 0.0, i0         # k2 only where the data ask for it (it trades with k1 along the valley)
         fine = np.clip(best[j][0] + 0.25 * cls.REFINE_STEPS_K1, lo1, hi1)
         k1, _ = parabola(fine, [cost(float(a1), k2) for a1 in fine])
         c_rad = cost(k1, k2)
