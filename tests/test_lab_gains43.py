@@ -218,7 +218,7 @@ def test_lens_start_refines_k1_and_k2_jointly_by_the_subpixel_residual(tmp_path)
     st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
     assert abs(st["lens_distortion.k1"] - k1) < 0.005, (st, k1)
     assert abs(st.get("lens_distortion.k2", 0.0)) < 0.01, st
-    assert "lens_distortion.tangential" not in st, st
+    assert "lens_distortion.p1" not in st and "lens_distortion.p2" not in st, st
 
 
 def test_lens_start_measures_the_hidden_generators_tangential_terms(tmp_path):
@@ -233,22 +233,25 @@ def test_lens_start_measures_the_hidden_generators_tangential_terms(tmp_path):
     t = he.generate(tmp_path / "s", "lens_distortion", seed=26, n_frames=4, width=160, height=120)
     ms = MeasuredSequence.load(tmp_path / "s")
     st = LensDistortion.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "lens_distortion"]), None)
-    p1, p2 = (float(x) for x in st["lens_distortion.tangential"].split(","))
+    p1, p2 = st["lens_distortion.p1"], st["lens_distortion.p2"]
     assert abs(p1 - t["p1"]) < 0.0007 and abs(p2 - t["p2"]) < 0.001, (st, t)
     assert abs(st["lens_distortion.k1"] - t["k1"]) < 0.01, (st, t)
 
 
 def test_lens_tangential_terms_shape_the_warp_by_the_brown_conrady_formula():
-    """``tangential`` "p1,p2" is added to OpenCV's 3rd and 4th coefficient: forward-distorting, by
-    hand, the ideal position a pixel of the maps looks at gives back that pixel; a malformed or
-    implausible value is a one-line ConfigError."""
+    """``p1``, ``p2`` (start-only numbers, not searched) are added to OpenCV's 3rd and 4th
+    coefficient: forward-distorting, by hand, the ideal position a pixel of the maps looks at gives
+    back that pixel; a start sets them through the lab's parameter path; a value beyond +-0.01 is a
+    one-line ConfigError."""
     from data_tools.errors import ConfigError
+    from synth.lab.params import param_specs, set_params
+    from synth.sensor.config import SensorConfig
     from synth.sensor.effects.lens_distortion import LensDistortion, LensDistortionParams, distortion_maps
     from synth.sensor.presets import get_preset
+    from synth.sensor.registry import make_effect
     pre = get_preset("kinect_v1").replace(distortion=(0.0, 0.0, 0.0, 0.0, 0.0))
-    e = LensDistortion(LensDistortionParams(k1=-0.18, tangential="0.004,-0.003"))
+    e = LensDistortion(LensDistortionParams(k1=-0.18, p1=0.004, p2=-0.003))
     assert e.coefficients(pre) == pytest.approx((-0.18, 0.0, 0.004, -0.003, 0.0))
-    assert LensDistortion(LensDistortionParams(k1=-0.18)).coefficients(pre) == pytest.approx((-0.18, 0, 0, 0, 0))
     intr = pre.intrinsics
     mx, my = distortion_maps(intr, e.coefficients(pre))
     for u, v in ((20, 28), (600, 440), (320, 240), (80, 400)):
@@ -258,6 +261,9 @@ def test_lens_tangential_terms_shape_the_warp_by_the_brown_conrady_formula():
         yd = y * (1 - 0.18 * r2) + 0.004 * (r2 + 2 * y * y) - 2 * 0.003 * x * y
         assert xd * intr.fx + intr.cx == pytest.approx(u, abs=0.02)
         assert yd * intr.fy + intr.cy == pytest.approx(v, abs=0.02)
-    for bad in ("0.004", "a,b", "0.05,0"):
-        with pytest.raises(ConfigError, match="tangential"):
-            LensDistortion(LensDistortionParams(tangential=bad))
+    cfg = SensorConfig.build(pre, ["lens_distortion"])
+    new = set_params(cfg, {"lens_distortion.p1": 0.002, "lens_distortion.p2": -0.001})
+    assert new.effect("lens_distortion").coefficients(pre) == pytest.approx((0.0, 0.0, 0.002, -0.001, 0.0))
+    assert {s.key for s in param_specs(new)} == {"lens_distortion.k1", "lens_distortion.k2"}   # not searched
+    with pytest.raises(ConfigError, match="p1"):
+        make_effect({"name": "lens_distortion", "params": {"p1": 0.05}})

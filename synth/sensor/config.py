@@ -240,8 +240,9 @@ class SensorConfig:
             en, pn = key.split(".", 1)
             for i, e in enumerate(effects):
                 if e.name == en:
-                    if pn in e.FILE_PARAMS or pn in e.START_ONLY_PARAMS:
-                        effects[i] = e.replace(**{pn: str(val)})
+                    if pn in e.FILE_PARAMS or pn in e.START_ONLY_PARAMS:    # a path, a choice or a measured number
+                        cur = getattr(e.params, pn)
+                        effects[i] = e.replace(**{pn: str(val) if isinstance(cur, str) else type(cur)(val)})
                         break
                     if pn not in e.FITTABLE:
                         raise ConfigError(f"{key}: not a fittable parameter of {en!r} ({', '.join(e.FITTABLE)})")

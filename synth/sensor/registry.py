@@ -194,8 +194,9 @@ class Effect(ABC):
     as the lens warp is estimated first, so that a depth-bias regression does not explain it with a
     radial term."""
     START_ONLY_PARAMS: ClassVar[tuple[str, ...]] = ()
-    """Non-numeric parameters (choices) that ``fit_start`` chooses from the data (e.g. a window
-    shape); the search keeps them fixed."""
+    """Parameters that ``fit_start`` chooses or measures from the data and the search keeps fixed: a
+    choice (str, e.g. a window shape) or a number outside FITTABLE (float, e.g. a lens's small
+    tangential terms, measured only when the data show them clearly)."""
     FILE_PARAMS: ClassVar[tuple[str, ...]] = ()
     """String parameters that name a data file of the model (e.g. a learned ``.npy`` map): a
     relative path is relative to the model JSON's folder when the model is loaded, and saving a
@@ -379,10 +380,12 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     for k, side in cls.DEPTH_LIMIT_PARAMS.items():
         if k not in cls.FITTABLE or side not in ("min", "max"):
             raise TypeError(f"{cls.__name__}.DEPTH_LIMIT_PARAMS: {k!r} -> {side!r} (a FITTABLE name -> 'min'/'max')")
-    for attr in ("FILE_PARAMS", "START_ONLY_PARAMS"):
-        for k in getattr(cls, attr):
-            if k not in fields or not isinstance(getattr(cls.Params(), k), str):
-                raise TypeError(f"{cls.__name__}.{attr}: {k!r} is not a str parameter")
+    for k in cls.FILE_PARAMS:
+        if k not in fields or not isinstance(getattr(cls.Params(), k), str):
+            raise TypeError(f"{cls.__name__}.FILE_PARAMS: {k!r} is not a str parameter")
+    for k in cls.START_ONLY_PARAMS:
+        if k not in fields or not isinstance(getattr(cls.Params(), k), (str, float)) or k in cls.FITTABLE:
+            raise TypeError(f"{cls.__name__}.START_ONLY_PARAMS: {k!r} is not a str or float parameter outside FITTABLE")
     if cls.SIGNATURE is not None and not isinstance(cls.SIGNATURE, Signature):
         raise TypeError(f"{cls.__name__}.SIGNATURE must be a Signature")
     for k in cls.CONFIG_PARAMETERS:

@@ -19,12 +19,14 @@ class LensDistortionParams:
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
     k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
-    tangential: str = param("", "")
-    """Tangential (decentring) distortion "p1,p2" added to p1, p2 of the same coefficients (OpenCV's
-    order k1 k2 p1 p2 k3, normalised image units; a lens element off the axis by a fraction of a
-    millimetre gives |p| ~ 1e-3), empty for none. Measured by ``sensor fit``'s start from the data
-    (``fit_start``) and kept fixed by the search (a start-only value: the search's budget stays on
-    k1, k2, and a radial fit without these terms biases k1)."""
+    p1: float = param(0.0, "1", -0.01, 0.01)
+    """Tangential (decentring) distortion added to p1 of the same coefficients (OpenCV's order k1 k2
+    p1 p2 k3, normalised image units; a lens element off the axis by a fraction of a millimetre gives
+    |p| ~ 1e-3). Measured by ``sensor fit``'s start when the data show it clearly (``fit_start``) and
+    kept fixed by the search (start-only: the search's budget stays on k1, k2; a radial fit without
+    these terms biases k1)."""
+    p2: float = param(0.0, "1", -0.01, 0.01)
+    """Tangential distortion added to p2 of the same coefficients (as ``p1``)."""
     outside: str = param("seen", "", choices=("seen", "hole"))
     """What a distorted pixel whose undistorted position lies outside the pinhole image reports:
     ``seen`` (the lens's ray sees the scene there, as a camera's own lens does) or ``hole`` (depth
@@ -61,7 +63,7 @@ def warped_ideal_depth(config, intr, depth: np.ndarray) -> np.ndarray:
     if "lens_distortion" not in config.names(enabled_only=True):
         return depth
     e = config.effect("lens_distortion")
-    if not (e.params.k1 or e.params.k2 or any(e.tangential_terms())):
+    if not (e.params.k1 or e.params.k2 or e.params.p1 or e.params.p2):
         return depth
     mx, my = distortion_maps(intr, e.coefficients(config.preset))
     return cv2.remap(np.asarray(depth, np.float32), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
@@ -108,7 +110,7 @@ class LensDistortion(Effect):
     Params = LensDistortionParams
     in_reference = True
     FITTABLE = {"k1": (-0.5, 0.5), "k2": (-0.5, 0.5)}
-    START_ONLY_PARAMS = ("outside", "tangential")
+    START_ONLY_PARAMS = ("outside", "p1", "p2")
 
     START_PRIORITY = -1     # a pixel re-mapping: started first, the other starts see it
     START_GRID = np.linspace(-0.3, 0.3, 31)
@@ -136,7 +138,7 @@ class LensDistortion(Effect):
         warped ideal depth is fattened too, by a square window whose radius (0-10 grid px) is scanned
         at the first k1 before k1 is scanned again. Nothing when k1 does not beat k1 = 0 by 5 % of
         the cost (no lens distortion to speak of) or when the frames show fewer than 200 edge
-        pixels. ``tangential`` ("p1,p2") only when those lower the residual by
+        pixels. ``p1``, ``p2`` only when they lower the residual by
         :attr:`TANGENTIAL_MIN_DROP` (the search keeps them fixed). ``outside`` is "hole" when the
         measured holes present in every frame match the region a barrel k1 leaves without a source
         pixel (:meth:`_border_holes`); that k1 is the start when the edges gave none."""
@@ -264,8 +266,8 @@ class LensDistortion(Effect):
         if k2:
             out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
         if p1 or p2:
-            m = cls.TANGENTIAL_MAX
-            out[f"{cls.name}.tangential"] = f"{np.clip(p1, -m, m):.6f},{np.clip(p2, -m, m):.6f}"
+            out[f"{cls.name}.p1"] = float(np.clip(p1, -0.01, 0.01))
+            out[f"{cls.name}.p2"] = float(np.clip(p2, -0.01, 0.01))
         if border is not None:
             out[f"{cls.name}.outside"] = "hole"
         return out
@@ -280,8 +282,6 @@ class LensDistortion(Effect):
     k2 chosen there moves k1 by as much as the bench's tolerance."""
     TANGENTIAL_GRID = np.linspace(-0.004, 0.004, 9)
     """p1 (and p2) values of the start's tangential scan (:meth:`_refine_radial`)."""
-    TANGENTIAL_MAX = 0.01
-    """Largest |p1|, |p2| a model may hold (a decentred element of a depth camera's lens: ~1e-3)."""
     TANGENTIAL_MIN_DROP = 0.0025
     """Least relative drop of the start's residual cost that keeps the measured p1, p2 (else none):
     a lens without tangential terms keeps its model unchanged."""
@@ -446,30 +446,14 @@ class LensDistortion(Effect):
             from data_tools.errors import ConfigError
             raise ConfigError(f"effect 'lens_distortion': coefficients need 4, 5 or 8 numbers, "
                               f"got {len(self.params.coefficients)}")
-        try:
-            p = self.tangential_terms()
-        except ValueError:
-            p = None
-        if p is None or not all(math.isfinite(x) and abs(x) <= self.TANGENTIAL_MAX for x in p):
-            from data_tools.errors import ConfigError
-            raise ConfigError(f"effect 'lens_distortion': tangential must be 'p1,p2' (two numbers within "
-                              f"+-{self.TANGENTIAL_MAX}) or empty, got {self.params.tangential!r}")
-
-    def tangential_terms(self) -> tuple[float, float]:
-        """(p1, p2) of ``tangential`` ((0, 0) when empty)."""
-        t = self.params.tangential.strip()
-        if not t:
-            return 0.0, 0.0
-        p1, p2 = (float(x) for x in t.split(","))
-        return p1, p2
 
     def coefficients(self, preset) -> tuple:
         """The OpenCV coefficients in use: ``coefficients`` (else the preset's), padded to 5 and
-        with ``k1``, ``k2`` and ``tangential``'s p1, p2 added when those are set (the radial terms
+        with ``k1``, ``k2``, ``p1``, ``p2`` added when those are set (the radial terms
         are fitted; the tangential ones, small and weakly constrained by depth, only measured by the
         start when the data show them clearly)."""
         base = tuple(self.params.coefficients) or tuple(preset.distortion)
-        p1, p2 = self.tangential_terms()
+        p1, p2 = float(self.params.p1), float(self.params.p2)
         if not (self.params.k1 or self.params.k2 or p1 or p2):
             return base
         c = [float(x) for x in base]
