@@ -198,3 +198,22 @@ def test_edge_fattening_start_takes_the_disparity_form_that_splits_the_window_be
     assert 1.48 <= start["edge_fattening.min_jump_px"] <= 2.14, start     # between the closest jumps either side
     assert start["edge_fattening.radius_px"] == 2.0, start
     assert start["edge_fattening.window"] == "square", start
+
+
+def test_edge_fattening_start_counts_the_holes_a_fattening_would_have_filled(tmp_path):
+    """The mystery generator's seed 48 (a 9 x 9 square window, disparity threshold 1.238 px; 160x120,
+    4 frames). Its valid ring-1 pixels give a relative threshold (0.268), with which the radius read
+    a disk of 5: the square's ring 5 held 26 valid pixels (too few to tell) beside 415 holes whose
+    nearer surface the sensor measures. The disparity form, read on the window after it, now reads
+    the radius again with those holes counted as not fattened: the square of 4, whose window's
+    disparity stump errs on no pixel (the disk of 5's on 112), and its threshold. The old start gave
+    a disk of 5 at 1.285 px, and the fit a radius of 5."""
+    from synth.lab import MeasuredSequence, mystery
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    truth = mystery.generate(tmp_path / "s", "edge_fattening", seed=48, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    start = EdgeFattening.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "edge_fattening"]), None)
+    assert truth["params"]["radius_px"] == 4 and truth["params"]["window"] == "square", truth
+    assert start["edge_fattening.radius_px"] == 4.0 and start["edge_fattening.window"] == "square", start
+    assert start["edge_fattening.min_jump_rel"] == 0.0, start
+    assert abs(start["edge_fattening.min_jump_px"] - 1.238) < 0.02, start
