@@ -264,10 +264,11 @@ class EdgeFattening(Effect):
         every 6 % edge was fattened in 30 % of the pixels). When the disparity jump separates the
         fattened ring-1 pixels at least as well as the relative one (:func:`_jump_threshold`), the
         start is ``min_jump_px`` (refined against the nearest surface of the whole window,
-        :meth:`_window_threshold`) with ``min_jump_rel`` 0. ``gate`` is "none" when pixels whose window
+        :meth:`_window_splits`) with ``min_jump_rel`` 0; the radius and shape are then read again at that
+        threshold with the holes a fattening would have filled counted (:meth:`_read_radius`), and that
+        reading is kept when its window's disparity split errs on fewer pixels. ``gate`` is "none" when pixels whose window
         holds a nearer surface but no discontinuity of the ideal view are fattened too
         (:meth:`_fattens_slopes`)."""
-        import cv2
         from synth.sensor.effects._common import measured_samples
         rel0 = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
         rel = clear = max(2.0 * rel0, 0.06)      # clear edges only: the radius does not depend on which edges
@@ -292,6 +293,7 @@ class EdgeFattening(Effect):
         if best is None:
             return {}
         out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
+        sp = None
         if px == 0 and fb > 0 and f"{cls.name}.min_jump_rel" in out:
             # a relative threshold read on ring 1: the disparity one instead when it splits the window's
             # pixels, holes beside measured surfaces included, with fewer errors (:meth:`_window_splits`)
@@ -299,20 +301,23 @@ class EdgeFattening(Effect):
             if sp is not None and sp["px"][1] < sp["rel"][1]:
                 px, rel0 = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"])), 0.0
                 out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
-                # the radius again with that threshold, the holes counted (:meth:`_read_radius`); kept when
-                # its window's disparity stump errs on fewer pixels than the first reading's
-                band = _measured_band(measured)
-                again = cls._read_radius(samples, fb, px, rel, 0.0, band) if band is not None else None
-                if again is not None and again[1:] != best[1:]:
-                    sp2 = cls._window_splits(measured, fb, again[1], again[2], clear)
-                    if sp2 is not None and sp2["px"][1] < sp["px"][1]:
-                        best, px = again, float(np.clip(sp2["px"][0], *cls.FITTABLE["min_jump_px"]))
-                        out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2],
-                                    f"{cls.name}.min_jump_px": px})
+            else:
+                sp = None
         elif px > 0:      # the disparity threshold again, against the nearest surface of the whole window
-            t = cls._window_threshold(measured, fb, best[1], best[2], rel)
-            if t is not None:
-                out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
+            sp = cls._window_splits(measured, fb, best[1], best[2], clear)      # clear == rel here
+            if sp is not None:
+                px = out[f"{cls.name}.min_jump_px"] = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"]))
+        band = _measured_band(measured) if sp is not None else None
+        if band is not None:
+            # the radius again at that threshold, the holes counted (:meth:`_read_radius`); kept when its
+            # window's disparity stump errs on fewer pixels than the first reading's
+            again = cls._read_radius(samples, fb, px, rel, 0.0, band)
+            if again is not None and again[1:] != best[1:]:
+                sp2 = cls._window_splits(measured, fb, again[1], again[2], clear)
+                if sp2 is not None and sp2["px"][1] < sp["px"][1]:
+                    best, px = again, float(np.clip(sp2["px"][0], *cls.FITTABLE["min_jump_px"]))
+                    out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2],
+                                f"{cls.name}.min_jump_px": px})
         if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0,
                                             lambda near, z: _fattens(near, z, fb, px, rel)):
             out[f"{cls.name}.gate"] = "none"
@@ -376,12 +381,6 @@ class EdgeFattening(Effect):
             if best is None or drop > best[0]:
                 best = (drop, r, sh)
         return best
-
-    @staticmethod
-    def _window_threshold(measured, fb: float, radius: int, shape: str, rel: float) -> float | None:
-        """The disparity stump of :meth:`_window_splits` (px; None without enough pixels)."""
-        sp = EdgeFattening._window_splits(measured, fb, radius, shape, rel)
-        return None if sp is None else sp["px"][0]
 
     @staticmethod
     def _window_splits(measured, fb: float, radius: int, shape: str, rel: float) -> dict | None:
