@@ -99,7 +99,7 @@ def test_rolling_shutter_band_time_row():
     0.375. Docs' seed 34 numbers: truth readout 0.018 s stamped at the first row; the fit's 0.0304 s
     at reference row 0.325 misses the readout (+69 %) but gives the band's time, 0.018 x 0.8 = 0.0144
     s against 0.0304 x 0.475 = 0.01444 s; a fit at the right readout but the centre row does not."""
-    from benchmarks.generator_report import BAND_QUANTITY, band_row, recovery_rows
+    from benchmarks.generator_report import BAND_QUANTITY, band_row, band_time_rows, recovery_rows
     from synth.sensor.config import SensorConfig
     H, W = 121, 8
     z = np.full((H, W), 2.0)
@@ -114,13 +114,19 @@ def test_rolling_shutter_band_time_row():
         return SensorConfig.build("kinect_v1", [{"name": "axial_noise", "params": {"sigma2_per_m": 0.0014}},
                                                 {"name": "rolling_shutter", "params": {"readout_time_s": readout,
                                                                                        "reference_row": ref}}])
-    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.0304, 0.325), 43.5, set(), 0.8)}
-    assert not rows["readout [s]"]["within"] and rows[BAND_QUANTITY]["within"]
-    assert rows[BAND_QUANTITY]["true"] == pytest.approx(0.0144)
-    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.018, 0.5), 43.5, set(), 0.8)}
-    assert rows["readout [s]"]["within"] and not rows[BAND_QUANTITY]["within"]
+
+    def rows(cfg):
+        return {r["quantity"]: r for r in recovery_rows("mystery", truth, cfg, 43.5, set())
+                + band_time_rows("mystery", truth, cfg, 0.8)}
+    r = rows(fitted(0.0304, 0.325))
+    assert not r["readout [s]"]["within"] and r[BAND_QUANTITY]["within"]
+    assert r[BAND_QUANTITY]["true"] == pytest.approx(0.0144)
+    r = rows(fitted(0.018, 0.5))
+    assert r["readout [s]"]["within"] and not r[BAND_QUANTITY]["within"]
     assert [r["quantity"] for r in recovery_rows("mystery", truth, fitted(0.018, 0.0), 43.5, set())] == [
         "noise at 2 m [m]", "readout [s]"]
+    assert band_time_rows("hidden", truth, fitted(0.018, 0.0), 0.8) == []
+    assert band_time_rows("mystery", truth, fitted(0.018, 0.0), float("nan")) == []
 
 
 def test_lens_start_matches_edges_only_where_the_sensor_measured(tmp_path):
