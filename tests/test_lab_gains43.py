@@ -204,3 +204,23 @@ def test_edge_fattening_start_takes_the_disparity_form_that_splits_the_window_be
     assert 1.48 <= start["edge_fattening.min_jump_px"] <= 2.14, start     # between the closest jumps either side
     assert start["edge_fattening.radius_px"] == 2.0, start
     assert start["edge_fattening.window"] == "square", start
+
+
+def test_rolling_shutter_grid_refine_is_one_search_for_both_fits():
+    """The free (readout, reference row) search and the fixed-row readout search share one grid-refine
+    helper. A bowl with its minimum at (0.0123 s, 0.37) off every grid point: the 33 x 17 grid's step
+    (1/30 / 32 s, 1/16) shrinks to a 64th after three 9-point refinements, so the minimum is found to
+    within a few 1e-5 s and 1e-3; a flat cost keeps the first grid point (a later one must be
+    strictly lower); the fixed-row search equals the helper on the one-parameter slice."""
+    from synth.sensor.effects.rolling_shutter import _grid_refine, _min_readout, fit_row_times
+
+    def bowl(R, r):
+        return ((R - 0.0123) / 1e-3) ** 2 + ((r - 0.37) / 0.05) ** 2
+
+    c, R, r = _grid_refine(bowl, [(0.0, 1 / 30), (0.0, 1.0)], [33, 17])
+    assert R == pytest.approx(0.0123, abs=3e-5) and r == pytest.approx(0.37, abs=2e-3)
+    assert c == pytest.approx(bowl(R, r))
+    assert _grid_refine(lambda R, r: 1.0, [(0.0, 1 / 30), (0.0, 1.0)], [33, 17])[1:] == (0.0, 0.0)
+    assert _min_readout(bowl, 0.37, 0.0, 1 / 30) == _grid_refine(lambda R: bowl(R, 0.37), [(0.0, 1 / 30)], [33])
+    # far from every conventional row (cost 64 at row 0.5): the free minimum is kept
+    assert fit_row_times(bowl, 0.0, 1 / 30) == pytest.approx((0.0123, 0.37), abs=2e-3)
