@@ -78,10 +78,9 @@ BAND_QUANTITY = "band time [s]"
 apart (``recovered_band``) so the readout-only ``recovered`` stays comparable with earlier runs."""
 
 
-def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set, band: float | None = None) -> list[dict]:
+def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set) -> list[dict]:
     """Recovery rows of one fitted model (bench_fit_recovery's table; the hidden generator through
-    its ``compare``). ``band``: the band-centre row (:func:`band_row`) for the rolling shutter's
-    band-time row."""
+    its ``compare``). The rolling shutter's band time is a row of its own (:func:`band_time_rows`)."""
     from benchmarks.bench_fit_recovery import _model_bias, _model_sigma, compare
     if gen == "hidden":
         return compare(truth["effect"], truth["raw"], cfg, fb, at_bound)
@@ -90,9 +89,7 @@ def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set, band: fl
     eff = truth["effect"]
 
     def row(q, t, f, tol, rel=False, key=None):
-        err = (f - t) / t if rel else f - t
-        rows.append({"effect": eff, "quantity": q, "true": t, "fitted": f, "error": err, "tolerance": tol,
-                     "relative": rel, "within": abs(err) <= tol, "at_bound": bool(key and key in at_bound)})
+        rows.append(_row(eff, q, t, f, tol, rel, bool(key and key in at_bound)))
 
     row("noise at 2 m [m]", truth["noise2m"], _model_sigma(cfg, 2.0), 0.10, rel=True, key="axial_noise.sigma2_per_m")
     if eff == "depth_bias":
@@ -116,14 +113,31 @@ def recovery_rows(gen: str, truth: dict, cfg, fb: float, at_bound: set, band: fl
         fp = cfg.effect(eff).params
         row("readout [s]", p["readout_time_s"], fp.readout_time_s, 0.2, rel=True,
             key="rolling_shutter.readout_time_s")
-        if band is not None and math.isfinite(band):
-            # what the data fix: the usable band's exposure time after the timestamp (the generator
-            # stamps the first row, reference 0), same 20 % tolerance
-            row(BAND_QUANTITY, p["readout_time_s"] * (band - p.get("reference_row", 0.0)),
-                fp.readout_time_s * (band - fp.reference_row), 0.2, rel=True)
     elif eff == "low_reflectance":
         row("signal50", p["signal50"], cfg.effect(eff).params.signal50, 0.25, rel=True, key="low_reflectance.signal50")
     return rows
+
+
+def _row(eff: str, q: str, t: float, f: float, tol: float, rel: bool, at_bound: bool = False) -> dict:
+    """One recovery row: the true and fitted value of quantity ``q`` and whether the error (relative
+    to the truth when ``rel``) is within ``tol``."""
+    err = (f - t) / t if rel else f - t
+    return {"effect": eff, "quantity": q, "true": t, "fitted": f, "error": err, "tolerance": tol,
+            "relative": rel, "within": abs(err) <= tol, "at_bound": at_bound}
+
+
+def band_time_rows(gen: str, truth: dict, cfg, band: float) -> list[dict]:
+    """The rolling shutter's band-time row (the mystery generator's): readout x (band row - reference
+    row), what the data fix (``band``: the band-centre row, :func:`band_row`), true against fitted,
+    the readout's 20 % tolerance; none for another generator or effect, or a band row that is not
+    finite."""
+    if gen != "mystery" or truth["effect"] != "rolling_shutter" or not math.isfinite(band):
+        return []
+    p = truth["raw"]["params"]
+    fp = cfg.effect("rolling_shutter").params
+    # the generator stamps the first row (answer reference_row 0)
+    return [_row("rolling_shutter", BAND_QUANTITY, p["readout_time_s"] * (band - p.get("reference_row", 0.0)),
+                 fp.readout_time_s * (band - fp.reference_row), 0.2, True)]
 
 
 def implausible(params: dict, ms) -> list[str]:
@@ -184,15 +198,15 @@ def run_case(gen: str, effect: str, seed: int, tmp: Path, frames: int, w: int, h
         if name == "without":
             rec["base_implausible"] = implausible(res.params, ms)
         if name == "with":
-            band = band_row(ms) if effect == "rolling_shutter" else None
-            rows = recovery_rows(gen, truth, res.config, ms.preset.fb, set(res.at_bound), band)
-            rec["rows"] = [r for r in rows if r["quantity"] != BAND_QUANTITY]
+            rec["rows"] = recovery_rows(gen, truth, res.config, ms.preset.fb, set(res.at_bound))
             rec["recovered"] = all(r["within"] for r in rec["rows"])
-            if band is not None:
-                rec["band_row"] = band
-                rec["band_rows"] = [r for r in rows if r["quantity"] == BAND_QUANTITY]
             # recovered with the observable band time in place of the readout (= recovered elsewhere)
-            rec["recovered_band"] = all(r["within"] for r in rows if not (band is not None and r["quantity"] == "readout [s]"))
+            rec["recovered_band"] = rec["recovered"]
+            if effect == "rolling_shutter":
+                rec["band_row"] = band = band_row(ms)
+                rec["band_rows"] = band_time_rows(gen, truth, res.config, band)
+                rec["recovered_band"] = all(r["within"] for r in rec["rows"] + rec["band_rows"]
+                                            if r["quantity"] != "readout [s]")
             rec["fit_implausible"] = implausible(res.params, ms)
             rec["fitted"] = {k: v for k, v in res.params.items() if isinstance(v, (int, float))}
     floors = []

@@ -99,7 +99,7 @@ def test_rolling_shutter_band_time_row():
     0.375. Docs' seed 34 numbers: truth readout 0.018 s stamped at the first row; the fit's 0.0304 s
     at reference row 0.325 misses the readout (+69 %) but gives the band's time, 0.018 x 0.8 = 0.0144
     s against 0.0304 x 0.475 = 0.01444 s; a fit at the right readout but the centre row does not."""
-    from benchmarks.generator_report import BAND_QUANTITY, band_row, recovery_rows
+    from benchmarks.generator_report import BAND_QUANTITY, band_row, band_time_rows, recovery_rows
     from synth.sensor.config import SensorConfig
     H, W = 121, 8
     z = np.full((H, W), 2.0)
@@ -114,13 +114,19 @@ def test_rolling_shutter_band_time_row():
         return SensorConfig.build("kinect_v1", [{"name": "axial_noise", "params": {"sigma2_per_m": 0.0014}},
                                                 {"name": "rolling_shutter", "params": {"readout_time_s": readout,
                                                                                        "reference_row": ref}}])
-    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.0304, 0.325), 43.5, set(), 0.8)}
-    assert not rows["readout [s]"]["within"] and rows[BAND_QUANTITY]["within"]
-    assert rows[BAND_QUANTITY]["true"] == pytest.approx(0.0144)
-    rows = {r["quantity"]: r for r in recovery_rows("mystery", truth, fitted(0.018, 0.5), 43.5, set(), 0.8)}
-    assert rows["readout [s]"]["within"] and not rows[BAND_QUANTITY]["within"]
+
+    def rows(cfg):
+        return {r["quantity"]: r for r in recovery_rows("mystery", truth, cfg, 43.5, set())
+                + band_time_rows("mystery", truth, cfg, 0.8)}
+    r = rows(fitted(0.0304, 0.325))
+    assert not r["readout [s]"]["within"] and r[BAND_QUANTITY]["within"]
+    assert r[BAND_QUANTITY]["true"] == pytest.approx(0.0144)
+    r = rows(fitted(0.018, 0.5))
+    assert r["readout [s]"]["within"] and not r[BAND_QUANTITY]["within"]
     assert [r["quantity"] for r in recovery_rows("mystery", truth, fitted(0.018, 0.0), 43.5, set())] == [
         "noise at 2 m [m]", "readout [s]"]
+    assert band_time_rows("hidden", truth, fitted(0.018, 0.0), 0.8) == []
+    assert band_time_rows("mystery", truth, fitted(0.018, 0.0), float("nan")) == []
 
 
 def test_lens_start_matches_edges_only_where_the_sensor_measured(tmp_path):
@@ -267,3 +273,42 @@ def test_lens_tangential_terms_shape_the_warp_by_the_brown_conrady_formula():
     assert {s.key for s in param_specs(new)} == {"lens_distortion.k1", "lens_distortion.k2"}   # not searched
     with pytest.raises(ConfigError, match="p1"):
         make_effect({"name": "lens_distortion", "params": {"p1": 0.05}})
+
+
+def test_edge_fattening_start_counts_the_holes_a_fattening_would_have_filled(tmp_path):
+    """The mystery generator's seed 48 (a 9 x 9 square window, disparity threshold 1.238 px; 160x120,
+    4 frames). Its valid ring-1 pixels give a relative threshold (0.268), with which the radius read
+    a disk of 5: the square's ring 5 held 26 valid pixels (too few to tell) beside 415 holes whose
+    nearer surface the sensor measures. The disparity form, read on the window after it, now reads
+    the radius again with those holes counted as not fattened: the square of 4, whose window's
+    disparity stump errs on no pixel (the disk of 5's on 112), and its threshold. The old start gave
+    a disk of 5 at 1.285 px, and the fit a radius of 5."""
+    from synth.lab import MeasuredSequence, mystery
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    truth = mystery.generate(tmp_path / "s", "edge_fattening", seed=48, n_frames=4, width=160, height=120)
+    ms = MeasuredSequence.load(tmp_path / "s")
+    start = EdgeFattening.fit_start(ms, ms.default_config(["axial_noise", "range_limits", "edge_fattening"]), None)
+    assert truth["params"]["radius_px"] == 4 and truth["params"]["window"] == "square", truth
+    assert start["edge_fattening.radius_px"] == 4.0 and start["edge_fattening.window"] == "square", start
+    assert start["edge_fattening.min_jump_rel"] == 0.0, start
+    assert abs(start["edge_fattening.min_jump_px"] - 1.238) < 0.02, start
+
+
+def test_rolling_shutter_grid_refine_is_one_search_for_both_fits():
+    """The free (readout, reference row) search and the fixed-row readout search share one grid-refine
+    helper. A bowl with its minimum at (0.0123 s, 0.37) off every grid point: the 33 x 17 grid's step
+    (1/30 / 32 s, 1/16) shrinks to a 64th after three 9-point refinements, so the minimum is found to
+    within a few 1e-5 s and 1e-3; a flat cost keeps the first grid point (a later one must be
+    strictly lower); the fixed-row search equals the helper on the one-parameter slice."""
+    from synth.sensor.effects.rolling_shutter import _grid_refine, _min_readout, fit_row_times
+
+    def bowl(R, r):
+        return ((R - 0.0123) / 1e-3) ** 2 + ((r - 0.37) / 0.05) ** 2
+
+    c, R, r = _grid_refine(bowl, [(0.0, 1 / 30), (0.0, 1.0)], [33, 17])
+    assert R == pytest.approx(0.0123, abs=3e-5) and r == pytest.approx(0.37, abs=2e-3)
+    assert c == pytest.approx(bowl(R, r))
+    assert _grid_refine(lambda R, r: 1.0, [(0.0, 1 / 30), (0.0, 1.0)], [33, 17])[1:] == (0.0, 0.0)
+    assert _min_readout(bowl, 0.37, 0.0, 1 / 30) == _grid_refine(lambda R: bowl(R, 0.37), [(0.0, 1 / 30)], [33])
+    # far from every conventional row (cost 64 at row 0.5): the free minimum is kept
+    assert fit_row_times(bowl, 0.0, 1 / 30) == pytest.approx((0.0123, 0.37), abs=2e-3)

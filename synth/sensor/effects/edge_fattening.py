@@ -167,6 +167,28 @@ def _jump_threshold(samples, rel: float, min_pixels: int = 30, fb: float = 0.0) 
     return found[0][:2]
 
 
+def _fattens(near: np.ndarray, z: np.ndarray, fb: float, px: float, rel_step: float) -> np.ndarray:
+    """(H, W) bool: a surface at ``near`` (m) in the window fattens a pixel of ideal depth ``z`` (m): its
+    disparity f b / near leads by more than ``px`` (pixels) when ``px`` > 0, else it is nearer by more
+    than ``rel_step`` of z."""
+    if px > 0:
+        with np.errstate(divide="ignore"):
+            return fb / near - fb / z > px
+    return near < z * (1 - rel_step)
+
+
+def _measured_band(measured, min_pixels: int = 100) -> tuple[float, float] | None:
+    """(low, high) metres: the 0.5th and 99.5th percentiles of the measured valid depths over every
+    frame - where the sensor measures (a fattened pixel carries its nearer surface's depth, so a hole
+    whose nearer surface lies in this band was not fattened); None with fewer than ``min_pixels``."""
+    from synth.sensor.effects._common import measured_samples
+    valid = np.concatenate([m[m > 0] for _, m, _, _ in measured_samples(measured)])
+    if valid.size < min_pixels:
+        return None
+    lo, hi = np.percentile(valid, [0.5, 99.5])
+    return float(lo), float(hi)
+
+
 @register_effect
 class EdgeFattening(Effect):
     """Background pixels within ``radius_px`` of a nearer surface take its depth.
@@ -242,10 +264,11 @@ class EdgeFattening(Effect):
         every 6 % edge was fattened in 30 % of the pixels). When the disparity jump separates the
         fattened ring-1 pixels at least as well as the relative one (:func:`_jump_threshold`), the
         start is ``min_jump_px`` (refined against the nearest surface of the whole window,
-        :meth:`_window_threshold`) with ``min_jump_rel`` 0. ``gate`` is "none" when pixels whose window
+        :meth:`_window_splits`) with ``min_jump_rel`` 0; the radius and shape are then read again at that
+        threshold with the holes a fattening would have filled counted (:meth:`_read_radius`), and that
+        reading is kept when its window's disparity split errs on fewer pixels. ``gate`` is "none" when pixels whose window
         holds a nearer surface but no discontinuity of the ideal view are fattened too
         (:meth:`_fattens_slopes`)."""
-        import cv2
         from synth.sensor.effects._common import measured_samples
         rel0 = float(config.effect(cls.name).params.min_jump_rel) if cls.name in config.names() else 0.03
         rel = clear = max(2.0 * rel0, 0.06)      # clear edges only: the radius does not depend on which edges
@@ -261,22 +284,69 @@ class EdgeFattening(Effect):
             rel0 = 0.0
             out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
 
-        def fattens(near: np.ndarray, z: np.ndarray, rel_step: float) -> np.ndarray:
-            """A surface at ``near`` in the window that fattens a pixel of ideal depth z: the start's
-            disparity threshold when it has one, else a relative step of ``rel_step``."""
-            if px > 0:
-                with np.errstate(divide="ignore"):
-                    return fb / near - fb / z > px
-            return near < z * (1 - rel_step)
         # ring k must have nothing within k - 1 px that would have fattened the pixel by itself: at the
         # threshold read from the data, else any 1 % step (with a fixed 1 % a 160 px floor, 1-2 % a row,
         # left no pixel past ring 1 and the radius read 1: mystery seeds 28 and 37, 4 and 3)
         weak_rel = rel0 if f"{cls.name}.min_jump_rel" in out and rel0 > 0 else 0.01
-        K = 15
+        samples = list(measured_samples(measured))
+        best = cls._read_radius(samples, fb, px, rel, weak_rel)
+        if best is None:
+            return {}
+        out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
+        sp = None
+        if px == 0 and fb > 0 and f"{cls.name}.min_jump_rel" in out:
+            # a relative threshold read on ring 1: the disparity one instead when it splits the window's
+            # pixels, holes beside measured surfaces included, with fewer errors (:meth:`_window_splits`)
+            sp = cls._window_splits(measured, fb, best[1], best[2], clear)
+            if sp is not None and sp["px"][1] < sp["rel"][1]:
+                px, rel0 = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"])), 0.0
+                out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
+            else:
+                sp = None
+        elif px > 0:      # the disparity threshold again, against the nearest surface of the whole window
+            sp = cls._window_splits(measured, fb, best[1], best[2], clear)      # clear == rel here
+            if sp is not None:
+                px = out[f"{cls.name}.min_jump_px"] = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"]))
+        band = _measured_band(measured) if sp is not None else None
+        if band is not None:
+            # the radius again at that threshold, the holes counted (:meth:`_read_radius`); kept when its
+            # window's disparity stump errs on fewer pixels than the first reading's
+            again = cls._read_radius(samples, fb, px, rel, 0.0, band)
+            if again is not None and again[1:] != best[1:]:
+                sp2 = cls._window_splits(measured, fb, again[1], again[2], clear)
+                if sp2 is not None and sp2["px"][1] < sp["px"][1]:
+                    best, px = again, float(np.clip(sp2["px"][0], *cls.FITTABLE["min_jump_px"]))
+                    out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2],
+                                f"{cls.name}.min_jump_px": px})
+        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0,
+                                            lambda near, z: _fattens(near, z, fb, px, rel)):
+            out[f"{cls.name}.gate"] = "none"
+        return out
+
+    @staticmethod
+    def _read_radius(samples, fb: float, px: float, rel: float, weak_rel: float, band=None, K: int = 15):
+        """(drop, radius, shape) read from the rings of :meth:`fit_start` (None when ring 1 is not
+        fattened or no shape has a radius). Ring k of a shape: the usable pixels whose radius-k window
+        holds a surface that fattens them (:func:`_fattens` at ``px`` / ``rel``) and whose radius-(k - 1)
+        window holds none (at ``px`` / ``weak_rel``); its share: the measured depths nearer to that
+        surface's depth than to their own, of >= 30 pixels. ``band`` (low, high metres, the measured
+        depths, :func:`_measured_band`): the ring's holes whose nearer surface lies in it count as not
+        fattened - a fattened pixel would carry that depth, which the sensor measures. Without them, a
+        ring past the radius beside a background beyond the range holds only the pixels that some
+        surface did fatten (the rest are holes) and reads as fattened, or as too few to tell (the mystery
+        generator's seed 48, a 9 x 9 square: its ring 5 held 26 valid pixels and 415 such holes, the
+        square's drop was unknown and a disk of radius 5 won). Counted only once the disparity form is
+        read: with a relative threshold where the matcher follows disparities, every ring holds the holes
+        behind a far background's weak disparity jumps.
+
+        Per shape the radius is the largest k before the first ring whose share is < 0.5 (or < half
+        ring 1's); the shape whose share drops most after its radius wins."""
+        import cv2
+        lo, hi = band if band is not None else (np.inf, -np.inf)
         shapes = ("square", "disk")
         fat = {sh: np.zeros(K + 2) for sh in shapes}
         cnt = {sh: np.zeros(K + 2) for sh in shapes}
-        for _, m, r, ok in measured_samples(measured):
+        for _, m, r, ok in samples:
             z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
             for sh in shapes:
                 prev = z
@@ -284,18 +354,19 @@ class EdgeFattening(Effect):
                     near = cv2.erode(z, window_kernel(k, sh))
                     # a clear edge first within k px, and nothing within k - 1 px that would have
                     # fattened the pixel by itself (the threshold read from the data, else 1 %)
-                    ring = ok & fattens(near, z, rel) & ~fattens(prev, z, weak_rel)
+                    ring = ok & _fattens(near, z, fb, px, rel) & ~_fattens(prev, z, fb, px, weak_rel)
                     prev = near
                     sel = ring & (m > 0)
                     if sel.any():
                         mm, zz, nn = m[sel], z[sel], near[sel]
                         fat[sh][k] += np.count_nonzero(np.abs(mm - nn) < np.abs(mm - zz))
                         cnt[sh][k] += sel.sum()
+                    cnt[sh][k] += np.count_nonzero(ring & (m <= 0) & (near >= lo) & (near <= hi))
         best = None
         for sh in shapes:
             share = np.where(cnt[sh] >= 30, fat[sh] / np.maximum(cnt[sh], 1), np.nan)
             if not np.isfinite(share[1]) or share[1] < 0.5:
-                return {}
+                return None
             r = 0
             for k in range(1, K + 1):          # the rings up to the first one that is not fattened
                 if not (np.isfinite(share[k]) and share[k] >= max(0.5, 0.5 * share[1])):
@@ -309,29 +380,7 @@ class EdgeFattening(Effect):
             drop = share[r] - share[r + 1] if np.isfinite(share[r + 1]) else -1.0
             if best is None or drop > best[0]:
                 best = (drop, r, sh)
-        if best is None:
-            return {}
-        out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2]})
-        if px == 0 and fb > 0 and f"{cls.name}.min_jump_rel" in out:
-            # a relative threshold read on ring 1: the disparity one instead when it splits the window's
-            # pixels, holes beside measured surfaces included, with fewer errors (:meth:`_window_splits`)
-            sp = cls._window_splits(measured, fb, best[1], best[2], clear)
-            if sp is not None and sp["px"][1] < sp["rel"][1]:
-                px, rel0 = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"])), 0.0
-                out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
-        elif px > 0:      # the disparity threshold again, against the nearest surface of the whole window
-            t = cls._window_threshold(measured, fb, best[1], best[2], rel)
-            if t is not None:
-                out[f"{cls.name}.min_jump_px"] = float(np.clip(t, *cls.FITTABLE["min_jump_px"]))
-        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0, lambda near, z: fattens(near, z, rel)):
-            out[f"{cls.name}.gate"] = "none"
-        return out
-
-    @staticmethod
-    def _window_threshold(measured, fb: float, radius: int, shape: str, rel: float) -> float | None:
-        """The disparity stump of :meth:`_window_splits` (px; None without enough pixels)."""
-        sp = EdgeFattening._window_splits(measured, fb, radius, shape, rel)
-        return None if sp is None else sp["px"][0]
+        return best
 
     @staticmethod
     def _window_splits(measured, fb: float, radius: int, shape: str, rel: float) -> dict | None:
@@ -356,10 +405,10 @@ class EdgeFattening(Effect):
         from synth.sensor.effects._common import measured_samples
         k = window_kernel(radius, shape)
         samples = list(measured_samples(measured))
-        valid = np.concatenate([m[m > 0] for _, m, _, _ in samples])
-        if valid.size < 100:
+        band = _measured_band(measured)
+        if band is None:
             return None
-        lo, hi = np.percentile(valid, [0.5, 99.5])
+        lo, hi = band
         js, qs, fs = [], [], []
         for _, m, r, ok in samples:
             z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)

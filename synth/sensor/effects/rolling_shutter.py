@@ -1,6 +1,7 @@
 """Rolling shutter: image rows are exposed one after the other while the camera moves."""
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -165,16 +166,33 @@ CONVENTION_CHI2 = 3.84
 conventional reference row to the free one."""
 
 
+def _grid_refine(cost, bounds, points) -> tuple:
+    """(cost, x1, x2, ...) minimising ``cost(x1, x2, ...)`` over the box ``bounds`` ((lo, hi) per
+    parameter): a grid of ``points`` (one count per parameter, ends included), then three finer
+    9-point grids about the best, each a quarter of the step before (clipped to the box). Grid
+    points are visited in order (the last parameter fastest) and a later one replaces the best only
+    when strictly lower."""
+    best = None
+    for x in itertools.product(*(np.linspace(lo, hi, n) for (lo, hi), n in zip(bounds, points))):
+        c = cost(*x)
+        if best is None or c < best[0]:
+            best = (c, *x)
+    steps = [(hi - lo) / (n - 1) for (lo, hi), n in zip(bounds, points)]
+    for _ in range(3):            # finer grids about the best
+        x0 = best[1:]
+        for x in itertools.product(*(np.clip(c0 + d * np.linspace(-1, 1, 9), lo, hi)
+                                     for c0, d, (lo, hi) in zip(x0, steps, bounds))):
+            c = cost(*x)
+            if c < best[0]:
+                best = (c, *x)
+        steps = [d / 4 for d in steps]
+    return best
+
+
 def _min_readout(cost, ref: float, lo: float, hi: float) -> tuple[float, float]:
     """(cost, readout) minimising ``cost(readout, ref)`` over readout lo .. hi (s) at a fixed reference
-    row: a 33-point grid, then three finer grids about the best."""
-    best = min((cost(R, ref), R) for R in np.linspace(lo, hi, 33))
-    dR = (hi - lo) / 32
-    for _ in range(3):
-        R0 = best[1]
-        best = min([best] + [(cost(R, ref), R) for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, hi)])
-        dR /= 4
-    return best
+    row (:func:`_grid_refine`, 33 points)."""
+    return _grid_refine(lambda R: cost(R, ref), [(lo, hi)], [33])
 
 
 def fit_row_times(cost, lo: float, hi: float) -> tuple[float, float]:
@@ -182,8 +200,8 @@ def fit_row_times(cost, lo: float, hi: float) -> tuple[float, float]:
     log-likelihood in chi-square units: sum of squared normalised residuals) over readout lo .. hi and
     reference row 0 .. 1.
 
-    The free minimum: a 33 x 17 grid, then three finer grids about the best. Why a convention test:
-    the data fix each row's exposure time only where pixels change under the motion; when those lie
+    The free minimum: a 33 x 17 grid, then three finer grids about the best (:func:`_grid_refine`).
+    Why a convention test: the data fix each row's exposure time only where pixels change under the motion; when those lie
     in a band of rows (the floor at the bottom, the top beyond the range limit), only the time of
     that band - readout x (band row - reference row) - is measured, and readout and reference row
     trade along a valley whose floor is flat to within the noise (a free minimum then lands anywhere
@@ -191,21 +209,7 @@ def fit_row_times(cost, lo: float, hi: float) -> tuple[float, float]:
     :data:`CONVENTIONAL_REFERENCE_ROWS`; the best readout at each of those is kept unless the free
     reference row lowers the cost by more than :data:`CONVENTION_CHI2` (a likelihood-ratio test with
     one degree of freedom): a free reference row is used only when the data ask for it."""
-    best = None
-    for R in np.linspace(lo, hi, 33):
-        for rho in np.linspace(0.0, 1.0, 17):
-            c = cost(R, rho)
-            if best is None or c < best[0]:
-                best = (c, R, rho)
-    dR, dp = (hi - lo) / 32, 1.0 / 16
-    for _ in range(3):            # finer grids about the best
-        _, R0, p0 = best
-        for R in np.clip(R0 + dR * np.linspace(-1, 1, 9), lo, hi):
-            for rho in np.clip(p0 + dp * np.linspace(-1, 1, 9), 0.0, 1.0):
-                c = cost(R, rho)
-                if c < best[0]:
-                    best = (c, R, rho)
-        dR, dp = dR / 4, dp / 4
+    best = _grid_refine(cost, [(lo, hi), (0.0, 1.0)], [33, 17])
     conv = min((*_min_readout(cost, rho, lo, hi), rho) for rho in CONVENTIONAL_REFERENCE_ROWS)
     if conv[0] <= best[0] + CONVENTION_CHI2:
         return float(conv[1]), float(conv[2])
