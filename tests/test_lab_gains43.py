@@ -2,6 +2,7 @@
 and a hidden edge fattening (edge_fattening 40), the noise start under disparity quantisation."""
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -252,3 +253,17 @@ def test_lost_fractions_counts_both_in_one_pass():
         assert both == (lost_fraction(ms, sims, [0]), lost_fraction(ms, sims, [0], seen))
     assert lost_fractions(ms, [np.where(z < 4.0, z, 0.0).astype(np.float32)], [0], seen) == (4 / 64, 0.0)
     assert lost_fractions(ms, [np.zeros_like(z, np.float32)], [0], None) == (1.0, 1.0)
+
+
+def test_low_reflectance_laws_share_the_midpoint_and_its_slope():
+    """transition(u, law): 0.5 at the 50 % point and slope 1/4 there for both laws (width keeps its
+    logistic meaning); the normal law's tail falls faster (at u = -4: 0.006 against 0.018)."""
+    from synth.sensor.effects.low_reflectance import transition
+    u = np.array([-4.0, -1e-3, 0.0, 1e-3])
+    lg, nm = transition(u, "logistic"), transition(u, "normal")
+    assert lg[2] == pytest.approx(0.5) and nm[2] == pytest.approx(0.5)
+    for p in (lg, nm):
+        assert (p[3] - p[1]) / 2e-3 == pytest.approx(0.25, rel=1e-2)
+    assert lg[0] == pytest.approx(1 / (1 + np.exp(4.0)), rel=1e-5)
+    assert nm[0] == pytest.approx(0.5 * math.erfc(4.0 / (4 / np.sqrt(2 * np.pi)) / np.sqrt(2)), rel=1e-4)
+    assert nm[0] < lg[0] / 2
