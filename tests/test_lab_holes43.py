@@ -84,7 +84,7 @@ def test_low_reflectance_start_from_the_tail_of_the_transition():
     x = rng.uniform(-2.0, -1.0, 40000)
     h = (rng.random(x.size) < 1.0 / (1.0 + np.exp((x + 2.1) / 0.15))).astype(float)
     assert _logistic_from_rates(x, h) is None
-    x50, w, base = _logistic_ml(x, h, None)
+    x50, w, base, _ = _logistic_ml(x, h, None)
     assert x50 == pytest.approx(-2.1, abs=0.05) and w == pytest.approx(0.15, rel=0.25)
     # no holes beyond a constant rate: no start
     assert _logistic_ml(x, (rng.random(x.size) < 0.02).astype(float), None) is None

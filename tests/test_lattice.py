@@ -106,3 +106,34 @@ def test_a_step_read_off_the_lattice_is_searched_only_near_it():
     s = {s.key: s for s in param_specs(locked)}["disparity_quantization.step_px"]
     assert s.low == pytest.approx(0.03125 * (1 - LATTICE_WINDOW)) and s.high == pytest.approx(0.03125 * (1 + LATTICE_WINDOW))
     assert s.value == pytest.approx(0.03125)
+
+
+def _golden_reference(f, a, b, rel_tol=1e-7):
+    """Plain golden-section maximiser (the module's earlier hand-written one), the reference."""
+    g = (np.sqrt(5.0) - 1.0) / 2.0
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    while b - a > rel_tol * abs(b):
+        if fc >= fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(d)
+    return 0.5 * (a + b)
+
+
+@pytest.mark.parametrize("ratio", [1.5, 8.0])
+def test_scalar_search_finds_the_golden_sections_peak(monkeypatch, ratio):
+    """The step's refinement (bounded Brent search, scipy) lands where plain golden section did,
+    to its 1e-7 tolerance, with the same concentration and phase."""
+    import synth.sensor.lattice as lattice
+    d, di = _measure(ratio, step=0.125, seed=int(ratio * 10))
+    new = detect_lattice(d, di, fb=FB)
+    monkeypatch.setattr(lattice, "_scalar_max", _golden_reference)
+    ref = detect_lattice(d, di, fb=FB)
+    assert new.step_px == pytest.approx(ref.step_px, rel=1e-7)
+    assert new.phase == pytest.approx(ref.phase, abs=1e-3)
+    assert new.concentration == pytest.approx(ref.concentration, abs=1e-7)

@@ -391,14 +391,13 @@ def refit_base(cx: _Ctx, config) -> BaseRefit:
     lies within the measured valid depths count (:func:`~synth.lab.guards.lost_fraction` with
     ``seen``): beyond them a measured pixel is valid only through an effect that moved it (a
     fattened edge over a far background), the very effect the candidates are for."""
-    from synth.lab.guards import LOST_TOLERANCE, lost_fraction, measured_range
+    from synth.lab.guards import LOST_TOLERANCE, lost_fractions, measured_range
     measured, frames, obj = cx.measured, cx.frames, cx.obj
     seen = measured_range(measured, frames)
     gap_given = obj(config)
     model_specs = param_specs(config) if cx.dc.refit_model else []
     sims_given = measured.simulate(config, cx.fc.seed, frames)
-    lost_given = lost_fraction(measured, sims_given, frames)
-    guard_given = lost_fraction(measured, sims_given, frames, seen)     # within the measured range
+    lost_given, guard_given = lost_fractions(measured, sims_given, frames, seen)     # guard: within the measured range
     out = BaseRefit(config, gap_given, gap_given, {sp.key: float(sp.value) for sp in model_specs}, lost_given)
     if not model_specs:
         return out
@@ -417,7 +416,7 @@ def refit_base(cx: _Ctx, config) -> BaseRefit:
         return out
     refit = set_params(start_cfg, x)
     sims = measured.simulate(refit, cx.fc.seed, frames)
-    lost, guard = lost_fraction(measured, sims, frames), lost_fraction(measured, sims, frames, seen)
+    lost, guard = lost_fractions(measured, sims, frames, seen)
     if guard > guard_given + LOST_TOLERANCE:
         out.rejected = (f"the refit lost {100 * (guard - guard_given):.0f} % more of the measured-valid pixels "
                         f"(whose ideal depth lies within the measured depths) than the model as given")

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-__all__ = ["MeasuredRange", "measured_range", "bound_depth_limits", "lost_fraction", "cut_reason",
+__all__ = ["MeasuredRange", "measured_range", "bound_depth_limits", "lost_fraction", "lost_fractions", "cut_reason",
            "LOST_TOLERANCE"]
 
 LOST_TOLERANCE = 0.02
@@ -91,6 +91,22 @@ def bound_depth_limits(specs, config, rng: MeasuredRange | None):
     return out, changed
 
 
+def lost_fractions(measured, sims: Sequence[np.ndarray], frames: Sequence[int],
+                   seen: MeasuredRange | None) -> tuple[float, float]:
+    """(:func:`lost_fraction` without ``seen``, with ``seen``) in one pass over the frames (one
+    render and one mask per frame): every lost pixel, and those whose ideal depth lies within the
+    measured range ``seen`` (None: the same as the first)."""
+    lost = lost_seen = tot = 0
+    for d, k in zip(sims, frames):
+        z = measured.render(k).depth
+        ok = _valid(measured, k) & (z > 0)
+        tot += int(ok.sum())
+        cut = ok & ~(d > 0)
+        lost += int(cut.sum())
+        lost_seen += int((cut & (z >= seen.low) & (z <= seen.high)).sum()) if seen is not None else int(cut.sum())
+    return (lost / tot, lost_seen / tot) if tot else (0.0, 0.0)
+
+
 def lost_fraction(measured, sims: Sequence[np.ndarray], frames: Sequence[int],
                   seen: MeasuredRange | None = None) -> float:
     """Share of the measured-valid pixels with reference geometry (ideal depth > 0) that the
@@ -103,17 +119,8 @@ def lost_fraction(measured, sims: Sequence[np.ndarray], frames: Sequence[int],
     cuts it (a range limit at the measured maximum) throws no measurement away, the missing effect
     does (mystery edge_fattening seed 40: such pixels were 2.8 % of the measured ones, and a
     refit that set the range limit was rejected for them). The denominator stays every
-    measured-valid pixel with geometry."""
-    lost = tot = 0
-    for d, k in zip(sims, frames):
-        z = measured.render(k).depth
-        ok = _valid(measured, k) & (z > 0)
-        tot += int(ok.sum())
-        cut = ok & ~(d > 0)
-        if seen is not None:
-            cut &= (z >= seen.low) & (z <= seen.high)
-        lost += int(cut.sum())
-    return lost / tot if tot else 0.0
+    measured-valid pixel with geometry. (Both counts at once: :func:`lost_fractions`.)"""
+    return lost_fractions(measured, sims, frames, seen)[1]
 
 
 def cut_reason(config, lost: float, refit: bool = True) -> str:

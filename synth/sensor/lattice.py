@@ -120,26 +120,18 @@ def detect_lattice(d: np.ndarray, d_ideal: np.ndarray | None = None, *, fb: floa
         return None
     # the grid's 0.05 % leaves the phase off: the phase is that of the absolute disparity, so a step
     # off by delta moves it by delta * d / step (a third of a step at 5 px with 0.03 px steps and
-    # delta 2e-4); golden section on R between the grid neighbours finds the peak to 1e-7
-    s = _golden_max(lambda x: excess(x)[0], float(fine[max(j - 1, 0)]), float(fine[min(j + 1, fine.size - 1)]))
+    # delta 2e-4); a bounded scalar search on R between the grid neighbours finds the peak to 1e-7
+    s = _scalar_max(lambda x: excess(x)[0], float(fine[max(j - 1, 0)]), float(fine[min(j + 1, fine.size - 1)]))
     e, ang, exp_c = excess(s)
     if e < fx[j][0]:
         s, (e, ang, exp_c) = float(fine[j]), fx[j]
     return Lattice(float(s), float((ang / (2 * np.pi)) % 1.0), float(e + exp_c), float(exp_c))
 
 
-def _golden_max(f, a: float, b: float, rel_tol: float = 1e-7) -> float:
-    """The maximiser of a unimodal ``f`` on [a, b] by golden-section search, to ``rel_tol`` of b."""
-    g = (np.sqrt(5.0) - 1.0) / 2.0
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = f(c), f(d)
-    while b - a > rel_tol * abs(b):
-        if fc >= fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = f(d)
-    return 0.5 * (a + b)
+def _scalar_max(f, a: float, b: float, rel_tol: float = 1e-7) -> float:
+    """The maximiser of a unimodal ``f`` on [a, b] to about ``rel_tol`` of b: bounded Brent search
+    (:func:`scipy.optimize.minimize_scalar`, golden section with parabolic steps, which on R's smooth
+    peak need a third of plain golden section's evaluations for the same point)."""
+    from scipy.optimize import minimize_scalar
+    r = minimize_scalar(lambda x: -f(x), bounds=(a, b), method="bounded", options={"xatol": rel_tol * abs(b)})
+    return float(r.x)

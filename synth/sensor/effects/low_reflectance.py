@@ -22,6 +22,28 @@ class LowReflectanceParams:
     r^2 (a sensor near its noise floor: far and oblique surfaces drop too); ``albedo`` - the
     material alone, albedo (1 - specular) (IR-absorbing materials lost at any distance inside
     the working range; then signal50 is an albedo). ``sensor fit`` picks it from the data."""
+    law: str = param("logistic", "", choices=("logistic", "normal"))
+    """Shape of the transition in log10 signal, both with the same 50 % point and the same slope
+    there (``width_decades`` is the logistic scale; the normal law's standard deviation is
+    width_decades 4 / sqrt(2 pi)): ``logistic`` (tails falling as exp(-x / w)) or ``normal`` (a
+    cumulative normal: each pixel's threshold spread log-normally, tails falling as
+    exp(-x^2 / 2 s^2)). The two differ only in the tails, and where the range limit leaves only the
+    tail in view (the 50 % point beyond the measured depths) the 50 % point is an extrapolation
+    through the law. ``sensor fit`` picks it from the data (likelihood of the holes)."""
+
+
+NORMAL_SCALE = 4.0 / np.sqrt(2.0 * np.pi)
+"""Standard deviation of the ``normal`` law per unit of logistic width: a cumulative normal with
+sigma = width x this has the logistic's slope 1 / (4 width) at its 50 % point."""
+
+
+def transition(u: np.ndarray, law: str) -> np.ndarray:
+    """(float32, shape of ``u``) the drop probability at ``u`` = log10(signal50 / signal) / width:
+    the logistic 1 / (1 + exp(-u)) or the cumulative normal Phi(u / :data:`NORMAL_SCALE`)."""
+    if law == "logistic":
+        return sigmoid(u)
+    from scipy.special import ndtr
+    return ndtr(np.asarray(u, np.float64) / NORMAL_SCALE).astype(np.float32)
 
 
 def returned_signal(view, preset, form: str) -> np.ndarray:
@@ -35,7 +57,8 @@ def returned_signal(view, preset, form: str) -> np.ndarray:
 
 @register_effect
 class LowReflectance(Effect):
-    """Pixels drop with probability logistic(log10(signal50 / signal) / width).
+    """Pixels drop with probability F(log10(signal50 / signal) / width), F the logistic or the
+    slope-matched cumulative normal (``law``).
 
     Physics: the pattern (or ToF amplitude) returned by a surface scales with its diffuse
     albedo, the cosine of incidence and the inverse squared distance; below the sensor's noise
@@ -63,11 +86,11 @@ class LowReflectance(Effect):
         s = returned_signal(v, state.preset, self.params.signal)
         with np.errstate(divide="ignore"):
             x = np.log10(self.params.signal50) - np.log10(np.maximum(s, 1e-12))
-        p = sigmoid(x / self.params.width_decades)
+        p = transition(x / self.params.width_decades, self.params.law)
         p[~v.hit] = 0
         drop_with_probability(state, p, u, self.name)
 
-    START_ONLY_PARAMS = ("signal",)
+    START_ONLY_PARAMS = ("signal", "law")
 
     @classmethod
     def fit_start(cls, measured, config, frames) -> dict:
@@ -78,7 +101,9 @@ class LowReflectance(Effect):
         width from its 0.25 and 0.75 crossings (the logistic's quartiles: width = (x75 - x25) /
         (2 ln 3) decades); both are then refined by maximum likelihood on every pixel
         (:func:`_logistic_ml`, which also starts from the tail when no bin reaches 0.5). The form whose logistic predicts the holes of every pixel best (Brier
-        score) wins. Only pixels whose ideal depth lies where the sensor measures at all count
+        score) wins; for it the ``normal`` law is fitted the same way and taken when its likelihood
+        is higher (same number of parameters): the laws agree where the 50 % point is in view and
+        part in the tails, where a range limit may leave the only evidence. Only pixels whose ideal depth lies where the sensor measures at all count
         (``measured_samples(in_range=True)``): the holes beyond a range limit are far and weak too.
         Nothing when no form's excess reaches 0.5."""
         from synth.sensor.effects._common import measured_samples
@@ -107,21 +132,24 @@ class LowReflectance(Effect):
         best = None
         for form, parts in logs.items():
             x = np.concatenate(parts)
-            est = _logistic_ml(x, h, _logistic_from_rates(x, h))
+            rates = _logistic_from_rates(x, h)
+            est = _logistic_ml(x, h, rates)
             if est is None:
                 continue
-            x50, w, base = est
+            x50, w, base, ll = est
             p = base + (1 - base) / (1.0 + np.exp(np.clip((x - x50) / w, -50, 50)))
             brier = float(np.mean((p - h) ** 2))
             if best is None or brier < best[0]:
-                best = (brier, form, x50, w)
+                best = (brier, form, x50, w, ll, x, rates)
         if best is None:
             return {}
-        _, form, x50, w = best
+        _, form, x50, w, ll, x, rates = best
+        x50, w, law = _pick_law(x, h, rates, (x50, w, ll))
         lo, hi = cls.FITTABLE["signal50"]
         wl, wh = cls.FITTABLE["width_decades"]
         return {f"{cls.name}.signal50": float(np.clip(10.0 ** x50, lo, hi)),
-                f"{cls.name}.width_decades": float(np.clip(w, wl, wh)), f"{cls.name}.signal": form}
+                f"{cls.name}.width_decades": float(np.clip(w, wl, wh)), f"{cls.name}.signal": form,
+                f"{cls.name}.law": law}
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
@@ -160,15 +188,17 @@ MIN_LL_GAIN = 10.0
 nats (a likelihood ratio of e^10) to be a start."""
 
 
-def _logistic_ml(x: np.ndarray, hole: np.ndarray, est):
-    """(x50, width, base) maximising the Bernoulli likelihood of ``hole`` under base + (1 - base) /
-    (1 + exp((x - x50) / width)) (base: the brightest quarter's rate, fixed), from ``est`` (the
+def _logistic_ml(x: np.ndarray, hole: np.ndarray, est, law: str = "logistic"):
+    """(x50, width, base, log-likelihood) maximising the Bernoulli likelihood of ``hole`` under
+    base + (1 - base) F((x50 - x) / width) (F: :func:`transition` of ``law``, the logistic
+    1 / (1 + exp(-u)) by default; base: the brightest quarter's rate, fixed), from ``est`` (the
     binned crossings of :func:`_logistic_from_rates`) or, when those never reach 0.5, from the
     weakest percentile of x: within the range limits a sensor may measure only the tail of the
     transition (its 50 % point lies where the range cut already holes every pixel) - the tail's
     rise still fixes it. None when the logistic does not beat the constant rate by
     :data:`MIN_LL_GAIN` nats."""
     from scipy.optimize import minimize
+    from scipy.special import ndtr
     if x.size < 200:
         return None
     base = float(hole[x >= np.quantile(x, 0.75)].mean()) if est is None else float(est[2])
@@ -178,7 +208,10 @@ def _logistic_ml(x: np.ndarray, hole: np.ndarray, est):
     y = hole.astype(np.float64)
 
     def nll(v):
-        p = base + (1.0 - base) / (1.0 + np.exp(np.clip((x - v[0]) / np.exp(v[1]), -50, 50)))
+        if law == "logistic":
+            p = base + (1.0 - base) / (1.0 + np.exp(np.clip((x - v[0]) / np.exp(v[1]), -50, 50)))
+        else:
+            p = base + (1.0 - base) * ndtr((v[0] - x) / (np.exp(v[1]) * NORMAL_SCALE))
         p = np.clip(p, 1e-12, 1 - 1e-12)
         return -float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
 
@@ -188,7 +221,18 @@ def _logistic_ml(x: np.ndarray, hole: np.ndarray, est):
     ll0 = float(np.sum(y * np.log(pc) + (1 - y) * np.log(1 - pc)))
     if not (-float(r.fun) - ll0 >= MIN_LL_GAIN):
         return None
-    return float(r.x[0]), float(np.exp(r.x[1])), base
+    return float(r.x[0]), float(np.exp(r.x[1])), base, -float(r.fun)
+
+
+def _pick_law(x: np.ndarray, hole: np.ndarray, rates, logistic: tuple[float, float, float]):
+    """(x50, width, law): the logistic fit ``logistic`` (x50, width, log-likelihood of
+    :func:`_logistic_ml`) or the ``normal`` law's maximum-likelihood fit from the same start
+    (``rates``: :func:`_logistic_from_rates`), whichever explains ``hole`` better. Both have two
+    parameters, so the likelihood alone chooses; it matters where only a tail is in view."""
+    alt = _logistic_ml(x, hole, rates, law="normal")
+    if alt is not None and alt[3] > logistic[2]:
+        return alt[0], alt[1], "normal"
+    return logistic[0], logistic[1], "logistic"
 
 
 def _logistic_from_rates(x: np.ndarray, hole: np.ndarray, bin_w: float = 0.05):
