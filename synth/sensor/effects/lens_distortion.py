@@ -81,6 +81,20 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b > 0 and math.isfinite(a) and math.isfinite(b) else float("nan")
 
 
+def _parabola_min(grid, costs) -> tuple[float, float]:
+    """(argmin refined by a parabola through its two neighbours, at most half a step; the grid's min) of
+    ``costs`` sampled on the even ``grid``."""
+    costs = np.asarray(costs, dtype=float)
+    i = int(np.argmin(costs))
+    x = float(grid[i])
+    if 0 < i < len(grid) - 1:
+        a, b, c = costs[i - 1], costs[i], costs[i + 1]
+        den = a - 2 * b + c
+        if den > 0:
+            x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
+    return x, float(costs[i])
+
+
 @register_effect
 class LensDistortion(Effect):
     """The IR lens bends rays: the device's image is distorted (radial k1 k2 k3, tangential p1 p2).
@@ -229,16 +243,7 @@ class LensDistortion(Effect):
             return tot / max(n, 1)
 
         def best_on(grid, f) -> tuple[float, float]:
-            """(argmin refined by a parabola through its neighbours, min) of f over an even grid."""
-            costs = np.array([f(float(v)) for v in grid])
-            i = int(np.argmin(costs))
-            x = float(grid[i])
-            if 0 < i < len(grid) - 1:
-                a, b, c = costs[i - 1], costs[i], costs[i + 1]
-                den = a - 2 * b + c
-                if den > 0:
-                    x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
-            return x, float(costs[i])
+            return _parabola_min(grid, [f(float(v)) for v in grid])
 
         border = cls._border_holes(measured, frames, intr, base)
         c0 = cost(0.0)
@@ -358,29 +363,19 @@ class LensDistortion(Effect):
                 n += int(e.size)
             return tot / n if n else float("nan")
 
-        def parabola(grid, costs) -> tuple[float, float]:
-            i = int(np.argmin(costs))
-            x = float(grid[i])
-            if 0 < i < len(grid) - 1:
-                a, b, c = costs[i - 1], costs[i], costs[i + 1]
-                den = a - 2 * b + c
-                if den > 0:
-                    x += float(np.clip(0.5 * (a - c) / den, -0.5, 0.5) * (grid[1] - grid[0]))
-            return x, float(costs[i])
-
         if not idx.size or not np.isfinite(cost(k1, 0.0)):
             return k1, 0.0, 0.0, 0.0
-        k1, _ = parabola(cls.START_GRID, [cost(float(a1), 0.0) for a1 in cls.START_GRID])
+        k1, _ = _parabola_min(cls.START_GRID, [cost(float(a1), 0.0) for a1 in cls.START_GRID])
         lo1, hi1 = cls.FITTABLE["k1"]
         grid1 = np.clip(k1 + cls.REFINE_STEPS_K1, lo1, hi1)
-        best = [parabola(grid1, [cost(float(a1), float(a2)) for a1 in grid1]) for a2 in cls.REFINE_GRID_K2]
-        k2, _ = parabola(cls.REFINE_GRID_K2, [c for _, c in best])
+        best = [_parabola_min(grid1, [cost(float(a1), float(a2)) for a1 in grid1]) for a2 in cls.REFINE_GRID_K2]
+        k2, _ = _parabola_min(cls.REFINE_GRID_K2, [c for _, c in best])
         j = int(np.argmin([c for _, c in best]))
         i0 = int(np.argmin(np.abs(cls.REFINE_GRID_K2)))
         if not best[j][1] < (1.0 - cls.K2_MIN_DROP) * best[i0][1]:
             k2, j = 0.0, i0         # k2 only where the data ask for it (it trades with k1 along the valley)
         fine = np.clip(best[j][0] + 0.25 * cls.REFINE_STEPS_K1, lo1, hi1)
-        k1, _ = parabola(fine, [cost(float(a1), k2) for a1 in fine])
+        k1, _ = _parabola_min(fine, [cost(float(a1), k2) for a1 in fine])
         c_rad = cost(k1, k2)
         # tangential p1, p2 at that (k1, k2): p1, then p2, then p1 again (they move pixels across each
         # other's directions, and neither moves them radially); kept when the cost drops clearly
@@ -388,13 +383,13 @@ class LensDistortion(Effect):
         p1 = p2 = 0.0
         for which in (1, 2, 1):
             if which == 1:
-                p1, _ = parabola(g, [cost(k1, k2, float(q), p2) for q in g])
+                p1, _ = _parabola_min(g, [cost(k1, k2, float(q), p2) for q in g])
             else:
-                p2, _ = parabola(g, [cost(k1, k2, p1, float(q)) for q in g])
+                p2, _ = _parabola_min(g, [cost(k1, k2, p1, float(q)) for q in g])
         c_tan = cost(k1, k2, p1, p2)
         if not c_tan < (1.0 - cls.TANGENTIAL_MIN_DROP) * c_rad:
             return k1, k2, 0.0, 0.0
-        k1, _ = parabola(fine, [cost(float(a1), k2, p1, p2) for a1 in fine])
+        k1, _ = _parabola_min(fine, [cost(float(a1), k2, p1, p2) for a1 in fine])
         return k1, k2, p1, p2
 
     BORDER_MIN_IOU = 0.7
