@@ -274,6 +274,8 @@ def test_lens_tangential_terms_shape_the_warp_by_the_brown_conrady_formula():
     assert {s.key for s in param_specs(new)} == {"lens_distortion.k1", "lens_distortion.k2"}   # not searched
     with pytest.raises(ConfigError, match="p1"):
         make_effect({"name": "lens_distortion", "params": {"p1": 0.05}})
+    with pytest.raises(ConfigError, match="lens_distortion.p1: expected a number, got 'abc'"):
+        cfg.with_params({"lens_distortion.p1": "abc"})
 
 
 def test_edge_fattening_start_counts_the_holes_a_fattening_would_have_filled(tmp_path):

@@ -242,7 +242,11 @@ class SensorConfig:
                 if e.name == en:
                     if pn in e.FILE_PARAMS or pn in e.START_ONLY_PARAMS:    # a path, a choice or a measured number
                         cur = getattr(e.params, pn)
-                        effects[i] = e.replace(**{pn: str(val) if isinstance(cur, str) else type(cur)(val)})
+                        try:
+                            new = str(val) if isinstance(cur, str) else type(cur)(val)
+                        except (TypeError, ValueError):
+                            raise ConfigError(f"{key}: expected a number, got {val!r}") from None
+                        effects[i] = e.replace(**{pn: new})
                         break
                     if pn not in e.FITTABLE:
                         raise ConfigError(f"{key}: not a fittable parameter of {en!r} ({', '.join(e.FITTABLE)})")
