@@ -177,12 +177,12 @@ def _fattens(near: np.ndarray, z: np.ndarray, fb: float, px: float, rel_step: fl
     return near < z * (1 - rel_step)
 
 
-def _measured_band(measured, min_pixels: int = 100) -> tuple[float, float] | None:
-    """(low, high) metres: the 0.5th and 99.5th percentiles of the measured valid depths over every
-    frame - where the sensor measures (a fattened pixel carries its nearer surface's depth, so a hole
-    whose nearer surface lies in this band was not fattened); None with fewer than ``min_pixels``."""
-    from synth.sensor.effects._common import measured_samples
-    valid = np.concatenate([m[m > 0] for _, m, _, _ in measured_samples(measured)])
+def _measured_band(samples, min_pixels: int = 100) -> tuple[float, float] | None:
+    """(low, high) metres: the 0.5th and 99.5th percentiles of the measured valid depths over
+    ``samples`` (``measured_samples``' tuples, every frame) - where the sensor measures (a fattened pixel
+    carries its nearer surface's depth, so a hole whose nearer surface lies in this band was not
+    fattened); None with fewer than ``min_pixels``."""
+    valid = np.concatenate([m[m > 0] for _, m, _, _ in samples]) if samples else np.zeros(0)
     if valid.size < min_pixels:
         return None
     lo, hi = np.percentile(valid, [0.5, 99.5])
@@ -289,6 +289,7 @@ class EdgeFattening(Effect):
         # left no pixel past ring 1 and the radius read 1: mystery seeds 28 and 37, 4 and 3)
         weak_rel = rel0 if f"{cls.name}.min_jump_rel" in out and rel0 > 0 else 0.01
         samples = list(measured_samples(measured))
+        band = _measured_band(samples)
         best = cls._read_radius(samples, fb, px, rel, weak_rel)
         if best is None:
             return {}
@@ -297,23 +298,22 @@ class EdgeFattening(Effect):
         if px == 0 and fb > 0 and f"{cls.name}.min_jump_rel" in out:
             # a relative threshold read on ring 1: the disparity one instead when it splits the window's
             # pixels, holes beside measured surfaces included, with fewer errors (:meth:`_window_splits`)
-            sp = cls._window_splits(measured, fb, best[1], best[2], clear)
+            sp = cls._window_splits(samples, band, fb, best[1], best[2], clear)
             if sp is not None and sp["px"][1] < sp["rel"][1]:
                 px, rel0 = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"])), 0.0
                 out[f"{cls.name}.min_jump_rel"], out[f"{cls.name}.min_jump_px"] = 0.0, px
             else:
                 sp = None
         elif px > 0:      # the disparity threshold again, against the nearest surface of the whole window
-            sp = cls._window_splits(measured, fb, best[1], best[2], clear)      # clear == rel here
+            sp = cls._window_splits(samples, band, fb, best[1], best[2], clear)      # clear == rel here
             if sp is not None:
                 px = out[f"{cls.name}.min_jump_px"] = float(np.clip(sp["px"][0], *cls.FITTABLE["min_jump_px"]))
-        band = _measured_band(measured) if sp is not None else None
-        if band is not None:
+        if sp is not None:      # (a split needs the band)
             # the radius again at that threshold, the holes counted (:meth:`_read_radius`); kept when its
             # window's disparity stump errs on fewer pixels than the first reading's
             again = cls._read_radius(samples, fb, px, rel, 0.0, band)
             if again is not None and again[1:] != best[1:]:
-                sp2 = cls._window_splits(measured, fb, again[1], again[2], clear)
+                sp2 = cls._window_splits(samples, band, fb, again[1], again[2], clear)
                 if sp2 is not None and sp2["px"][1] < sp["px"][1]:
                     best, px = again, float(np.clip(sp2["px"][0], *cls.FITTABLE["min_jump_px"]))
                     out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2],
@@ -383,14 +383,15 @@ class EdgeFattening(Effect):
         return best
 
     @staticmethod
-    def _window_splits(measured, fb: float, radius: int, shape: str, rel: float) -> dict | None:
+    def _window_splits(samples, band, fb: float, radius: int, shape: str, rel: float) -> dict | None:
         """The disparity threshold (px) that best splits the measured pixels carrying a nearer
         surface's depth from the others (:func:`_stump`), the jump taken to the nearest surface of
         the (radius, shape) window - what the model compares (ring 1 alone underestimates it: a
         pixel beside a small jump may take the depth of a bigger one farther in the window). Pixels
         whose window holds a surface nearer by more than ``rel`` (clear edges), the measured holes
         among them too where that surface's depth lies within the measured ones (0.5-99.5th
-        percentile): a hole behind a foreground the sensor measures was not fattened.
+        percentile, ``band``: :func:`_measured_band` of ``samples``, ``measured_samples``' tuples): a hole
+        behind a foreground the sensor measures was not fattened.
 
         Returns {"px": (threshold px, errors), "rel": (threshold, errors)}: the stump of each form of
         the jump (disparity f b / near - f b / z, relative 1 - near / z) and how many of those pixels
@@ -402,10 +403,7 @@ class EdgeFattening(Effect):
         far background and scored worse than no fattening; over the radius-2 window with those holes,
         the disparity stump 1.658 px errs on no pixel, the relative one on 48)."""
         import cv2
-        from synth.sensor.effects._common import measured_samples
         k = window_kernel(radius, shape)
-        samples = list(measured_samples(measured))
-        band = _measured_band(measured)
         if band is None:
             return None
         lo, hi = band

@@ -9,6 +9,10 @@ import numpy as np
 
 from synth.sensor.registry import STAGE_GEOMETRY, STAGE_OPTICS, Effect, Signature, param, register_effect
 
+TANGENTIAL_LIMIT = 0.01
+"""|p1|, |p2| a model may hold (ten times a decentred element's ~1e-3): the parameters' bounds and the
+start's clip."""
+
 
 @dataclass
 class LensDistortionParams:
@@ -19,13 +23,13 @@ class LensDistortionParams:
     sensor lab fits (zero for undistorted depth, then it is the lens's k1)."""
     k2: float = param(0.0, "1")
     """Radial distortion added to k2 of the same coefficients."""
-    p1: float = param(0.0, "1", -0.01, 0.01)
+    p1: float = param(0.0, "1", -TANGENTIAL_LIMIT, TANGENTIAL_LIMIT)
     """Tangential (decentring) distortion added to p1 of the same coefficients (OpenCV's order k1 k2
     p1 p2 k3, normalised image units; a lens element off the axis by a fraction of a millimetre gives
     |p| ~ 1e-3). Measured by ``sensor fit``'s start when the data show it clearly (``fit_start``) and
     kept fixed by the search (start-only: the search's budget stays on k1, k2; a radial fit without
     these terms biases k1)."""
-    p2: float = param(0.0, "1", -0.01, 0.01)
+    p2: float = param(0.0, "1", -TANGENTIAL_LIMIT, TANGENTIAL_LIMIT)
     """Tangential distortion added to p2 of the same coefficients (as ``p1``)."""
     outside: str = param("seen", "", choices=("seen", "hole"))
     """What a distorted pixel whose undistorted position lies outside the pinhole image reports:
@@ -204,8 +208,9 @@ class LensDistortion(Effect):
         for _, m, r, ok in measured_samples(measured, frames):
             mg = np.where(ok[vv, uu], m[vv, uu], 0).astype(np.float64)
             em = edges(mg)
-            data.append((em, dist_to(em), np.where(r.hit, r.depth, 0).astype(np.float64), ok[vv, uu] & (mg > 0)))
-            data_z.append((mg, np.where(r.hit, r.depth, 0).astype(np.float64), ok[vv, uu] & (mg > 0)))
+            zr, use = np.where(r.hit, r.depth, 0).astype(np.float64), ok[vv, uu] & (mg > 0)
+            data.append((em, dist_to(em), zr, use))
+            data_z.append((mg, zr, use))
         if not data or sum(int(d[0].sum()) for d in data) < 200:
             return {}
         e = config.effect("lens_distortion") if "lens_distortion" in config.names() else cls()
@@ -271,8 +276,8 @@ class LensDistortion(Effect):
         if k2:
             out[f"{cls.name}.k2"] = float(np.clip(k2, *cls.FITTABLE["k2"]))
         if p1 or p2:
-            out[f"{cls.name}.p1"] = float(np.clip(p1, -0.01, 0.01))
-            out[f"{cls.name}.p2"] = float(np.clip(p2, -0.01, 0.01))
+            out[f"{cls.name}.p1"] = float(np.clip(p1, -TANGENTIAL_LIMIT, TANGENTIAL_LIMIT))
+            out[f"{cls.name}.p2"] = float(np.clip(p2, -TANGENTIAL_LIMIT, TANGENTIAL_LIMIT))
         if border is not None:
             out[f"{cls.name}.outside"] = "hole"
         return out
