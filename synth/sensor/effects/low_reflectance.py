@@ -37,13 +37,17 @@ NORMAL_SCALE = 4.0 / np.sqrt(2.0 * np.pi)
 sigma = width x this has the logistic's slope 1 / (4 width) at its 50 % point."""
 
 
-def transition(u: np.ndarray, law: str) -> np.ndarray:
+def transition(u: np.ndarray, law: str, precise: bool = False) -> np.ndarray:
     """(float32, shape of ``u``) the drop probability at ``u`` = log10(signal50 / signal) / width:
-    the logistic 1 / (1 + exp(-u)) or the cumulative normal Phi(u / :data:`NORMAL_SCALE`)."""
-    if law == "logistic":
-        return sigmoid(u)
+    the logistic 1 / (1 + exp(-u)) or the cumulative normal Phi(u / :data:`NORMAL_SCALE`).
+    ``precise``: float64 (the likelihood fit of :func:`_logistic_ml`, whose tails matter)."""
     from scipy.special import ndtr
-    return ndtr(np.asarray(u, np.float64) / NORMAL_SCALE).astype(np.float32)
+    if law == "logistic":
+        if not precise:
+            return sigmoid(u)
+        return 1.0 / (1.0 + np.exp(-np.clip(np.asarray(u, np.float64), -50, 50)))
+    p = ndtr(np.asarray(u, np.float64) / NORMAL_SCALE)
+    return p if precise else p.astype(np.float32)
 
 
 def returned_signal(view, preset, form: str) -> np.ndarray:
@@ -198,7 +202,6 @@ def _logistic_ml(x: np.ndarray, hole: np.ndarray, est, law: str = "logistic"):
     rise still fixes it. None when the logistic does not beat the constant rate by
     :data:`MIN_LL_GAIN` nats."""
     from scipy.optimize import minimize
-    from scipy.special import ndtr
     if x.size < 200:
         return None
     base = float(hole[x >= np.quantile(x, 0.75)].mean()) if est is None else float(est[2])
@@ -208,10 +211,7 @@ def _logistic_ml(x: np.ndarray, hole: np.ndarray, est, law: str = "logistic"):
     y = hole.astype(np.float64)
 
     def nll(v):
-        if law == "logistic":
-            p = base + (1.0 - base) / (1.0 + np.exp(np.clip((x - v[0]) / np.exp(v[1]), -50, 50)))
-        else:
-            p = base + (1.0 - base) * ndtr((v[0] - x) / (np.exp(v[1]) * NORMAL_SCALE))
+        p = base + (1.0 - base) * transition((v[0] - x) / np.exp(v[1]), law, precise=True)
         p = np.clip(p, 1e-12, 1 - 1e-12)
         return -float(np.sum(y * np.log(p) + (1 - y) * np.log(1 - p)))
 
