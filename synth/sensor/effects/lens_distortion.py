@@ -342,6 +342,8 @@ class LensDistortion(Effect):
             out[~inside] = 0.0
             return out
 
+        full = np.zeros(int(np.prod(shape)))     # the image the fattening reads; only ``idx`` is ever written
+
         def cost(a1: float, a2: float, q1: float = 0.0, q2: float = 0.0) -> float:
             c = list(base)
             c[0] += a1
@@ -353,7 +355,6 @@ class LensDistortion(Effect):
             for m, z, use in data_z:
                 zw = warp(z, und)
                 if fat_r > 0:       # the fattening needs the image's neighbourhoods
-                    full = np.zeros(shape).ravel()
                     full[idx] = zw
                     zw = fatten(full.reshape(shape)).ravel()[idx]
                 sel = use & (zw > 0)
