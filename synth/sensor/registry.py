@@ -206,6 +206,12 @@ class Effect(ABC):
     """FITTABLE parameters that cut the reported depth range: name -> ``"min"`` or ``"max"``
     (0 = the preset's attribute of the same name). A fit bounds them by the measured valid depths
     (:mod:`synth.lab.guards`), so it can never throw the measurement away."""
+    SIGNAL_HOLES: ClassVar[bool] = False
+    """True for an effect that removes pixels where little signal returns (far, dark or oblique
+    surfaces): the far holes that a too-near maximum range (``DEPTH_LIMIT_PARAMS``) explains as well.
+    A model refitted without the effect may have pulled its range in to explain them, so the lab
+    re-starts the model's depth limits from their closed-form start with such a candidate
+    (:func:`synth.lab.diagnose.fit_candidate`)."""
     FRAME_EXPOSURE_PARAM: ClassVar[str | None] = None
     """Name of the parameter that is the frame's exposure time in seconds, for the one effect that
     models the exposure (``motion_blur``); the simulator copies it into ``state.frame.exposure_s``."""

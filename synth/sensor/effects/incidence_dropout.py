@@ -60,6 +60,7 @@ class IncidenceDropout(Effect):
     FITTABLE = {"angle50_deg": (30.0, 90.0), "width_deg": (0.1, 30.0)}
     START_ONLY_PARAMS = ("reference",)
     stage = STAGE_DROPOUT
+    SIGNAL_HOLES = True
 
     def sample(self, rng, state):
         return uniform_draw(rng, state.shape)

@@ -80,6 +80,7 @@ class LowReflectance(Effect):
     Params = LowReflectanceParams
     FITTABLE = {"signal50": (1e-6, 1.0), "width_decades": (0.01, 3.0)}
     stage = STAGE_DROPOUT
+    SIGNAL_HOLES = True
 
     def sample(self, rng, state):
         return uniform_draw(rng, state.shape)
