@@ -383,3 +383,41 @@ def test_low_reflectance_laws_share_the_midpoint_and_its_slope():
     assert lg[0] == pytest.approx(1 / (1 + np.exp(4.0)), rel=1e-5)
     assert nm[0] == pytest.approx(0.5 * math.erfc(4.0 / (4 / np.sqrt(2 * np.pi)) / np.sqrt(2)), rel=1e-4)
     assert nm[0] < lg[0] / 2
+
+
+def test_revert_check_puts_back_a_move_whose_gain_is_within_the_gaps_noise():
+    """Mystery lens_distortion seed 31: the search on its few pixels moved the noise curve's
+    ``z_offset_m`` from the start's 0 to 0.18 m (noise at 2 m -12 %) and the evaluation set preferred
+    that by 0.0001 on a gap of 0.0343 - far inside the gap's noise tau (2 % of it: 0.00069) - so the
+    old rule (put back only when the gap does not rise at all) kept it. A move must now lower the
+    evaluation gap by more than tau to stay; a move that earns 10 tau (the lens's k1) stays, and the
+    reverts together raise the gap by at most tau (here sigma0's gain, 0.87 tau alone, is kept: with
+    z_offset's 0.15 tau already put back, its revert would raise the gap by 1.02 tau)."""
+    from synth.lab.intervals import revert_moves
+    from synth.lab.params import param_specs, set_params
+    from synth.sensor.config import SensorConfig
+    base = SensorConfig.build("kinect_v1", ["axial_noise", "lens_distortion"])
+    start_cfg = set_params(base, {"axial_noise.sigma2_per_m": 0.0015, "axial_noise.z_offset_m": 0.0,
+                                  "axial_noise.sigma0_m": 0.0, "lens_distortion.k1": -0.10})
+    keys = ["axial_noise.z_offset_m", "axial_noise.sigma0_m", "lens_distortion.k1"]
+    specs = [s for s in param_specs(start_cfg, ["axial_noise", "lens_distortion"]) if s.key in keys]
+    assert len(specs) == 3
+    gains = {"axial_noise.z_offset_m": 0.0001, "axial_noise.sigma0_m": 0.0006, "lens_distortion.k1": 0.0069}
+    fitted = {"axial_noise.z_offset_m": 0.18, "axial_noise.sigma0_m": 0.0005, "lens_distortion.k1": -0.19}
+
+    def ev(cfg):    # 0.0343 at the fitted values; each parameter at its start adds its gain
+        p, ln = cfg.effect("axial_noise").params, cfg.effect("lens_distortion").params
+        at = {"axial_noise.z_offset_m": p.z_offset_m, "axial_noise.sigma0_m": p.sigma0_m,
+              "lens_distortion.k1": ln.k1}
+        return 0.0343 + sum(g for k, g in gains.items() if abs(at[k] - fitted[k]) > 1e-9)
+
+    def gap_of(vals, seed_offset=0):        # seeds agree to 1e-6: tau = 2 % of the gap
+        return ev(set_params(start_cfg, vals)) + 1e-6 * (seed_offset % 3)
+
+    vals, back, tau = revert_moves(ev, start_cfg, specs, dict(fitted), 0.0)
+    assert back == [] and math.isnan(tau)                      # the old rule keeps every move
+    vals, back, tau = revert_moves(ev, start_cfg, specs, dict(fitted), 1.0, gap_of)
+    assert tau == pytest.approx(0.02 * 0.0343)
+    assert back == ["axial_noise.z_offset_m"], back             # 0.0001 + 0.0006 > tau: sigma0 stays
+    assert vals["axial_noise.z_offset_m"] == 0.0 and vals["lens_distortion.k1"] == -0.19
+    assert vals["axial_noise.sigma0_m"] == 0.0005

@@ -104,9 +104,16 @@ class FitConfig:
     revert_check: bool = True
     """After the search, each parameter the search moved away from its start is put back to the start value
     alone and kept there when that does not raise the gap on the evaluation set (``eval_frames`` x
-    ``eval_pixels_per_frame``: more frames and pixels than the search sees). A move that only fitted the
-    search sample's noise (e.g. the noise curve's offset wandering by 2 cm and lowering the noise 2 %) is
-    undone; one evaluation per moved parameter."""
+    ``eval_pixels_per_frame``: more frames and pixels than the search sees) by more than
+    ``revert_margin`` x the gap's noise. A move that only fitted the search sample's noise (e.g. the
+    noise curve's offset wandering by 2 cm and lowering the noise 2 %) is undone; one evaluation per
+    moved parameter (:func:`synth.lab.intervals.revert_moves`)."""
+    revert_margin: float = 1.0
+    """How much a move must lower the evaluation gap to be kept by the revert check, in units of the
+    gap's noise tau (twice its std over three simulation seeds, at least 2 % of it:
+    :func:`synth.lab.intervals.gap_noise`, two more evaluations): a gain within the noise is no
+    evidence against the data-driven start. The total rise of all reverts together stays within
+    ``revert_margin`` x tau. 0 = the gap must not rise at all (no extra evaluations)."""
     data_starts: bool = True
     """Try the effects' closed-form ``fit_start`` estimates as the starting point (kept when they
     score better than the given values)."""
@@ -157,6 +164,8 @@ class FitConfig:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
         if not float(self.noise_curve_weight) >= 0:
             raise ConfigError(f"fit: noise_curve_weight must be >= 0, got {self.noise_curve_weight}")
+        if not float(self.revert_margin) >= 0:
+            raise ConfigError(f"fit: revert_margin must be >= 0, got {self.revert_margin}")
         if not 0 < float(self.screen_step) <= 0.5:
             raise ConfigError(f"fit: screen_step must be in (0, 0.5], got {self.screen_step}")
         if self.method not in SEARCH_METHODS:
@@ -382,10 +391,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         from synth.lab.intervals import revert_moves
-        best_x, reverted = revert_moves(ev, start_cfg, specs, best_x)
+        best_x, reverted, tau = revert_moves(ev, start_cfg, specs, best_x, float(fc.revert_margin))
         if reverted:
             g_best = obj(set_params(start_cfg, best_x))
         stage("revert")
+        if math.isfinite(tau):
+            stages["revert"]["tau"] = round(tau, 6)
     best_cfg = set_params(start_cfg, best_x) if specs else start_cfg
     intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:

@@ -292,26 +292,42 @@ def screen_parameters(gap_of: Callable, specs: Sequence, start: dict, g_start: f
     return res
 
 
-def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict) -> tuple[dict, list[str]]:
-    """``FitConfig.revert_check`` of :func:`synth.lab.fit.fit_model`: (values, keys put back) - every
-    moved parameter, the largest move (in search units) first, back at its start value while the
-    evaluation gap ``ev`` does not rise."""
+def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict, margin: float = 0.0,
+                 gap_of: Callable | None = None) -> tuple[dict, list[str], float]:
+    """``FitConfig.revert_check`` of :func:`synth.lab.fit.fit_model`: (values, keys put back, tau) -
+    every moved parameter, the largest move (in search units) first, back at its start value while
+    the evaluation gap ``ev`` stays within ``margin`` x tau of the fitted model's gap.
+
+    tau is the gap's noise at the fitted values (:func:`gap_noise`: twice the std over the
+    evaluation seed and two others, at least 2 % of the gap; ``gap_of(values, seed_offset)`` scores
+    on the evaluation set, two more evaluations; NaN when ``margin`` is 0 or nothing moved). With
+    ``margin`` > 0 a move must earn its place: a move whose gain on the evaluation set lies within
+    the noise of the gap is no evidence against the closed-form start (e.g. the noise curve's
+    ``z_offset_m`` lowering the near noise on the search's few pixels while the evaluation set
+    cannot tell it from 0), and the start is kept. The bound is on the total rise over the
+    fitted gap, so several reverts together cost at most ``margin`` x tau. ``margin`` 0: put back
+    while the gap does not rise at all (each revert against the gap after the previous one)."""
     from synth.lab.params import set_params
     start = {s.key: s.from_t(s.to_t(s.value)) for s in specs}
     moved = [s for s in specs if abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])) > 1e-12]
     if not moved:
-        return best_x, []
+        return best_x, [], float("nan")
     moved.sort(key=lambda s: -abs(s.to_t(best_x[s.key]) - s.to_t(start[s.key])))
-    g_cur = ev(set_params(start_cfg, best_x))
+    g_fit = g_cur = ev(set_params(start_cfg, best_x))
+    tau = float("nan")
+    if margin > 0:
+        if gap_of is None:
+            gap_of = seeded_gap_of(ev, start_cfg)
+        tau = gap_noise(gap_of, best_x, g_fit)
     out, back = dict(best_x), []
     for s in moved:
         trial = dict(out)
         trial[s.key] = start[s.key]
         g = ev(set_params(start_cfg, trial))
-        if g <= g_cur:
+        if (g <= g_fit + margin * tau) if margin > 0 else (g <= g_cur):
             out, g_cur = trial, g
             back.append(s.key)
-    return out, back
+    return out, back, tau
 
 
 def seeded_gap_of(obj, base_cfg) -> Callable:
