@@ -36,6 +36,7 @@ whether the fitted value sits on its search bound; plus the gap before/after and
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -273,6 +274,9 @@ def main(argv=None) -> int:
                     "on every --effects x --seeds; --quick for a small diagnose budget")
     ap.add_argument("--quick", action="store_true", help="--generators: 4 frames, 3000 pixels a frame, small "
                     "diagnose budgets (minutes, not hours)")
+    ap.add_argument("--revert-margin", type=float, default=None,
+                    help="--generators: FitConfig.revert_margin of the fits (default: FitConfig's; 0 = the "
+                    "old revert check, put back only while the gap does not rise)")
     args = ap.parse_args(argv)
     if args.generators:
         return _generators(args)
@@ -361,6 +365,8 @@ def _generators(args) -> int:
     if args.quick:
         fc = FitConfig(max_frames=4, max_pixels_per_frame=3000, eval_pixels_per_frame=8000, intervals=False)
         dc = DiagnoseConfig(model_evaluations=40, candidate_evaluations=16, refine_top=1, refine_evaluations=16)
+    if args.revert_margin is not None:
+        fc = dataclasses.replace(fc, revert_margin=float(args.revert_margin))
     tmp = Path(tempfile.mkdtemp(prefix="bench_generators_"))
     records = []
     for gen in args.generators.split(","):

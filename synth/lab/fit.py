@@ -104,9 +104,17 @@ class FitConfig:
     revert_check: bool = True
     """After the search, each parameter the search moved away from its start is put back to the start value
     alone and kept there when that does not raise the gap on the evaluation set (``eval_frames`` x
-    ``eval_pixels_per_frame``: more frames and pixels than the search sees). A move that only fitted the
-    search sample's noise (e.g. the noise curve's offset wandering by 2 cm and lowering the noise 2 %) is
-    undone; one evaluation per moved parameter."""
+    ``eval_pixels_per_frame``: more frames and pixels than the search sees) by more than the noise of
+    that rise (``revert_margin``). A move that only fitted the search sample's noise (e.g. the noise
+    curve's offset wandering by 2 cm and lowering the noise 2 %) is undone; one evaluation per moved
+    parameter, three with ``revert_margin`` (:func:`synth.lab.intervals.revert_moves`)."""
+    revert_margin: float = 1.0
+    """How clearly a move must lower the evaluation gap to be kept by the revert check: the rise d_i
+    of the gap when the parameter goes back, on the evaluation seed and two other simulation seeds
+    (same frames and pixels, paired with the fitted model on each), must have a mean above
+    ``revert_margin`` x twice its std - a gain within the noise draws' scatter is no evidence against
+    the data-driven start. 0 = put back while the gap on the evaluation seed does not rise at all (no
+    extra evaluations)."""
     data_starts: bool = True
     """Try the effects' closed-form ``fit_start`` estimates as the starting point (kept when they
     score better than the given values)."""
@@ -157,6 +165,8 @@ class FitConfig:
             raise ConfigError(f"fit: tolerance must be >= 0, got {self.tolerance}")
         if not float(self.noise_curve_weight) >= 0:
             raise ConfigError(f"fit: noise_curve_weight must be >= 0, got {self.noise_curve_weight}")
+        if not float(self.revert_margin) >= 0:
+            raise ConfigError(f"fit: revert_margin must be >= 0, got {self.revert_margin}")
         if not 0 < float(self.screen_step) <= 0.5:
             raise ConfigError(f"fit: screen_step must be in (0, 0.5], got {self.screen_step}")
         if self.method not in SEARCH_METHODS:
@@ -230,7 +240,7 @@ class FitResult:
     quadratic gap model; r < 0 = a trade-off (one up, the other down explains the data alike)."""
     reverted: list = field(default_factory=list)
     """Parameters the search moved but :attr:`FitConfig.revert_check` put back at their start value (the
-    move did not hold on the evaluation set)."""
+    move did not lower the evaluation set's gap clearly, ``FitConfig.revert_margin``)."""
     frozen: dict = field(default_factory=dict)
     """{"effect.param": reason}: parameters the screen (:attr:`FitConfig.screen`) left at their start
     because the data does not constrain them (their interval is their search bounds)."""
@@ -382,10 +392,12 @@ def fit_model(measured, config, *, names: Sequence[str] | None = None, fit_confi
     reverted: list[str] = []
     if fc.revert_check and specs and best_x:
         from synth.lab.intervals import revert_moves
-        best_x, reverted = revert_moves(ev, start_cfg, specs, best_x)
+        best_x, reverted, gains = revert_moves(ev, start_cfg, specs, best_x, float(fc.revert_margin))
         if reverted:
             g_best = obj(set_params(start_cfg, best_x))
         stage("revert")
+        if gains:
+            stages["revert"]["gains"] = {k: [round(m, 6), round(t, 6)] for k, (m, t) in gains.items()}
     best_cfg = set_params(start_cfg, best_x) if specs else start_cfg
     intervals, noise, single, inflation, correlations = {}, float("nan"), {}, {}, {}
     if fc.intervals and specs and best_x:
