@@ -235,6 +235,10 @@ class Diagnosis:
     """Candidates the measured data cannot tell apart although they are different physics (e.g. a
     dropout by returned signal and one by incidence angle on a scene where the two go together),
     one sentence each; their order in ``ranking`` is then the gain's alone."""
+    gap_noise: float = float("nan")
+    """The gap's noise on the search frames at the refitted model (twice the std over three
+    simulation seeds, at least 2 % of the gap): candidates that lower the gap by less are not told
+    apart by their gains (:func:`rank`)."""
 
     @property
     def best(self) -> Candidate | None:
@@ -247,7 +251,8 @@ class Diagnosis:
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
                        "eval_gain": self.eval_gain, "time_capped": self.time_capped,
-                       "refit_rejected": self.refit_rejected, "ties": list(self.ties)})
+                       "refit_rejected": self.refit_rejected, "ties": list(self.ties),
+                       "gap_noise": self.gap_noise})
 
     @property
     def eval_gain(self) -> float | None:
@@ -367,6 +372,19 @@ class _Ctx:
         self.frames = spread(len(measured), fc.max_frames)
         self.obj = Objective(measured, self.frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
         self.stats: dict = {}
+        self.noise = float("nan")
+        """The gap's noise on the search frames at the base model (:func:`synth.lab.intervals.gap_noise`:
+        twice the std over three simulation seeds, at least 2 % of the gap); NaN until measured."""
+        self._ev = None
+
+    def eval_objective(self):
+        """The evaluation set's objective (``FitConfig.eval_frames`` x ``eval_pixels_per_frame``),
+        built once."""
+        if self._ev is None:
+            fc = self.fc
+            self._ev = Objective(self.measured, spread(len(self.measured), fc.eval_frames),
+                                 fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+        return self._ev
 
     def fitcfg(self, evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
@@ -466,7 +484,7 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
             xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
                                   start_gap=g_alt, local=True, stats=cx.stats)
             alt = set_params(alt, xa)
-        if g_alt < g_def:
+        if _start_beats_defaults(cx, alt, g_alt, cand_cfg, g_def):
             cand_cfg, g_def = alt, g_alt
     specs = param_specs(cand_cfg, [name])
     if specs:
@@ -481,6 +499,21 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
                      evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted)
 
 
+def _start_beats_defaults(cx: _Ctx, alt, g_alt: float, default_cfg, g_def: float) -> bool:
+    """Does the candidate's data-driven start ``alt`` (search gap ``g_alt``) beat its defaults
+    (``g_def``)? On the search set when the two differ by more than the gap's noise
+    (``cx.noise``); within it the sampled search gap cannot tell them apart, so the evaluation set
+    (more pixels, less sampling noise) decides, and the start is kept when that is tied too: a
+    closed-form estimate from the data is a better guess than the preset's defaults when the gap
+    sees no difference (mystery rolling shutter: a start at the true band time trailed the
+    defaults by less than the noise, and the defaults' fit then trailed a null depth bias)."""
+    noise = float(getattr(cx, "noise", float("nan")))
+    if not abs(g_alt - g_def) <= noise or not cx.dc.evaluate:
+        return g_alt < g_def
+    ev = cx.eval_objective()
+    return ev(alt) <= ev(default_cfg)
+
+
 def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: list[Candidate]) -> None:
     """Stage 4: the ``refine_top`` best candidates (by gap) that beat the base model, and any tied
     with the best within the Occam margin (:func:`_tied_with`), refined jointly with the model's
@@ -491,7 +524,7 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
     order = sorted(tried, key=lambda c: c.gap_after)
     picked = order[:int(cx.dc.refine_top)]
     picked += _tied_with([c for c in order[len(picked):] if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS],
-                         picked, base.gap, float(cx.dc.occam_margin))
+                         picked, base.gap, float(cx.dc.occam_margin), float(getattr(cx, "noise", float("nan"))))
     if any(_free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS for c in picked):
         para = next((c for c in order if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS), None)
         if para is not None and para not in picked:
@@ -509,9 +542,12 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
         c.seconds += time.perf_counter() - tc
 
 
-def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin: float) -> list[Candidate]:
+def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin: float,
+               noise: float = float("nan")) -> list[Candidate]:
     """The candidates of ``rest`` whose gain over the base gap ``g0`` lies within ``margin`` (relative,
-    the Occam margin) of the best of ``picked``: the ranking treats them as equal, so they are
+    the Occam margin) of the best of ``picked``, or whose gap lies within the gap's ``noise`` of the
+    best's (the sampled gap cannot order them: a rolling shutter 0.001 behind a depth bias that alone
+    was refined, the noise 0.0011): the ranking treats them as equal, so they are
     refined too (mystery edge_fattening 23: edge fattening and a depth bias at 0.7708 / 0.7709
     unrefined; only the depth bias was refined, to 0.913, and led a fattening that refines alike).
     Learned maps are left to the map rule of :func:`refine_best` and :func:`rank`."""
@@ -520,7 +556,8 @@ def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin
     best = (g0 - picked[0].gap_after) / g0
     if not best > 0:
         return []
-    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin)]
+    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin)
+            or (noise > 0 and c.gap_after < g0 and c.gap_after - picked[0].gap_after < noise)]
 
 
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
@@ -542,10 +579,22 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
         if alts:
             lead = alts[0]
     near = [c for c in out if c.gain > 0 and c.gain >= lead.gain * (1.0 - cx.dc.occam_margin)]
+    near += [c for c in _within_noise(cx, g0, lead, out) if c not in near]
     first = min(near, key=lambda c: (free[id(c)], -c.gain))
     out.remove(first)
     out.insert(0, first)
     return out
+
+
+def _within_noise(cx: _Ctx, g0: float, lead: Candidate, cands: Sequence[Candidate]) -> list[Candidate]:
+    """The candidates that lower the gap ``g0`` and leave a gap within the gap's noise (``cx.noise``,
+    about 2 standard deviations) of ``lead``'s: the data cannot order them by gain (two gains below
+    the noise, each fitted to it; or two real gains the sampled gap cannot tell apart); empty when
+    the noise is unknown."""
+    noise = float(getattr(cx, "noise", float("nan")))
+    if not noise > 0 or not g0 > 0:
+        return []
+    return [c for c in cands if c.gain > 0 and c.gap_after - lead.gap_after < noise]
 
 
 def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx) -> tuple[list[Candidate], list]:
@@ -555,12 +604,23 @@ def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx)
     tell them apart."""
     from synth.lab.decisive import decisive_signatures, promote
     ranking = rank(cx, base, tried)
+    noise_tie = []
+    if ranking and ranking[0].gain > 0:
+        a = ranking[0]
+        rivals = sorted((c for c in ranking if c is not a), key=lambda c: (
+            _free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS, -c.gain))
+        b = rivals[0] if rivals and rivals[0].gain > a.gain else None
+        if b is not None and b in _within_noise(cx, base.gap, a, [b]):
+            noise_tie = [(a.effect, b.effect, f"their gaps lie within the gap's noise ({cx.noise:.2g}) of each other "
+                          f"({a.gap_after:.4g}, {b.gap_after:.4g}), so the data cannot order them by gain; the one "
+                          f"with fewer free numbers is named first")]
     if not cx.dc.decisive_gain_ratio > 0 or not ranking:
-        return ranking, []
+        return ranking, noise_tie
     from synth.lab.decisive import EXACT
     gaining = [c.effect for c in ranking if c.gain > 0 or c.effect in EXACT]
     decided, pairs = decisive_signatures(ctx, gaining)
-    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)), pairs
+    return (promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)),
+            noise_tie + list(pairs))
 
 
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
@@ -621,6 +681,8 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     try:
         base = refit_base(cx, config)
         cx.tick()
+        from synth.lab.intervals import gap_noise, seeded_gap_of
+        cx.noise = gap_noise(seeded_gap_of(cx.obj, base.config), {}, base.gap)
         base_sims = measured.simulate(base.config, fc.seed, cx.frames)
         probe = probe_candidates(cx, base.config, base_sims, cands)
         if not probe.tryable and probe.inert:
@@ -653,8 +715,9 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     idx = measured.frame_indices
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
-                     seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations,
+                     seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations
+                     + (cx._ev.evaluations if cx._ev is not None else 0),
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
                      time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,
-                     ties=[f"{a} / {b}: {why}" for a, b, why in ties])
+                     ties=[f"{a} / {b}: {why}" for a, b, why in ties], gap_noise=float(cx.noise))
