@@ -22,7 +22,9 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
-   the data-driven estimates of the effect's ``fit_start`` when they score better, a coarser
+   the data-driven estimates of the effect's ``fit_start`` when they score better - on the
+   evaluation set when the two lie within the gap's noise on the search set, the start kept on a
+   tie there (:func:`synth.lab.noise_ties.start_beats_defaults`) - a coarser
    grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
    parameter up to ``candidate_evaluations``; only parameters whose scan
    beats the model's gap are refined), then **refine the best**
@@ -33,7 +35,11 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    ``1 - occam_map_margin`` (75 %) of the gap the best parametric candidate leaves to lead, and of candidates
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
-   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias). Each candidate gets an ``evidence``
+   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias).
+   So does any candidate whose gap lies within the gap's noise of the leader's (``Diagnosis.gap_noise``:
+   twice the std over three simulation seeds at the refitted model, at least 2 % of its gap): the
+   sampled gap cannot order them, and two gains below the noise are each a fit to it; the pair is
+   then named in ``Diagnosis.ties``. Each candidate gets an ``evidence``
    sentence computed from the measured data (:mod:`synth.lab.evidence`). Then signatures that
    decide without a fit (:mod:`synth.lab.decisive`: a disparity lattice the model lacks; holes
    that follow the returned signal rather than the incidence angle, or the reverse) move their
@@ -72,6 +78,7 @@ from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
+from synth.lab.noise_ties import noise_tie, start_beats_defaults, within_noise
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
            "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",
@@ -484,7 +491,7 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
             xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
                                   start_gap=g_alt, local=True, stats=cx.stats)
             alt = set_params(alt, xa)
-        if _start_beats_defaults(cx, alt, g_alt, cand_cfg, g_def):
+        if start_beats_defaults(cx.noise, cx.dc.evaluate, cx.eval_objective, alt, g_alt, cand_cfg, g_def):
             cand_cfg, g_def = alt, g_alt
     specs = param_specs(cand_cfg, [name])
     if specs:
@@ -497,21 +504,6 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
     cx.tick()
     return Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
                      evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted)
-
-
-def _start_beats_defaults(cx: _Ctx, alt, g_alt: float, default_cfg, g_def: float) -> bool:
-    """Does the candidate's data-driven start ``alt`` (search gap ``g_alt``) beat its defaults
-    (``g_def``)? On the search set when the two differ by more than the gap's noise
-    (``cx.noise``); within it the sampled search gap cannot tell them apart, so the evaluation set
-    (more pixels, less sampling noise) decides, and the start is kept when that is tied too: a
-    closed-form estimate from the data is a better guess than the preset's defaults when the gap
-    sees no difference (mystery rolling shutter: a start at the true band time trailed the
-    defaults by less than the noise, and the defaults' fit then trailed a null depth bias)."""
-    noise = float(getattr(cx, "noise", float("nan")))
-    if not abs(g_alt - g_def) <= noise or not cx.dc.evaluate:
-        return g_alt < g_def
-    ev = cx.eval_objective()
-    return ev(alt) <= ev(default_cfg)
 
 
 def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: list[Candidate]) -> None:
@@ -563,8 +555,9 @@ def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     """Candidates by gain, best first, with two Occam rules (:class:`DiagnoseConfig`): a learned map
     whose gap left is not ``occam_map_margin`` (relative) below the best parametric candidate's gives way to it,
-    and of the candidates within ``occam_margin`` (relative) of the leader the one with the fewest
-    free numbers ranks first."""
+    and of the candidates within ``occam_margin`` (relative) of the leader, or whose gap lies within
+    the gap's noise (``cx.noise``, when known) of the leader's, the one with the fewest free numbers
+    ranks first."""
     g0 = base.gap
     for c in tried:
         c.gain = float((g0 - c.gap_after) / g0) if g0 > 0 else 0.0
@@ -579,22 +572,11 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
         if alts:
             lead = alts[0]
     near = [c for c in out if c.gain > 0 and c.gain >= lead.gain * (1.0 - cx.dc.occam_margin)]
-    near += [c for c in _within_noise(cx, g0, lead, out) if c not in near]
+    near += [c for c in within_noise(float(getattr(cx, "noise", float("nan"))), g0, lead, out) if c not in near]
     first = min(near, key=lambda c: (free[id(c)], -c.gain))
     out.remove(first)
     out.insert(0, first)
     return out
-
-
-def _within_noise(cx: _Ctx, g0: float, lead: Candidate, cands: Sequence[Candidate]) -> list[Candidate]:
-    """The candidates that lower the gap ``g0`` and leave a gap within the gap's noise (``cx.noise``,
-    about 2 standard deviations) of ``lead``'s: the data cannot order them by gain (two gains below
-    the noise, each fitted to it; or two real gains the sampled gap cannot tell apart); empty when
-    the noise is unknown."""
-    noise = float(getattr(cx, "noise", float("nan")))
-    if not noise > 0 or not g0 > 0:
-        return []
-    return [c for c in cands if c.gain > 0 and c.gap_after - lead.gap_after < noise]
 
 
 def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx) -> tuple[list[Candidate], list]:
@@ -604,23 +586,15 @@ def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx)
     tell them apart."""
     from synth.lab.decisive import decisive_signatures, promote
     ranking = rank(cx, base, tried)
-    noise_tie = []
-    if ranking and ranking[0].gain > 0:
-        a = ranking[0]
-        rivals = sorted((c for c in ranking if c is not a), key=lambda c: (
-            _free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS, -c.gain))
-        b = rivals[0] if rivals and rivals[0].gain > a.gain else None
-        if b is not None and b in _within_noise(cx, base.gap, a, [b]):
-            noise_tie = [(a.effect, b.effect, f"their gaps lie within the gap's noise ({cx.noise:.2g}) of each other "
-                          f"({a.gap_after:.4g}, {b.gap_after:.4g}), so the data cannot order them by gain; the one "
-                          f"with fewer free numbers is named first")]
+    by_noise = noise_tie(ranking, float(getattr(cx, "noise", float("nan"))), base.gap,
+                         lambda c: _free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS)
     if not cx.dc.decisive_gain_ratio > 0 or not ranking:
-        return ranking, noise_tie
+        return ranking, by_noise
     from synth.lab.decisive import EXACT
     gaining = [c.effect for c in ranking if c.gain > 0 or c.effect in EXACT]
     decided, pairs = decisive_signatures(ctx, gaining)
     return (promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)),
-            noise_tie + list(pairs))
+            by_noise + list(pairs))
 
 
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
