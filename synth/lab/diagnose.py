@@ -22,11 +22,9 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
-   the data-driven estimates of the effect's ``fit_start`` when they score better - on the
-   evaluation set when the two lie within the gap's noise on the search set, the start kept on a
-   tie there (:func:`synth.lab.noise_ties.start_beats_defaults`) - a coarser
-   grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
-   parameter up to ``candidate_evaluations``; only parameters whose scan
+   the data-driven estimates of the effect's ``fit_start`` when they score better
+   (:func:`synth.lab.noise_ties.start_beats_defaults`), a coarser grid of ``candidate_grid_points``,
+   ``candidate_evaluations_per_param`` evaluations per parameter up to ``candidate_evaluations``; only parameters whose scan
    beats the model's gap are refined), then **refine the best**
    ``refine_top`` jointly with the model's parameters (budget ``refine_evaluations``; a local
    search around the fitted values: an effect that the refitted model's noise had partly
@@ -35,11 +33,8 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    ``1 - occam_map_margin`` (75 %) of the gap the best parametric candidate leaves to lead, and of candidates
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
-   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias).
-   So does any candidate whose gap lies within the gap's noise of the leader's (``Diagnosis.gap_noise``:
-   twice the std over three simulation seeds at the refitted model, at least 2 % of its gap): the
-   sampled gap cannot order them, and two gains below the noise are each a fit to it; the pair is
-   then named in ``Diagnosis.ties``. Each candidate gets an ``evidence``
+   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias),
+   as do those within the gap's noise of it (:mod:`synth.lab.noise_ties`). Each candidate gets an ``evidence``
    sentence computed from the measured data (:mod:`synth.lab.evidence`). Then signatures that
    decide without a fit (:mod:`synth.lab.decisive`: a disparity lattice the model lacks; holes
    that follow the returned signal rather than the incidence angle, or the reverse) move their
@@ -78,7 +73,8 @@ from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
-from synth.lab.noise_ties import noise_tie, start_beats_defaults, within_noise
+from synth.lab.noise_ties import (evaluation_objective, measure_noise, noise_tie, start_beats_defaults,
+                                  within_noise)
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
            "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",
@@ -243,9 +239,7 @@ class Diagnosis:
     dropout by returned signal and one by incidence angle on a scene where the two go together),
     one sentence each; their order in ``ranking`` is then the gain's alone."""
     gap_noise: float = float("nan")
-    """The gap's noise on the search frames at the refitted model (twice the std over three
-    simulation seeds, at least 2 % of the gap): candidates that lower the gap by less are not told
-    apart by their gains (:func:`rank`)."""
+    """The gap's noise at the refitted model (:mod:`synth.lab.noise_ties`)."""
 
     @property
     def best(self) -> Candidate | None:
@@ -379,19 +373,7 @@ class _Ctx:
         self.frames = spread(len(measured), fc.max_frames)
         self.obj = Objective(measured, self.frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
         self.stats: dict = {}
-        self.noise = float("nan")
-        """The gap's noise on the search frames at the base model (:func:`synth.lab.intervals.gap_noise`:
-        twice the std over three simulation seeds, at least 2 % of the gap); NaN until measured."""
-        self._ev = None
-
-    def eval_objective(self):
-        """The evaluation set's objective (``FitConfig.eval_frames`` x ``eval_pixels_per_frame``),
-        built once."""
-        if self._ev is None:
-            fc = self.fc
-            self._ev = Objective(self.measured, spread(len(self.measured), fc.eval_frames),
-                                 fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
-        return self._ev
+        self.noise, self.eval_objective = float("nan"), evaluation_objective(measured, fc)   # noise: diagnose's
 
     def fitcfg(self, evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
@@ -537,9 +519,8 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
 def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin: float,
                noise: float = float("nan")) -> list[Candidate]:
     """The candidates of ``rest`` whose gain over the base gap ``g0`` lies within ``margin`` (relative,
-    the Occam margin) of the best of ``picked``, or whose gap lies within the gap's ``noise`` of the
-    best's (the sampled gap cannot order them: a rolling shutter 0.001 behind a depth bias that alone
-    was refined, the noise 0.0011): the ranking treats them as equal, so they are
+    the Occam margin) of the best of ``picked``, or whose gap lies within ``noise`` of the best's:
+    the ranking treats them as equal, so they are
     refined too (mystery edge_fattening 23: edge fattening and a depth bias at 0.7708 / 0.7709
     unrefined; only the depth bias was refined, to 0.913, and led a fattening that refines alike).
     Learned maps are left to the map rule of :func:`refine_best` and :func:`rank`."""
@@ -555,9 +536,8 @@ def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     """Candidates by gain, best first, with two Occam rules (:class:`DiagnoseConfig`): a learned map
     whose gap left is not ``occam_map_margin`` (relative) below the best parametric candidate's gives way to it,
-    and of the candidates within ``occam_margin`` (relative) of the leader, or whose gap lies within
-    the gap's noise (``cx.noise``, when known) of the leader's, the one with the fewest free numbers
-    ranks first."""
+    and of the candidates within ``occam_margin`` (relative) of the leader, or within the gap's noise
+    (``cx.noise``) of it, the one with the fewest free numbers ranks first."""
     g0 = base.gap
     for c in tried:
         c.gain = float((g0 - c.gap_after) / g0) if g0 > 0 else 0.0
@@ -655,8 +635,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     try:
         base = refit_base(cx, config)
         cx.tick()
-        from synth.lab.intervals import gap_noise, seeded_gap_of
-        cx.noise = gap_noise(seeded_gap_of(cx.obj, base.config), {}, base.gap)
+        cx.noise = measure_noise(cx.obj, base.config, base.gap)
         base_sims = measured.simulate(base.config, fc.seed, cx.frames)
         probe = probe_candidates(cx, base.config, base_sims, cands)
         if not probe.tryable and probe.inert:
@@ -690,7 +669,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
                      seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations
-                     + (cx._ev.evaluations if cx._ev is not None else 0),
+                     + sum(o.evaluations for o in cx.eval_objective.made),
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
                      time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,

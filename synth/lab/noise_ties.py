@@ -11,7 +11,28 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-__all__ = ["start_beats_defaults", "within_noise", "noise_tie"]
+__all__ = ["measure_noise", "evaluation_objective", "start_beats_defaults", "within_noise", "noise_tie"]
+
+
+def measure_noise(obj, config, gap: float) -> float:
+    """tau of ``config`` (gap ``gap`` on the objective ``obj``, a :class:`synth.lab.objective.Objective`):
+    :func:`synth.lab.intervals.gap_noise` over the search seed and two others (2 evaluations)."""
+    from synth.lab.intervals import gap_noise, seeded_gap_of
+    return gap_noise(seeded_gap_of(obj, config), {}, gap)
+
+
+def evaluation_objective(measured, fc) -> Callable:
+    """``get()`` -> the evaluation set's objective (``fc.eval_frames`` x ``fc.eval_pixels_per_frame``
+    of ``measured``), built on the first call; ``get.made`` holds it once built (for its evaluation
+    count)."""
+    def get():
+        if not get.made:
+            from synth.lab.fit import Objective, spread
+            get.made.append(Objective(measured, spread(len(measured), fc.eval_frames),
+                                      fc.compare_config(fc.eval_pixels_per_frame), fc.seed))
+        return get.made[0]
+    get.made = []
+    return get
 
 
 def start_beats_defaults(noise: float, evaluate: bool, eval_objective: Callable, alt, g_alt: float,
