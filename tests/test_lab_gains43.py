@@ -508,3 +508,65 @@ def test_mystery_lens_31_noise_curve_offset_is_put_back(tmp_path):
     assert abs(fit2m / true2m - 1.0) < 0.10, (fit2m, true2m, res.params)
     assert abs(res.config.effect("lens_distortion").params.k1 - a["params"]["k1"]) < 0.02
     assert res.stages["revert"]["gains"]["axial_noise.z_offset_m"][0] < res.stages["revert"]["gains"]["axial_noise.z_offset_m"][1]
+
+
+def _rank_cands(gaps: dict):
+    """Candidates (effect -> gap left) on the preset's defaults, for :func:`synth.lab.diagnose.rank`."""
+    from synth.lab.diagnose import Candidate
+    from synth.sensor.config import SensorConfig
+    out = []
+    for eff, g in gaps.items():
+        cfg = SensorConfig.build("kinect_v1", ["axial_noise", eff])
+        out.append(Candidate(eff, g, 0.0, {}, "", config=cfg))
+    return out
+
+
+def test_gains_within_the_gap_noise_do_not_order_candidates():
+    """Mystery projector_shadow 49 (base gap 0.0206, noise 0.0011): a null depth bias (4 numbers fitted to
+    noise) lowered the gap by 0.00054, the shadow (1 number) by 0.00028 - both below the noise, so
+    neither outranks the other on gain: the simpler leads, and the pair is named as a tie. Mystery
+    rolling_shutter 34 (gap 0.0351, noise 0.0045): depth bias 0.02563, rolling shutter (2 numbers)
+    0.02653 - real gains, within the noise of each other. A lead larger than the noise still counts."""
+    from synth.lab.diagnose import DiagnoseConfig, rank, rank_with_signatures
+
+    def ranked(base_gap, noise, gaps):
+        cx = SimpleNamespace(dc=DiagnoseConfig(decisive_gain_ratio=0.0), noise=noise)
+        base = SimpleNamespace(gap=base_gap)
+        order, ties = rank_with_signatures(cx, base, _rank_cands(gaps), None)
+        assert [c.effect for c in order] == [c.effect for c in rank(cx, base, _rank_cands(gaps))]
+        return [c.effect for c in order], ties
+
+    shadow49 = {"depth_bias": 0.02006, "projector_shadow": 0.02032, "lens_distortion": 0.0206034}
+    order, ties = ranked(0.020603, 0.0011, shadow49)
+    assert order[:2] == ["projector_shadow", "depth_bias"]
+    assert len(ties) == 1 and ties[0][:2] == ("projector_shadow", "depth_bias")
+    assert ranked(0.020603, float("nan"), shadow49)[0][:2] == ["depth_bias", "projector_shadow"]  # gain alone
+    shutter34 = {"depth_bias": 0.02563, "rolling_shutter": 0.02653, "hole_filling": 0.03484}
+    assert ranked(0.035067, 0.0045, shutter34)[0] == ["rolling_shutter", "depth_bias", "hole_filling"]
+    # the same gaps with a noise of 0.0005: the depth bias's lead of 0.0009 is real
+    order, ties = ranked(0.035067, 0.0005, shutter34)
+    assert order == ["depth_bias", "rolling_shutter", "hole_filling"] and ties == []
+
+
+def test_start_and_defaults_within_the_noise_are_decided_on_the_evaluation_set():
+    """fit_candidate's start-or-defaults choice (mystery rolling_shutter 34: start 0.02743, defaults
+    0.02673 on the 3000-pixel search gap, noise 0.0045): within the noise the evaluation set decides
+    (there the start leads), and a tie there keeps the data start; outside the noise the search gap
+    decides alone, without evaluating."""
+    from synth.lab.noise_ties import start_beats_defaults
+    calls = []
+
+    def beats(noise, ev_gaps, g_alt, g_def):
+        def ev(cfg):
+            calls.append(cfg)
+            return ev_gaps[cfg]
+        return start_beats_defaults(noise, True, lambda: ev, "start", g_alt, "def", g_def)
+
+    assert beats(0.0045, {"start": 0.0200, "def": 0.0203}, 0.02743, 0.02673)
+    assert not beats(0.0045, {"start": 0.0210, "def": 0.0203}, 0.02743, 0.02673)
+    assert beats(0.0045, {"start": 0.0203, "def": 0.0203}, 0.02743, 0.02673)
+    calls.clear()
+    assert not beats(0.0005, {}, 0.02743, 0.02673)          # a real difference: the search gap alone
+    assert beats(float("nan"), {}, 0.0260, 0.02673)         # noise unknown: the search gap alone
+    assert not start_beats_defaults(0.0045, False, None, "start", 0.02743, "def", 0.02673)   # no evaluation set
+    assert calls == []

@@ -22,9 +22,9 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    probe frame at their defaults and at both bounds of every parameter (e.g. specular dropout
    in a scene without specular materials, motion effects for a static camera).
 3. **Fit each candidate** (its parameters only, starting from the preset's defaults or from
-   the data-driven estimates of the effect's ``fit_start`` when they score better, a coarser
-   grid of ``candidate_grid_points``, ``candidate_evaluations_per_param`` evaluations per
-   parameter up to ``candidate_evaluations``; only parameters whose scan
+   the data-driven estimates of the effect's ``fit_start`` when they score better
+   (:func:`synth.lab.noise_ties.start_beats_defaults`), a coarser grid of ``candidate_grid_points``,
+   ``candidate_evaluations_per_param`` evaluations per parameter up to ``candidate_evaluations``; only parameters whose scan
    beats the model's gap are refined), then **refine the best**
    ``refine_top`` jointly with the model's parameters (budget ``refine_evaluations``; a local
    search around the fitted values: an effect that the refitted model's noise had partly
@@ -33,7 +33,8 @@ Method (all gaps on the same search frames, seeds and compare pixels, so they ar
    ``1 - occam_map_margin`` (75 %) of the gap the best parametric candidate leaves to lead, and of candidates
    within ``occam_margin`` (1 %, relative) of the leader the one with the fewest free numbers ranks
    first (a learned map imitates a parametric bias as well as the bias itself: on the generator's
-   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias). Each candidate gets an ``evidence``
+   depth bias, studio seed 11, gains 0.913 for disparity_distortion against 0.911 for depth_bias),
+   as do those within the gap's noise of it (:mod:`synth.lab.noise_ties`). Each candidate gets an ``evidence``
    sentence computed from the measured data (:mod:`synth.lab.evidence`). Then signatures that
    decide without a fit (:mod:`synth.lab.decisive`: a disparity lattice the model lacks; holes
    that follow the returned signal rather than the incidence angle, or the reverse) move their
@@ -72,6 +73,8 @@ from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
+from synth.lab.noise_ties import (evaluation_objective, measure_noise, noise_tie, start_beats_defaults,
+                                  within_noise)
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
            "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",
@@ -235,6 +238,8 @@ class Diagnosis:
     """Candidates the measured data cannot tell apart although they are different physics (e.g. a
     dropout by returned signal and one by incidence angle on a scene where the two go together),
     one sentence each; their order in ``ranking`` is then the gain's alone."""
+    gap_noise: float = float("nan")
+    """The gap's noise at the refitted model (:mod:`synth.lab.noise_ties`)."""
 
     @property
     def best(self) -> Candidate | None:
@@ -247,7 +252,8 @@ class Diagnosis:
                        "evaluations": self.evaluations, "sequence": self.sequence, "settings": self.settings,
                        "eval_gap": self.eval_gap, "eval_frames": list(self.eval_frames),
                        "eval_gain": self.eval_gain, "time_capped": self.time_capped,
-                       "refit_rejected": self.refit_rejected, "ties": list(self.ties)})
+                       "refit_rejected": self.refit_rejected, "ties": list(self.ties),
+                       "gap_noise": self.gap_noise})
 
     @property
     def eval_gain(self) -> float | None:
@@ -367,6 +373,7 @@ class _Ctx:
         self.frames = spread(len(measured), fc.max_frames)
         self.obj = Objective(measured, self.frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
         self.stats: dict = {}
+        self.noise, self.eval_objective = float("nan"), evaluation_objective(measured, fc)   # noise: diagnose's
 
     def fitcfg(self, evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
@@ -466,7 +473,7 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
             xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
                                   start_gap=g_alt, local=True, stats=cx.stats)
             alt = set_params(alt, xa)
-        if g_alt < g_def:
+        if start_beats_defaults(cx.noise, cx.dc.evaluate, cx.eval_objective, alt, g_alt, cand_cfg, g_def):
             cand_cfg, g_def = alt, g_alt
     specs = param_specs(cand_cfg, [name])
     if specs:
@@ -512,7 +519,7 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
     order = sorted(tried, key=lambda c: c.gap_after)
     picked = order[:int(cx.dc.refine_top)]
     picked += _tied_with([c for c in order[len(picked):] if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS],
-                         picked, base.gap, float(cx.dc.occam_margin))
+                         picked, base.gap, float(cx.dc.occam_margin), float(getattr(cx, "noise", float("nan"))))
     if any(_free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS for c in picked):
         para = next((c for c in order if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS), None)
         if para is not None and para not in picked:
@@ -530,9 +537,11 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
         c.seconds += time.perf_counter() - tc
 
 
-def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin: float) -> list[Candidate]:
+def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin: float,
+               noise: float = float("nan")) -> list[Candidate]:
     """The candidates of ``rest`` whose gain over the base gap ``g0`` lies within ``margin`` (relative,
-    the Occam margin) of the best of ``picked``: the ranking treats them as equal, so they are
+    the Occam margin) of the best of ``picked``, or whose gap lies within ``noise`` of the best's:
+    the ranking treats them as equal, so they are
     refined too (mystery edge_fattening 23: edge fattening and a depth bias at 0.7708 / 0.7709
     unrefined; only the depth bias was refined, to 0.913, and led a fattening that refines alike).
     Learned maps are left to the map rule of :func:`refine_best` and :func:`rank`."""
@@ -541,14 +550,15 @@ def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin
     best = (g0 - picked[0].gap_after) / g0
     if not best > 0:
         return []
-    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin)]
+    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin)
+            or (noise > 0 and c.gap_after < g0 and c.gap_after - picked[0].gap_after < noise)]
 
 
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
     """Candidates by gain, best first, with two Occam rules (:class:`DiagnoseConfig`): a learned map
     whose gap left is not ``occam_map_margin`` (relative) below the best parametric candidate's gives way to it,
-    and of the candidates within ``occam_margin`` (relative) of the leader the one with the fewest
-    free numbers ranks first."""
+    and of the candidates within ``occam_margin`` (relative) of the leader, or within the gap's noise
+    (``cx.noise``) of it, the one with the fewest free numbers ranks first."""
     g0 = base.gap
     for c in tried:
         c.gain = float((g0 - c.gap_after) / g0) if g0 > 0 else 0.0
@@ -563,6 +573,7 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
         if alts:
             lead = alts[0]
     near = [c for c in out if c.gain > 0 and c.gain >= lead.gain * (1.0 - cx.dc.occam_margin)]
+    near += [c for c in within_noise(float(getattr(cx, "noise", float("nan"))), g0, lead, out) if c not in near]
     first = min(near, key=lambda c: (free[id(c)], -c.gain))
     out.remove(first)
     out.insert(0, first)
@@ -576,12 +587,15 @@ def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx)
     tell them apart."""
     from synth.lab.decisive import decisive_signatures, promote
     ranking = rank(cx, base, tried)
+    by_noise = noise_tie(ranking, float(getattr(cx, "noise", float("nan"))), base.gap,
+                         lambda c: _free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS)
     if not cx.dc.decisive_gain_ratio > 0 or not ranking:
-        return ranking, []
+        return ranking, by_noise
     from synth.lab.decisive import EXACT
     gaining = [c.effect for c in ranking if c.gain > 0 or c.effect in EXACT]
     decided, pairs = decisive_signatures(ctx, gaining)
-    return promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)), pairs
+    return (promote(ranking, decided, float(cx.dc.decisive_gain_ratio), float(cx.dc.decisive_gap_margin)),
+            by_noise + list(pairs))
 
 
 def evaluate_held_out(cx: _Ctx, base: BaseRefit, top: Sequence[Candidate]) -> HeldOut:
@@ -642,6 +656,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     try:
         base = refit_base(cx, config)
         cx.tick()
+        cx.noise = measure_noise(cx.obj, base.config, base.gap)
         base_sims = measured.simulate(base.config, fc.seed, cx.frames)
         probe = probe_candidates(cx, base.config, base_sims, cands)
         if not probe.tryable and probe.inert:
@@ -674,8 +689,9 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     idx = measured.frame_indices
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
-                     seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations,
+                     seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations
+                     + sum(o.evaluations for o in cx.eval_objective.made),
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
                      time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,
-                     ties=[f"{a} / {b}: {why}" for a, b, why in ties])
+                     ties=[f"{a} / {b}: {why}" for a, b, why in ties], gap_noise=float(cx.noise))
