@@ -92,8 +92,9 @@ class DepthBias(Effect):
         the farthest (nearest) measured depth only the pixels whose noise made them nearer (farther)
         survive, and their mean error is pulled towards the inside of the range by up to a noise sd.
         That one-sided pull sits at one end of the depth range, where the 1/z^2 (offset) column
-        absorbs it and tilts the whole curve: a still camera whose usable pixels lie at 2.1-3.3 m
-        below a 3.22 m limit started at a 9 mm offset on a curve without one. After a first fit,
+        absorbs it and tilts the whole curve (over a narrow far range, e.g. 2-3.3 m, offset, scale and
+        disparity offset are correlated at 0.99, and the tilt moves the extrapolated bias at 1 m by
+        millimetres while the fit at the data's depths stays within the noise). After a first fit,
         the rows whose predicted measured depth lies within :data:`CENSOR_SDS` noise sd of (or
         beyond) the measured extremes are left out and the fit repeated (:func:`_uncensored`)."""
         from synth.sensor.effects._common import locally_flat, measured_samples
