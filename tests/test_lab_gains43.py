@@ -436,18 +436,3 @@ def test_depth_bias_start_leaves_out_the_pixels_a_range_limit_censors(z0, z1, lo
     for z in (1.0, 2.0, 3.0):
         assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=0.0006)
 
-
-def test_depth_bias_start_maps_the_regression_back_to_the_model_exactly():
-    """Noise-free, no range limit, mystery depth_bias 27's kind of bias (a -0.4 px disparity offset
-    with a -0.7 % scale: 0.33 m at 3 m). The regression's coefficients are e / (1 + s) and
-    s / (1 + s); returned as they were, the start was 0.003 px and 0.6 mm (at 3 m) off. Mapped back:
-    the model's values to 1e-4 px / 1e-5 and the bias to 0.05 mm."""
-    from synth.sensor.effects.depth_bias import DepthBias
-    e, s = -0.4, -0.007
-    ms, cfg, fb = _biased_ramps(0.8, 3.5, e, s, 0.0)
-    st = DepthBias.fit_start(ms, cfg, None)
-    assert st["depth_bias.disparity_offset_px"] == pytest.approx(e, abs=1e-4)
-    assert st["depth_bias.scale"] == pytest.approx(s, abs=1e-5)
-    truth = {"depth_bias.disparity_offset_px": e, "depth_bias.scale": s, "depth_bias.offset_m": 0.0}
-    for z in (1.0, 2.0, 3.0):
-        assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=5e-5)

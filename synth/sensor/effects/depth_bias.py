@@ -67,14 +67,10 @@ class DepthBias(Effect):
     def fit_start(cls, measured, config, frames) -> dict[str, float]:
         """Offset, scale and disparity errors by least squares on the measured pixels.
 
-        Triangulation (f b > 0): the model gives y = f b (1/z' - 1/z) =
-        (e + e_r r^2 - s f b / z) / (1 + s) - o f b / z^2 to first order in o (e the disparity
-        offset, e_r the radial term at the corner, s the scale, o the offset; r the normalised image
-        radius), linear in e' = e / (1 + s), e_r' = e_r / (1 + s), s' = s / (1 + s) and o; the
-        disparity residual y has constant noise, so ordinary least squares is right. Without an
-        offset the relation is exact, and the fitted primed values are mapped back (s = s' / (1 - s'),
-        e = e' / (1 - s'), e_r likewise, o (1 + s)^-2 = o'): returned as they are, a 0.4 px disparity offset
-        with a -0.7 % scale, a 0.33 m bias at 3 m, would start 3 mm off there.
+        Triangulation (f b > 0): to first order the model gives y = f b (1/z' - 1/z) =
+        e + e_r r^2 - s f b / z - o f b / z^2 (e the disparity offset, e_r the radial term at the
+        corner, s the scale, o the offset; r the normalised image radius), linear in the four
+        unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
         (mismatches, flying pixels); when the model has edge_fattening only pixels whose ideal depth
         is locally flat are used (within 3 % over 8 px: ``_common.locally_flat``, not beside an edge,
@@ -154,8 +150,6 @@ class DepthBias(Effect):
             if np.allclose(new, coef, rtol=0.0, atol=1e-9):
                 break
             coef = new
-        if fb > 0:      # the primed values of the regression -> the model's (see above), inside the fit ranges
-            coef = np.clip(_unprimed(coef), *np.asarray(bounds, np.float64).T)
         return {f"{n}.{k}": float(c) for k, c in zip(keys, coef)}
 
     @classmethod
@@ -208,15 +202,6 @@ predicted beyond it (and at least as many as measured ones)."""
 CENSOR_MIN_SHARE = 0.3
 """Fewer rows than this share of the start's rows left after the censoring cut (or fewer than 100): the
 cut is not made (a sequence that lies mostly near its range limit has nothing better to offer)."""
-
-
-def _unprimed(coef: np.ndarray) -> np.ndarray:
-    """The triangulation start's regression coefficients (e', e_r', s', o') (see
-    :meth:`DepthBias.fit_start`) -> (disparity_offset_px, radial_disparity_px, scale, offset_m):
-    s = s' / (1 - s'), e = e' (1 + s), e_r = e_r' (1 + s), o = o' (1 + s)^2."""
-    e1, er1, s1, o1 = coef
-    sc = s1 / (1.0 - s1)
-    return np.array([e1 * (1.0 + sc), er1 * (1.0 + sc), sc, o1 * (1.0 + sc) ** 2])
 
 
 def _predicted_depth(A: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float) -> np.ndarray:
