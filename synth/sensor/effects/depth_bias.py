@@ -92,7 +92,8 @@ class DepthBias(Effect):
         disparity offset are correlated at 0.99, and the tilt moves the extrapolated bias at 1 m by
         millimetres while the fit at the data's depths stays within the noise). After a first fit,
         the rows whose predicted measured depth lies within :data:`CENSOR_SDS` noise sd of (or
-        beyond) the measured extremes are left out and the fit repeated (:func:`_uncensored`)."""
+        beyond) a range limit the data shows (a measured extreme with holes beyond it) are left out
+        and the fit repeated (:func:`_uncensored`)."""
         from synth.sensor.effects._common import locally_flat, measured_samples
         from synth.sensor.effects.lens_distortion import warped_ideal_depth
         from synth.sensor.effects._common import measured_depth_range
