@@ -71,6 +71,9 @@ class DepthBias(Effect):
         e + e_r r^2 - s f b / z - o f b / z^2 (e the disparity offset, e_r the radial term at the
         corner, s the scale, o the offset; r the normalised image radius), linear in the four
         unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
+        That linearisation is then refined on the model's exact curve (:func:`_exact_refit`): its
+        coefficients are e / (1 + s) and s / (1 + s), not e and s, and it has no cross terms of the
+        offset with the others.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
         (mismatches, flying pixels); when the model has edge_fattening only pixels whose ideal depth
         is locally flat are used (within 3 % over 8 px: ``_common.locally_flat``, not beside an edge,
