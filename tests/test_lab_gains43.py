@@ -436,3 +436,23 @@ def test_depth_bias_start_leaves_out_the_pixels_a_range_limit_censors(z0, z1, lo
     for z in (1.0, 2.0, 3.0):
         assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=0.0006)
 
+
+
+def test_depth_bias_start_is_exact_on_the_models_own_curve():
+    """Noise-free, no range limit: mystery depth_bias 27's kind of bias (a -0.4 px disparity offset
+    with a -0.7 % scale: 0.33 m at 3 m) plus a 1 cm offset, applied by ``DepthBias.apply``'s formula.
+    The linearised least squares alone (e / (1 + s), s / (1 + s), no offset cross terms) was 0.002 px
+    and 1.2e-4 off, the bias 0.13 mm at 1 m (on mystery 27 and 39, 2.4-3.3 mm at 3 m). Refitted on the
+    exact curve: the parameters to 1e-4 px / 1e-5 / 0.1 mm and the bias to 0.05 mm."""
+    from synth.sensor.effects.depth_bias import DepthBias
+    e, s, o = -0.4, -0.007, 0.01
+    ms, cfg, fb = _biased_ramps(0.8, 3.5, e, s, 0.0)
+    for m in ms._m:
+        m += np.float32(o) * (m > 0)
+    st = DepthBias.fit_start(ms, cfg, None)
+    assert st["depth_bias.disparity_offset_px"] == pytest.approx(e, abs=1e-4)
+    assert st["depth_bias.scale"] == pytest.approx(s, abs=1e-5)
+    assert st["depth_bias.offset_m"] == pytest.approx(o, abs=1e-4)
+    truth = {"depth_bias.disparity_offset_px": e, "depth_bias.scale": s, "depth_bias.offset_m": o}
+    for z in (1.0, 2.0, 3.0):
+        assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=5e-5)
