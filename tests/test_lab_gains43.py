@@ -570,3 +570,76 @@ def test_start_and_defaults_within_the_noise_are_decided_on_the_evaluation_set()
     assert beats(float("nan"), {}, 0.0260, 0.02673)         # noise unknown: the search gap alone
     assert not start_beats_defaults(0.0045, False, None, "start", 0.02743, "def", 0.02673)   # no evaluation set
     assert calls == []
+
+
+class _FakeCamera(_Fake):
+    """A FakeMeasured with the 160x120 intrinsics the depth-bias start reads."""
+
+    def __init__(self, measured, ideal):
+        super().__init__(measured, ideal)
+        from data_tools.camera import Intrinsics
+        self.intrinsics = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
+
+
+def _biased_ramps(z0, z1, e_px, scale, sigma_d, lo=0.0, hi=np.inf, seed=0):
+    """Four frames of a depth ramp z0 -> z1 m across the columns (1 % farther per frame), seen by a
+    triangulating sensor with the mystery's bias z' = (1 + scale) / (1/z + e_px / f b) and an i.i.d.
+    disparity noise ``sigma_d`` px; measured depths outside [lo, hi] m are holes (the range limits)."""
+    from synth.sensor import SensorConfig
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "depth_bias"])
+    fb = float(cfg.preset.fb)
+    rng = np.random.default_rng(seed)
+    ms, zs = [], []
+    for k in range(4):
+        z = np.tile(np.linspace(z0, z1, 160), (120, 1)) * (1 + 0.01 * k)
+        zb = (1 + scale) / (1 / z + e_px / fb)
+        m = fb / (fb / zb + sigma_d * rng.standard_normal(z.shape))
+        m[(m < lo) | (m > hi)] = 0
+        ms.append(m.astype(np.float32))
+        zs.append(z)
+    return _FakeCamera(ms, zs), cfg, fb
+
+
+def _start_bias(start, fb, z):
+    """The depth bias (m) of a depth_bias start at ideal depth z (m)."""
+    p = {k.split(".", 1)[1]: v for k, v in start.items()}
+    return (1 + p["scale"]) / (1 / z + p["disparity_offset_px"] / fb) + p["offset_m"] - z
+
+
+@pytest.mark.parametrize("z0,z1,lo,hi,noise", [(2.0, 3.5, 0.0, 3.2, 0.0014), (0.5, 1.5, 0.6, np.inf, 0.005)])
+def test_depth_bias_start_leaves_out_the_pixels_a_range_limit_censors(z0, z1, lo, hi, noise):
+    """Mystery depth_bias 49: a ramp crossing a range limit (far 3.2 m, or near 0.6 m), a pure disparity
+    offset + scale bias (no depth offset). Pixels predicted near or beyond the limit are measured
+    only when their noise pulled them inside, and that one-sided error tilted the start: offset
+    -8.4 mm and the bias at 1 m 2.6 mm off (far case; the near case: 2.6 mm off at 3 m) before the
+    censored rows were left out. Now the offset is within 2 mm of 0 and the bias within 0.6 mm
+    of the truth at 1, 2 and 3 m."""
+    from synth.sensor.effects.depth_bias import DepthBias
+    e, s = 0.15, 0.008
+    ms, cfg, fb = _biased_ramps(z0, z1, e, s, noise * 43.5, lo=lo, hi=hi)
+    st = DepthBias.fit_start(ms, cfg, None)
+    assert abs(st["depth_bias.offset_m"]) < 0.002
+    truth = {"depth_bias.disparity_offset_px": e, "depth_bias.scale": s, "depth_bias.offset_m": 0.0}
+    for z in (1.0, 2.0, 3.0):
+        assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=0.0006)
+
+
+
+def test_depth_bias_start_is_exact_on_the_models_own_curve():
+    """Noise-free, no range limit: mystery depth_bias 27's kind of bias (a -0.4 px disparity offset
+    with a -0.7 % scale: 0.33 m at 3 m) plus a 1 cm offset, applied by ``DepthBias.apply``'s formula.
+    The linearised least squares alone (e / (1 + s), s / (1 + s), no offset cross terms) was 0.002 px
+    and 1.2e-4 off, the bias 0.13 mm at 1 m (on mystery 27 and 39, 2.4-3.3 mm at 3 m). Refitted on the
+    exact curve: the parameters to 1e-4 px / 1e-5 / 0.1 mm and the bias to 0.05 mm."""
+    from synth.sensor.effects.depth_bias import DepthBias
+    e, s, o = -0.4, -0.007, 0.01
+    ms, cfg, fb = _biased_ramps(0.8, 3.5, e, s, 0.0)
+    for m in ms._m:
+        m += np.float32(o) * (m > 0)
+    st = DepthBias.fit_start(ms, cfg, None)
+    assert st["depth_bias.disparity_offset_px"] == pytest.approx(e, abs=1e-4)
+    assert st["depth_bias.scale"] == pytest.approx(s, abs=1e-5)
+    assert st["depth_bias.offset_m"] == pytest.approx(o, abs=1e-4)
+    truth = {"depth_bias.disparity_offset_px": e, "depth_bias.scale": s, "depth_bias.offset_m": o}
+    for z in (1.0, 2.0, 3.0):
+        assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=5e-5)

@@ -71,6 +71,9 @@ class DepthBias(Effect):
         e + e_r r^2 - s f b / z - o f b / z^2 (e the disparity offset, e_r the radial term at the
         corner, s the scale, o the offset; r the normalised image radius), linear in the four
         unknowns; the disparity residual y has constant noise, so ordinary least squares is right.
+        That linearisation is then refined on the model's exact curve (:func:`_exact_refit`): its
+        coefficients are e / (1 + s) and s / (1 + s), not e and s, and it has no cross terms of the
+        offset with the others.
         ToF: z' - z = o + s z. Residuals beyond 3 px of disparity (5 cm for ToF) are left out
         (mismatches, flying pixels); when the model has edge_fattening only pixels whose ideal depth
         is locally flat are used (within 3 % over 8 px: ``_common.locally_flat``, not beside an edge,
@@ -82,40 +85,79 @@ class DepthBias(Effect):
         independent-generator pair depth_bias + edge_fattening started at a 0.54 px disparity offset
         and a 4.7 % scale for a 2 cm polynomial bias). When ``config`` carries a lens distortion
         start (started first, :attr:`Effect.START_PRIORITY`), the ideal depth is warped
-        by it before the regression: a radial term must not explain what the lens does."""
+        by it before the regression: a radial term must not explain what the lens does.
+
+        Censoring at a range limit: the sensor reports no depth beyond its working range, so near
+        the farthest (nearest) measured depth only the pixels whose noise made them nearer (farther)
+        survive, and their mean error is pulled towards the inside of the range by up to a noise sd.
+        That one-sided pull sits at one end of the depth range, where the 1/z^2 (offset) column
+        absorbs it and tilts the whole curve (over a narrow far range, e.g. 2-3.3 m, offset, scale and
+        disparity offset are correlated at 0.99, and the tilt moves the extrapolated bias at 1 m by
+        millimetres while the fit at the data's depths stays within the noise). After a first fit,
+        the rows whose predicted measured depth lies within :data:`CENSOR_SDS` noise sd of (or
+        beyond) a range limit the data shows (a measured extreme with holes beyond it) are left out
+        and the fit repeated (:func:`_uncensored`)."""
         from synth.sensor.effects._common import locally_flat, measured_samples
         from synth.sensor.effects.lens_distortion import warped_ideal_depth
+        from synth.sensor.effects._common import measured_depth_range
         fb = float(config.preset.fb)
-        rows, ys = [], []
-        rng = np.random.default_rng(0)
+        rows, ys, zs, hole_rows, hole_zs = [], [], [], [], []
+        rng, hole_rng = np.random.default_rng(0), np.random.default_rng(1)
         fattening = "edge_fattening" in config.names(enabled_only=True)
-        for _, m, r, ok in measured_samples(measured):
+        intr = measured.intrinsics
+        frames_used = list(range(len(measured)))
+
+        def columns(z, uu, vv):
+            r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2) / (intr.cx ** 2 + intr.cy ** 2)
+            if fb > 0:
+                return np.stack([np.ones_like(z), r2, -fb / z, -fb / z ** 2], 1)
+            return np.stack([np.ones_like(z), z], 1)
+
+        for _, m, r, ok in measured_samples(measured, frames_used):
             zi = warped_ideal_depth(config, measured.intrinsics, np.where(r.hit, r.depth, 0))
             ok = ok & (zi > 0) & (locally_flat(zi) if fattening else True)
             vv, uu = np.nonzero(ok & (m > 0))
+            hv, hu = np.nonzero(ok & ~(m > 0))       # the holes, sampled at the same rate: the range limits' test
             if vv.size > 20000:
                 keep = rng.choice(vv.size, 20000, replace=False)
-                vv, uu = vv[keep], uu[keep]
+                hkeep = hole_rng.random(hv.size) < 20000 / vv.size
+                vv, uu, hv, hu = vv[keep], uu[keep], hv[hkeep], hu[hkeep]
             z = zi[vv, uu].astype(np.float64)
             zm = m[vv, uu].astype(np.float64)
-            intr = measured.intrinsics
-            r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2) / (intr.cx ** 2 + intr.cy ** 2)
             if fb > 0:
                 y = fb * (1.0 / zm - 1.0 / z)
                 good = np.abs(y) < 3.0
-                rows.append(np.stack([np.ones_like(z), r2, -fb / z, -fb / z ** 2], 1)[good])
             else:
                 y = zm - z
                 good = np.abs(y) < 0.05
-                rows.append(np.stack([np.ones_like(z), z], 1)[good])
+            rows.append(columns(z, uu, vv)[good])
             ys.append(y[good])
+            zs.append(z[good])
+            zh = zi[hv, hu].astype(np.float64)
+            hole_rows.append(columns(zh, hu, hv))
+            hole_zs.append(zh)
         if not rows or sum(len(y) for y in ys) < 100:
             return {}
-        A, y = np.concatenate(rows), np.concatenate(ys)
+        A, y, z = np.concatenate(rows), np.concatenate(ys), np.concatenate(zs)
+        holes = (np.concatenate(hole_rows), np.concatenate(hole_zs))
         lim = cls.FITTABLE
         n = cls.name
         keys = ("disparity_offset_px", "radial_disparity_px", "scale", "offset_m") if fb > 0 else ("offset_m", "scale")
-        coef = _trimmed_lstsq(A, y, bounds=[lim[k] for k in keys])      # inside the fit ranges
+        bounds = [lim[k] for k in keys]
+        coef = _trimmed_lstsq(A, y, bounds=bounds)      # inside the fit ranges
+        limits = measured_depth_range(measured, frames_used)
+        for _ in range(2):              # the censored rows depend on the predicted depth, which the refit moves
+            keep = _uncensored(A, y, z, coef, fb, limits, holes, config)
+            if keep is None:
+                break
+            new = _trimmed_lstsq(A[keep], y[keep], bounds=bounds)
+            if np.allclose(new, coef, rtol=0.0, atol=1e-9):
+                break
+            coef = new
+        if fb > 0:      # the linearised coefficients -> the model's own curve (see above)
+            keep = _uncensored(A, y, z, coef, fb, limits, holes, config)
+            rows_ = np.ones(len(y), bool) if keep is None else keep
+            coef = _exact_refit(A[rows_], y[rows_], z[rows_], coef, fb, bounds)
         return {f"{n}.{k}": float(c) for k, c in zip(keys, coef)}
 
     @classmethod
@@ -157,6 +199,97 @@ class DepthBias(Effect):
         return (f"the measured depth is systematically off: median error {ctx.mm(bm[0])} at {zc[0]:.1f} m, "
                 f"{ctx.mm(bm[1])} in the middle and {ctx.mm(bm[2])} at {zc[2]:.1f} m, against {model} in the current "
                 f"model (an offset {shape}).")
+
+
+CENSOR_SDS = 3.0
+"""Rows whose predicted measured depth lies within this many noise sd of a range limit are left out of
+the bias start (a normal error is cut by less than 0.2 % of its mass at 3 sd)."""
+CENSOR_MIN_HOLES = 50
+"""A measured depth extreme is taken for a range limit when at least this many usable hole pixels are
+predicted beyond it (and at least as many as measured ones)."""
+CENSOR_MIN_SHARE = 0.3
+"""Fewer rows than this share of the start's rows left after the censoring cut (or fewer than 100): the
+cut is not made (a sequence that lies mostly near its range limit has nothing better to offer)."""
+
+
+def _exact_refit(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float,
+                 bounds: Sequence[tuple[float, float]], k: float = 3.0) -> np.ndarray:
+    """Triangulation: (e, e_r, s, o) minimising the squared disparity residuals ``y`` (N,) px about the
+    model's exact curve y(z) = f b / ((1 + s) / (1/z + (e + e_r r^2) / f b) + o) - f b / z
+    (:meth:`DepthBias.apply`), started at the linearised least squares ``coef`` and within ``bounds``;
+    ``A`` (N, 4) the start's columns (r^2 is its second), ``z`` (N,) the ideal depths, m. Rows beyond
+    ``k`` robust sd of the linearised fit's residuals are left out (as :func:`_trimmed_lstsq`). The
+    linearisation's coefficients are e / (1 + s) and s / (1 + s) to first order (an error of s^2 and
+    e s: a -0.4 px offset with a -0.7 % scale, 0.33 m at 3 m, reads 3 mm off there) and it ignores
+    the cross terms of the offset with the others."""
+    from scipy.optimize import least_squares
+    from synth.sensor.effects._common import robust_std
+    r = y - A @ coef
+    ok = np.abs(r - np.median(r)) <= k * max(robust_std(r), 1e-12)
+    if ok.sum() < 100:
+        return coef
+    yy, zz, r2 = y[ok], z[ok], A[ok, 1]
+    lo, hi = np.asarray(bounds, np.float64).T
+
+    def residual(p):
+        e, er, s, o = p
+        zm = (1.0 + s) / (1.0 / zz + (e + er * r2) / fb) + o
+        return yy - (fb / np.maximum(zm, 1e-6) - fb / zz)
+
+    x0 = np.clip(coef, lo + 1e-12, hi - 1e-12)
+    sol = least_squares(residual, x0, bounds=(lo, hi), x_scale=np.array([0.01, 0.01, 0.001, 0.001]),
+                        xtol=1e-12, ftol=1e-12, max_nfev=200)
+    return sol.x if sol.success or sol.status == 0 else coef
+
+
+def _predicted_depth(A: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float) -> np.ndarray:
+    """(N,) metres: the mean measured depth the bias start ``coef`` predicts for ideal depths ``z``
+    (N,) with the start's columns ``A`` (N, P) (a disparity residual for f b = ``fb`` > 0, a depth
+    residual for ToF)."""
+    pred = A @ coef
+    if fb > 0:
+        return 1.0 / np.maximum(1.0 / z + pred / fb, 1e-6)
+    return z + pred
+
+
+def _uncensored(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float,
+                limits: tuple[float, float], holes: tuple[np.ndarray, np.ndarray], config) -> np.ndarray | None:
+    """(N,) bool: the rows of the bias start (``A`` (N, P), residual ``y`` (N,): disparity px for
+    triangulation, f b = ``fb`` > 0, metres for ToF; ideal depth ``z`` (N,) m) whose measured depth
+    is not censored by a range limit, or None when no row is (or too few would stay,
+    :data:`CENSOR_MIN_SHARE`).
+
+    The limits are the smallest and largest measured valid depth (``limits``, metres): censoring acts
+    on the measured data, so its limits are where the measured depths stop (the model's range limits
+    are the preset's until the fit moves them). A limit is one when the data shows it: at least
+    :data:`CENSOR_MIN_HOLES` of the usable hole pixels (``holes``: their columns (M, P) and ideal
+    depths (M,)) are predicted beyond it, at least as many as the measured rows predicted beyond it
+    (a censored pixel beyond the limit is a hole more often than not; where the scene merely ends
+    inside the working range, the few pixels predicted beyond its extreme measured depth were
+    measured). A row is censored when its predicted mean measured depth (``coef``'s bias applied to
+    ``z``) lies within :data:`CENSOR_SDS` sd of a shown limit or beyond it. The sd is the larger of
+    the data's and the model's: the robust std of the residuals about ``coef`` (triangulation: a
+    disparity noise, z^2 sigma_d / f b in depth) and ``config``'s axial noise law sigma(z) where it
+    has one enabled."""
+    from synth.sensor.effects._common import robust_std
+    lo, hi = limits
+    if not np.isfinite(hi) or len(y) < 100:
+        return None
+    sd = robust_std(y - A @ coef)
+    zp = _predicted_depth(A, z, coef, fb)
+    zh = _predicted_depth(holes[0], holes[1], coef, fb) if len(holes[1]) else np.zeros(0)
+    sdz = zp ** 2 * sd / fb if fb > 0 else np.full_like(zp, sd)
+    if "axial_noise" in config.names(enabled_only=True):
+        sdz = np.maximum(sdz, np.asarray(config.effect("axial_noise").sigma(zp), np.float64))
+    keep = np.ones(zp.shape, bool)
+    for beyond_rows, beyond_holes, inside in ((zp > hi, zh > hi, zp <= hi - CENSOR_SDS * sdz),
+                                              (zp < lo, zh < lo, zp >= lo + CENSOR_SDS * sdz)):
+        nh = int(beyond_holes.sum())
+        if nh >= CENSOR_MIN_HOLES and nh >= int(beyond_rows.sum()):
+            keep &= inside
+    if keep.all() or keep.sum() < max(100, CENSOR_MIN_SHARE * len(y)):
+        return None
+    return keep
 
 
 def _trimmed_lstsq(A: np.ndarray, y: np.ndarray, k: float = 3.0, iterations: int = 6,
