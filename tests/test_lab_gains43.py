@@ -451,7 +451,7 @@ def test_revert_check_keeps_a_move_only_when_it_wins_on_every_noise_draw():
     by more than twice the draws' scatter and stays - though its gain is below the gap's own noise
     over seeds (the gaps 0.0343, 0.0390, 0.0300 here: tau 0.0074), which a test on the gap alone
     would have used. The lens's k1 (0.0069 on every draw) stays."""
-    from synth.lab.intervals import REVERT_SEEDS, revert_moves
+    from synth.lab.intervals import NOISE_SEEDS, revert_moves
     from synth.lab.params import param_specs, set_params
     from synth.sensor.config import SensorConfig
     base = SensorConfig.build("kinect_v1", ["axial_noise", "lens_distortion"])
@@ -460,7 +460,7 @@ def test_revert_check_keeps_a_move_only_when_it_wins_on_every_noise_draw():
     keys = ["axial_noise.z_offset_m", "axial_noise.sigma0_m", "lens_distortion.k1"]
     specs = [s for s in param_specs(start_cfg, ["axial_noise", "lens_distortion"]) if s.key in keys]
     assert len(specs) == 3
-    seeds = (0,) + tuple(REVERT_SEEDS)
+    seeds = (0,) + tuple(NOISE_SEEDS)
     fitted_gap = dict(zip(seeds, (0.0343, 0.0390, 0.0300)))
     gains = {"axial_noise.z_offset_m": (0.0001, -0.0006, 0.0004),      # per seed: gap rise when put back
              "axial_noise.sigma0_m": (0.0018, 0.0035, 0.0030),

@@ -38,6 +38,11 @@ __all__ = ["profile_intervals", "joint_intervals", "Screen", "screen_parameters"
            "seeded_gap_of"]
 
 
+NOISE_SEEDS = (1009, 2027)
+"""Simulation-seed offsets besides the search's own on which the gap's noise (:func:`gap_noise`) and
+the revert check (:func:`revert_moves`) score a model again (same frames and pixels)."""
+
+
 def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4) -> tuple[dict, float]:
     """Profile interval of every fitted parameter: how far it can move (the others at the fit)
     before the gap rises by more than its own noise.
@@ -54,8 +59,7 @@ def profile_intervals(gap_of, specs, best_x: dict, g_best: float, steps: int = 4
     step; a linear interpolation underestimated a quadratic bowl's half-width by up to 2x when the
     first step overshot), or is the last step (up to the search bound) when none is outside. Costs about 2 + 2 x steps evaluations per parameter. Approximate: one parameter at
     a time (a coupled pair gets a narrower interval than its joint confidence region)."""
-    gaps = [float(g_best)] + [float(gap_of(best_x, extra)) for extra in (1009, 2027)]
-    tau = max(2.0 * float(np.std(gaps)), 0.02 * abs(float(g_best)), 1e-6)
+    tau = gap_noise(gap_of, best_x, g_best)
     out = {}
     for sp in specs:
         v0 = float(best_x[sp.key])
@@ -228,9 +232,9 @@ class Screen:
 
 
 def gap_noise(gap_of: Callable, x: dict, g: float) -> float:
-    """tau: twice the std of the gap of ``x`` over the search seed and two others (``gap_of(values,
-    seed_offset)``), at least 2 % of the gap (the rule of :func:`synth.lab.intervals.profile_intervals`)."""
-    gaps = [float(g)] + [float(gap_of(x, extra)) for extra in (1009, 2027)]
+    """tau: twice the std of the gap of ``x`` over the search seed and :data:`NOISE_SEEDS` (``gap_of(values,
+    seed_offset)``), at least 2 % of the gap (also the noise of :func:`profile_intervals`)."""
+    gaps = [float(g)] + [float(gap_of(x, extra)) for extra in NOISE_SEEDS]
     return max(2.0 * float(np.std(gaps)), 0.02 * abs(float(g)), 1e-6)
 
 
@@ -292,11 +296,6 @@ def screen_parameters(gap_of: Callable, specs: Sequence, start: dict, g_start: f
     return res
 
 
-REVERT_SEEDS = (1009, 2027)
-"""Simulation-seed offsets on which :func:`revert_moves` scores a move again besides the evaluation seed
-(the offsets of :func:`gap_noise`)."""
-
-
 def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict, margin: float = 0.0,
                  gap_of: Callable | None = None) -> tuple[dict, list[str], dict]:
     """``FitConfig.revert_check`` of :func:`synth.lab.fit.fit_model`: (values, keys put back, gains) -
@@ -306,7 +305,7 @@ def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict, margin: float = 0
     ``margin`` 0: put back while the gap does not rise at all (each revert against the gap after the
     previous one; ``gains`` empty). ``margin`` > 0: a paired test over simulation seeds. The model with
     this parameter (and those already put back) at the start is scored on the evaluation seed and on
-    :data:`REVERT_SEEDS` (``gap_of(values, seed_offset)``: the same frames and pixels; 2 evaluations
+    :data:`NOISE_SEEDS` (``gap_of(values, seed_offset)``: the same frames and pixels; 2 evaluations
     more per moved parameter, 2 for the fitted model), and the rise over the fitted model's gap on
     the same seed is d_i. The move stays when mean(d) > ``margin`` x 2 std(d): the fitted model
     is better on every noise draw by more than the draws' scatter. A gain within that scatter (e.g.
@@ -326,14 +325,14 @@ def revert_moves(ev, start_cfg, specs: Sequence, best_x: dict, margin: float = 0
     if margin > 0:
         if gap_of is None:
             gap_of = seeded_gap_of(ev, start_cfg)
-        fit_other = [float(gap_of(best_x, k)) for k in REVERT_SEEDS]
+        fit_other = [float(gap_of(best_x, k)) for k in NOISE_SEEDS]
     out, back, gains = dict(best_x), [], {}
     for s in moved:
         trial = dict(out)
         trial[s.key] = start[s.key]
         g = ev(set_params(start_cfg, trial))
         if margin > 0:
-            d = np.array([g - g_fit] + [float(gap_of(trial, k)) - f for k, f in zip(REVERT_SEEDS, fit_other)])
+            d = np.array([g - g_fit] + [float(gap_of(trial, k)) - f for k, f in zip(NOISE_SEEDS, fit_other)])
             gains[s.key] = (float(d.mean()), float(2.0 * d.std()))
             put_back = d.mean() <= margin * 2.0 * d.std()
         else:
