@@ -495,10 +495,9 @@ def _limits_restart(cx: _Ctx, model_names: Sequence[str], name: str, cfg, gap: f
     else unchanged. The base refit, without the candidate, may have pulled the maximum range in to
     explain the far low-signal holes; the candidate added on top would then count them twice and
     lose to a rival whose holes the pulled-in range does not already explain."""
-    from synth.lab.params import _effect
-    if not type(_effect(cfg, name)).SIGNAL_HOLES:
+    if not type(cfg.effect(name)).SIGNAL_HOLES:
         return cfg, gap
-    limits = {n: type(_effect(cfg, n)).DEPTH_LIMIT_PARAMS for n in model_names}
+    limits = {n: type(cfg.effect(n)).DEPTH_LIMIT_PARAMS for n in model_names}
     limits = {n: ks for n, ks in limits.items() if ks}
     ds = start_values(cx.measured, cfg, list(limits), cx.frames) if limits else {}
     ds = {k: v for k, v in ds.items() if k.split(".", 1)[1] in limits.get(k.split(".", 1)[0], {})}
