@@ -7,6 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
+from synth.sensor.effects._common import locally_flat, measured_depth_range, measured_samples, robust_std
 from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
@@ -97,9 +98,7 @@ class DepthBias(Effect):
         the rows whose predicted measured depth lies within :data:`CENSOR_SDS` noise sd of (or
         beyond) a range limit the data shows (a measured extreme with holes beyond it) are left out
         and the fit repeated (:func:`_uncensored`)."""
-        from synth.sensor.effects._common import locally_flat, measured_samples
         from synth.sensor.effects.lens_distortion import warped_ideal_depth
-        from synth.sensor.effects._common import measured_depth_range
         fb = float(config.preset.fb)
         rows, ys, zs, hole_rows, hole_zs = [], [], [], [], []
         rng, hole_rng = np.random.default_rng(0), np.random.default_rng(1)
@@ -223,7 +222,6 @@ def _exact_refit(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, 
     e s: a -0.4 px offset with a -0.7 % scale, 0.33 m at 3 m, reads 3 mm off there) and it ignores
     the cross terms of the offset with the others."""
     from scipy.optimize import least_squares
-    from synth.sensor.effects._common import robust_std
     r = y - A @ coef
     ok = np.abs(r - np.median(r)) <= k * max(robust_std(r), 1e-12)
     if ok.sum() < 100:
@@ -271,7 +269,6 @@ def _uncensored(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, f
     the data's and the model's: the robust std of the residuals about ``coef`` (triangulation: a
     disparity noise, z^2 sigma_d / f b in depth) and ``config``'s axial noise law sigma(z) where it
     has one enabled."""
-    from synth.sensor.effects._common import robust_std
     lo, hi = limits
     if not np.isfinite(hi) or len(y) < 100:
         return None
@@ -301,7 +298,6 @@ def _trimmed_lstsq(A: np.ndarray, y: np.ndarray, k: float = 3.0, iterations: int
     left out after the first refit. ``bounds`` (P pairs): a bounded least squares
     (scipy's ``lsq_linear``) - over a narrow depth range scale and offset are nearly collinear, and
     clipping an unbounded solution afterwards breaks the combination the data asked for."""
-    from synth.sensor.effects._common import robust_std
     if bounds is not None:
         from scipy.optimize import lsq_linear
         lo, hi = np.asarray(bounds, np.float64).T
