@@ -73,7 +73,7 @@ from data_tools.results import json_safe
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
-from synth.lab.noise_ties import (evaluation_objective, measure_noise, noise_tie, start_beats_defaults,
+from synth.lab.noise_ties import (EvaluationObjective, measure_noise, noise_tie, start_beats_defaults,
                                   within_noise)
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
@@ -373,7 +373,7 @@ class _Ctx:
         self.frames = spread(len(measured), fc.max_frames)
         self.obj = Objective(measured, self.frames, fc.compare_config(int(fc.max_pixels_per_frame)), fc.seed)
         self.stats: dict = {}
-        self.noise, self.eval_objective = float("nan"), evaluation_objective(measured, fc)   # noise: diagnose's
+        self.noise, self.eval_objective = float("nan"), EvaluationObjective(measured, fc)   # noise: diagnose's
 
     def fitcfg(self, evals: int) -> FitConfig:
         """The search settings with an evaluation budget (the wall-clock guard, if any, kept)."""
@@ -689,7 +689,7 @@ def diagnose(measured, config, *, candidates: Sequence[str] | None = None, fit_c
     return Diagnosis(gap=float(base.gap), model=list(model_names), ranking=ranking, gap_given=float(base.gap_given),
                      model_params=base.params, skipped=probe.skipped, frames=[idx[k] for k in cx.frames],
                      seconds=time.perf_counter() - t0, evaluations=cx.obj.evaluations + held.evaluations
-                     + sum(o.evaluations for o in cx.eval_objective.made),
+                     + cx.eval_objective.evaluations,
                      sequence=str(measured.seq_dir), settings={"fit": fc.to_dict(), "diagnose": dc.to_dict()},
                      model_config=base.config, eval_gap=held.gap, eval_frames=[idx[k] for k in held.frames],
                      time_capped=bool(cx.stats.get("time_capped", False)), refit_rejected=base.rejected,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-__all__ = ["measure_noise", "evaluation_objective", "start_beats_defaults", "within_noise", "noise_tie"]
+__all__ = ["measure_noise", "EvaluationObjective", "start_beats_defaults", "within_noise", "noise_tie"]
 
 
 def measure_noise(obj, config, gap: float) -> float:
@@ -21,18 +21,25 @@ def measure_noise(obj, config, gap: float) -> float:
     return gap_noise(seeded_gap_of(obj, config), {}, gap)
 
 
-def evaluation_objective(measured, fc) -> Callable:
+class EvaluationObjective:
     """``get()`` -> the evaluation set's objective (``fc.eval_frames`` x ``fc.eval_pixels_per_frame``
-    of ``measured``), built on the first call; ``get.made`` holds it once built (for its evaluation
-    count)."""
-    def get():
-        if not get.made:
+    of ``measured``), built on the first call: most diagnoses never need it."""
+
+    def __init__(self, measured, fc):
+        self.measured, self.fc, self.objective = measured, fc, None
+
+    def __call__(self):
+        if self.objective is None:
             from synth.lab.fit import Objective, spread
-            get.made.append(Objective(measured, spread(len(measured), fc.eval_frames),
-                                      fc.compare_config(fc.eval_pixels_per_frame), fc.seed))
-        return get.made[0]
-    get.made = []
-    return get
+            fc = self.fc
+            self.objective = Objective(self.measured, spread(len(self.measured), fc.eval_frames),
+                                       fc.compare_config(fc.eval_pixels_per_frame), fc.seed)
+        return self.objective
+
+    @property
+    def evaluations(self) -> int:
+        """Evaluations of the evaluation set so far (0 when it was never built)."""
+        return 0 if self.objective is None else int(self.objective.evaluations)
 
 
 def start_beats_defaults(noise: float, evaluate: bool, eval_objective: Callable, alt, g_alt: float,
