@@ -19,7 +19,7 @@ def _cand(effect: str, gap_after: float, params: dict | None = None) -> Candidat
 
 
 def _ranked(cands, base_gap=1.0, **dc):
-    cx = SimpleNamespace(dc=DiagnoseConfig(**dc))
+    cx = SimpleNamespace(dc=DiagnoseConfig(**dc), noise=float("nan"))
     return [c.effect for c in rank(cx, SimpleNamespace(gap=base_gap), cands)]
 
 

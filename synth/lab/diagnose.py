@@ -518,7 +518,7 @@ def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: li
     order = sorted(tried, key=lambda c: c.gap_after)
     picked = order[:int(cx.dc.refine_top)]
     picked += _tied_with([c for c in order[len(picked):] if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS],
-                         picked, base.gap, float(cx.dc.occam_margin), float(getattr(cx, "noise", float("nan"))))
+                         picked, base.gap, float(cx.dc.occam_margin), float(cx.noise))
     if any(_free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS for c in picked):
         para = next((c for c in order if _free_numbers(c.config, c.effect) < LEARNED_MAP_NUMBERS), None)
         if para is not None and para not in picked:
@@ -549,8 +549,8 @@ def _tied_with(rest: list[Candidate], picked: list[Candidate], g0: float, margin
     best = (g0 - picked[0].gap_after) / g0
     if not best > 0:
         return []
-    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin)
-            or (noise > 0 and c.gap_after < g0 and c.gap_after - picked[0].gap_after < noise)]
+    by_noise = within_noise(noise, g0, picked[0], rest)
+    return [c for c in rest if (g0 - c.gap_after) / g0 >= best * (1.0 - margin) or c in by_noise]
 
 
 def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
@@ -572,7 +572,7 @@ def rank(cx: _Ctx, base: BaseRefit, tried: list[Candidate]) -> list[Candidate]:
         if alts:
             lead = alts[0]
     near = [c for c in out if c.gain > 0 and c.gain >= lead.gain * (1.0 - cx.dc.occam_margin)]
-    near += [c for c in within_noise(float(getattr(cx, "noise", float("nan"))), g0, lead, out) if c not in near]
+    near += [c for c in within_noise(float(cx.noise), g0, lead, out) if c not in near]
     first = min(near, key=lambda c: (free[id(c)], -c.gain))
     out.remove(first)
     out.insert(0, first)
@@ -586,7 +586,7 @@ def rank_with_signatures(cx: _Ctx, base: BaseRefit, tried: list[Candidate], ctx)
     tell them apart."""
     from synth.lab.decisive import decisive_signatures, promote
     ranking = rank(cx, base, tried)
-    by_noise = noise_tie(ranking, float(getattr(cx, "noise", float("nan"))), base.gap,
+    by_noise = noise_tie(ranking, float(cx.noise), base.gap,
                          lambda c: _free_numbers(c.config, c.effect) >= LEARNED_MAP_NUMBERS)
     if not cx.dc.decisive_gain_ratio > 0 or not ranking:
         return ranking, by_noise

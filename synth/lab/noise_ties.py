@@ -56,12 +56,12 @@ def start_beats_defaults(noise: float, evaluate: bool, eval_objective: Callable,
 
 
 def within_noise(noise: float, g0: float, lead, cands: Sequence) -> list:
-    """The candidates (``gain``, ``gap_after``) that lower the base gap ``g0`` and leave a gap within
+    """The candidates (``gap_after``) that lower the base gap ``g0`` and leave a gap within
     ``noise`` of ``lead``'s: the data cannot order them by gain (two gains below the noise, each a fit
     to it; or two real gains the sampled gap cannot tell apart); empty when the noise is unknown."""
     if not noise > 0 or not g0 > 0:
         return []
-    return [c for c in cands if c.gain > 0 and c.gap_after - lead.gap_after < noise]
+    return [c for c in cands if c.gap_after < g0 and c.gap_after - lead.gap_after < noise]
 
 
 def noise_tie(ranking: Sequence, noise: float, g0: float, is_map: Callable) -> list[tuple[str, str, str]]:
