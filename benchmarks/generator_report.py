@@ -62,7 +62,7 @@ def band_row(ms) -> float:
     and the mystery generator write a row's time): the mean row of the usable pixels - measured valid
     with reference geometry (ideal depth > 0), every frame, each pixel weighing one. The data fix the
     exposure time of this band relative to the frame's timestamp, readout x (band row - reference
-    row), not the readout alone (docs/sensor_lab.md, "The rolling shutter's readout")."""
+    row), not the readout alone (docs/lab_generalisation.md, "rolling_shutter")."""
     rows, n = 0.0, 0
     for k in range(len(ms)):
         ok = (ms.measured_depth(k) > 0) & (ms.render(k).depth > 0)
