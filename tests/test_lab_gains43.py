@@ -643,3 +643,135 @@ def test_depth_bias_start_is_exact_on_the_models_own_curve():
     truth = {"depth_bias.disparity_offset_px": e, "depth_bias.scale": s, "depth_bias.offset_m": o}
     for z in (1.0, 2.0, 3.0):
         assert _start_bias(st, fb, z) == pytest.approx(_start_bias(truth, fb, z), abs=5e-5)
+
+
+class _FakeScene(_Fake):
+    """:class:`_Fake` with what the low-reflectance start reads: fronto-parallel surfaces (normals
+    facing the camera), the pinhole's points and rays, material ids and a renderer that maps them to
+    albedos (``alb``: id -> albedo, no specular part)."""
+
+    def __init__(self, measured, ideal, ids, alb):
+        super().__init__(measured, ideal)
+        from data_tools.camera import Intrinsics
+        self.intrinsics = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
+        self._ids = ids
+        self.renderer = SimpleNamespace(albedo_specular=lambda i, check=False: (alb[i], np.zeros(i.shape, np.float32)))
+
+    def render(self, k):
+        z = self._z[k].astype(np.float32)
+        H, W = z.shape
+        it = self.intrinsics
+        u, v = np.meshgrid(np.arange(W), np.arange(H))
+        rays = np.stack([(u - it.cx) / it.fx, (v - it.cy) / it.fy, np.ones((H, W))], -1).astype(np.float32)
+        pts = rays * z[..., None]
+        return SimpleNamespace(depth=z, hit=z > 0, points_cam=pts, points_world=pts, instance_ids=self._ids,
+                               normals_cam=np.broadcast_to(np.float32([0, 0, -1]), (H, W, 3)).copy(),
+                               ray_dirs_cam=rays / np.linalg.norm(rays, axis=-1, keepdims=True))
+
+
+def _censored_dark_rows(seed: int, s50=0.004, width=0.05, sd_d=0.07, far=3.0):
+    """Four frames of a fronto-parallel ramp 1.2 -> far + 0.4 m across the columns (1 % farther per
+    frame): 2 rows in 30 of a dark material (albedo 0.03), the rest bright (0.8). Holes: a logistic
+    low reflectance (``s50``, ``width`` decades) in the returned signal albedo / r^2, and every
+    measured depth beyond the far range limit ``far`` m (disparity noise ``sd_d`` px, f b 43.5 px m:
+    1.4 cm sd at 3 m, so bright pixels within ~4 cm of the limit are cut too)."""
+    from synth.sensor import SensorConfig
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "low_reflectance"])
+    fb = float(cfg.preset.fb)
+    rng = np.random.default_rng(seed)
+    H, W = 120, 160
+    alb = np.array([0.0, 0.03, 0.8], np.float32)
+    ids = np.where((np.arange(H) % 30) < 2, 1, 2)[:, None].repeat(W, 1).astype(np.int32)
+    ms, zs = [], []
+    for k in range(4):
+        z = np.tile(np.linspace(1.2, far + 0.4, W), (H, 1)) * (1 + 0.01 * k)
+        r = z * np.sqrt(((np.arange(W) - 79.5) / 145.0)[None, :] ** 2 + ((np.arange(H) - 59.5) / 145.0)[:, None] ** 2 + 1)
+        p = 1.0 / (1.0 + np.exp(-(math.log10(s50) - np.log10(alb[ids] / r ** 2)) / width))
+        m = fb / (fb / z + sd_d * rng.standard_normal(z.shape))
+        m[(rng.random(z.shape) < p) | (m > far)] = 0
+        ms.append(m.astype(np.float32))
+        zs.append(z)
+    return _FakeScene(ms, zs, ids, alb), cfg
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_low_reflectance_start_leaves_out_the_range_limits_noise_band(seed):
+    """Mystery low_reflectance 57's mechanism by hand: within 3 noise sd of the farthest measured
+    depth the range limit cuts bright pixels whenever their noise crosses it, holes at signals ~20 x
+    the dropout's. Counted with the true low-signal holes of the dark rows, one law fitted to both
+    read signal50 ~0.0029 for 0.004 (-28 %); with the band left out (``uncensored_samples``) it is
+    within 10 %."""
+    from synth.sensor.effects.low_reflectance import LowReflectance
+    ms, cfg = _censored_dark_rows(seed)
+    st = LowReflectance.fit_start(ms, cfg, None)
+    assert st["low_reflectance.signal50"] == pytest.approx(0.004, rel=0.1)
+
+
+def test_censoring_band_falls_back_when_too_few_holes_stay():
+    """No dropout at all, only the range limit's holes: the band would leave no hole, so
+    ``uncensored_samples`` yields the plain in-range pixels (the start's old evidence)."""
+    from synth.sensor.effects._common import measured_samples, uncensored_samples
+    ms, cfg = _censored_dark_rows(0, s50=1e-6)
+    plain = [ok for *_, ok in measured_samples(ms, in_range=True)]
+    band = [ok for *_, ok in uncensored_samples(ms, cfg)]
+    assert all(np.array_equal(a, b) for a, b in zip(plain, band))
+    ms, cfg = _censored_dark_rows(0)
+    band = [ok for *_, ok in uncensored_samples(ms, cfg)]
+    assert sum(int(b.sum()) for b in band) < sum(int(a.sum()) for a in plain)
+
+
+def _rim_ctx(seed: int = 3):
+    """Three hand-made frames: a 3 m wall (albedo 0.8, facing the camera) behind two vertical
+    cylinders 40 rows tall at 1.5 m, one dark (albedo 0.05), one bright (0.8), 20 px in radius, whose
+    normals turn grazing at their silhouettes (a face seen at > 80 deg is ~1 px wide there). Holes: a
+    logistic low reflectance in log10(albedo cos / r^2), signal50 0.004, 0.05 decades: only the dark
+    cylinder's rims drop (~0.5 % of the pixels, all within 2 px of a depth edge on its foreground
+    side); the bright one's rims, at the same angles, do not. The current model is plain noise."""
+    from data_tools.camera import Intrinsics
+    from synth.lab.evidence import EvidenceContext
+    from synth.lab.feature_maps import incidence_angle_deg
+    from synth.lab.features import FrameObservation
+    it = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
+    fb = 43.5
+    rng = np.random.default_rng(seed)
+    H, W = 120, 160
+    u = np.arange(W, dtype=np.float64)
+    frames = []
+    for k in range(3):
+        z = np.full((H, W), 3.0) + 0.004 * np.arange(H)[:, None] + 0.1 * k
+        normals = np.zeros((H, W, 3))
+        normals[..., 2] = -1.0
+        ids = np.full((H, W), 2, np.int32)
+        for c, rows, mat in ((45.0 + 3 * k, slice(20, 60), 1), (110.0 - 3 * k, slice(65, 105), 2)):
+            s = (u - c) / 20.0
+            inside = np.abs(s) < 1.0
+            a = np.arcsin(np.clip(s, -1.0, 1.0))
+            z[rows, inside] = 1.5 - 0.05 * np.cos(a[inside])
+            normals[rows, inside] = np.stack([np.sin(a[inside]), np.zeros(inside.sum()), -np.cos(a[inside])], -1)
+            ids[rows, inside] = mat
+        alb = np.where(ids == 1, 0.05, 0.8)
+        ang = incidence_angle_deg(normals.astype(np.float32), it).reshape(H, W)
+        r = z * np.sqrt(((u - it.cx) / it.fx)[None, :] ** 2 + ((np.arange(H) - it.cy) / it.fy)[:, None] ** 2 + 1)
+        sig = alb * np.cos(np.radians(ang)) / r ** 2
+        p = 1.0 / (1.0 + np.exp(-(math.log10(0.004) - np.log10(np.maximum(sig, 1e-12))) / 0.05))
+        meas = fb / (fb / z + 0.05 * rng.standard_normal(z.shape))
+        meas[rng.random(z.shape) < p] = 0
+        sim = fb / (fb / z + 0.05 * rng.standard_normal(z.shape))
+        frames.append(FrameObservation(meas.astype(np.float32), sim.astype(np.float32), z.astype(np.float32),
+                                       normals.astype(np.float32), ids, {1: "dark", 2: "bright"}, it))
+    return EvidenceContext(frames, SimpleNamespace(fb=fb), {1: 0.05, 2: 0.8})
+
+
+def test_hole_drivers_decide_low_reflectance_from_holes_on_foreground_rims():
+    """Mystery low_reflectance 56 / 57's mechanism by hand: the dropouts sit on the rims of
+    foreground objects (a surface turns grazing at its own silhouette) and hole well under 1 % of
+    the pixels. The statistic left out pixels within 3 px of an edge on both sides (no hole was
+    left) and gated on a 1 % rate; now the margin applies on the background side only (where
+    shadows and fattening act) and the evidence gates (>= 20 holes, e^10)."""
+    from synth.lab.decisive import decisive_signatures, hole_drivers
+    ctx = _rim_ctx()
+    hd = hole_drivers(ctx)
+    assert hd is not None and hd.driver == "low_reflectance" and hd.log_ratio > 10, hd
+    assert hd.hole_rate < 0.01 and hd.holes >= 20, hd
+    decided, _ = decisive_signatures(ctx, ["low_reflectance", "incidence_dropout"])
+    assert list(decided) == ["low_reflectance"]

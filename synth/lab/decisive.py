@@ -10,8 +10,11 @@ effect of the catalog leaves, and that is checked without simulating anything:
   (:func:`synth.sensor.lattice.detect_lattice`);
 * ``low_reflectance`` against ``incidence_dropout``: which variable the extra holes follow.
   A dropout by returned signal depends on albedo cos(theta) / r^2, a dropout by incidence on
-  theta alone. Among the pixels the current model keeps (away from depth edges, at ideal depths
-  within the 0.5-99.5th percentiles of the measured ones: range limits are not the question),
+  theta alone. Among the pixels the current model keeps (not within :data:`EDGE_MARGIN_PX` of a
+  depth edge on its background side, where projector shadows and fattening act - the foreground
+  side's rims stay: a surface turns grazing at its own silhouette, and a face seen at 79 deg is a
+  few pixels wide; not at ideal depths within 3 noise sd of the nearest or farthest measured depth,
+  ``_common.censoring_band``: there noise alone makes holes, range limits are not the question),
   the measured holes are explained by the best hole rate falling monotonically with the signal and
   by the best one rising monotonically with theta (isotonic regressions: both dropout laws are
   monotone, neither shape is assumed), and the two Bernoulli log-likelihoods are compared: the
@@ -56,8 +59,11 @@ __all__ = ["HoleDrivers", "hole_drivers", "foreground_spill", "decisive_signatur
 
 MIN_LOG_RATIO = 10.0
 """The better variable must explain the holes by a likelihood ratio of at least e^10 (~22000)."""
-MIN_HOLE_RATE = 0.01
-"""Below this hole rate there is nothing to explain."""
+MIN_HOLES = 20
+"""Fewer holes than this among the pixels the statistic uses decide nothing (not even a tie): too
+few to explain. A count, not a rate: a dropout confined to one dark face seen at grazing incidence
+holes a few tenths of a per cent of a frame, and the likelihood ratio (:data:`MIN_LOG_RATIO`)
+already says whether those holes tell the two laws apart."""
 MIN_SPILL_EXCESS = 0.05
 """The measured share of foreground-valued depths in that band must exceed the current model's by
 this much (5 points, the evidence sentence's threshold; a rate's sampling noise over a few thousand
@@ -80,6 +86,8 @@ class HoleDrivers:
     """Pixels the statistics use."""
     hole_rate: float
     """Their measured hole rate."""
+    holes: int
+    """Their measured holes."""
 
     @property
     def log_ratio(self) -> float:
@@ -89,7 +97,7 @@ class HoleDrivers:
     @property
     def driver(self) -> str | None:
         """'low_reflectance', 'incidence_dropout' or None (the data cannot tell)."""
-        if self.hole_rate < MIN_HOLE_RATE:
+        if self.holes < MIN_HOLES:
             return None
         if self.log_ratio >= MIN_LOG_RATIO:
             return "low_reflectance"
@@ -122,8 +130,11 @@ def _monotone_ll(hole: np.ndarray, x: np.ndarray, increasing: bool) -> float:
 
 def hole_drivers(ctx) -> HoleDrivers | None:
     """The :class:`HoleDrivers` of an :class:`~synth.lab.evidence.EvidenceContext` (None with fewer
-    than 500 usable pixels or no known albedo)."""
+    than 500 usable pixels or no known albedo). The censoring band's noise sd
+    (``_common.depth_noise_sd``) is the larger robust sd of the measured and of the current model's
+    residual (disparity px for triangulation, the preset's f b; metres otherwise)."""
     from data_tools.geometry import pixel_rays
+    from synth.sensor.effects._common import censoring_band, depth_noise_sd, residual_sd
     ids = ctx.material_ids()
     if not ctx.albedo:
         return None
@@ -134,19 +145,23 @@ def hole_drivers(ctx) -> HoleDrivers | None:
     ang = ctx.incidence_deg()
     norm = ctx.pooled("ray_norm", lambda o: np.linalg.norm(pixel_rays(o.intrinsics, unit=False), axis=-1))
     r = ctx.ideal * norm
-    edge = np.abs(ctx.edge_distance())
-    mv = ctx.measured[ctx.measured > 0]
-    if mv.size < 500:
+    ed = ctx.edge_distance()                  # > 0 background side, < 0 foreground side
+    z, m, s = ctx.ideal, ctx.measured, ctx.simulated
+    valid, sim = (m > 0) & (z > 0), (s > 0) & (z > 0)
+    if int(valid.sum()) < 500:
         return None
-    zlo, zhi = np.quantile(mv, [0.005, 0.995])     # where the sensor measures at all (range limits)
-    use = ((ctx.ideal >= zlo) & (ctx.ideal <= zhi) & (ctx.simulated > 0) & np.isfinite(ang) & (ang < 89.5) & np.isfinite(alb) & (alb > 0) & (r > 0)
-           & (edge > EDGE_MARGIN_PX))
+    fb = float(getattr(ctx.preset, "fb", 0.0) or 0.0)
+    sd = max(residual_sd(m[valid], z[valid], fb), residual_sd(s[sim], z[sim], fb))
+    limits = (float(m[valid].min()), float(m[valid].max()))   # where the sensor measures at all (range limits)
+    use = (sim & ~censoring_band(z, limits, depth_noise_sd(z, sd, fb)) & np.isfinite(ang) & (ang < 89.5)
+           & np.isfinite(alb) & (alb > 0) & (r > 0) & ((ed < 0) | (ed > EDGE_MARGIN_PX)))
     if int(use.sum()) < 500:
         return None
-    hole = (ctx.measured <= 0)[use]
+    hole = (m <= 0)[use]
     a = ang[use]
     sig = np.log10(alb[use] * np.cos(np.radians(a)) / r[use] ** 2)
-    return HoleDrivers(_monotone_ll(hole, sig, False), _monotone_ll(hole, a, True), int(use.sum()), float(hole.mean()))
+    return HoleDrivers(_monotone_ll(hole, sig, False), _monotone_ll(hole, a, True), int(use.sum()), float(hole.mean()),
+                       int(hole.sum()))
 
 
 def foreground_spill(ctx) -> tuple[float, float, float, int] | None:
@@ -266,7 +281,7 @@ def decisive_signatures(ctx, candidates) -> tuple[dict[str, str], list[tuple[str
         if hd is not None:
             if hd.driver is not None:
                 out[hd.driver] = f"the holes follow {'the returned signal' if hd.driver == 'low_reflectance' else 'the incidence angle'}: {hd.sentence()}"
-            elif hd.hole_rate >= MIN_HOLE_RATE:
+            elif hd.holes >= MIN_HOLES:
                 ties.append(("low_reflectance", "incidence_dropout",
                              f"the data cannot tell a signal dropout from an incidence dropout: {hd.sentence()}"))
     if "lens_distortion" in names and names & LEARNED_MAPS:

@@ -87,6 +87,91 @@ def measured_samples(measured, frames=None, in_range: bool = False):
         yield k, m, r, ok
 
 
+CENSOR_SDS = 3.0
+"""Ideal depths within this many noise sd of a range limit are censored: a measured depth there is
+cut (a hole) whenever the noise pushes it past the limit, whatever else the sensor does (a normal
+error crosses a limit 3 sd away in less than 0.2 % of the draws)."""
+CENSOR_MIN_HOLES = 20
+""":func:`uncensored_samples` leaves the censoring band in when fewer holes than this would stay
+outside it (too few to fit a hole law; the plain in-range set is then the better evidence)."""
+CENSOR_MIN_PIXEL_SHARE = 0.3
+"""... or fewer than this share of the in-range pixels (a view that lies mostly near its range
+limits has nothing better to offer)."""
+
+
+def depth_noise_sd(z: np.ndarray, residual_sd: float, fb: float, config=None) -> np.ndarray:
+    """(N,) metres: the sd of a measured depth at depth ``z`` (N,) metres, the larger of the data's
+    and the model's: ``residual_sd`` - the robust sd of the disparity residual f b (1/z' - 1/z), px,
+    for triangulation (``fb`` > 0, f b in px m; z^2 residual_sd / f b in depth), of the depth
+    residual z' - z, metres, for ToF - and ``config``'s axial noise law sigma(z) where it has one
+    enabled (the model a candidate is fitted on; None: the data's alone)."""
+    z = np.asarray(z, np.float64)
+    sdz = z ** 2 * residual_sd / fb if fb > 0 else np.full_like(z, residual_sd)
+    if config is not None and "axial_noise" in config.names(enabled_only=True):
+        sdz = np.maximum(sdz, np.asarray(config.effect("axial_noise").sigma(z), np.float64))
+    return sdz
+
+
+def residual_sd(measured_z: np.ndarray, ideal_z: np.ndarray, fb: float) -> float:
+    """Robust sd (:func:`robust_std`) of the residual of measured depths ``measured_z`` (N,) against
+    the ideal ``ideal_z`` (N,), metres, both > 0: in disparity px, f b (1/z' - 1/z), for triangulation
+    (``fb`` > 0: the noise of a disparity is the same at every depth), in metres for ToF; 0 with no
+    pixel. The input of :func:`depth_noise_sd`."""
+    m, z = np.asarray(measured_z, np.float64), np.asarray(ideal_z, np.float64)
+    if not m.size:
+        return 0.0
+    return robust_std(fb * (1.0 / m - 1.0 / z) if fb > 0 else m - z)
+
+
+def censoring_band(z: np.ndarray, limits: tuple[float, float], sdz: np.ndarray, sds: float = CENSOR_SDS) -> np.ndarray:
+    """(shape of ``z``) bool: ideal depths ``z`` (metres) within ``sds`` noise sd ``sdz`` (metres,
+    same shape; :func:`depth_noise_sd`) of the nearest or the farthest measured depth ``limits``
+    (:func:`measured_depth_range`). There a pixel is a hole whenever its noise crosses the limit, so
+    its hole rate says nothing about a dropout law: the starts of the hole-making effects and
+    :func:`synth.lab.decisive.hole_drivers` leave these pixels out."""
+    lo, hi = limits
+    return (z < lo + sds * sdz) | (z > hi - sds * sdz)
+
+
+def uncensored_samples(measured, config, frames=None):
+    """:func:`measured_samples` with ``in_range=True`` and, in ``usable``, the :func:`censoring_band`
+    left out as well: the in-range pixels whose ideal depth lies within :data:`CENSOR_SDS` noise sd
+    of the nearest or the farthest measured depth. Near a range limit noise alone makes holes (the
+    farther half of the pixels at the limit are cut), at the bright, far, faced-on signals a dropout
+    law does not reach; counted as dropouts they pull a low-reflectance start's signal50 towards
+    them (one logistic fitted to both clusters). The noise sd is :func:`depth_noise_sd`'s: the
+    larger of the measured disparity residual's robust sd over the in-range valid pixels and
+    ``config``'s axial noise sigma(z) (the model the candidate is fitted on). When the band would
+    leave fewer than :data:`CENSOR_MIN_HOLES` holes or fewer than :data:`CENSOR_MIN_PIXEL_SHARE` of
+    the in-range pixels, the plain in-range set is yielded (the start's old evidence). The frames
+    are read twice (the sd needs all of them first); the sequence caches its renders."""
+    ks = list(range(len(measured)) if frames is None else frames)
+    samples = list(measured_samples(measured, ks, in_range=True))
+    fb = float(getattr(config.preset, "fb", 0.0) or 0.0)
+    lim = measured_depth_range(measured, ks)
+    if not samples or not np.isfinite(lim[1]):
+        yield from samples
+        return
+    ms, zs = [], []
+    for _, m, r, ok in samples:
+        v = ok & (m > 0)
+        ms.append(m[v])
+        zs.append(r.depth[v])
+    sd = residual_sd(np.concatenate(ms), np.concatenate(zs), fb)
+    keep, n_in, n_keep, h_keep = [], 0, 0, 0
+    for _, m, r, ok in samples:
+        k_ = ok & ~censoring_band(np.where(ok, r.depth, 0.0), lim, depth_noise_sd(np.where(ok, r.depth, 0.0), sd, fb, config))
+        keep.append(k_)
+        n_in += int(ok.sum())
+        n_keep += int(k_.sum())
+        h_keep += int((k_ & ~(m > 0)).sum())
+    if h_keep < CENSOR_MIN_HOLES or n_keep < CENSOR_MIN_PIXEL_SHARE * n_in:
+        yield from samples
+        return
+    for (k, m, r, _), k_ in zip(samples, keep):
+        yield k, m, r, k_
+
+
 def measured_depth_range(measured, frames) -> tuple[float, float]:
     """(low, high) metres: the smallest and the largest measured valid depth of ``frames`` ((0, inf)
     when none is valid)."""

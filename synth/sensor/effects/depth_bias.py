@@ -7,7 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
-from synth.sensor.effects._common import locally_flat, measured_depth_range, measured_samples, robust_std
+from synth.sensor.effects._common import (CENSOR_SDS, depth_noise_sd, locally_flat, measured_depth_range, measured_samples,
+                                          robust_std)
 from synth.sensor.registry import STAGE_DEPTH, Effect, Signature, param, register_effect
 
 
@@ -200,9 +201,6 @@ class DepthBias(Effect):
                 f"model (an offset {shape}).")
 
 
-CENSOR_SDS = 3.0
-"""Rows whose predicted measured depth lies within this many noise sd of a range limit are left out of
-the bias start (a normal error is cut by less than 0.2 % of its mass at 3 sd)."""
 CENSOR_MIN_HOLES = 50
 """A measured depth extreme is taken for a range limit when at least this many usable hole pixels are
 predicted beyond it (and at least as many as measured ones)."""
@@ -275,9 +273,7 @@ def _uncensored(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, f
     sd = robust_std(y - A @ coef)
     zp = _predicted_depth(A, z, coef, fb)
     zh = _predicted_depth(holes[0], holes[1], coef, fb) if len(holes[1]) else np.zeros(0)
-    sdz = zp ** 2 * sd / fb if fb > 0 else np.full_like(zp, sd)
-    if "axial_noise" in config.names(enabled_only=True):
-        sdz = np.maximum(sdz, np.asarray(config.effect("axial_noise").sigma(zp), np.float64))
+    sdz = depth_noise_sd(zp, sd, fb, config)
     keep = np.ones(zp.shape, bool)
     for beyond_rows, beyond_holes, inside in ((zp > hi, zh > hi, zp <= hi - CENSOR_SDS * sdz),
                                               (zp < lo, zh < lo, zp >= lo + CENSOR_SDS * sdz)):

@@ -87,13 +87,14 @@ class IncidenceDropout(Effect):
         [0, 1]; angle50 is where it first reaches 0.5, the width (theta75 - theta25) / (2 ln 3)
         (the logistic's quartiles), at least 0.1° - a hard cut gives the smallest width. Nothing
         when the excess never reaches 0.5 (no dropout, or no data at grazing angles). Only pixels
-        whose ideal depth lies where the sensor measures at all count (``measured_samples(in_range=True)``:
-        a floor beyond the range limit is grazing and all holes)."""
-        from synth.sensor.effects._common import measured_samples
+        whose ideal depth lies where the sensor measures at all, and not within 3 noise sd of the
+        nearest or farthest measured depth, count (``_common.uncensored_samples``: a floor beyond the
+        range limit is grazing and all holes, and just inside it noise alone makes holes)."""
+        from synth.sensor.effects._common import uncensored_samples
         refs = ("camera",) if config.preset.type == "tof" else ("camera", "projector", "both")
         edges = np.arange(0.0, 90.01, 0.25)
         curves = {ref: (np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)) for ref in refs}
-        for _, m, r, ok in measured_samples(measured, in_range=True):      # range-limit holes left out
+        for _, m, r, ok in uncensored_samples(measured, config):      # range-limit holes left out
             pts = getattr(r, "points_cam", None)
             for ref in refs:
                 th = incidence_angles_deg(r.normals_cam, r.ray_dirs_cam, pts, config.preset.projector_offset_m,

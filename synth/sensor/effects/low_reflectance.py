@@ -108,16 +108,19 @@ class LowReflectance(Effect):
         (:func:`_logistic_ml`, which also starts from the tail when no bin reaches 0.5). The form whose logistic predicts the holes of every pixel best (Brier
         score) wins; for it the ``normal`` law is fitted the same way and taken when its likelihood
         is higher (same number of parameters): the laws agree where the 50 % point is in view and
-        part in the tails, where a range limit may leave the only evidence. Only pixels whose ideal depth lies where the sensor measures at all count
-        (``measured_samples(in_range=True)``): the holes beyond a range limit are far and weak too.
+        part in the tails, where a range limit may leave the only evidence. Only pixels whose ideal depth lies where the sensor measures at all,
+        and not within 3 noise sd of the nearest or farthest measured depth, count
+        (``_common.uncensored_samples``): the holes beyond a range limit are far and weak too, and the
+        ones its noise makes just inside it lie at bright signals no dropout reaches - one logistic
+        fitted to both puts signal50 between the two clusters.
         Nothing when no form's excess reaches 0.5."""
-        from synth.sensor.effects._common import measured_samples
+        from synth.sensor.effects._common import uncensored_samples
         from synth.sensor.state import ViewGeometry
         rng = np.random.default_rng(0)
         renderer = measured.renderer
         logs = {"irradiance": [], "albedo": []}
         holes = []
-        for _, m, r, ok in measured_samples(measured, in_range=True):      # range-limit holes left out
+        for _, m, r, ok in uncensored_samples(measured, config):      # range-limit holes left out
             idx = np.flatnonzero(ok)
             if idx.size > 40000:
                 idx = np.sort(rng.choice(idx, 40000, replace=False))
