@@ -110,8 +110,8 @@ class HoleDrivers:
             a, b = "the returned signal (albedo·cos/r²)", "the incidence angle"
         else:
             a, b = "the incidence angle", "the returned signal (albedo·cos/r²)"
-        return (f"the holes ({100 * self.hole_rate:.0f} % of {self.pixels} pixels the current model keeps) are "
-                f"explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.0f}")
+        return (f"the holes ({self.holes}, {100 * self.hole_rate:.2g} % of {self.pixels} pixels the current model "
+                f"keeps) are explained better by {a} than by {b}: likelihood ratio e^{abs(self.log_ratio):.1f}")
 
 
 def _monotone_ll(hole: np.ndarray, x: np.ndarray, increasing: bool) -> float:
