@@ -30,14 +30,6 @@ class LowReflectanceParams:
     exp(-x^2 / 2 s^2)). The two differ only in the tails, and where the range limit leaves only the
     tail in view (the 50 % point beyond the measured depths) the 50 % point is an extrapolation
     through the law. ``sensor fit`` picks it from the data (likelihood of the holes)."""
-    source: str = param("projector", "", choices=("projector", "camera"))
-    """Where the light of the ``irradiance`` form comes from, i.e. which ray its cos(incidence)
-    and r are measured along: ``projector`` - a point source at the preset's
-    ``projector_offset_m`` (structured light: the pattern's emitter) or ``camera`` - the camera's
-    own viewing ray (a ToF emitter beside the lens, or a device whose holes follow the returned
-    image at the camera). The two differ on near, oblique surfaces (the baseline is a few cm).
-    ``sensor fit`` picks it from the data (likelihood of the holes); a ToF preset has only the
-    camera's."""
 
 
 NORMAL_SCALE = 4.0 / np.sqrt(2.0 * np.pi)
@@ -58,14 +50,12 @@ def transition(u: np.ndarray, law: str, precise: bool = False) -> np.ndarray:
     return p if precise else p.astype(np.float32)
 
 
-def returned_signal(view, preset, form: str, source: str = "projector") -> np.ndarray:
-    """(H, W) the signal of :class:`LowReflectanceParams` (``form`` irradiance or albedo; ``source``
-    projector or camera: the point the irradiance's light comes from, see the field)."""
+def returned_signal(view, preset, form: str) -> np.ndarray:
+    """(H, W) the signal of :class:`LowReflectanceParams` (``form`` irradiance or albedo)."""
     base = view.albedo * (1 - view.specular)
     if form == "albedo":
         return base
-    origin = (0.0, 0.0, 0.0) if source == "camera" else preset.projector_offset_m
-    cos_i, r = cos_incidence(view, origin)
+    cos_i, r = cos_incidence(view, preset.projector_offset_m)
     return base * cos_i / np.maximum(r * r, 1e-9)
 
 
@@ -98,14 +88,14 @@ class LowReflectance(Effect):
     def apply(self, state, draw) -> None:
         u = check_draw(draw, "u", state.shape, self.name)
         v = state.view
-        s = returned_signal(v, state.preset, self.params.signal, self.params.source)
+        s = returned_signal(v, state.preset, self.params.signal)
         with np.errstate(divide="ignore"):
             x = np.log10(self.params.signal50) - np.log10(np.maximum(s, 1e-12))
         p = transition(x / self.params.width_decades, self.params.law)
         p[~v.hit] = 0
         drop_with_probability(state, p, u, self.name)
 
-    START_ONLY_PARAMS = ("signal", "law", "source")
+    START_ONLY_PARAMS = ("signal", "law")
 
     @classmethod
     def fit_start(cls, measured, config, frames) -> dict:
@@ -116,9 +106,7 @@ class LowReflectance(Effect):
         width from its 0.25 and 0.75 crossings (the logistic's quartiles: width = (x75 - x25) /
         (2 ln 3) decades); both are then refined by maximum likelihood on every pixel
         (:func:`_logistic_ml`, which also starts from the tail when no bin reaches 0.5). The form whose logistic predicts the holes of every pixel best (Brier
-        score) wins; the irradiance form is computed for each light ``source`` (projector and camera;
-        a ToF preset only the camera) and the source whose logistic has the higher likelihood stands
-        for it (same number of parameters; a tie keeps the projector); for the winning form the ``normal`` law is fitted the same way and taken when its likelihood
+        score) wins; for it the ``normal`` law is fitted the same way and taken when its likelihood
         is higher (same number of parameters): the laws agree where the 50 % point is in view and
         part in the tails, where a range limit may leave the only evidence. Only pixels whose ideal depth lies where the sensor measures at all,
         and not within 3 noise sd of the nearest or farthest measured depth, count
@@ -130,14 +118,7 @@ class LowReflectance(Effect):
         from synth.sensor.state import ViewGeometry
         rng = np.random.default_rng(0)
         renderer = measured.renderer
-        if config.preset.type == "tof":
-            sources = ("camera",)                  # the emitter sits at the lens
-        elif np.any(np.asarray(config.preset.projector_offset_m, float) != 0):
-            sources = ("projector", "camera")
-        else:
-            sources = ("projector",)               # one point: the two rays coincide
-        logs = {("irradiance", src): [] for src in sources}
-        logs[("albedo", None)] = []
+        logs = {"irradiance": [], "albedo": []}
         holes = []
         for _, m, r, ok in uncensored_samples(measured, config):      # range-limit holes left out
             idx = np.flatnonzero(ok)
@@ -149,41 +130,34 @@ class LowReflectance(Effect):
             H, W = r.depth.shape
             view = ViewGeometry(r.points_cam, r.normals_cam, r.hit, r.instance_ids, np.asarray(alb, np.float32),
                                 np.asarray(spec, np.float32), r.points_world, np.broadcast_to(np.eye(4), (H, 4, 4)))
-            for form, src in logs:
-                sig = returned_signal(view, config.preset, form, src or "projector").ravel()[idx]
-                logs[(form, src)].append(np.log10(np.maximum(sig, 1e-12)))
+            for form in logs:
+                sig = returned_signal(view, config.preset, form).ravel()[idx]
+                logs[form].append(np.log10(np.maximum(sig, 1e-12)))
             holes.append(m.ravel()[idx] <= 0)
         if not holes:
             return {}
         h = np.concatenate(holes).astype(float)
-        fits = {}
-        for key, parts in logs.items():
+        best = None
+        for form, parts in logs.items():
             x = np.concatenate(parts)
             rates = _logistic_from_rates(x, h)
             est = _logistic_ml(x, h, rates)
-            if est is not None:
-                fits[key] = (x, rates, est)
-        irr = [k for k in logs if k[0] == "irradiance" and k in fits]
-        if len(irr) > 1:          # the light's source: the higher likelihood (ties keep the first, the default)
-            top = max(irr, key=lambda k: (fits[k][2][3], -irr.index(k)))
-            for k in irr:
-                if k != top:
-                    del fits[k]
-        best = None
-        for (form, src), (x, rates, (x50, w, base, ll)) in fits.items():
+            if est is None:
+                continue
+            x50, w, base, ll = est
             p = base + (1 - base) / (1.0 + np.exp(np.clip((x - x50) / w, -50, 50)))
             brier = float(np.mean((p - h) ** 2))
             if best is None or brier < best[0]:
-                best = (brier, form, src, x50, w, ll, x, rates)
+                best = (brier, form, x50, w, ll, x, rates)
         if best is None:
             return {}
-        _, form, src, x50, w, ll, x, rates = best
+        _, form, x50, w, ll, x, rates = best
         x50, w, law = _pick_law(x, h, rates, (x50, w, ll))
         lo, hi = cls.FITTABLE["signal50"]
         wl, wh = cls.FITTABLE["width_decades"]
         return {f"{cls.name}.signal50": float(np.clip(10.0 ** x50, lo, hi)),
                 f"{cls.name}.width_decades": float(np.clip(w, wl, wh)), f"{cls.name}.signal": form,
-                f"{cls.name}.law": law, f"{cls.name}.source": src or sources[0]}
+                f"{cls.name}.law": law}
 
     @classmethod
     def evidence(cls, ctx, params: dict, gain: float | None = None) -> str:
