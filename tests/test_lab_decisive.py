@@ -265,3 +265,30 @@ def test_a_radial_shift_decides_the_lens_over_a_learned_map_only():
     assert [c.effect for c in promote(r, {"lens_distortion": "radial"}, 0.1)][0] == "lens_distortion"
     r = [_c("depth_bias", 0.95), _c("lens_distortion", 0.90)]                   # not a map: stays ahead
     assert [c.effect for c in promote(r, {"lens_distortion": "radial"}, 0.1)][0] == "depth_bias"
+
+
+def test_holes_on_one_floor_plane_are_a_confounded_tie():
+    """A floor seen from a fixed height (the mystery generator's seed 66: every pixel in range on the
+    floor): there albedo cos / r^2 = albedo cos^3 / d^2 is a function of the angle alone, the two
+    monotone fits coincide, and the holes - drawn here from the angle law - cannot say which law made
+    them. The statistic must name it a tie and say why (not decide, not quote a ratio of e^0)."""
+    rng = np.random.default_rng(11)
+    H, W = INTR.height, INTR.width
+    v = (np.arange(H) - INTR.cy)[:, None].repeat(W, 1) / INTR.fy
+    ideal = np.where(v > 0.05, 1.2 / np.maximum(v, 1e-6), 0.0).astype(np.float32)   # camera 1.2 m above the floor
+    ideal[ideal > 6.0] = 0.0
+    normals = np.zeros((H, W, 3), np.float32)
+    normals[..., 1] = np.where(ideal > 0, -1.0, 0.0)
+    ids = (ideal > 0).astype(np.int32)
+    ang = incidence_angle_deg(normals, INTR).reshape(H, W)
+    frames = []
+    for _ in range(3):
+        hole = (ideal > 0) & (rng.random((H, W)) < 1 / (1 + np.exp(-(np.nan_to_num(ang) - 75.0) / 2.0)))
+        meas = np.where(hole | (ideal <= 0), 0, ideal * (1 + 0.001 * rng.standard_normal((H, W)))).astype(np.float32)
+        frames.append(FrameObservation(meas, ideal.copy(), ideal, normals, ids, {1: "floor"}, INTR))
+    hd = hole_drivers(EvidenceContext(frames, None, {1: 0.5}))
+    assert hd is not None and hd.holes >= 20, hd
+    assert hd.confounded and hd.rank_corr < -0.999 and hd.driver is None, hd
+    assert "cannot tell the returned signal" in hd.sentence() and "e^" not in hd.sentence()
+    # the plain fixtures, whose signal and angle vary apart, are not confounded
+    assert not hole_drivers(_ctx("angle")).confounded

@@ -64,6 +64,12 @@ MIN_HOLES = 20
 few to explain. A count, not a rate: a dropout confined to one dark face seen at grazing incidence
 holes a few tenths of a per cent of a frame, and the likelihood ratio (:data:`MIN_LOG_RATIO`)
 already says whether those holes tell the two laws apart."""
+CONFOUNDED_RANK_CORR = 0.999
+"""When the returned signal and the incidence angle of the pixels the statistic uses are ranked alike
+(|Spearman rank correlation| at least this) the two monotone fits are the same fit and the holes
+cannot tell the laws apart, whatever their number: e.g. one floor plane seen from a fixed height,
+where albedo cos / r^2 = albedo cos^3 / d^2 is a function of the angle alone. The tie sentence then
+says so instead of quoting a likelihood ratio of e^0."""
 MIN_SPILL_EXCESS = 0.05
 """The measured share of foreground-valued depths in that band must exceed the current model's by
 this much (5 points, the evidence sentence's threshold; a rate's sampling noise over a few thousand
@@ -88,6 +94,14 @@ class HoleDrivers:
     """Their measured hole rate."""
     holes: int
     """Their measured holes."""
+    rank_corr: float = 0.0
+    """Spearman rank correlation of the returned signal with the incidence angle over those pixels
+    (-1: the signal falls exactly as the angle rises; :data:`CONFOUNDED_RANK_CORR`)."""
+
+    @property
+    def confounded(self) -> bool:
+        """The signal and the angle order the pixels alike: no hole pattern can tell the laws apart."""
+        return abs(self.rank_corr) >= CONFOUNDED_RANK_CORR
 
     @property
     def log_ratio(self) -> float:
@@ -97,7 +111,7 @@ class HoleDrivers:
     @property
     def driver(self) -> str | None:
         """'low_reflectance', 'incidence_dropout' or None (the data cannot tell)."""
-        if self.holes < MIN_HOLES:
+        if self.holes < MIN_HOLES or self.confounded:
             return None
         if self.log_ratio >= MIN_LOG_RATIO:
             return "low_reflectance"
@@ -106,6 +120,12 @@ class HoleDrivers:
         return None
 
     def sentence(self) -> str:
+        if self.confounded:
+            return (f"the holes ({self.holes}, {100 * self.hole_rate:.2g} % of {self.pixels} pixels the current model "
+                    f"keeps) cannot tell the returned signal (albedo·cos/r²) from the incidence angle: on these pixels "
+                    f"the signal falls in the same order as the angle rises (rank correlation {self.rank_corr:+.3f}; "
+                    f"one surface at one distance, e.g. a floor seen from a fixed height), so both laws explain them "
+                    f"alike; surfaces at other distances in range would separate them")
         if self.log_ratio >= 0:
             a, b = "the returned signal (albedo·cos/r²)", "the incidence angle"
         else:
@@ -160,8 +180,10 @@ def hole_drivers(ctx) -> HoleDrivers | None:
     hole = (m <= 0)[use]
     a = ang[use]
     sig = np.log10(alb[use] * np.cos(np.radians(a)) / r[use] ** 2)
+    from scipy.stats import spearmanr
+    rho = float(spearmanr(sig, a).statistic) if np.ptp(sig) > 0 and np.ptp(a) > 0 else 0.0
     return HoleDrivers(_monotone_ll(hole, sig, False), _monotone_ll(hole, a, True), int(use.sum()), float(hole.mean()),
-                       int(hole.sum()))
+                       int(hole.sum()), rho)
 
 
 def foreground_spill(ctx) -> tuple[float, float, float, int] | None:
