@@ -91,10 +91,10 @@ CENSOR_SDS = 3.0
 """Ideal depths within this many noise sd of a range limit are censored: a measured depth there is
 cut (a hole) whenever the noise pushes it past the limit, whatever else the sensor does (a normal
 error crosses a limit 3 sd away in less than 0.2 % of the draws)."""
-CENSOR_MIN_HOLES = 20
+UNCENSORED_MIN_HOLES = 20
 """:func:`uncensored_samples` leaves the censoring band in when fewer holes than this would stay
 outside it (too few to fit a hole law; the plain in-range set is then the better evidence)."""
-CENSOR_MIN_PIXEL_SHARE = 0.3
+UNCENSORED_MIN_PIXEL_SHARE = 0.3
 """... or fewer than this share of the in-range pixels (a view that lies mostly near its range
 limits has nothing better to offer)."""
 
@@ -142,7 +142,7 @@ def uncensored_samples(measured, config, frames=None):
     them (one logistic fitted to both clusters). The noise sd is :func:`depth_noise_sd`'s: the
     larger of the measured disparity residual's robust sd over the in-range valid pixels and
     ``config``'s axial noise sigma(z) (the model the candidate is fitted on). When the band would
-    leave fewer than :data:`CENSOR_MIN_HOLES` holes or fewer than :data:`CENSOR_MIN_PIXEL_SHARE` of
+    leave fewer than :data:`UNCENSORED_MIN_HOLES` holes or fewer than :data:`UNCENSORED_MIN_PIXEL_SHARE` of
     the in-range pixels, the plain in-range set is yielded (the start's old evidence). The frames
     are read twice (the sd needs all of them first); the sequence caches its renders."""
     ks = list(range(len(measured)) if frames is None else frames)
@@ -160,12 +160,13 @@ def uncensored_samples(measured, config, frames=None):
     sd = residual_sd(np.concatenate(ms), np.concatenate(zs), fb)
     keep, n_in, n_keep, h_keep = [], 0, 0, 0
     for _, m, r, ok in samples:
-        k_ = ok & ~censoring_band(np.where(ok, r.depth, 0.0), lim, depth_noise_sd(np.where(ok, r.depth, 0.0), sd, fb, config))
+        z = np.where(ok, r.depth, 0.0)
+        k_ = ok & ~censoring_band(z, lim, depth_noise_sd(z, sd, fb, config))
         keep.append(k_)
         n_in += int(ok.sum())
         n_keep += int(k_.sum())
         h_keep += int((k_ & ~(m > 0)).sum())
-    if h_keep < CENSOR_MIN_HOLES or n_keep < CENSOR_MIN_PIXEL_SHARE * n_in:
+    if h_keep < UNCENSORED_MIN_HOLES or n_keep < UNCENSORED_MIN_PIXEL_SHARE * n_in:
         yield from samples
         return
     for (k, m, r, _), k_ in zip(samples, keep):
