@@ -469,6 +469,7 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
         # locally before the start is compared with the defaults
         alt = set_params(cand_cfg, data_start)
         alt, g_alt = _limits_restart(cx, model_names, name, alt, obj(alt))
+        alt, g_alt = _model_restart(cx, model_names, alt, g_alt)
         if base.params and cx.dc.refit_model:
             xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
                                   start_gap=g_alt, local=True, stats=cx.stats)
@@ -486,6 +487,30 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
     cx.tick()
     return Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
                      evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted)
+
+
+def _model_restart(cx: _Ctx, model_names: Sequence[str], cfg, gap: float) -> tuple[object, float]:
+    """(config, gap): ``cfg`` (gap ``gap``, a candidate at its data-driven start on the refitted model)
+    with the model's own parameters reset to their closed-form starts (``fit_start``, as
+    :func:`refit_base` begins) when that lowers the gap; else unchanged. The base refit, without the
+    candidate, explains what it can of the candidate's effect with the model's parameters (a depth
+    bias that widens the error distribution read as extra axial noise, sigma2 +30 %); the candidate
+    added at its own start then counts the effect twice, and a local search of a few evaluations
+    does not undo it, while the closed-form noise start (local differences, blind to a smooth bias)
+    is right. The depth limits (``Effect.DEPTH_LIMIT_PARAMS``) are left to :func:`_limits_restart`
+    (only a candidate whose holes follow the signal restarts them). Only when the search
+    configuration asks for data-driven starts and the model is refitted."""
+    if not (cx.fc.data_starts and cx.dc.refit_model and model_names):
+        return cfg, gap
+    ds = start_values(cx.measured, cfg, list(model_names), cx.frames)
+    limits = {n: type(cfg.effect(n)).DEPTH_LIMIT_PARAMS for n in model_names}
+    ds = {k: v for k, v in ds.items() if not isinstance(v, str)
+          and k.split(".", 1)[1] not in (limits.get(k.split(".", 1)[0]) or {})}
+    if not ds:
+        return cfg, gap
+    alt = set_params(cfg, ds)
+    g = cx.obj(alt)
+    return (alt, g) if g < gap else (cfg, gap)
 
 
 def _limits_restart(cx: _Ctx, model_names: Sequence[str], name: str, cfg, gap: float) -> tuple[object, float]:
