@@ -783,7 +783,7 @@ def test_candidate_restarts_the_noise_the_base_refit_inflated(tmp_path):
     reached sigma2 0.00186). The depth bias added at its data start on that base counted the bias
     twice and its local search kept the inflated noise (gap 0.074 against 0.019 at the fit with the
     true effect; a learned disparity map then led). The candidate now restarts the model's own
-    parameters at their closed-form starts when that lowers the gap (``_model_restart``)."""
+    parameters at their closed-form starts when that lowers the gap (``synth.lab.restarts.model_restart``)."""
     from synth.lab import MeasuredSequence, mystery
     from synth.lab.diagnose import BaseRefit, _with_effect, fit_candidate
     from synth.lab.fit import set_params, start_values
