@@ -70,6 +70,7 @@ import numpy as np
 from data_tools.config import config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.results import json_safe
+from synth.lab.restarts import limits_restart, model_restart
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
@@ -468,7 +469,8 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
         # as extra noise): from the data-driven start, the model's parameters are re-fitted
         # locally before the start is compared with the defaults
         alt = set_params(cand_cfg, data_start)
-        alt, g_alt = _limits_restart(cx, model_names, name, alt, obj(alt))
+        alt, g_alt = limits_restart(cx, model_names, name, alt, obj(alt))
+        alt, g_alt = model_restart(cx, model_names, alt, g_alt)
         if base.params and cx.dc.refit_model:
             xa, g_alt, _ = search(obj, alt, param_specs(alt, model_names), cx.fitcfg(cx.dc.refine_evaluations),
                                   start_gap=g_alt, local=True, stats=cx.stats)
@@ -486,26 +488,6 @@ def fit_candidate(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], name: s
     cx.tick()
     return Candidate(name, float(g), 0.0, {k: float(v) for k, v in x.items()}, "", gap_default=float(g_def),
                      evaluations=obj.evaluations - n0, seconds=time.perf_counter() - tc, config=fitted)
-
-
-def _limits_restart(cx: _Ctx, model_names: Sequence[str], name: str, cfg, gap: float) -> tuple[object, float]:
-    """(config, gap): ``cfg`` (gap ``gap``) with the model's depth limits (``Effect.DEPTH_LIMIT_PARAMS``)
-    set to their closed-form start (the farthest / nearest measured depth) when candidate ``name``
-    removes pixels where little signal returns (``Effect.SIGNAL_HOLES``) and that lowers the gap;
-    else unchanged. The base refit, without the candidate, may have pulled the maximum range in to
-    explain the far low-signal holes; the candidate added on top would then count them twice and
-    lose to a rival whose holes the pulled-in range does not already explain."""
-    if not type(cfg.effect(name)).SIGNAL_HOLES:
-        return cfg, gap
-    limits = {n: type(cfg.effect(n)).DEPTH_LIMIT_PARAMS for n in model_names}
-    limits = {n: ks for n, ks in limits.items() if ks}
-    ds = start_values(cx.measured, cfg, list(limits), cx.frames) if limits else {}
-    ds = {k: v for k, v in ds.items() if k.split(".", 1)[1] in limits.get(k.split(".", 1)[0], {})}
-    if not ds:
-        return cfg, gap
-    alt = set_params(cfg, ds)
-    g = cx.obj(alt)
-    return (alt, g) if g < gap else (cfg, gap)
 
 
 def refine_best(cx: _Ctx, base: BaseRefit, model_names: Sequence[str], tried: list[Candidate]) -> None:

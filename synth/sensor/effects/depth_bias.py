@@ -158,6 +158,7 @@ class DepthBias(Effect):
             keep = _uncensored(A, y, z, coef, fb, limits, holes, config)
             rows_ = np.ones(len(y), bool) if keep is None else keep
             coef = _exact_refit(A[rows_], y[rows_], z[rows_], coef, fb, bounds)
+            coef = _fewest_terms(A[rows_], y[rows_], z[rows_], coef, fb, bounds)
         return {f"{n}.{k}": float(c) for k, c in zip(keys, coef)}
 
     @classmethod
@@ -236,6 +237,59 @@ def _exact_refit(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, 
     sol = least_squares(residual, x0, bounds=(lo, hi), x_scale=np.array([0.01, 0.01, 0.001, 0.001]),
                         xtol=1e-12, ftol=1e-12, max_nfev=200)
     return sol.x if sol.success or sol.status == 0 else coef
+
+
+def _exact_residual(yy: np.ndarray, zz: np.ndarray, r2: np.ndarray, p: np.ndarray, fb: float) -> np.ndarray:
+    """(N,) px: disparity residuals ``yy`` about the model's exact curve for (e, e_r, s, o) = ``p`` at
+    ideal depths ``zz`` (N,) m and normalised squared radii ``r2`` (N,) (:func:`_exact_refit`)."""
+    e, er, s, o = p
+    zm = (1.0 + s) / (1.0 / zz + (e + er * r2) / fb) + o
+    return yy - (fb / np.maximum(zm, 1e-6) - fb / zz)
+
+
+def _fewest_terms(A: np.ndarray, y: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float,
+                  bounds: Sequence[tuple[float, float]], k: float = 3.0) -> np.ndarray:
+    """Triangulation: the bias start ``coef`` (e, e_r, s, o) reduced to the subset of its four terms
+    with the smallest Bayesian information criterion, rss / sd^2 + (terms) ln N, each subset fitted
+    on the model's exact curve with the other terms at 0 (``A``, ``y``, ``z``, ``bounds`` as
+    :func:`_exact_refit`; sd^2 the full fit's residual variance on its inliers, within ``k`` robust
+    sd). Why: over a narrow depth range (e.g. 2-3.3 m) offset, scale and disparity offset are
+    0.99-correlated; the full fit then spends the two extra terms on the noise (rss lower by a few
+    sd^2, far below the ln N ~ 10 each costs) and their cancelling pair moves the bias extrapolated
+    to 1 m by millimetres, while the one term the data ask for extrapolates as the physics does.
+    A term the data need lowers the rss by far more than ln N and is kept."""
+    from itertools import combinations
+
+    from scipy.optimize import least_squares
+    r = _exact_residual(y, z, A[:, 1], coef, fb)
+    ok = np.abs(r - np.median(r)) <= k * max(robust_std(r), 1e-12)
+    n = int(ok.sum())
+    if n < 100:
+        return coef
+    yy, zz, r2 = y[ok], z[ok], A[ok, 1]
+    var = float(np.sum(r[ok] ** 2)) / max(n - len(coef), 1)
+    if not var > 0:
+        return coef
+    lo, hi = np.asarray(bounds, np.float64).T
+    best, best_bic = coef, float(np.sum(r[ok] ** 2)) / var + len(coef) * math.log(n)
+    scale = np.array([0.01, 0.01, 0.001, 0.001])
+    for m in range(1, len(coef)):
+        for free in combinations(range(len(coef)), m):
+            idx = list(free)
+
+            def residual(q, idx=idx):
+                p = np.zeros(len(coef))
+                p[idx] = q
+                return _exact_residual(yy, zz, r2, p, fb)
+            x0 = np.clip(coef[idx], lo[idx] + 1e-12, hi[idx] - 1e-12)
+            sol = least_squares(residual, x0, bounds=(lo[idx], hi[idx]), x_scale=scale[idx], xtol=1e-12,
+                                ftol=1e-12, max_nfev=200)
+            bic = float(np.sum(sol.fun ** 2)) / var + m * math.log(n)
+            if bic < best_bic:
+                p = np.zeros(len(coef))
+                p[idx] = sol.x
+                best, best_bic = p, bic
+    return best
 
 
 def _predicted_depth(A: np.ndarray, z: np.ndarray, coef: np.ndarray, fb: float) -> np.ndarray:
