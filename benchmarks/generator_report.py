@@ -292,7 +292,8 @@ def summary(records: list[dict]) -> str:
                   f"{sum(r['rank_first'] for r in obs)} of {len(obs)}, recovered {sum(r['recovered'] for r in obs)} "
                   f"of {len(obs)}; unobservable (not counted as misses): {len(rs) - len(obs)} "
                   f"{[(r['effect'], r['seed']) for r in rs if not r.get('observable', True)]}; "
-                  f"named ties with the truth first: {len(ties)}"]
+                  f"rank misses inside a named tie (the first and the truth named together: the data cannot tell them "
+                  f"apart): {len(ties)} {[(r['effect'], r['seed']) for r in ties]}"]
         lines += [f"    implausible: {e} seed {s}: {x}" for e, s, x in imp]
     return "\n".join(lines)
 
