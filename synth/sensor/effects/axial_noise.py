@@ -145,11 +145,7 @@ class AxialNoise(Effect):
         squares over the bins. The other terms start at 0. Heavy disparity quantisation (a step
         several times the noise) hides the noise from differences - most adjacent pixels read the
         same level, their robust spread is 0 - so when ``config`` quantises the disparity (the
-        disparity_quantization start runs first, :attr:`START_PRIORITY`) and the measured disparities
-        lie on its levels, the noise is the maximum-likelihood sigma_d of the level each pixel of one
-        surface reads given its ideal disparity (:func:`quantised_noise_ml`, one value for every depth
-        bin: the noise is constant in disparity); without a lattice in the measurement (or where that
-        reads half a step or more) the noise is read from how
+        disparity_quantization start runs first, :attr:`START_PRIORITY`) the noise is read from how
         often adjacent pixels of one surface read different levels (:func:`quantised_noise`); where that
         reads half a step or more (or nothing), the differences' standard deviation less the rounding's
         own variance (:func:`quantised_spread`: their robust spread is a multiple of the step). Spatially
@@ -159,7 +155,7 @@ class AxialNoise(Effect):
         pairs_z, pairs_d, pairs_m, pairs_i = [], [], [], []
         fb = float(config.preset.fb)
         step = _quantisation_step(config) if fb > 0 else 0.0
-        pairs_f, pix_m, pix_i = [], [], []
+        pairs_f = []
         for _, m, r, ok in measured_samples(measured):
             z = r.depth.astype(np.float64)
             flat = locally_flat(np.where(r.hit, z, 0.0))
@@ -179,17 +175,11 @@ class AxialNoise(Effect):
             if step > 0:
                 pairs_m.append((dm[:, 1:] - dm[:, :-1])[sel])
                 pairs_i.append((di[:, 1:] - di[:, :-1])[sel])
-                pix_m.append(dm[:, :-1][sel])
-                pix_i.append(di[:, :-1][sel])
         if not pairs_z:
             return {}
         pz, pd, pf = np.concatenate(pairs_z), np.concatenate(pairs_d), np.concatenate(pairs_f)
-        on_lattice = float("nan")
         if step > 0:
             pm, pi = np.concatenate(pairs_m), np.concatenate(pairs_i)
-            on_lattice = quantised_noise_ml(np.concatenate(pix_m), np.concatenate(pix_i), step)
-            if not on_lattice < 0.5 * step:      # NaN, or a noise the level spread already resolves
-                on_lattice = float("nan")
         bins = np.floor(pz / 0.25)
         flat_bins = np.unique(bins[pf], return_counts=True)[1]
         if (flat_bins >= 200).sum() >= 2:       # else every pair on one surface (see the docstring)
@@ -202,9 +192,7 @@ class AxialNoise(Effect):
             if sel.sum() >= 200:
                 zs.append(float(np.median(pz[sel])))
                 sd = robust_std(pd[sel]) / np.sqrt(2.0)
-                if np.isfinite(on_lattice):     # every pixel's level against its ideal disparity
-                    sd = on_lattice
-                elif step > 0:
+                if step > 0:
                     idx = np.flatnonzero(sel)
                     if idx.size > 4000:
                         idx = rng.choice(idx, 4000, replace=False)
@@ -319,95 +307,3 @@ def quantised_noise(measured_diff: np.ndarray, ideal_diff: np.ndarray, step: flo
     if observed <= p[0] or observed >= p[-1]:
         return float("nan")
     return float(np.interp(observed, p, sig))
-
-
-LATTICE_CONCENTRATION = 0.9
-"""Smallest concentration |mean exp(2 pi i d / step)| of the measured disparities d (px) at which
-they are taken to sit on levels ``step`` apart (:func:`quantised_noise_ml`): a rounding to levels
-gives 1 up to the depth file's own rounding (1/5000 m: ~1e-3 of a 1/32 px step at 2 m);
-continuous disparities give ~0, and a step that is not the lattice's (the preset's default where
-no lattice was found) gives far less."""
-OFFSET_EVIDENCE = 8.0
-"""Decrease of the negative log-likelihood (nats) that a constant disparity offset must bring in
-:func:`quantised_noise_ml` to be used: 8 is a likelihood ratio of e^8, about 4 standard deviations
-for one parameter; a measurement without an offset gains 0-2 (chance)."""
-MIN_CROSSINGS = 20
-"""Fewest pixels reading the level next to the one their ideal disparity rounds to for
-:func:`quantised_noise_ml` to give a noise: with fewer the noise is below what the levels resolve."""
-OUTLIER_SHARE = 0.01
-"""Share of pixels :func:`quantised_noise_ml` lets read any level (probability 0.01 each): edges
-whose ideal and measured surfaces differ by a pixel, mismatches; without it one such pixel
-several steps off outweighs thousands of correct ones."""
-
-
-def quantised_noise_ml(measured: np.ndarray, ideal: np.ndarray, step: float, max_pixels: int = 60000) -> float:
-    """The disparity noise sigma_d (px) under a quantisation to levels ``step`` px apart, by maximum
-    likelihood from every pixel's level: ``measured`` (N,) the measured disparities f b / z (on the
-    levels), ``ideal`` (N,) the same pixels' ideal disparities (px).
-
-    The levels sit at (k + phase) step, the phase the angle of the measured disparities' circular
-    mean at the step. A pixel of ideal disparity d reads level k with probability p_k = Phi((hi_k -
-    d - o) / sigma) - Phi((lo_k - d - o) / sigma), lo_k, hi_k = (k + phase -+ 1/2) step: rounding
-    after Gaussian noise, the exact model of what a quantising device does. Unlike the share of
-    adjacent pairs on different levels with the levels' phase taken as uniform over the pixels
-    (:func:`quantised_noise`), it uses where each pixel's ideal disparity lies between the
-    boundaries: a few walls and a floor (one disparity per image row) sample only a few positions
-    within a step, and when the noise is a tenth of a step the share of split pairs depends on how
-    near those positions lie to a boundary, not only on the noise. ``o`` is a constant disparity
-    offset of the measurement against the model (an unmodelled converter offset moves every pixel
-    against the boundaries), fitted with sigma within half a step and used only when it lowers the
-    negative log-likelihood by more than :data:`OFFSET_EVIDENCE` (else sigma at o = 0): with the
-    pixels at one or two positions within a step, the offset and sigma trade off (a position nearer
-    the boundary with less noise splits as often), and a free offset read sigma 35-55 % low on
-    rows at 0.1 and 0.4 of a step from a boundary without any offset; a share
-    :data:`OUTLIER_SHARE` of the pixels may read any level. Grid search over (o, sigma) (16 x 12,
-    sigma 0.002-2 steps), then Nelder-Mead from the best. At most ``max_pixels`` pixels (a fixed
-    random subset). NaN when fewer than 100 pixels, when the measured disparities do not lie on
-    levels ``step`` apart (concentration below :data:`LATTICE_CONCENTRATION`), or when fewer than
-    :data:`MIN_CROSSINGS` pixels read a level next to the one their ideal disparity rounds to (the
-    noise is not resolved)."""
-    from scipy.optimize import minimize, minimize_scalar
-    from scipy.special import ndtr
-    dm, di = np.asarray(measured, np.float64), np.asarray(ideal, np.float64)
-    keep = np.isfinite(dm) & np.isfinite(di)
-    dm, di = dm[keep], di[keep]
-    step = float(step)
-    if dm.size < 100 or not step > 0:
-        return float("nan")
-    if dm.size > max_pixels:
-        idx = np.random.default_rng(0).choice(dm.size, max_pixels, replace=False)
-        dm, di = dm[idx], di[idx]
-    c = np.mean(np.exp(2j * np.pi * dm / step))
-    if abs(c) < LATTICE_CONCENTRATION:
-        return float("nan")
-    phase = float(np.angle(c) / (2.0 * np.pi))
-    lo = (np.round(dm / step - phase) + phase - 0.5) * step         # the read level's lower boundary
-    x = (di - lo) / step              # the ideal disparity above it, steps (0-1 when it rounds to the level)
-    floor = OUTLIER_SHARE * 0.01
-
-    def nll(o, s):
-        p = ndtr((1.0 - x - o) / s) - ndtr((-x - o) / s)
-        return -float(np.sum(np.log((1.0 - OUTLIER_SHARE) * p + floor)))
-
-    s_lo, s_hi = 0.002, 2.0
-    grid = [(nll(o, s), o, s) for o in np.arange(-8, 8) / 16.0 for s in np.geomspace(s_lo, s_hi, 12)]
-    _, o0, s0 = min(grid)
-
-    def f(v):
-        o, ls = v
-        if abs(o) > 0.5 or not np.log(s_lo) <= ls <= np.log(s_hi):
-            return np.inf
-        return nll(o, np.exp(ls))
-
-    r = minimize(f, [o0, np.log(s0)], method="Nelder-Mead",
-                 options={"xatol": 1e-3, "fatol": 0.05, "initial_simplex": [[o0, np.log(s0)], [o0 + 0.03, np.log(s0)],
-                                                                            [o0, np.log(s0) + 0.2]]})
-    at0 = minimize_scalar(lambda ls: nll(0.0, np.exp(ls)), bounds=(np.log(s_lo), np.log(s_hi)), method="bounded",
-                          options={"xatol": 1e-3})
-    o, ls = (r.x[0], r.x[1]) if at0.fun - r.fun > OFFSET_EVIDENCE else (0.0, at0.x)   # the offset only when asked for
-    xo = x + o
-    crossed = ((xo < 0.0) & (xo > -1.0)) | ((xo > 1.0) & (xo < 2.0))     # read a neighbour of its own level
-    if crossed.sum() < MIN_CROSSINGS:       # the noise is not resolved (the likelihood is flat below it)
-        return float("nan")
-    s = float(np.exp(ls))
-    return s * step
