@@ -70,12 +70,12 @@ import numpy as np
 from data_tools.config import config_to_dict
 from data_tools.errors import ConfigError, RealgapError
 from data_tools.results import json_safe
-from synth.lab.restarts import limits_restart, model_restart
 from synth.lab.evidence import EvidenceContext, evidence_for, has_evidence
 from synth.lab.fit import (FitConfig, Objective, get_params, param_specs, search, set_params, spread,
                            start_values)
 from synth.lab.noise_ties import (EvaluationObjective, measure_noise, noise_tie, start_beats_defaults,
                                   within_noise)
+from synth.lab.restarts import limits_restart, model_restart
 
 __all__ = ["Candidate", "Diagnosis", "DiagnoseConfig", "diagnose", "DIAGNOSIS_FILE", "BaseRefit", "Probe", "HeldOut",
            "refit_base", "probe_candidates", "fit_candidate", "refine_best", "rank", "rank_with_signatures",

@@ -9,6 +9,20 @@ from collections.abc import Sequence
 from synth.lab.fit import set_params, start_values
 
 
+def _limit_keys(cfg, names: Sequence[str]) -> set[str]:
+    """The ``effect.param`` keys of the depth limits (``Effect.DEPTH_LIMIT_PARAMS``) of effects ``names``."""
+    return {f"{n}.{k}" for n in names for k in type(cfg.effect(n)).DEPTH_LIMIT_PARAMS}
+
+
+def _keep_if_better(cx, cfg, gap: float, starts: dict) -> tuple[object, float]:
+    """(config, gap): ``cfg`` with ``starts`` set when that lowers the gap below ``gap``; else unchanged."""
+    if not starts:
+        return cfg, gap
+    alt = set_params(cfg, starts)
+    g = cx.obj(alt)
+    return (alt, g) if g < gap else (cfg, gap)
+
+
 def model_restart(cx, model_names: Sequence[str], cfg, gap: float) -> tuple[object, float]:
     """(config, gap): ``cfg`` (gap ``gap``, a candidate at its data-driven start on the refitted model)
     with the model's own parameters reset to their closed-form starts (``fit_start``, as
@@ -22,15 +36,9 @@ def model_restart(cx, model_names: Sequence[str], cfg, gap: float) -> tuple[obje
     configuration asks for data-driven starts and the model is refitted."""
     if not (cx.fc.data_starts and cx.dc.refit_model and model_names):
         return cfg, gap
+    limits = _limit_keys(cfg, model_names)
     ds = start_values(cx.measured, cfg, list(model_names), cx.frames)
-    limits = {n: type(cfg.effect(n)).DEPTH_LIMIT_PARAMS for n in model_names}
-    ds = {k: v for k, v in ds.items() if not isinstance(v, str)
-          and k.split(".", 1)[1] not in (limits.get(k.split(".", 1)[0]) or {})}
-    if not ds:
-        return cfg, gap
-    alt = set_params(cfg, ds)
-    g = cx.obj(alt)
-    return (alt, g) if g < gap else (cfg, gap)
+    return _keep_if_better(cx, cfg, gap, {k: v for k, v in ds.items() if not isinstance(v, str) and k not in limits})
 
 
 def limits_restart(cx, model_names: Sequence[str], name: str, cfg, gap: float) -> tuple[object, float]:
@@ -42,12 +50,7 @@ def limits_restart(cx, model_names: Sequence[str], name: str, cfg, gap: float) -
     lose to a rival whose holes the pulled-in range does not already explain."""
     if not type(cfg.effect(name)).SIGNAL_HOLES:
         return cfg, gap
-    limits = {n: type(cfg.effect(n)).DEPTH_LIMIT_PARAMS for n in model_names}
-    limits = {n: ks for n, ks in limits.items() if ks}
-    ds = start_values(cx.measured, cfg, list(limits), cx.frames) if limits else {}
-    ds = {k: v for k, v in ds.items() if k.split(".", 1)[1] in limits.get(k.split(".", 1)[0], {})}
-    if not ds:
-        return cfg, gap
-    alt = set_params(cfg, ds)
-    g = cx.obj(alt)
-    return (alt, g) if g < gap else (cfg, gap)
+    limits = _limit_keys(cfg, model_names)
+    owners = [n for n in model_names if type(cfg.effect(n)).DEPTH_LIMIT_PARAMS]
+    ds = start_values(cx.measured, cfg, owners, cx.frames) if owners else {}
+    return _keep_if_better(cx, cfg, gap, {k: v for k, v in ds.items() if k in limits})
