@@ -3,14 +3,16 @@ reference (issue #43 item 3: within 10 % of the measured in every 0.25 m bin fro
 each ratio shown beside the measurement's own sampling spread.
 
     .venv/bin/python benchmarks/bench_plane_noise.py PLANE_REF [--effects axial_noise,range_limits]
-        [--search-frames N] [--search-pixels N] [--eval-frames N] [--split alternate|halves] [--curve-weight W]
+        [--search-frames N] [--search-pixels N] [--eval-frames N] [--split alternate|halves|kfold] [--folds K] [--curve-weight W]
         [--min-frames 10] [--boot 200] [--block 1] [--json OUT] [--no-rounding] [--median-only]
 
 ``PLANE_REF``: a sequence made by ``realgap data make-reference --plane`` (poses, masks and plane).
 The even frames are fitted (``fit_model``, :class:`~synth.lab.fit.FitConfig` with the noise-curve
 term; ``--search-frames`` / ``--search-pixels`` / ``--eval-frames`` set its ``max_frames`` /
 ``max_pixels_per_frame`` / ``eval_frames``; ``--curve-weight`` its ``noise_curve_weight``), the odd frames are held out (``--split halves``: the
-first half of the sequence fitted, the second held out): per bin, the measured robust std of depth - plane
+first half of the sequence fitted, the second held out; ``--split kfold``: ``--folds`` contiguous blocks,
+each simulated by a model fitted on the other blocks alone, so every frame is held out once - for a short
+sequence, where half of it is too few frames to judge a bin): per bin, the measured robust std of depth - plane
 (:func:`synth.lab.calibration.noise_curve`, every target pixel) against the simulated one, the mean
 over ``--seeds`` simulation seeds.
 
@@ -18,7 +20,7 @@ Columns: ``measured CI`` and ``ratio CI``: 95 % frame-level bootstrap intervals
 (:func:`synth.lab.calibration.curve_uncertainty`: the held-out frames resampled with replacement,
 in runs of ``--block`` consecutive frames);
 ``fit/held``: the measured std of the fitted half over that of the held-out half (how much the
-measured curve itself moves between two disjoint frame sets); ``frames``: held-out frames with
+measured curve itself moves between two disjoint frame sets; NaN for ``kfold``, where every frame is both); ``frames``: held-out frames with
 target pixels in the bin. Verdict per bin: ``too few frames`` (fewer than ``--min-frames``: the
 bin is listed, not judged), ``within`` (|ratio - 1| <= 10 %), ``OFF`` (the whole ratio CI outside
 0.9-1.1: off by more than the sampling spread allows), ``unresolved`` (outside 10 % but its CI
@@ -55,26 +57,22 @@ def verdict(ratio: float, ci: tuple[float, float], frames: int, min_frames: int,
     return "unresolved"
 
 
-def chunked_groups(seq, frame_slice: str, n: int, config, seeds: int, chunk: int = 40):
+def chunked_groups(seq, positions, config, seeds: int, chunk: int = 40, first: int = 0):
     """(measured, [simulated per seed]) :func:`synth.lab.calibration.curve_groups` (every target pixel) of
-    the ``n`` frames that ``frame_slice`` selects, ``chunk`` frames at a time (each chunk loaded afresh:
-    the cached renders and draws of a 500-frame sequence do not fit in memory); ``config`` None: the
-    measured side alone. Group positions count over the whole slice."""
+    the frames at ``positions`` (among the frames with a pose), ``chunk`` frames at a time (each chunk
+    loaded afresh: the cached renders and draws of a 500-frame sequence do not fit in memory);
+    ``config`` None: the measured side alone. Group positions count over ``positions`` from ``first``."""
     import synth.lab.calibration as cal
     from synth.lab import MeasuredSequence
-    from synth.lab.measured import parse_frame_slice
-    sl = parse_frame_slice(frame_slice)
-    pos = np.arange(100000)[sl][:n]
+    pos = np.asarray(positions, dtype=int)
     m_all, s_all = None, None
-    for a in range(0, n, chunk):
-        part = pos[a:a + chunk]
-        step = int(part[1] - part[0]) if len(part) > 1 else 1
-        ms = MeasuredSequence.load(seq, frame_slice=f"{part[0]}:{part[-1] + 1}:{step}")
+    for a in range(0, len(pos), chunk):
+        ms = MeasuredSequence.load(seq, frames=pos[a:a + chunk])
         sims = [ms.simulate(config, s) for s in range(seeds)] if config is not None else []
         obs = ms.observations(sims[0] if sims else [ms.measured_depth(k) for k in range(len(ms))])
         m = cal.curve_groups(obs, "measured", None, 0)
         ss = [cal.curve_groups(ms.observations(x), "simulated", None, 0) for x in sims]
-        shift = [[[(p + a, g.astype(np.float32)) for p, g in b] for b in gs] for gs in [m, *ss]]
+        shift = [[[(p + a + first, g.astype(np.float32)) for p, g in b] for b in gs] for gs in [m, *ss]]
         if m_all is None:
             m_all, s_all = shift[0], shift[1:]
         else:
@@ -84,6 +82,29 @@ def chunked_groups(seq, frame_slice: str, n: int, config, seeds: int, chunk: int
                     s_all[j][b] += shift[1 + j][b]
         del ms, obs, sims
     return m_all, s_all
+
+
+def merge_groups(parts):
+    """Per-bin concatenation of several :func:`chunked_groups` results (disjoint frame positions)."""
+    out = [list(b) for b in parts[0]]
+    for p in parts[1:]:
+        for b in range(len(out)):
+            out[b] += p[b]
+    return out
+
+
+def splits(n: int, split: str, folds: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(fitted positions, held-out positions) per fit of ``n`` frames: ``alternate`` (even / odd),
+    ``halves`` (first / second half) or ``kfold`` (``folds`` contiguous blocks, each held out once
+    while the others are fitted: every frame is held out from the model that simulates it)."""
+    idx = np.arange(n)
+    if split == "halves":
+        return [(idx[:n // 2], idx[n // 2:])]
+    if split == "alternate":
+        return [(idx[0::2], idx[1::2])]
+    if not 2 <= folds <= n:
+        raise SystemExit(f"--folds {folds}: must lie in 2..{n} (the frames with a pose)")
+    return [(np.setdiff1d(idx, b), b) for b in np.array_split(idx, folds)]
 
 
 def main(argv=None) -> int:
@@ -98,9 +119,12 @@ def main(argv=None) -> int:
                     help="FitConfig.max_frames: fitted frames the search sees (default: FitConfig's)")
     ap.add_argument("--search-pixels", type=int, default=None,
                     help="FitConfig.max_pixels_per_frame (default: FitConfig's)")
-    ap.add_argument("--split", choices=("alternate", "halves"), default="alternate",
-                    help="fit the even frames and hold out the odd ones (alternate), or fit the first half of the "
-                         "sequence and hold out the second (halves: other views, not the neighbours of fitted frames)")
+    ap.add_argument("--split", choices=("alternate", "halves", "kfold"), default="alternate",
+                    help="fit the even frames and hold out the odd ones (alternate), fit the first half of the "
+                         "sequence and hold out the second (halves: other views, not the neighbours of fitted frames), "
+                         "or --folds contiguous blocks each held out from a fit of the others (kfold: every frame "
+                         "held out once; for short sequences)")
+    ap.add_argument("--folds", type=int, default=5, help="--split kfold: number of blocks (fits)")
     ap.add_argument("--eval-frames", type=int, default=None,
                     help="FitConfig.eval_frames: fitted frames of the final scores and the noise-curve calibration")
     ap.add_argument("--curve-weight", type=float, default=None,
@@ -118,13 +142,7 @@ def main(argv=None) -> int:
     if args.median_only:
         cal.LOCAL_PLANE = False
     t0 = time.perf_counter()
-    if args.split == "halves":
-        h = len(MeasuredSequence.load(args.seq)) // 2
-        fit_slice, held_slice = f":{h}", f"{h}:"
-    else:
-        fit_slice, held_slice = "0::2", "1::2"
-    fit = MeasuredSequence.load(args.seq, frame_slice=fit_slice)
-    held = MeasuredSequence.load(args.seq, frame_slice=held_slice)
+    n_all = len(MeasuredSequence.load(args.seq))
     kw = {}
     if args.search_frames is not None:
         kw["max_frames"] = args.search_frames
@@ -134,16 +152,30 @@ def main(argv=None) -> int:
         kw["max_pixels_per_frame"] = args.search_pixels
     if args.curve_weight is not None:
         kw["noise_curve_weight"] = args.curve_weight
-    res = fit_model(fit, fit.default_config([e for e in args.effects.split(",") if e]),
-                    fit_config=FitConfig(intervals=False, **kw))
+    effects = [e for e in args.effects.split(",") if e]
+    fits, parts_m, parts_s, n_held = [], [], [], 0
+    for fit_pos, held_pos in splits(n_all, args.split, args.folds):
+        t1 = time.perf_counter()
+        fit = MeasuredSequence.load(args.seq, frames=fit_pos)
+        res = fit_model(fit, fit.default_config(effects), fit_config=FitConfig(intervals=False, **kw))
+        del fit                 # its cached renders: the held-out frames are evaluated in chunks
+        print("fitted:", {k: round(v, 6) for k, v in res.params.items() if isinstance(v, float)},
+              f"({time.perf_counter() - t1:.0f} s, {res.evaluations} evaluations, {len(fit_pos)} fit / "
+              f"{len(held_pos)} held-out frames)", flush=True)
+        # group positions: the frame's rank among all held-out frames (the bootstrap's blocks stay consecutive)
+        m_g, s_g = chunked_groups(args.seq, held_pos, res.config, args.seeds, first=n_held)
+        n_held += len(held_pos)
+        fits.append((fit_pos, held_pos, res))
+        parts_m.append(m_g)
+        parts_s.append(s_g)
     t_fit = time.perf_counter() - t0
-    print("fitted:", {k: round(v, 6) for k, v in res.params.items() if isinstance(v, float)},
-          f"({t_fit:.0f} s, {res.evaluations} evaluations, {len(fit)} fit / {len(held)} held-out frames)")
-    n_fit, n_held = len(fit), len(held)
-    del fit, held           # their cached renders: the held-out frames are evaluated in chunks
-    m_groups, s_groups = chunked_groups(args.seq, held_slice, n_held, res.config, args.seeds)
-    fit_groups, _ = chunked_groups(args.seq, fit_slice, n_fit, None, 0)
-    fit_meas = [cal._robust_std(np.concatenate([g for _, g in b])) if b else float("nan") for b in fit_groups]
+    m_groups = merge_groups(parts_m)
+    s_groups = [merge_groups([p[j] for p in parts_s]) for j in range(args.seeds)]
+    if len(fits) == 1:
+        fit_groups, _ = chunked_groups(args.seq, fits[0][0], None, 0)
+        fit_meas = [cal._robust_std(np.concatenate([g for _, g in b])) if b else float("nan") for b in fit_groups]
+    else:                       # k-fold: every frame is both fitted and held out; no separate fit side
+        fit_meas = [float("nan")] * len(m_groups)
     unc = cal.curve_uncertainty(m_groups, s_groups, n_held, n_boot=args.boot, block=args.block)
     edges = cal.BIN_EDGES_M
     rows, worst, worst_judged = [], 0.0, 0.0
@@ -179,9 +211,12 @@ def main(argv=None) -> int:
           f"{args.min_frames} frames ({'within' if worst_judged <= 0.10 else 'NOT within'} 10 %); "
           f"OFF beyond the CI: {n_off}, unresolved: {n_unres}, too few frames: {len(rows) - len(judged)}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"seq": str(args.seq), "effects": args.effects,
-                                               "params": res.params, "fit_seconds": t_fit,
-                                               "evaluations": res.evaluations, "bins": rows}, indent=1))
+        per_fit = [{"fitted_frames": len(f), "held_out_frames": [int(x) for x in h], "params": r.params,
+                    "evaluations": r.evaluations} for f, h, r in fits]
+        Path(args.json).write_text(json.dumps({"seq": str(args.seq), "effects": args.effects, "split": args.split,
+                                               "params": fits[0][2].params, "fits": per_fit, "seconds": t_fit,
+                                               "evaluations": sum(r.evaluations for _, _, r in fits),
+                                               "bins": rows}, indent=1))
     return 0
 
 

@@ -63,6 +63,32 @@ def test_max_frames_spreads_evenly(seq):
         MeasuredSequence.load(seq[0], max_frames=0)
 
 
+def test_frame_positions_select_any_subset(seq):
+    # a cross-validation fold's complement (positions 0, 1, 3) is no slice; the order given is kept
+    ms = MeasuredSequence.load(seq[0], frames=[0, 1, 3])
+    assert ms.frame_indices == [0, 1, 3]
+    assert MeasuredSequence.load(seq[0], frame_slice="1::2", frames=[1]).frame_indices == [3]
+    np.testing.assert_array_equal(ms.measured_depth(2), MeasuredSequence.load(seq[0]).measured_depth(3))
+    for bad in ([], [4], [-1]):
+        with pytest.raises(ConfigError, match="frame positions|no frame positions"):
+            MeasuredSequence.load(seq[0], frames=bad)
+
+
+def test_k_fold_splits_hold_every_frame_out_once():
+    from benchmarks.bench_plane_noise import splits
+    folds = splits(10, "kfold", 5)
+    held = np.concatenate([h for _, h in folds])
+    np.testing.assert_array_equal(held, np.arange(10))          # each frame held out once, in order
+    for fit, h in folds:
+        assert len(h) == 2 and not set(fit) & set(h) and len(fit) + len(h) == 10
+    (fit, h), = splits(10, "alternate", 5)
+    assert list(fit) == [0, 2, 4, 6, 8] and list(h) == [1, 3, 5, 7, 9]
+    (fit, h), = splits(9, "halves", 5)
+    assert list(fit) == [0, 1, 2, 3] and list(h) == [4, 5, 6, 7, 8]
+    with pytest.raises(SystemExit, match="--folds 11"):
+        splits(10, "kfold", 11)
+
+
 def test_simulation_seed_follows_the_frame_index(seq):
     ms = MeasuredSequence.load(seq[0])
     cfg = ms.default_config(["axial_noise", "range_limits"])

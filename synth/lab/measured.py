@@ -157,11 +157,14 @@ class MeasuredSequence:
     # ------------------------------------------------------------------ loading
     @classmethod
     def load(cls, seq_dir: str | os.PathLike, *, max_frames: int | None = None,
-             preset: str | None = None, frame_slice: str | None = None) -> "MeasuredSequence":
+             preset: str | None = None, frame_slice: str | None = None,
+             frames: Sequence[int] | None = None) -> "MeasuredSequence":
         """Open a measured sequence (see the module docstring).
 
         frame_slice: ``START:STOP:STEP`` (Python slice syntax) over the frames with a pose, applied
         first, e.g. ``0::2`` / ``1::2`` to fit on half of the frames and test on the other half.
+        frames: positions among the frames with a pose (after ``frame_slice``) to keep, in that
+        order - a selection no slice writes, such as a cross-validation fold's complement.
         max_frames: keep at most this many frames, evenly spread over those (with a pose, in the slice).
         FormatError (naming the file) when the folder, depth index, camera.json, scene.json
         or the ground-truth poses are missing or bad.
@@ -191,6 +194,14 @@ class MeasuredSequence:
             with_pose = with_pose[parse_frame_slice(frame_slice)]
             if not len(with_pose):
                 raise ConfigError(f"--frame-slice {frame_slice}: selects none of the {int(ok.sum())} frames with a pose")
+        if frames is not None:
+            pick = [int(k) for k in frames]
+            if not pick:
+                raise ConfigError(f"{seq_dir}: no frame positions given")
+            if min(pick) < 0 or max(pick) >= len(with_pose):
+                raise ConfigError(f"{seq_dir}: frame positions {min(pick)}..{max(pick)} outside "
+                                  f"0..{len(with_pose) - 1} (the frames with a pose)")
+            with_pose = with_pose[pick]
         if max_frames is not None:
             if int(max_frames) < 1:
                 raise ConfigError(f"max_frames must be >= 1, got {max_frames}")
