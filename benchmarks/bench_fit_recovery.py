@@ -4,7 +4,8 @@
                                                       [--pairs] [--frames 8] [--size 320x240] [--json OUT.json]
     .venv/bin/python benchmarks/bench_fit_recovery.py --generators hidden,mystery [--quick] [--draws 1]
 
-``--generators``: per generator (the hidden one below, and the mystery sensor synth/lab/mystery.py),
+``--generators``: per generator (the hidden one below, the mystery sensor synth/lab/mystery.py and the
+blind sensor tests/blind_sensor.py),
 diagnose's rank-first rate, recovery, closure and fitted parameters a sensor cannot have
 (benchmarks/generator_report.py).
 
@@ -269,7 +270,7 @@ def main(argv=None) -> int:
                     "(simulation seeds and generator re-runs; default 4)")
     ap.add_argument("--method", default="coordinate", help="FitConfig.method: coordinate, powell, "
                     "differential_evolution, or a comma list to compare them on the same sequences")
-    ap.add_argument("--generators", help="comma list of hidden, mystery: per generator, diagnose's rank-first "
+    ap.add_argument("--generators", help="comma list of hidden, mystery, blind: per generator, diagnose's rank-first "
                     "rate, recovery, closure and implausible fitted parameters (benchmarks/generator_report.py) "
                     "on every --effects x --seeds; --quick for a small diagnose budget")
     ap.add_argument("--quick", action="store_true", help="--generators: 4 frames, 3000 pixels a frame, small "

@@ -1,15 +1,16 @@
 """Per-generator report of ``bench_fit_recovery.py --generators`` (issue #43, item 6).
 
 For every generator (``hidden``: tests/hidden_effects.py; ``mystery``: synth/lab/mystery.py, written
-independently from the Kinect literature), every hidden effect and seed, one sequence is made and run
-through the lab as a user would:
+independently from the Kinect literature; ``blind``: tests/blind_sensor.py, written without reading the
+lab, the simulator or the other two generators, from the file formats and the CLI's effect help alone),
+every hidden effect and seed, one sequence is made and run through the lab as a user would:
 
 * rank-first: ``diagnose`` from ``axial_noise, range_limits`` at the preset's defaults names the
   hidden effect first;
 * recovery: ``fit_model`` with the true effect recovers the generator's parameters within the
   tolerances of bench_fit_recovery's table (noise at 2 m, bias at 1/2/3 m, dropout angle, k1, step,
-  edge radius, and for the mystery sensor also signal50 within 25 % and the rolling-shutter readout
-  within 20 %); for the rolling shutter also, counted apart (``recovered_band``), the band time
+  edge radius, and for the mystery and blind sensors also signal50 within 25 % and the rolling-shutter
+  readout within 20 %); for the rolling shutter also, counted apart (``recovered_band``), the band time
   readout x (band row - reference row) within 20 %, the quantity the data fix (:func:`band_row`);
 * closure: (gap without - gap with) / (gap without - floor) by the lab's gap, ``without`` the base
   model fitted, ``with`` the base + the true effect fitted, ``floor`` the measurement against the
@@ -51,6 +52,11 @@ def make(gen: str, path: Path, effect: str, seed: int, frames: int, w: int, h: i
         return {"effect": effect, "raw": t, "noise2m": None,
                 "bias": None if effect != "depth_bias" else
                 {z: t["c0_m"] + t["c1"] * (z - 2) + t["c2_per_m"] * (z - 2) ** 2 for z in (1.0, 2.0, 3.0)}}
+    if gen == "blind":
+        from tests import blind_sensor
+        a = blind_sensor.generate(path, effect, seed=seed, n_frames=frames, width=w, height=h, noise_seed=noise_seed)
+        return {"effect": effect, "raw": a, "noise2m": float(a["noise2m"]),
+                "bias": {float(z): v for z, v in a["bias_at_m"].items()} if effect == "depth_bias" else None}
     from synth.lab import mystery
     a = mystery.generate(path, effect, seed=seed, n_frames=frames, width=w, height=h, noise_seed=noise_seed)
     return {"effect": effect, "raw": a, "noise2m": 4.0 * a["base"]["axial_noise"]["sigma2_per_m"],
@@ -163,6 +169,9 @@ def generator_effects(gen: str) -> tuple[str, ...]:
     if gen == "hidden":
         from tests import hidden_effects as he
         return tuple(he.HIDDEN_EFFECTS)
+    if gen == "blind":
+        from tests import blind_sensor
+        return tuple(blind_sensor.EFFECTS)
     from synth.lab import mystery
     return mystery.EFFECTS
 
