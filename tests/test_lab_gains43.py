@@ -83,6 +83,44 @@ def test_noise_start_under_quantisation_removes_the_steps_variance(ratio):
     assert abs(start["axial_noise.sigma2_per_m"] / (sd / fb) - 1.0) < 0.05, start["axial_noise.sigma2_per_m"] * fb
 
 
+def test_noise_start_under_quantisation_leaves_out_a_censored_bin():
+    """Rows of one depth each from 1.2 to 3.2 m, step 0.4 px, noise step / 4.7 (blind quantisation 4),
+    plus a slanted strip at 3.25-3.45 m (0.005 px of disparity a column: noise-free pairs split 1.25 %
+    of the time) beyond a far limit at 3.2 m whose surviving pixels all read the one level inside the
+    limit: its pairs never split, the spread fallback read sigma_d ~0.002 px there and pulled the start
+    20 % low; that bin is left out now and the start is within 5 %. The two share helpers
+    by hand: differences 0, 0, 1, 5 steps (the 5-step edge left out) split 1 in 3; ideal differences
+    0.1, 0.3, 2 steps give (0.1 + 0.3 + 1) / 3."""
+    from synth.sensor.config import SensorConfig
+    from synth.sensor.effects.axial_noise import (AxialNoise, _split_share, _split_share_noise_free,
+                                                  _splits_below_noise_free)
+    assert _split_share(np.array([0.0, 0.0, 0.4, 2.0]), 0.4) == pytest.approx(1 / 3)
+    assert _split_share_noise_free(np.array([0.04, 0.12, 0.8]), 0.4) == pytest.approx(1.4 / 3)
+    # 400 pairs at ideal differences of 0.1 step (noise-free share 0.1, standard error 0.015): 0.02 splitting
+    # is a deficit (stuck levels), 0.08 lies within chance of the noise-free share (a small noise)
+    ideal = np.full(400, 0.04)
+    for splits, below in ((8, True), (32, False)):
+        meas = np.r_[np.full(splits, 0.4), np.zeros(400 - splits)]
+        assert _splits_below_noise_free(meas, ideal, 0.4) is below
+    step = 0.4
+    sd = step / 4.7
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "disparity_quantization"])
+    cfg = cfg.with_params({"disparity_quantization.step_px": step})
+    fb = float(cfg.preset.fb)
+    rng = np.random.default_rng(4)
+    H, W = 150, 160
+    z = np.repeat(np.linspace(1.2, 3.2, H)[:, None], W, 1)
+    z[120:] = fb / (13.0 + 0.005 * (np.arange(W) - W / 2))[None, :]                # 3.25-3.45 m
+    ms, zs = [], []
+    for _ in range(3):
+        d = step * np.round((fb / z + sd * rng.standard_normal((H, W)) - 0.03) / step) + 0.03
+        d[120:] = step * np.ceil((fb / 3.2 - 0.03) / step) + 0.03       # the one level inside the far limit
+        ms.append((fb / d).astype(np.float32))
+        zs.append(z)
+    start = AxialNoise.fit_start(_Fake(ms, zs), cfg, [0, 1, 2])
+    assert abs(start["axial_noise.sigma2_per_m"] * fb / sd - 1.0) < 0.05, start["axial_noise.sigma2_per_m"] * fb
+
+
 def test_quantised_spread_by_hand():
     """Differences 0, +-1 step in the proportions 2:1:1 (var / 2 = step^2 / 4) and one edge at 40
     steps (left out): sigma_d^2 = 1/4 - 1/12 = 1/6 steps^2; the MAD-based spread read 1.05 steps.

@@ -1,6 +1,7 @@
 """Direct model: random depth noise along the viewing axis."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,7 +149,11 @@ class AxialNoise(Effect):
         disparity_quantization start runs first, :attr:`START_PRIORITY`) the noise is read from how
         often adjacent pixels of one surface read different levels (:func:`quantised_noise`); where that
         reads half a step or more (or nothing), the differences' standard deviation less the rounding's
-        own variance (:func:`quantised_spread`: their robust spread is a multiple of the step). Spatially
+        own variance (:func:`quantised_spread`: their robust spread is a multiple of the step). A bin
+        whose pairs split clearly less often than noise-free ones would (:func:`_splits_below_noise_free`)
+        is left out while two other bins remain: noise only adds splits, so there a range limit censors
+        the pixels to the one level inside it (blind quantisation 4: 3.25-3.5 m just beyond the far
+        limit, 0.2 % of its pairs split, read as sigma_d 0.002 px for 0.086). Spatially
         correlated noise (a matching window) makes the estimate low: the search refines it.
         Nothing when fewer than two bins have data."""
         zs, ss, ws = [], [], []
@@ -187,6 +192,7 @@ class AxialNoise(Effect):
             if step > 0:
                 pm, pi = pm[pf], pi[pf]
         rng = np.random.default_rng(0)
+        censored = []           # quantised bins whose pairs split less often than any noise allows
         for lo in np.arange(0.0, 10.0, 0.25):
             sel = (pz >= lo) & (pz < lo + 0.25)
             if sel.sum() >= 200:
@@ -201,8 +207,13 @@ class AxialNoise(Effect):
                         sd = sq
                     else:
                         sd = quantised_spread(pd[sel], step)
+                        if not np.isfinite(sq) and _splits_below_noise_free(pm[idx], pi[idx], step):
+                            censored.append(len(zs) - 1)
                 ss.append(sd)
                 ws.append(float(np.sqrt(sel.sum())))
+        if censored and len(zs) - len(censored) >= 2:
+            keep = [k for k in range(len(zs)) if k not in censored]
+            zs, ss, ws = [zs[k] for k in keep], [ss[k] for k in keep], [ws[k] for k in keep]
         if len(zs) < 2:
             return {}
         z, s, w = np.asarray(zs), np.asarray(ss), np.asarray(ws)
@@ -251,6 +262,40 @@ def _quantisation_step(config) -> float:
         from synth.sensor.matching import MatchSetup
         step = float(MatchSetup.for_preset(config.preset).step)
     return step
+
+
+def _split_share(measured_diff: np.ndarray, step: float) -> float:
+    """Share of adjacent pairs on different levels (their measured disparities ``measured_diff`` (N,)
+    more than half a step apart, edges beyond 2.5 steps left out, as :func:`quantised_noise` counts)."""
+    md = np.asarray(measured_diff, np.float64)
+    md = md[np.isfinite(md) & (np.abs(md) < 2.5 * step)]
+    return float(np.mean(np.abs(md) > 0.5 * step)) if md.size else float("nan")
+
+
+def _split_share_noise_free(ideal_diff: np.ndarray, step: float) -> float:
+    """The share of pairs on different levels without noise at a uniform phase: mean min(|t| / step, 1)
+    of the ideal differences ``ideal_diff`` (N,) (:func:`quantised_noise`'s model at sigma 0)."""
+    t = np.asarray(ideal_diff, np.float64)
+    t = t[np.isfinite(t)]
+    return float(np.mean(np.minimum(np.abs(t) / step, 1.0))) if t.size else float("nan")
+
+
+SPLIT_DEFICIT_SDS = 3.0
+"""Binomial standard errors by which adjacent pairs must split less often than noise-free ones at a
+uniform phase for :func:`_splits_below_noise_free` (noise only adds splits: fewer is stuck levels)."""
+
+
+def _splits_below_noise_free(measured_diff: np.ndarray, ideal_diff: np.ndarray, step: float) -> bool:
+    """True when the pairs (``measured_diff``, ``ideal_diff`` (N,) px, as :func:`quantised_noise`) read
+    different levels less often than noise-free pairs would, by more than :data:`SPLIT_DEFICIT_SDS`
+    binomial standard errors: noise only adds splits, so a deficit means levels held where the ideal
+    disparity crosses them - pixels a range limit censors to the one level inside it, not a small noise
+    (whose share lies at or just above the noise-free one)."""
+    share, p0 = _split_share(measured_diff, step), _split_share_noise_free(ideal_diff, step)
+    n = int(np.count_nonzero(np.isfinite(measured_diff) & (np.abs(measured_diff) < 2.5 * step)))
+    if not (n and np.isfinite(share) and np.isfinite(p0)):
+        return False
+    return share < p0 - SPLIT_DEFICIT_SDS * math.sqrt(max(p0 * (1.0 - p0), 1e-12) / n)
 
 
 def quantised_spread(diff: np.ndarray, step: float) -> float:
