@@ -56,6 +56,25 @@ def test_mystery_edge_fattening_40_is_named_first(tmp_path):
     assert d.ranking[0].gain > 2 * d.ranking[1].gain
 
 
+def _quantising_config(step: float):
+    """(kinect_v1 config with axial noise, range limits and a disparity quantisation of ``step`` px, its f b)."""
+    from synth.sensor.config import SensorConfig
+    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "disparity_quantization"])
+    cfg = cfg.with_params({"disparity_quantization.step_px": step})
+    return cfg, float(cfg.preset.fb)
+
+
+def _quantised_frames(z: np.ndarray, fb: float, step: float, sd: float, seed: int, n: int = 3):
+    """(measured depths, ideal depths) of ``n`` frames of ideal depth ``z`` (H, W): disparity f b / z
+    plus N(0, sd^2) px, rounded to levels ``step`` apart at phase 0.03 px."""
+    rng = np.random.default_rng(seed)
+    ms = []
+    for _ in range(n):
+        d = fb / z + sd * rng.standard_normal(z.shape)
+        ms.append((fb / (step * np.round((d - 0.03) / step) + 0.03)).astype(np.float32))
+    return ms, [z] * n
+
+
 @pytest.mark.parametrize("ratio", [1.5, 2.0])
 def test_noise_start_under_quantisation_removes_the_steps_variance(ratio):
     """Kinect-like disparities (f b of the preset, rows of one depth each from 1.2 to 3.2 m, step
@@ -63,23 +82,12 @@ def test_noise_start_under_quantisation_removes_the_steps_variance(ratio):
     residuals' robust spread is a multiple of the step (1.4826 step / sqrt 2 = 0.131 px: +110 % at
     step / noise 2, +57 % at 1.5 where the level-crossing reading is not used) and holds step^2 / 12 of
     rounding; with the standard deviation and Sheppard's correction the start is within 5 % at both."""
-    from synth.sensor.config import SensorConfig
     from synth.sensor.effects.axial_noise import AxialNoise
     step = 0.125
     sd = step / ratio
-    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "disparity_quantization"])
-    cfg = cfg.with_params({"disparity_quantization.step_px": step})
-    fb = float(cfg.preset.fb)
-    rng = np.random.default_rng(3)
-    H, W = 120, 160
-    z = np.repeat(np.linspace(1.2, 3.2, H)[:, None], W, 1)
-    ms, zs = [], []
-    for _ in range(3):
-        d = fb / z + sd * rng.standard_normal((H, W))
-        d = step * np.round((d - 0.03) / step) + 0.03
-        ms.append((fb / d).astype(np.float32))
-        zs.append(z)
-    start = AxialNoise.fit_start(_Fake(ms, zs), cfg, [0, 1, 2])
+    cfg, fb = _quantising_config(step)
+    z = np.repeat(np.linspace(1.2, 3.2, 120)[:, None], 160, 1)
+    start = AxialNoise.fit_start(_Fake(*_quantised_frames(z, fb, step, sd, 3)), cfg, [0, 1, 2])
     assert abs(start["axial_noise.sigma2_per_m"] / (sd / fb) - 1.0) < 0.05, start["axial_noise.sigma2_per_m"] * fb
 
 
@@ -91,7 +99,6 @@ def test_noise_start_under_quantisation_leaves_out_a_censored_bin():
     20 % low; that bin is left out now and the start is within 5 %. The two share helpers
     by hand: differences 0, 0, 1, 5 steps (the 5-step edge left out) split 1 in 3; ideal differences
     0.1, 0.3, 2 steps give (0.1 + 0.3 + 1) / 3."""
-    from synth.sensor.config import SensorConfig
     from synth.sensor.effects.axial_noise import (AxialNoise, _split_share, _split_share_noise_free,
                                                   _splits_below_noise_free)
     assert _split_share(np.array([0.0, 0.0, 0.4, 2.0]), 0.4) == pytest.approx(1 / 3)
@@ -104,19 +111,13 @@ def test_noise_start_under_quantisation_leaves_out_a_censored_bin():
         assert _splits_below_noise_free(meas, ideal, 0.4) is below
     step = 0.4
     sd = step / 4.7
-    cfg = SensorConfig.build("kinect_v1", ["axial_noise", "range_limits", "disparity_quantization"])
-    cfg = cfg.with_params({"disparity_quantization.step_px": step})
-    fb = float(cfg.preset.fb)
-    rng = np.random.default_rng(4)
-    H, W = 150, 160
-    z = np.repeat(np.linspace(1.2, 3.2, H)[:, None], W, 1)
+    cfg, fb = _quantising_config(step)
+    W = 160
+    z = np.repeat(np.linspace(1.2, 3.2, 150)[:, None], W, 1)
     z[120:] = fb / (13.0 + 0.005 * (np.arange(W) - W / 2))[None, :]                # 3.25-3.45 m
-    ms, zs = [], []
-    for _ in range(3):
-        d = step * np.round((fb / z + sd * rng.standard_normal((H, W)) - 0.03) / step) + 0.03
-        d[120:] = step * np.ceil((fb / 3.2 - 0.03) / step) + 0.03       # the one level inside the far limit
-        ms.append((fb / d).astype(np.float32))
-        zs.append(z)
+    ms, zs = _quantised_frames(z, fb, step, sd, 4)
+    for m in ms:                                # the one level inside the far limit
+        m[120:] = fb / (step * np.ceil((fb / 3.2 - 0.03) / step) + 0.03)
     start = AxialNoise.fit_start(_Fake(ms, zs), cfg, [0, 1, 2])
     assert abs(start["axial_noise.sigma2_per_m"] * fb / sd - 1.0) < 0.05, start["axial_noise.sigma2_per_m"] * fb
 
