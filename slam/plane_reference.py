@@ -96,6 +96,9 @@ class PlaneReferenceConfig:
         return self
 
 
+OUTLIER_FACTOR = 3.0
+
+
 def _nguyen_sigma(z: np.ndarray) -> np.ndarray:
     return 0.0012 + 0.0019 * (z - 0.4) ** 2
 
@@ -142,7 +145,8 @@ def plane_mask(depth: np.ndarray, intr, n: np.ndarray, d: float, roi, threshold_
     pts = unproject(depth, intr)
     z = depth
     tol = np.maximum(threshold_m, 3.0 * _nguyen_sigma(z))
-    on = (z > 0) & (np.abs(pts @ n + d) < tol)
+    res = pts @ n + d
+    on = (z > 0) & (np.abs(res) < tol)
     if roi is not None:
         x0, y0, x1, y1 = roi
         box = np.zeros_like(on)
@@ -154,8 +158,10 @@ def plane_mask(depth: np.ndarray, intr, n: np.ndarray, d: float, roi, threshold_
     if k > 2:
         big = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         on = lab == big
+    from scipy.ndimage import binary_fill_holes
     closed = cv2.morphologyEx(on.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    return closed & (z > 0) | on
+    inside = binary_fill_holes(closed)
+    return inside & ((z <= 0) | (np.abs(res) < OUTLIER_FACTOR * tol)) | on
 
 
 @dataclass
@@ -221,8 +227,8 @@ def flat_support(depth: np.ndarray, intr, mask: np.ndarray, n: np.ndarray, d: fl
             med = float(np.median(r))
             spread = 1.4826 * float(np.median(np.abs(r - med)))
             sig = float(_nguyen_sigma(np.median(z[sel][order[a:b]])))
-            tol = max(cfg.tile_offset_floor_m, cfg.tile_offset_floor_sigma * sig,
-                      cfg.tile_offset_sigma * sig / math.sqrt(b - a))
+            tol = max(cfg.tile_offset_floor_m, cfg.tile_offset_floor_sigma * sig,   # the median's standard
+                      cfg.tile_offset_sigma * max(sig, spread) / math.sqrt(b - a))  # error: the tile's own noise
             tails = float(np.mean(np.abs(r - med) > 3.0 * max(spread, 1e-6)))
             if abs(med) <= tol and tails <= cfg.tail_fraction:
                 kept_tiles.add(tile)
@@ -230,11 +236,12 @@ def flat_support(depth: np.ndarray, intr, mask: np.ndarray, n: np.ndarray, d: fl
         flat = on.ravel() & np.isin(tid, list(kept_tiles))
         if flat.sum() >= 3:
             n, d = _refit(P[flat])
+    region = mask.ravel() & np.isin(tid, list(kept_tiles))    # with the sensor's holes in kept tiles
     sel = np.flatnonzero(flat)
     res = P[sel] @ n + d if sel.size else np.zeros(0)
     mad = 1.4826 * float(np.median(np.abs(res - np.median(res)))) if res.size else float("nan")
     fl = float(np.sqrt(np.mean(np.square(list(meds.values()))))) if meds else float("nan")
-    return FlatSupport(flat.reshape(H, W), np.asarray(n, float), float(d), len(judged), len(kept_tiles),
+    return FlatSupport(region.reshape(H, W), np.asarray(n, float), float(d), len(judged), len(kept_tiles),
                        1000 * fl, 1000 * mad)
 
 

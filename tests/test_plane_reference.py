@@ -182,3 +182,32 @@ def test_flatness_check_cuts_objects_in_the_band_and_keeps_a_clean_plane():
     mask = plane_mask(roof, intr, n, d, None, 0.05)
     fs = flat_support(roof, intr, mask, n, d, cfg)
     assert fs.kept < cfg.min_flat_share * fs.tiles or fs.mask[:, 160:].mean() < 0.2
+
+
+def test_mask_keeps_the_sensors_holes_and_noise_tails_on_the_target():
+    """The mask is where the target is, not where the sensor measured it well: a fronto-parallel
+    wall at 2.4 m with noise 2.5 x Nguyen et al.'s sigma (the +-3 sigma band alone would cut the
+    residuals at 1.2 of their std and read the noise 0.7 x too low) and 4 % of its pixels dropped
+    at random, plus a 20x20 hole: the kept residuals' robust std is the true one within 3 %, the
+    holes inside the target are in the mask (the lab then sees the hole rate), and the image beyond
+    the target's edge (a far wall, 1 m behind) stays out."""
+    from data_tools.camera import Intrinsics
+    from slam.plane_reference import PlaneReferenceConfig, _nguyen_sigma, flat_support, plane_mask
+    intr = Intrinsics(320, 240, 290.0, 290.0, 159.5, 119.5)
+    n, d = np.array([0.0, 0.0, -1.0]), 2.4
+    rng = np.random.default_rng(3)
+    sigma = 2.5 * float(_nguyen_sigma(2.4))
+    depth = (d + sigma * rng.standard_normal((240, 320))).astype(np.float32)
+    depth[:, 260:] = 3.4                                          # beyond the target's edge
+    holes = rng.random(depth.shape) < 0.04
+    holes[100:120, 100:120] = True
+    holes[:, 260:] = False
+    depth[holes] = 0.0
+    cfg = PlaneReferenceConfig()
+    fs = flat_support(depth, intr, plane_mask(depth, intr, n, d, None, cfg.mask_threshold_m), n, d, cfg)
+    m = fs.mask
+    assert m[:, 260:].sum() == 0 and m[:, :250].mean() > 0.95
+    assert m[holes].mean() > 0.95                                 # the holes count as target pixels
+    r = depth[m & (depth > 0)] - d
+    robust = 1.4826 * np.median(np.abs(r - np.median(r)))
+    assert robust == pytest.approx(sigma, rel=0.03)
