@@ -7,14 +7,18 @@ This is how Khoshelham & Elberink 2012, Nguyen et al. 2012, Smisek et al. 2011 a
 1. the dominant plane of the window ``roi`` (default the whole image) is found by RANSAC
    (Open3D ``segment_plane`` on every second pixel's point, threshold ``ransac_threshold_m``,
    seeded) and refined by least squares (SVD) on its inliers;
-2. the frame's *mask* is the set of pixels within ``max(mask_threshold_m, 3 sigma(z))`` of the
-   plane (sigma = Nguyen et al.'s axial noise), inside the ROI, reduced to the largest connected
-   component and closed (3x3) - the target, without the room behind it;
+2. the frame's *mask* is where the target is: the pixels within ``max(mask_threshold_m, 3 sigma(z))``
+   of the plane (sigma = Nguyen et al.'s axial noise), inside the ROI, reduced to the largest
+   connected component and closed (3x3) - the target, without the room behind it - plus everything
+   inside that component's outline that is a hole (depth 0) or within ``OUTLIER_FACTOR`` x the band.
+   The lab compares hole rates and error distributions on the mask: a mask of only the pixels the
+   sensor measured inside the band reads a hole rate of 0 and cuts the noise tails of a sensor
+   noisier than Nguyen's (at 2 x his sigma the band is 1.5 sigma, the robust std reads 0.85 x);
 3. a *flatness check* keeps only the clean part of that plane (:func:`flat_support`): the mask is
    cut into tiles of ``tile_px`` (scaled to a 640 px wide image); the plane is refitted by least
    squares on the mask, and a tile is rejected when the median of its residuals is off the plane
-   by more than ``tile_offset_sigma`` x the sensor's noise at its depth (over sqrt of the tile's
-   pixels, floored at ``tile_offset_floor_m`` and ``tile_offset_floor_sigma`` sigma(z): an object lying in the +-3 sigma band, a bent or
+   by more than ``tile_offset_sigma`` x the noise at its depth (the larger of sigma(z) and the tile's
+   own robust spread, over sqrt of the tile's valid pixels, floored at ``tile_offset_floor_m`` and ``tile_offset_floor_sigma`` sigma(z): an object lying in the +-3 sigma band, a bent or
    second surface) or when more than ``tail_fraction`` of its residuals lie beyond 3 x its own robust
    spread (a small object or a step inside the tile). The plane is refitted on the kept tiles
    (twice); a frame keeping fewer than ``min_flat_share`` of its tiles is not a clean plane and
@@ -97,6 +101,7 @@ class PlaneReferenceConfig:
 
 
 OUTLIER_FACTOR = 3.0
+"""Inside the target's outline, residuals up to this many times the mask band count as target."""
 
 
 def _nguyen_sigma(z: np.ndarray) -> np.ndarray:
