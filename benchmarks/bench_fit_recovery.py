@@ -72,11 +72,11 @@ def compare(effect: str, truth: dict, cfg, fb: float, at_bound: set) -> list[dic
     from tests import hidden_effects as he
     rows = []
 
-    def row(q, t, f, tol, rel=False, key=None):
+    def row(q, t, f, tol, rel=False, key=None, depth_m=None):
         err = (f - t) / t if rel else f - t
         rows.append({"effect": effect, "quantity": q, "true": t, "fitted": f, "error": err,
                      "tolerance": tol, "relative": rel, "within": abs(err) <= tol,
-                     "at_bound": bool(key and key in at_bound)})
+                     "at_bound": bool(key and key in at_bound), **({} if depth_m is None else {"depth_m": depth_m})})
 
     row("noise at 2 m [m]", 4.0 * truth["sigma_d_px"] / fb, _model_sigma(cfg, 2.0), 0.10, rel=True,
         key="axial_noise.sigma2_per_m")
@@ -90,7 +90,7 @@ def _effect_rows(effect: str, truth: dict, cfg, row) -> None:
     if effect == "depth_bias":
         for z in (1.0, 2.0, 3.0):
             t = truth["c0_m"] + truth["c1"] * (z - 2) + truth["c2_per_m"] * (z - 2) ** 2
-            row(f"bias at {z:.0f} m [m]", t, _model_bias(cfg, z), 0.002, key=None)
+            row(f"bias at {z:.0f} m [m]", t, _model_bias(cfg, z), 0.002, key=None, depth_m=z)
     elif effect == "incidence_dropout":
         row("dropout angle [deg]", math.degrees(math.acos(truth["cos50"])),
             cfg.effect("incidence_dropout").params.angle50_deg, 2.0, key="incidence_dropout.angle50_deg")

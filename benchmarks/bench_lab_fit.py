@@ -27,7 +27,8 @@ few seconds in its favour.)
 
 Prints the wall and CPU seconds of each fit (load averages: the machine may be shared), the
 evaluations, the gap on the fitted frames and on the held-out frames (all 24, 20000 pixels each,
-seed 0) of the start and of both fits, the ratio old / new, and the parameters the new fit froze.
+seed 0) of the start, of the true model (the floor: the same sensor, other noise draws) and of
+both fits, the ratio old / new, and the parameters the new fit froze.
 """
 from __future__ import annotations
 
@@ -144,7 +145,9 @@ def main(argv=None) -> int:
             print("  stages: " + ", ".join(f"{k} {v['seconds']:.1f} s / {v['evaluations']} ev."
                                            for k, v in res.stages.items()))
         start_cfg = runs["new"][0].config.__class__.build(runs["new"][0].config.preset, "physical")
-        held = {"start": held_out_gap(d / "ref", start_cfg)}
+        from synth.lab.params import set_params
+        held = {"start": held_out_gap(d / "ref", start_cfg),      # truth: the floor (two noise draws)
+                "truth": held_out_gap(d / "ref", set_params(start_cfg, TRUTH))}
         for name, (res, _) in runs.items():
             held[name] = held_out_gap(d / "ref", res.config)
     print("held-out gap: " + ", ".join(f"{k} {v[0]:.4f}" for k, v in held.items()))

@@ -320,3 +320,13 @@ def test_mystery_recovery_rows_compare_in_the_labs_units(tmp_path):
     off = ms.default_config([{"name": "axial_noise", "params": {"sigma2_per_m": truth["noise2m"] / 4}},
                              {"name": "lens_distortion", "params": {"k1": truth["raw"]["params"]["k1"] + 0.05}}])
     assert not recovery_rows("mystery", truth, off, ms.preset.fb, set())[1]["within"]
+
+
+def test_bias_rows_are_scored_only_at_depths_the_data_holds():
+    """A bias row at a depth outside the measured depths' 2-98 % range is not scored (and does not
+    fail the case); when none lies inside, the one nearest the median depth is."""
+    from benchmarks.generator_report import mark_scored
+    rows = [{"quantity": "noise at 2 m [m]"}] + [{"quantity": f"bias at {z:.0f} m [m]", "depth_m": z} for z in (1.0, 2.0, 3.0)]
+    assert [r["scored"] for r in mark_scored(rows, (1.9, 3.8, 2.85))] == [True, False, True, True]
+    assert [r["scored"] for r in mark_scored(rows, (0.5, 4.5, 2.0))] == [True, True, True, True]
+    assert [r["scored"] for r in mark_scored(rows, (1.2, 1.8, 1.6))] == [True, False, True, False]
