@@ -42,13 +42,26 @@ def window_kernel(radius: int, shape: str) -> np.ndarray:
     return np.ones((2 * r + 1, 2 * r + 1), np.uint8)
 
 
-def depth_discontinuities(view, ray_dirs_cam: np.ndarray, rel: float) -> np.ndarray:
+def gate_rel(min_jump_rel: float, min_jump_px: float, depth: np.ndarray, fb: float):
+    """The relative threshold of the ``edges`` gate's tangent-plane test: ``min_jump_rel`` when it is
+    set, else the disparity threshold as a relative one per pixel, ``min_jump_px`` z / (f b) (a
+    disparity jump dd is a depth jump dz = dd z^2 / (f b)), (H, W); 0 when neither is set. With a
+    disparity threshold alone the gate used to test at 0 and took every pixel of a curved or tilted
+    surface for an edge, so a steep floor was fattened too and the fit shrank the radius to undo it
+    (blind sensor seeds 5, 9: radius 1 and 2 for 2 and 4)."""
+    if min_jump_rel > 0 or not (min_jump_px > 0 and fb > 0):
+        return float(min_jump_rel)
+    return (np.float32(min_jump_px / fb) * depth).astype(np.float32)
+
+
+def depth_discontinuities(view, ray_dirs_cam: np.ndarray, rel) -> np.ndarray:
     """(H, W) bool: pixels next to a depth discontinuity of the ideal view.
 
     For each 4-neighbour q of pixel p, the depth predicted by p's tangent plane is
     z_p (n . r_p) / (n . r_q) (r = (x/z, y/z, 1) of each pixel's ray, n = p's normal); q is
     across an edge when its depth differs from that by more than ``rel`` z_p (or one of them is
-    not a surface). Exact for planes, so grazing walls are not edges."""
+    not a surface). ``rel``: a number or (H, W) per pixel p (:func:`gate_rel`). Exact for planes,
+    so grazing walls are not edges."""
     from synth.sensor.effects.pattern_projection import normalized_coords
     xn, yn = normalized_coords(ray_dirs_cam)
     z = view.depth
@@ -65,7 +78,8 @@ def depth_discontinuities(view, ray_dirs_cam: np.ndarray, rel: float) -> np.ndar
             dot_q = nx[sp] * xn[sq] + ny[sp] * yn[sq] + nz[sp]
             with np.errstate(divide="ignore", invalid="ignore"):
                 pred = z[sp] * dot_p[sp] / dot_q
-            bad = ~(np.abs(z[sq] - pred) <= rel * z[sp]) | (hit[sp] != hit[sq])
+            rp = rel[sp] if isinstance(rel, np.ndarray) else rel
+            bad = ~(np.abs(z[sq] - pred) <= rp * z[sp]) | (hit[sp] != hit[sq])
             bad &= hit[sp] | hit[sq]
             out[sp] |= bad
             out[sq] |= bad
@@ -234,10 +248,11 @@ class EdgeFattening(Effect):
         # neighbour is across an edge when its depth differs from the depth the pixel's own
         # tangent plane predicts for it by more than min_jump_rel
         fat = (near < big) & state.view.hit & (near < own * np.float32(1.0 - self.params.min_jump_rel))
-        if self.params.gate == "edges":
-            jump = depth_discontinuities(state.view, state.ray_dirs_cam, self.params.min_jump_rel)
-            fat &= cv2.dilate(jump.astype(np.uint8), k) > 0
         fb = float(getattr(state.preset, "fb", 0.0) or 0.0)
+        if self.params.gate == "edges":
+            rel = gate_rel(self.params.min_jump_rel, self.params.min_jump_px, state.view.depth, fb)
+            jump = depth_discontinuities(state.view, state.ray_dirs_cam, rel)
+            fat &= cv2.dilate(jump.astype(np.uint8), k) > 0
         if self.params.min_jump_px > 0 and fb > 0:
             with np.errstate(divide="ignore", invalid="ignore"):
                 fat &= fb / near - fb / own > np.float32(self.params.min_jump_px)
@@ -318,8 +333,8 @@ class EdgeFattening(Effect):
                     best, px = again, float(np.clip(sp2["px"][0], *cls.FITTABLE["min_jump_px"]))
                     out.update({f"{cls.name}.radius_px": float(best[1]), f"{cls.name}.window": best[2],
                                 f"{cls.name}.min_jump_px": px})
-        if rel0 > 0 and cls._fattens_slopes(measured, best[1], best[2], rel0,
-                                            lambda near, z: _fattens(near, z, fb, px, rel)):
+        if (rel0 > 0 or px > 0) and cls._fattens_slopes(measured, best[1], best[2], rel0, px, fb,
+                                                        lambda near, z: _fattens(near, z, fb, px, rel)):
             out[f"{cls.name}.gate"] = "none"
         return out
 
@@ -430,11 +445,12 @@ class EdgeFattening(Effect):
         return out
 
     @staticmethod
-    def _fattens_slopes(measured, radius: int, shape: str, rel_gate: float, nearer, min_pixels: int = 30) -> bool:
+    def _fattens_slopes(measured, radius: int, shape: str, rel_gate: float, px_gate: float, fb: float, nearer,
+                        min_pixels: int = 30) -> bool:
         """True when the measured depth is fattened away from depth edges too: of the pixels whose
         (radius, shape) window holds a surface ``nearer`` (the start's thresholds) but no
-        discontinuity of the ideal view (tangent-plane test at ``rel_gate``, the model's ``edges``
-        gate), at least half carry the nearer depth (>= ``min_pixels`` such pixels; a steep floor
+        discontinuity of the ideal view (tangent-plane test at :func:`gate_rel` of ``rel_gate``,
+        ``px_gate``, ``fb``: the model's ``edges`` gate), at least half carry the nearer depth (>= ``min_pixels`` such pixels; a steep floor
         or side wall seen by a matcher whose window's nearest depth wins)."""
         import cv2
         from synth.sensor.effects._common import measured_samples
@@ -443,7 +459,8 @@ class EdgeFattening(Effect):
         for _, m, r, ok in measured_samples(measured):
             z = np.where(r.hit, r.depth, np.float32(1e6)).astype(np.float32)
             near = cv2.erode(z, k)
-            gated = cv2.dilate(depth_discontinuities(r, r.ray_dirs_cam, rel_gate).astype(np.uint8), k) > 0
+            gated = cv2.dilate(depth_discontinuities(r, r.ray_dirs_cam, gate_rel(rel_gate, px_gate, r.depth, fb))
+                               .astype(np.uint8), k) > 0
             sel = ok & (m > 0) & nearer(near, z) & ~gated
             if sel.any():
                 fat += int(np.count_nonzero(np.abs(m[sel] - near[sel]) < np.abs(m[sel] - z[sel])))
