@@ -104,3 +104,38 @@ def test_edge_fattening_of_the_independent_generator_fattens_slopes_too(tmp_path
     zmin = ndimage.minimum_filter(far, footprint=he._disk(t["radius_px"]), mode="nearest")
     truth = int(np.count_nonzero(np.isfinite(zmin) & (zmin < far * 0.96)))
     assert counts["none"] == pytest.approx(truth, rel=0.02) and counts["edges"] < 0.8 * truth, (counts, truth)
+
+
+def _floor_with_a_box():
+    """A state stand-in: a floor plane at 1.5-2.5 m (50 deg tilt, exact tangent planes) seen by a
+    160x120 camera (f b = 10.9 px m), a box 30 % nearer in rows 40-60, columns 60-100; no noise."""
+    from data_tools.geometry import pixel_rays
+    intr = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
+    rays = pixel_rays(intr, unit=False).astype(np.float32)
+    n = np.array([0.0, -np.cos(np.radians(50)), -np.sin(np.radians(50))], np.float32)
+    z = (-1.4 / (rays @ n)).astype(np.float32)
+    normals = np.broadcast_to(n, rays.shape).copy()
+    box = np.zeros(z.shape, bool)
+    box[40:60, 60:100] = True
+    z[box] *= np.float32(0.7)
+    normals[box] = (0.0, 0.0, -1.0)
+    view = SimpleNamespace(depth=z, hit=np.ones(z.shape, bool), normals_cam=normals)
+    return SimpleNamespace(depth=z.copy(), valid=np.ones(z.shape, bool), view=view, ray_dirs_cam=rays,
+                           preset=SimpleNamespace(fb=145.0 * 0.075, block_size=9), log={}), box
+
+
+def test_disparity_gate_leaves_a_steep_floor_alone():
+    """With the jump threshold in disparity only (min_jump_rel 0, min_jump_px 0.05: a 4-row window on
+    this floor spans ~0.09 px), fattening happens beside the box's edges (the gate: the window of an
+    edge pixel, and a window around that) and nowhere else: the
+    edges gate tests the same disparity jump against each pixel's tangent plane (``gate_rel``),
+    where a test at 0 took every pixel of the floor for an edge and fattened all of it."""
+    from synth.sensor.effects.edge_fattening import EdgeFattening
+    state, box = _floor_with_a_box()
+    before = state.depth.copy()
+    EdgeFattening({"radius_px": 4, "min_jump_rel": 0.0, "min_jump_px": 0.05, "gate": "edges"}).apply(state, None)
+    changed = state.depth != before
+    near_box = np.zeros_like(box)
+    near_box[32:68, 52:108] = True                   # within two windows of the box (the gate's reach)
+    assert changed[near_box & ~box].sum() > 100      # the box spreads over the floor beside it
+    assert changed[~near_box].sum() == 0             # the floor's own slope is not an edge
