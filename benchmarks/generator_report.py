@@ -170,15 +170,16 @@ def _row(eff: str, q: str, t: float, f: float, tol: float, rel: bool, at_bound: 
 
 
 def band_time_rows(gen: str, truth: dict, cfg, band: float) -> list[dict]:
-    """The rolling shutter's band-time row (the mystery generator's): readout x (band row - reference
-    row), what the data fix (``band``: the band-centre row, :func:`band_row`), true against fitted,
+    """The rolling shutter's band-time row (the mystery and blind generators'): readout x (band row -
+    reference row), what the data fix (``band``: the band-centre row, :func:`band_row`), true against fitted,
     the readout's 20 % tolerance; none for another generator or effect, or a band row that is not
     finite."""
-    if gen != "mystery" or truth["effect"] != "rolling_shutter" or not math.isfinite(band):
+    if gen not in ("mystery", "blind") or truth["effect"] != "rolling_shutter" or not math.isfinite(band):
         return []
     p = truth["raw"]["params"]
     fp = cfg.effect("rolling_shutter").params
-    # the generator stamps the first row (answer reference_row 0)
+    # the mystery generator stamps the first row (answer reference_row 0), the blind one row 0, 0.5 or 1
+    # of the image (its answer's reference_row, in the lab's convention v / (H - 1))
     return [_row("rolling_shutter", BAND_QUANTITY, p["readout_time_s"] * (band - p.get("reference_row", 0.0)),
                  fp.readout_time_s * (band - fp.reference_row), 0.2, True)]
 
