@@ -317,3 +317,19 @@ def test_fit_recovers_an_incidence_term_constant_in_disparity(tmp_path):
     assert res.params["axial_noise.incidence_z_exponent"] >= 1.5, res.params
     rows = curve_table(held.observations(held.simulate(res.config, 0)), None, 0)
     assert len(rows) >= 8 and all(abs(r["ratio"] - 1) <= 0.10 for r in rows), rows
+
+
+def test_hint_when_the_search_moves_do_not_hold_on_the_evaluation_frames():
+    """The fit's line for a search whose moves were all put back on the evaluation frames names them
+    and the wider search; none when a move was kept, nothing moved, or the search used every frame."""
+    from types import SimpleNamespace
+
+    from synth.lab.runs import unheld_moves_hint
+    res = SimpleNamespace(gap_before=0.3873, gap=0.3873, reverted=["ir_capture.gain_e"], kept_start=False,
+                          frames=[0, 8, 16, 23], eval_frames=list(range(24)))
+    hint = unheld_moves_hint(res)
+    assert "ir_capture.gain_e" in hint and "4 frames" in hint and "max_frames=12" in hint
+    assert unheld_moves_hint(SimpleNamespace(**{**vars(res), "gap": 0.33})) is None
+    assert unheld_moves_hint(SimpleNamespace(**{**vars(res), "reverted": []})) is None
+    assert "every parameter" in unheld_moves_hint(SimpleNamespace(**{**vars(res), "reverted": [], "kept_start": True}))
+    assert unheld_moves_hint(SimpleNamespace(**{**vars(res), "frames": list(range(24))})) is None
