@@ -264,6 +264,15 @@ def _quantisation_step(config) -> float:
     return step
 
 
+def _level_pairs(measured_diff: np.ndarray, ideal_diff: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The adjacent pairs the quantised-noise estimates count, as (measured, ideal) disparity
+    differences (N,) px: both finite and the measured ones less than 2.5 steps apart (a larger one is
+    an edge or a mismatch) - one selection for the measured and the noise-free side alike."""
+    md, idf = np.asarray(measured_diff, np.float64), np.asarray(ideal_diff, np.float64)
+    keep = np.isfinite(md) & np.isfinite(idf) & (np.abs(md) < 2.5 * step)
+    return md[keep], idf[keep]
+
+
 def _split_share(measured_diff: np.ndarray, step: float) -> float:
     """Share of adjacent pairs on different levels (their measured disparities ``measured_diff`` (N,)
     more than half a step apart, edges beyond 2.5 steps left out, as :func:`quantised_noise` counts)."""
@@ -291,8 +300,8 @@ def _splits_below_noise_free(measured_diff: np.ndarray, ideal_diff: np.ndarray, 
     binomial standard errors: noise only adds splits, so a deficit means levels held where the ideal
     disparity crosses them - pixels a range limit censors to the one level inside it, not a small noise
     (whose share lies at or just above the noise-free one)."""
-    share, p0 = _split_share(measured_diff, step), _split_share_noise_free(ideal_diff, step)
-    n = int(np.count_nonzero(np.isfinite(measured_diff) & (np.abs(measured_diff) < 2.5 * step)))
+    md, idf = _level_pairs(measured_diff, ideal_diff, step)
+    share, p0, n = _split_share(md, step), _split_share_noise_free(idf, step), md.size
     if not (n and np.isfinite(share) and np.isfinite(p0)):
         return False
     return share < p0 - SPLIT_DEFICIT_SDS * math.sqrt(max(p0 * (1.0 - p0), 1e-12) / n)
@@ -340,9 +349,7 @@ def quantised_noise(measured_diff: np.ndarray, ideal_diff: np.ndarray, step: flo
     levels (pairs more than 2.5 steps apart - an edge, a mismatch - are left out) is matched by a
     search over sigma_d in [0.002, 2] steps. NaN when fewer than 100 pairs, or when the share is at
     the noise-free rate or above the largest modelled one."""
-    md, idf = np.asarray(measured_diff, np.float64), np.asarray(ideal_diff, np.float64)
-    keep = np.isfinite(md) & np.isfinite(idf) & (np.abs(md) < 2.5 * step)
-    md, idf = md[keep], idf[keep]
+    md, idf = _level_pairs(measured_diff, ideal_diff, step)
     if md.size < 100:
         return float("nan")
     observed = float(np.mean(np.abs(md) > 0.5 * step))
