@@ -141,8 +141,11 @@ and the bias extrapolated there is the choice of terms, not a measurement."""
 def depth_span(ms) -> tuple[float, float, float]:
     """(low, high, median) ideal depth, m, of the measured valid pixels of every frame of ``ms``
     (:data:`DEPTH_SPAN_PERCENTILES`)."""
-    z = np.concatenate([ms.render(k).depth[(ms.measured_depth(k) > 0) & (ms.render(k).depth > 0)]
-                        for k in range(len(ms))])
+    z = []
+    for k in range(len(ms)):
+        ideal = ms.render(k).depth
+        z.append(ideal[(ms.measured_depth(k) > 0) & (ideal > 0)])
+    z = np.concatenate(z)
     lo, hi, med = np.percentile(z, [*DEPTH_SPAN_PERCENTILES, 50.0])
     return float(lo), float(hi), float(med)
 
