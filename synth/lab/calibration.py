@@ -131,7 +131,7 @@ def calibration_section(observations: Sequence, figs: str | os.PathLike) -> str:
     ax.set_xlabel("distance to the target (m)")
     ax.set_ylabel("spread about the plane (mm, 1.48 MAD)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=4, frameon=False)  # off the points
     save_figure(fig, figs / "plane_noise.png")
     meas, sim = mean_residual_maps(observations)
     both = np.concatenate([meas[np.isfinite(meas)], sim[np.isfinite(sim)]])
