@@ -28,11 +28,12 @@ not see: the ``structure`` preset's physical pipeline, and the training sensor w
 outside the training randomisation (``recog testset --sensor kinect_v1 --effect-override EFFECT.PARAM=VALUE``
 or ``--effect-preset beyond_training``).
 
-``--ablation``: thesis Table 5.4 - generators without the decoders other than depth, without
+``--ablation``: thesis Table 5.4 - cpu-preset generators of ``--domain`` (depth or rgb, final output ``--target``,
+default depth) without the decoders other than the target, without
 distillation, without self-attention, without skip connections, and with the bottleneck triplet
 loss, each trained ``--iterations`` steps on the same views (``--objects``, kept in ``OUT/work/data``; a
-generator file already in OUT is kept, so a killed run continues with the next variant),
-then the first recogniser's vote accuracy / rotation error before ICP with each. Writes
+generator file already in OUT is kept, so a killed run continues with the next variant), all trained before any
+recogniser is read, then the first recogniser's vote accuracy / rotation error before ICP with each. Writes
 ``OUT/bench_synda.json``.
 """
 from __future__ import annotations
@@ -48,13 +49,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ABLATIONS = {
     "full": {},
-    "no_aux_decoders": {"decoders": ("depth",)},
+    "no_aux_decoders": {"decoders": ("TARGET",)},
     "no_distillation": {"distillation": False},
     "no_attention": {"attention": False},
     "no_skips": {"skips": False},
     "with_triplet": {"triplet": True},
 }
-"""Table 5.4's switches (GeneratorConfig overrides) of the depth generator."""
+"""Table 5.4's switches (GeneratorConfig overrides); ``TARGET`` stands for the generator's final output
+(``no_aux_decoders`` keeps only its decoder)."""
+
+
+def ablation_config(name: str, domain: str, target: str, iterations: int, seed: int):
+    """The cpu preset of ``domain`` decoding ``target``, with variant ``name``'s switch (validated)."""
+    from recog.synda.config import synda_preset
+    cfg = synda_preset("cpu", domain)
+    over = {k: tuple(target if m == "TARGET" else m for m in v) if k == "decoders" else v
+            for k, v in ABLATIONS[name].items()}
+    gen_cfg = dataclasses.replace(cfg.generator, target=target, **over)
+    return dataclasses.replace(cfg, generator=gen_cfg, train=dataclasses.replace(
+        cfg.train, iterations=iterations, seed=seed)).validate()
 
 
 def _pairs(text: str) -> dict[str, str]:
@@ -92,40 +105,47 @@ def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool
     return row
 
 
-def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dict:
-    """Train the Table 5.4 generators on the same views and evaluate them with ``first_model``."""
+def train_ablation(args, out: Path) -> dict:
+    """Train the Table 5.4 generators of ``args.variants`` on the same views (``OUT/work/data``) into
+    ``OUT/ablation_NAME.pt``; a file already there is kept. Returns {name: {"train_s": s} or {"error": line}}."""
     from data_tools.errors import RealgapError
     from recog.data import DataConfig
-    from recog.synda.config import synda_preset
     from recog.synda.run import train_synda
     from recog.synda.train import pick_threads
     pick_threads(1)
-    res = {}
     names = list(ABLATIONS) if args.variants is None else args.variants.split(",")
     unknown = [n for n in names if n not in ABLATIONS]
     if unknown:
         raise SystemExit(f"--variants: unknown {unknown[0]!r}; choose from {', '.join(ABLATIONS)}")
+    res = {}
     for name in names:
-        over = ABLATIONS[name]
-        cfg = synda_preset("cpu", "depth")
-        gen_cfg = dataclasses.replace(cfg.generator, **over)
-        cfg = dataclasses.replace(cfg, generator=gen_cfg,
-                                  train=dataclasses.replace(cfg.train, iterations=args.iterations, seed=args.seed))
+        cfg = ablation_config(name, args.domain, args.target, args.iterations, args.seed)
         views = DataConfig(variant="physical", seed=args.seed, subdivisions=args.subdivisions)
         gen = out / f"ablation_{name}.pt"
         t0 = time.perf_counter()
         if not gen.is_file():
+            print(f"ablation {name}: training {args.iterations} steps", flush=True)
             try:
-                train_synda(args.objects, gen, cfg.validate(), views, work=out / "work", keep_work=True,
-                            progress=False, command="bench_synda --ablation " + name)
+                train_synda(args.objects, gen, cfg, views, work=out / "work", keep_work=True,
+                            progress=True, command="bench_synda --ablation " + name)
             except RealgapError as e:
                 res[name] = {"error": str(e)}
                 continue
             finally:     # the views are shared, the checkpoint is this variant's (the next would resume it)
                 (out / "work" / "checkpoint.pt").unlink(missing_ok=True)
-        res[name] = {"train_s": round(time.perf_counter() - t0, 1),
-                     **{ts: evaluate_row(first_model, path, str(gen), False, args.max_scans)
-                        for ts, path in testsets.items()}}
+        res[name] = {"train_s": round(time.perf_counter() - t0, 1)}
+    return res
+
+
+def evaluate_ablation(trained: dict, first_model: str, testsets: dict[str, str], out: Path,
+                      max_scans: int | None) -> dict:
+    """Each trained variant's generator in front of ``first_model`` on every test set (vote, before ICP)."""
+    res = {}
+    for name, r in trained.items():
+        res[name] = dict(r)
+        if "error" not in r:
+            res[name].update({ts: evaluate_row(first_model, path, str(out / f"ablation_{name}.pt"), False, max_scans)
+                              for ts, path in testsets.items()})
         print(name, json.dumps(res[name]), flush=True)
     return res
 
@@ -133,7 +153,8 @@ def ablation(args, first_model: str, testsets: dict[str, str], out: Path) -> dic
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "))
     ap.add_argument("--recog", required=True, help="NAME=MODEL,... recognisers (the first one is the ablation's)")
-    ap.add_argument("--generator", required=True, help="the SynDA depth generator")
+    ap.add_argument("--generator", default=None, help="the SynDA generator of the rows with SynDA (required "
+                    "unless --ablation, whose rows are then the recognisers alone)")
     ap.add_argument("--testset", required=True, help="NAME=TESTSET,...")
     ap.add_argument("--icp", action="store_true", help="also the full pipeline (verification + ICP): slow")
     ap.add_argument("--max-scans", type=int, default=None)
@@ -145,6 +166,10 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default=None, help="NAME,... the ablation variants to run (default all; two runs "
                     "with disjoint variants and their own --out can share the machine)")
     ap.add_argument("--subdivisions", type=int, default=1, help="viewpoint subdivisions of the ablation's views")
+    ap.add_argument("--domain", default="depth", choices=("depth", "rgb"), help="input domain of the ablation's "
+                    "generators (rgb: evaluate them on a colour test set, `synda testset`)")
+    ap.add_argument("--target", default="depth", help="final output of the ablation's generators (depth: what "
+                    "the recogniser reads)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench_out/synda")
     args = ap.parse_args(argv)
@@ -154,7 +179,12 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
+    trained = train_ablation(args, out) if args.ablation else None     # first: the recognisers are read after
     with_synda = set(recogs) if args.synda_recog is None else set(filter(None, args.synda_recog.split(",")))
+    if args.generator is None:
+        if not args.ablation:
+            raise SystemExit("--generator: needed unless --ablation")
+        with_synda = set()
     if not with_synda <= set(recogs):
         raise SystemExit(f"--synda-recog: no recogniser named {sorted(with_synda - set(recogs))[0]!r}")
     from recog.model import Recogniser
@@ -171,7 +201,7 @@ def main(argv=None) -> int:
                 print(json.dumps(row), flush=True)
     result = {"rows": rows, "generator": args.generator, "recognisers": recogs, "testsets": testsets}
     if args.ablation:
-        result["ablation"] = ablation(args, next(iter(recogs.values())), testsets, out)
+        result["ablation"] = evaluate_ablation(trained, next(iter(recogs.values())), testsets, out, args.max_scans)
     (out / "bench_synda.json").write_text(json.dumps(result, indent=2))
     print(f"{'test set':10s} {'recogniser':12s} {'reads':11s} {'vote %':>7s} {'rot med before':>14s}"
           + (f" {'full %':>7s} {'rot med after':>13s}" if args.icp else ""))

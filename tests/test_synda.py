@@ -540,3 +540,20 @@ def test_wrong_image_size_or_channels_is_one_line(shape):
     with pytest.raises(RealgapError) as e:
         net(torch.zeros(shape))
     assert "(B, 3, 16, 16)" in one_line(e)
+
+
+@pytest.mark.parametrize("domain", ["depth", "rgb"])
+def test_ablation_variants_change_one_switch_each(domain):
+    """Table 5.4's variants (benchmarks/bench_synda.py): each is the cpu preset with its one switch flipped, in
+    either domain; without the auxiliary decoders only the target's decoder is left."""
+    from benchmarks.bench_synda import ABLATIONS, ablation_config
+    full = ablation_config("full", domain, "depth", 10, 0).generator
+    assert full.target == "depth" and full.distillation and full.attention and full.skips and not full.triplet
+    changed = {}
+    for name in ABLATIONS:
+        g = ablation_config(name, domain, "depth", 10, 0).generator
+        changed[name] = {f for f in ("decoders", "distillation", "attention", "skips", "triplet")
+                         if getattr(g, f) != getattr(full, f)}
+    assert changed == {"full": set(), "no_aux_decoders": {"decoders"}, "no_distillation": {"distillation"},
+                       "no_attention": {"attention"}, "no_skips": {"skips"}, "with_triplet": {"triplet"}}
+    assert ablation_config("no_aux_decoders", domain, "depth", 10, 0).generator.decoders == ("depth",)
