@@ -39,35 +39,11 @@ recogniser is read, then the first recogniser's vote accuracy / rotation error b
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-ABLATIONS = {
-    "full": {},
-    "no_aux_decoders": {"decoders": ("TARGET",)},
-    "no_distillation": {"distillation": False},
-    "no_attention": {"attention": False},
-    "no_skips": {"skips": False},
-    "with_triplet": {"triplet": True},
-}
-"""Table 5.4's switches (GeneratorConfig overrides); ``TARGET`` stands for the generator's final output
-(``no_aux_decoders`` keeps only its decoder)."""
-
-
-def ablation_config(name: str, domain: str, target: str, iterations: int, seed: int):
-    """The cpu preset of ``domain`` decoding ``target``, with variant ``name``'s switch (validated)."""
-    from recog.synda.config import synda_preset
-    cfg = synda_preset("cpu", domain)
-    over = {k: tuple(target if m == "TARGET" else m for m in v) if k == "decoders" else v
-            for k, v in ABLATIONS[name].items()}
-    gen_cfg = dataclasses.replace(cfg.generator, target=target, **over)
-    return dataclasses.replace(cfg, generator=gen_cfg, train=dataclasses.replace(
-        cfg.train, iterations=iterations, seed=seed)).validate()
 
 
 def _pairs(text: str) -> dict[str, str]:
@@ -78,76 +54,6 @@ def _pairs(text: str) -> dict[str, str]:
             raise SystemExit(f"expected NAME=PATH, got {item!r}")
         out[name] = path
     return out
-
-
-def evaluate_row(model_path: str, testset: str, generator: str | None, icp: bool, max_scans: int | None) -> dict:
-    """Vote accuracy and rotation error before ICP (no-ICP run); with ``icp`` also the full pipeline."""
-    from recog.evaluate import evaluate
-    from recog.model import Recogniser
-    model = Recogniser.load(model_path)
-    reads = model.input
-    if generator:      # main() has refused a SynDA row for a colour recogniser before any row
-        from recog.synda.run import use_synda
-        reads = f"synda-{use_synda(model, generator)['domain']}"
-    t0 = time.perf_counter()
-    r = evaluate(model, testset, None, icp=False, progress=False, max_scans=max_scans)
-    row = {"reads": reads, "n_scans": r["n_scans"], "vote_accuracy": r["accuracy_descriptor"],
-           "rot_err_deg_median_before_icp": r["before_icp"]["rot_err_deg"]["median"],
-           "rot_within_20deg_before_icp": r["before_icp"]["rot_err_deg"].get("acc_at_20"),
-           "seconds_no_icp": round(time.perf_counter() - t0, 1)}
-    if icp:
-        t0 = time.perf_counter()
-        f = evaluate(model, testset, None, icp=True, progress=False, max_scans=max_scans)
-        row.update(accuracy_full=f["accuracy"], vote_accuracy_full_run=f["accuracy_descriptor"],
-                   rot_err_deg_median_after_icp=f["rot_err_deg"]["median"],
-                   trans_err_mm_median_after_icp=None if f["trans_err_m"]["median"] is None
-                   else 1000 * f["trans_err_m"]["median"], seconds_icp=round(time.perf_counter() - t0, 1))
-    return row
-
-
-def train_ablation(args, out: Path) -> dict:
-    """Train the Table 5.4 generators of ``args.variants`` on the same views (``OUT/work/data``) into
-    ``OUT/ablation_NAME.pt``; a file already there is kept. Returns {name: {"train_s": s} or {"error": line}}."""
-    from data_tools.errors import RealgapError
-    from recog.data import DataConfig
-    from recog.synda.run import train_synda
-    from recog.synda.train import pick_threads
-    pick_threads(1)
-    names = list(ABLATIONS) if args.variants is None else args.variants.split(",")
-    unknown = [n for n in names if n not in ABLATIONS]
-    if unknown:
-        raise SystemExit(f"--variants: unknown {unknown[0]!r}; choose from {', '.join(ABLATIONS)}")
-    res = {}
-    for name in names:
-        cfg = ablation_config(name, args.domain, args.target, args.iterations, args.seed)
-        views = DataConfig(variant="physical", seed=args.seed, subdivisions=args.subdivisions)
-        gen = out / f"ablation_{name}.pt"
-        t0 = time.perf_counter()
-        if not gen.is_file():
-            print(f"ablation {name}: training {args.iterations} steps", flush=True)
-            try:
-                train_synda(args.objects, gen, cfg, views, work=out / "work", keep_work=True,
-                            progress=True, command="bench_synda --ablation " + name)
-            except RealgapError as e:
-                res[name] = {"error": str(e)}
-                continue
-            finally:     # the views are shared, the checkpoint is this variant's (the next would resume it)
-                (out / "work" / "checkpoint.pt").unlink(missing_ok=True)
-        res[name] = {"train_s": round(time.perf_counter() - t0, 1)}
-    return res
-
-
-def evaluate_ablation(trained: dict, first_model: str, testsets: dict[str, str], out: Path,
-                      max_scans: int | None) -> dict:
-    """Each trained variant's generator in front of ``first_model`` on every test set (vote, before ICP)."""
-    res = {}
-    for name, r in trained.items():
-        res[name] = dict(r)
-        if "error" not in r:
-            res[name].update({ts: evaluate_row(first_model, path, str(out / f"ablation_{name}.pt"), False, max_scans)
-                              for ts, path in testsets.items()})
-        print(name, json.dumps(res[name]), flush=True)
-    return res
 
 
 def main(argv=None) -> int:
@@ -178,8 +84,15 @@ def main(argv=None) -> int:
     recogs, testsets = _pairs(args.recog), _pairs(args.testset)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    from recog.synda.evaluate import evaluate_ablation, table_row, train_ablation
+    from recog.synda.train import pick_threads
     rows = []
-    trained = train_ablation(args, out) if args.ablation else None     # first: the recognisers are read after
+    trained = None
+    if args.ablation:                # first: the recognisers are read after
+        pick_threads(1)
+        trained = train_ablation(args.objects, out, None if args.variants is None else args.variants.split(","),
+                                 domain=args.domain, target=args.target, iterations=args.iterations, seed=args.seed,
+                                 subdivisions=args.subdivisions)
     with_synda = set(recogs) if args.synda_recog is None else set(filter(None, args.synda_recog.split(",")))
     if args.generator is None:
         if not args.ablation:
@@ -196,7 +109,7 @@ def main(argv=None) -> int:
         for name, model in recogs.items():
             for gen in ((None, args.generator) if name in with_synda else (None,)):
                 row = {"testset": ts, "recogniser": name, "synda": bool(gen),
-                       **evaluate_row(model, path, gen, args.icp, args.max_scans)}
+                       **table_row(model, path, gen, args.icp, args.max_scans)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     result = {"rows": rows, "generator": args.generator, "recognisers": recogs, "testsets": testsets}

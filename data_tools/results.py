@@ -256,6 +256,11 @@ class running_command:
         _COMMAND[0] = self._saved
 
 
+def current_command() -> str:
+    """The command line being run: the :class:`running_command` one, else this process's arguments."""
+    return _COMMAND[0] or " ".join(["realgap"] + [shlex.quote(a) for a in sys.argv[1:]])
+
+
 def make_header(kind: str, *, inputs: dict[str, str | os.PathLike] | None = None, parameters: dict | None = None,
                 seed: int | None = None, timings_s: dict | None = None, metrics: dict | None = None,
                 command: str | None = None) -> dict:
@@ -265,7 +270,7 @@ def make_header(kind: str, *, inputs: dict[str, str | os.PathLike] | None = None
     if kind not in KINDS:
         raise ValueError(f"unknown result kind {kind!r}; known: {', '.join(KINDS)}")
     if command is None:
-        command = _COMMAND[0] or " ".join(["realgap"] + [shlex.quote(a) for a in sys.argv[1:]])
+        command = current_command()
     return {"format": FORMAT, "format_version": FORMAT_VERSION, "kind": kind, "command": command,
             "realgap_version": realgap_version(),
             "created": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),

@@ -423,6 +423,38 @@ def test_eval_reads_the_synda_mapping(trained, capsys):
     assert "\n" not in err and "trained on 64 px patches of 9.0 m" in err
 
 
+def test_synda_reindex_builds_an_object_only_database(trained, model_files, capsys):
+    """``synda reindex``: the same network, a database of the same view grid whose patches are the object alone
+    (+1 elsewhere): the recogniser's own training patches with their background set to +1 (made by another path,
+    with noise) find their own object and view as nearest; re-running onto a finished folder or onto the model
+    itself is a one-line error."""
+    import torch
+
+    from recog.data import load_training_data
+    from recog.model import Recogniser
+    from recog.objects import load_objects
+    out = trained / "m_objonly"
+    assert main(["synda", "reindex", str(trained / "m"), "--out", str(out), "--no-progress"]) == 0
+    m, r = Recogniser.load(trained / "m"), Recogniser.load(out)
+    wm, wr = m.net.state_dict(), r.net.state_dict()
+    assert all(torch.equal(wm[k], wr[k]) for k in wm)
+    assert r.info["reindexed"]["from"] == str(trained / "m") and "synda reindex" in r.info["reindexed"]["command"]
+    assert not (out / "views").exists()
+    objs = load_objects(f"{model_files / 'box.ply'},{model_files / 'bracket.ply'}")
+    td = load_training_data(objs, m.data, trained / "m" / "data")
+    q = r.describe(np.where(td.mask, td.patches[:, 0].astype(np.float32), 1.0).astype(np.float32))
+    d = ((q[:, None] - r.db.descriptors[None]) ** 2).sum(-1)
+    nearest = d.argmin(1)
+    same_view = (r.db.obj[nearest] == td.obj) & (r.db.view[nearest] == td.view)
+    assert len(r.db) == len({(o, v) for o, v in zip(td.obj, td.view)}) and same_view.mean() > 0.9, (len(r.db), same_view.mean())
+    capsys.readouterr()
+    for extra in ([], ["--overwrite"]):
+        target = out if not extra else trained / "m"
+        assert main(["synda", "reindex", str(trained / "m"), "--out", str(target), "--no-progress", *extra]) == 1
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and ("already holds a finished result" if not extra else "would replace the input") in err
+
+
 def test_synda_augmented_training_data(trained, model_files):
     """``TrainConfig.synda_augment`` (the A-trained baseline of thesis ch. 5): the chunks carry object masks that
     lie on the object's (nearer) pixels; A is deterministic for a seed, keeps shapes and the [-1, 1] range,

@@ -5,15 +5,16 @@ synthetic domain the recogniser was trained on.
 * ``synda map GEN INPUT... --out DIR`` (every intermediate modality as a PNG + a contact sheet)
 * ``synda augment --objects ... --out DIR`` (a contact sheet of A's samples)
 * ``synda testset --objects ... --out TESTSET`` (colour test scans rendered unlike A, for ``recog eval --synda``)
+* ``synda reindex MODEL --out MODEL2`` (the recogniser with an object-only database, what an rgb generator writes)
 """
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 
 from app.commands import RESUMES, add_group, add_shared, positive_int
 from app.commands.flags import add_config_flags, config_overrides
+from data_tools.results import current_command
 from recog.synda.config import SyndaTrainConfig
 
 NAME = "synda"
@@ -97,7 +98,7 @@ def _train(args) -> int:
     from recog.synda.train import pick_threads
     pick_threads(args.threads)
     cfg, views = synda_configs(args)
-    command = "realgap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = current_command()
     gen, info = train_synda(args.objects, args.out, cfg, views, work=args.work, scale=args.scale,
                             workers=args.workers, overwrite=args.overwrite, keep_work=args.keep_work,
                             progress=not args.no_progress, command=command, checkpoint_every=args.checkpoint_every,
@@ -165,6 +166,41 @@ def register_testset(sub) -> None:
     add_shared(p, "--no-progress")
     p.set_defaults(func=_testset)
 
+    p = sub.add_parser("reindex", help="a recogniser with its database rebuilt from object-only clean views",
+                       description="Keep a depth recogniser's network and rebuild its database from the clean "
+                                   "renderer's views of its own view grid with every pixel outside the object at "
+                                   "+1: what an rgb generator writes (it cannot know the ground and clutter behind "
+                                   "a photographed object). Use the result with 'recog eval ... --synda RGB_GEN'.")
+    p.add_argument("model", metavar="MODEL", help="a recogniser folder (realgap recog train)")
+    add_shared(p, "--out", "the new recogniser folder", required=True, metavar="MODEL2")
+    p.add_argument("--work", help="folder for the clean views (default MODEL2/views, removed at the end; a kept "
+                                  "folder is reused)")
+    add_shared(p, "--workers", "processes simulating views (default 1)", default=1)
+    add_shared(p, "--overwrite", "a recogniser already in MODEL2")
+    add_shared(p, "--no-progress")
+    p.set_defaults(func=_reindex)
+
+
+def _reindex(args) -> int:
+    import shutil
+    from pathlib import Path
+
+    from data_tools.outputs import check_output_dir
+    from recog.model import Recogniser
+    from recog.synda.evaluate import object_only_database
+    out = check_output_dir(args.out, finished="recogniser.json", overwrite=args.overwrite)
+    model = Recogniser.load(args.model)
+    work = Path(args.work) if args.work else out / "views"
+    object_only_database(model, work, workers=args.workers, progress=not args.no_progress)
+    model.info["reindexed"].update({"from": str(args.model),
+                                    "command": current_command()})
+    model.save(out)
+    if not args.work:
+        shutil.rmtree(work, ignore_errors=True)
+    print(f"{out}: {len(model.db)} object-only database entries, network of {args.model} "
+          f"({model.info['reindexed']['seconds']:.0f} s)")
+    return 0
+
 
 def _map(args) -> int:
     from app.synda_figures import map_figures
@@ -201,7 +237,7 @@ def _testset(args) -> int:
                               occluders=(0, args.max_occluders), seed=args.seed).validate()
     objs = load_objects(args.objects, args.scale)
     render = PyVistaRenderer(cfg, image_files(cfg.textures))
-    command = "realgap " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = current_command()
     n = make_colour_testset(objs, args.out, cfg, render, overwrite=args.overwrite, progress=not args.no_progress,
                             command=command)
     print(f"{args.out}: {n} colour scans (rgb/, depth/, labels.json) of {', '.join(o.name for o in objs)}")
