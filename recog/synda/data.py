@@ -15,6 +15,10 @@ configuration. Per view and chunk file ``WORK/data/<object>/chunk_NNN.npz``:
   with the clean patch's virtual camera and reference depth, so that input and target align pixel
   by pixel (:func:`recog.patches.depth_patch`).
 
+Deviation, on purpose: the issue draws the sensor effects every iteration as part of A; here they are drawn per
+view (K draws, stored) and every training step picks one of them, because the full physical pipeline of a view
+costs ~0.07 s (one core), ~3x a training step's share of a sample. See docs/synda.md, "Deviations".
+
 Normals are not stored: :func:`normals_from_depth` derives them from a (clean) normalised depth
 patch when a batch is built, so that they also follow the backgrounds A composes.
 
