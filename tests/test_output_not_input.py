@@ -52,6 +52,7 @@ CMDS = [
     ("synda augment", ["synda", "augment", "--objects", "{IN}", "--domain", "depth", "--out", "{OUT}"], ALL),
     ("synda testset", ["synda", "testset", "--objects", "{IN}", "--out", "{OUT}"], ALL),
     ("synda testset --backgrounds", ["synda", "testset", "--objects", "chairs", "--backgrounds", "{IN}", "--out", "{OUT}"], ALL),
+    ("synda reindex", ["synda", "reindex", "{IN}", "--out", "{OUT}"], ALL),
     ("synda testset --textures", ["synda", "testset", "--objects", "chairs", "--textures", "{IN}", "--out", "{OUT}"], ALL),
     ("synth views", ["synth", "views", "--model", "{IN}/f.txt", "--out", "{OUT}"], ("same",)),
     ("view", ["view", "{IN}", "--screenshot", "{OUT}"], ("same", "contains", "symlink")),

@@ -52,6 +52,7 @@ CASES = [
     ("synda augment", ["synda", "augment", "--objects", "chairs", "--domain", "depth", "--out", "{OUT}"],
      "contact_sheet.png"),
     ("synda testset", ["synda", "testset", "--objects", "chairs", "--out", "{OUT}"], "labels.json"),
+    ("synda reindex", ["synda", "reindex", "M", "--out", "{OUT}"], "recogniser.json"),
     ("synth sequence", ["synth", "sequence", "--out", "{OUT}"], "depth.txt"),
     ("synth views", ["synth", "views", "--model", "m.ply", "--out", "{OUT}"], "views.jsonl"),
     ("view --screenshot", ["view", "S", "--screenshot", "{OUT}"], None),

@@ -121,6 +121,7 @@ RERUN: dict[str, tuple[tuple[str, tuple[str, ...] | None], ...]] = {
     "synda map": (("out", ("contact_sheet.png",)),),
     "synda augment": (("out", ("contact_sheet.png",)),),
     "synda testset": (("out", ("labels.json",)),),
+    "synda reindex": (("out", ("recogniser.json",)),),
     "synth sequence": (("out", ("depth.txt",)),),
     "synth views": (("out", ("views.jsonl",)),),
     "view": (("screenshot", None), ("movie", None)),
