@@ -124,6 +124,18 @@ def main(argv=None) -> int:
         if args.icp:
             line += f" {100 * r['accuracy_full']:7.1f} {r['rot_err_deg_median_after_icp'] or float('nan'):13.1f}"
         print(line)
+    if args.ablation:
+        print(f"\nTable 5.4 (generators in front of {next(iter(recogs))}): vote % / rot. median before ICP (deg)")
+        print(f"{'variant':16s}" + "".join(f" {ts:>18s}" for ts in testsets) + f" {'all scans vote %':>17s}")
+        for name, r in result["ablation"].items():
+            if "error" in r:
+                print(f"{name:16s} {r['error']}")
+                continue
+            cells = [r[ts] for ts in testsets]
+            pooled = sum(c["vote_accuracy"] * c["n_scans"] for c in cells) / max(1, sum(c["n_scans"] for c in cells))
+            print(f"{name:16s}" + "".join(f" {100 * c['vote_accuracy']:10.1f} / "
+                                          f"{c['rot_err_deg_median_before_icp'] or float('nan'):5.1f}" for c in cells)
+                  + f" {100 * pooled:17.1f}")
     return 0
 
 

@@ -446,13 +446,15 @@ def test_synda_reindex_builds_an_object_only_database(trained, model_files, caps
     d = ((q[:, None] - r.db.descriptors[None]) ** 2).sum(-1)
     nearest = d.argmin(1)
     same_view = (r.db.obj[nearest] == td.obj) & (r.db.view[nearest] == td.view)
-    assert len(r.db) == len({(o, v) for o, v in zip(td.obj, td.view)}) and same_view.mean() > 0.9, (len(r.db), same_view.mean())
+    views = {(o, v) for o, v in zip(td.obj, td.view)}
+    assert len(r.db) == len(views) and same_view.mean() > 0.9, (len(r.db), same_view.mean())
     capsys.readouterr()
     for extra in ([], ["--overwrite"]):
         target = out if not extra else trained / "m"
         assert main(["synda", "reindex", str(trained / "m"), "--out", str(target), "--no-progress", *extra]) == 1
         err = capsys.readouterr().err.strip()
-        assert "\n" not in err and ("already holds a finished result" if not extra else "would replace the input") in err
+        expected = "already holds a finished result" if not extra else "would replace the input"
+        assert "\n" not in err and expected in err
 
 
 def test_synda_augmented_training_data(trained, model_files):

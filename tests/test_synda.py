@@ -544,8 +544,9 @@ def test_wrong_image_size_or_channels_is_one_line(shape):
 
 @pytest.mark.parametrize("domain", ["depth", "rgb"])
 def test_ablation_variants_change_one_switch_each(domain):
-    """Table 5.4's variants (recog/synda/evaluate.py, run by benchmarks/bench_synda.py --ablation): each is the cpu preset with its one switch flipped, in
-    either domain; without the auxiliary decoders only the target's decoder is left."""
+    """Table 5.4's variants (recog/synda/evaluate.py, run by benchmarks/bench_synda.py --ablation): each is the
+    cpu preset with its one switch flipped, in either domain; without the auxiliary decoders only the target's
+    decoder is left."""
     from recog.synda.evaluate import ABLATIONS, ablation_config
     full = ablation_config("full", domain, "depth", 10, 0).generator
     assert full.target == "depth" and full.distillation and full.attention and full.skips and not full.triplet
