@@ -84,15 +84,19 @@ def main(argv=None) -> int:
     recogs, testsets = _pairs(args.recog), _pairs(args.testset)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    from data_tools.errors import RealgapError
     from recog.synda.evaluate import evaluate_ablation, table_row, train_ablation
     from recog.synda.train import pick_threads
     rows = []
     trained = None
     if args.ablation:                # first: the recognisers are read after
         pick_threads(1)
-        trained = train_ablation(args.objects, out, None if args.variants is None else args.variants.split(","),
-                                 domain=args.domain, target=args.target, iterations=args.iterations, seed=args.seed,
-                                 subdivisions=args.subdivisions)
+        try:
+            trained = train_ablation(args.objects, out, None if args.variants is None else args.variants.split(","),
+                                     domain=args.domain, target=args.target, iterations=args.iterations,
+                                     seed=args.seed, subdivisions=args.subdivisions)
+        except RealgapError as e:         # an unknown --variants name or a bad --domain / --target: before any work
+            raise SystemExit(f"bench_synda --ablation: {e}") from None
     with_synda = set(recogs) if args.synda_recog is None else set(filter(None, args.synda_recog.split(",")))
     if args.generator is None:
         if not args.ablation:

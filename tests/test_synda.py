@@ -558,3 +558,27 @@ def test_ablation_variants_change_one_switch_each(domain):
     assert changed == {"full": set(), "no_aux_decoders": {"decoders"}, "no_distillation": {"distillation"},
                        "no_attention": {"attention"}, "no_skips": {"skips"}, "with_triplet": {"triplet"}}
     assert ablation_config("no_aux_decoders", domain, "depth", 10, 0).generator.decoders == ("depth",)
+
+
+def test_ablation_training_keeps_no_checkpoint_across_variants(tmp_path, monkeypatch):
+    """``train_ablation``: a variant that fails is reported with its one line and leaves no checkpoint for the
+    next variant to resume; a generator file already there is kept (a re-run continues with the next variant)."""
+    import recog.synda.run as run
+    from recog.synda.evaluate import ablation_file, train_ablation
+    seen = []
+
+    def fake_train(objects, gen, cfg, views, *, work, **kw):
+        seen.append((gen.name, (work / "checkpoint.pt").exists()))
+        work.mkdir(parents=True, exist_ok=True)
+        (work / "checkpoint.pt").write_text("this variant's")
+        if not cfg.generator.skips:
+            raise RealgapError("no_skips failed")
+        gen.write_text("generator")
+
+    monkeypatch.setattr(run, "train_synda", fake_train)
+    ablation_file(tmp_path, "full").write_text("kept")
+    res = train_ablation("chairs", tmp_path, ["full", "no_skips", "no_attention"], log=lambda m: None)
+    assert res["no_skips"] == {"error": "no_skips failed"} and "train_s" in res["no_attention"]
+    assert seen == [("ablation_no_skips.pt", False), ("ablation_no_attention.pt", False)]
+    assert ablation_file(tmp_path, "full").read_text() == "kept"
+    assert not (tmp_path / "work" / "checkpoint.pt").exists()

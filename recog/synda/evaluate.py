@@ -95,7 +95,7 @@ def train_ablation(objects_spec, out: str | os.PathLike, variants: list[str] | N
     views = DataConfig(variant="physical", seed=seed, subdivisions=subdivisions)
     res = {}
     for name, cfg in cfgs.items():
-        gen = out / f"ablation_{name}.pt"
+        gen = ablation_file(out, name)
         t0 = time.perf_counter()
         if not gen.is_file():
             log(f"ablation {name}: training {iterations} steps")
@@ -104,11 +104,18 @@ def train_ablation(objects_spec, out: str | os.PathLike, variants: list[str] | N
                             command=f"ablation {name} ({domain}, target {target}, {iterations} steps, seed {seed})")
             except RealgapError as e:
                 res[name] = {"error": str(e)}
-                continue
-            # the views are shared; the checkpoint is this variant's (the next one would resume it)
+            # the variant ended (trained or failed): the views are shared, the checkpoint is this variant's and
+            # the next one would resume it; an interrupted variant keeps it, to continue
             (out / "work" / "checkpoint.pt").unlink(missing_ok=True)
+            if name in res:
+                continue
         res[name] = {"train_s": round(time.perf_counter() - t0, 1)}
     return res
+
+
+def ablation_file(out: str | os.PathLike, name: str) -> Path:
+    """Where :func:`train_ablation` writes variant ``name``'s generator."""
+    return Path(out) / f"ablation_{name}.pt"
 
 
 def evaluate_ablation(trained: dict, model_path: str | os.PathLike, testsets: dict[str, str],
@@ -118,7 +125,7 @@ def evaluate_ablation(trained: dict, model_path: str | os.PathLike, testsets: di
     for name, r in trained.items():
         res[name] = dict(r)
         if "error" not in r:
-            res[name].update({ts: table_row(model_path, path, Path(out) / f"ablation_{name}.pt", False, max_scans)
+            res[name].update({ts: table_row(model_path, path, ablation_file(out, name), False, max_scans)
                               for ts, path in testsets.items()})
         log(f"ablation {name}: {res[name]}")
     return res
